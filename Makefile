@@ -1,0 +1,34 @@
+# facepipe: `make demo` runs the whole pipeline on the built-in sample rig, `make test` the tests.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+FP     := $(BIN)/facepipe
+DEMO   := demo
+
+.PHONY: venv demo test test-fast bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $@
+
+venv: $(VENV)/.installed
+
+demo: venv
+	rm -rf $(DEMO)
+	$(FP) sample $(DEMO)/rig
+	$(FP) fit $(DEMO)/rig/sample.toml -o $(DEMO)/fit.npz
+	$(FP) bake $(DEMO)/fit.npz -o $(DEMO)/model.npz
+	$(FP) replay $(DEMO)/rig/take.csv -m $(DEMO)/model.npz -o $(DEMO)/replay --save-large-scale
+	$(FP) export $(DEMO)/replay --format obj -o $(DEMO)/obj
+	$(FP) eval $(DEMO)/replay --truth $(DEMO)/rig/take_truth.npz --large-scale
+
+test: venv
+	$(BIN)/python -m pytest -q -ra
+
+bench: venv
+	$(FP) bench -o bench/results.json
+
+clean:
+	rm -rf $(DEMO) bench/results.* bench/work .pytest_cache

@@ -1,0 +1,186 @@
+"""Fitting: large-scale basis, feature graph, details of the examples, greedy PSD/WPSD basis.
+
+Everything here is arrays in, arrays out; the rig loader and the CLI do the I/O.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .errors import InputError
+from .frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
+from .psd import (DetailModel, default_beta, edge_weight_matrix, fit_details, greedy_basis, rms_per_pose,
+                  wpsd_edge_weights)
+from .rig import Rig
+from .shell import large_scale_positions, marker_spacing, shell_basis
+from .strain import auto_feature_graph, edge_graph, edge_lengths, geodesic_from, graph_from_pairs, strain_features
+
+
+@dataclass
+class Geometry:
+    """Rest-pose quantities shared by fitting and replay.
+
+    rest : (V, 3); faces : (T, 3); handles : (H,) vertex indices; B : (V, H) large-scale basis;
+    edges : (F, 2) handle-index pairs; rest_lengths : (F,); neighbors : (V,) frame neighbours;
+    spacing : mean marker spacing (length units).
+    """
+
+    rest: np.ndarray
+    faces: np.ndarray
+    handles: np.ndarray
+    B: np.ndarray
+    edges: np.ndarray
+    rest_lengths: np.ndarray
+    neighbors: np.ndarray
+    spacing: float
+    incidence: sp.csr_matrix = field(repr=False, default=None)
+
+    def __post_init__(self):
+        if self.incidence is None:
+            self.incidence = vertex_face_matrix(self.faces, self.rest.shape[0])
+
+    def large_scale(self, poses: np.ndarray) -> np.ndarray:
+        """Large-scale positions (E, V, 3) of poses (E, V, 3) from their handle vertices."""
+        return large_scale_positions(self.rest, self.B, poses[:, self.handles] - self.rest[self.handles])
+
+    def frames(self, positions: np.ndarray) -> np.ndarray:
+        return local_frames(positions, self.faces, self.neighbors, self.incidence)
+
+    def features(self, handle_positions: np.ndarray) -> np.ndarray:
+        return strain_features(handle_positions, self.edges, self.rest_lengths)
+
+    def details(self, poses: np.ndarray, chunk: int = 16) -> np.ndarray:
+        """Details d = Rᵀ (pose − large-scale) in the large-scale mesh's local frames: (E, V, 3)."""
+        out = np.empty_like(poses, dtype=np.float64)
+        for s in range(0, poses.shape[0], chunk):
+            large = self.large_scale(poses[s:s + chunk])
+            out[s:s + chunk] = to_local(self.frames(large), poses[s:s + chunk] - large)
+        return out
+
+
+def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | None = None) -> Geometry:
+    """Large-scale basis and feature graph of a rig."""
+    cfg = rig.config
+    mesh = rig.mesh
+    rest = mesh.vertices
+    faces = mesh.faces
+    handles = rig.handles
+    spacing = marker_spacing(rest, handles)
+    B = shell_basis(rest, faces, handles, rig.anchors,
+                    k_stretch=cfg.shell.k_stretch if k_stretch is None else k_stretch,
+                    k_bend=cfg.shell.k_bend if k_bend is None else k_bend, spacing=spacing)
+    if cfg.graph == "auto":
+        edges = auto_feature_graph(rest, faces, handles)
+    else:
+        edges = graph_from_pairs(read_graph_csv(cfg.path.parent / cfg.graph), rig.markers.handle_names,
+                                 str(cfg.path.parent / cfg.graph))
+    if len(edges) == 0:
+        raise InputError("the feature graph has no edges", path=cfg.path, hint="check the markers or give a graph CSV")
+    rest_lengths = edge_lengths(rest[handles], edges)
+    short = np.flatnonzero(rest_lengths < 1e-9 * max(spacing, 1e-300))
+    if len(short):
+        a, b = edges[short[0]]
+        names = rig.markers.handle_names
+        raise InputError(f"feature edge {names[a]}–{names[b]} has zero rest length", path=cfg.markers)
+    return Geometry(rest, faces, handles, B, edges, rest_lengths, frame_neighbors(faces, len(rest)), spacing)
+
+
+def read_graph_csv(path) -> list[tuple[str, str]]:
+    """Marker-name pairs, one per line (``a,b``; a header ``a,b`` or comments are allowed)."""
+    import csv
+    from pathlib import Path
+
+    if not Path(path).is_file():
+        raise InputError("feature graph file not found", path=path, hint="[features] graph = 'auto' or a CSV")
+    pairs = []
+    with open(path, newline="", encoding="utf-8") as fh:
+        for line_no, row in enumerate(csv.reader(fh), start=1):
+            row = [c.strip() for c in row if c.strip()]
+            if not row or row[0].startswith("#"):
+                continue
+            if len(row) != 2:
+                raise InputError(f"line {line_no}: expected two marker names", path=path)
+            pairs.append((row[0], row[1]))
+    return pairs
+
+
+@dataclass
+class FitResult:
+    geometry: Geometry
+    example_names: list[str]
+    features: np.ndarray  # (E + 1, F), pose 0 = rest
+    details: np.ndarray  # (E + 1, V, 3), pose 0 = rest
+    method: str
+    model: DetailModel
+    basis: list[int]
+    curves: dict  # method -> list of {"poses", "added", "mean_rms", "max_rms"}
+    edge_index: np.ndarray | None
+    edge_weight: np.ndarray | None
+    beta: float
+    report: dict
+
+
+def fit_rig(rig: Rig, progress=None) -> FitResult:
+    """Fit the whole rig: geometry, details of every example, greedy basis for PSD and WPSD.
+
+    The configured method's model is returned; the error curves of both methods are reported
+    (the paper's Fig. 4: error against basis size).
+    """
+    cfg = rig.config.psd
+    t0 = time.perf_counter()
+    geo = build_geometry(rig)
+    t_geo = time.perf_counter() - t0
+    poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) else geo.rest[None]
+    details = geo.details(poses)
+    features = geo.features(poses[:, geo.handles])
+    beta = cfg.beta or default_beta(geo.rest_lengths, cfg.beta_scale)
+    distances = geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
+    edge_index, edge_weight = wpsd_edge_weights(distances, geo.edges, geo.rest_lengths, beta,
+                                                cfg.min_edge_weight, cfg.max_edges_per_vertex)
+    alpha = edge_weight_matrix(edge_index, edge_weight, len(geo.edges))
+    large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
+    curves = {}
+    models = {}
+    methods = ["psd", "wpsd"] if len(poses) > 1 else []
+    t1 = time.perf_counter()
+    for method in methods:
+        model, basis, curve = greedy_basis(method, features, details, cfg.fit, cfg.max_poses, cfg.tolerance,
+                                           alpha=alpha, rcond=cfg.rcond, smoothing=cfg.smoothing,
+                                           progress=(lambda n, c, m=method: progress(m, n, c)) if progress else None)
+        curves[method] = curve
+        models[method] = (model, basis)
+    t_fit = time.perf_counter() - t1
+    if cfg.method == "none" or not methods:
+        model = fit_details("psd", features, details, [0], "interpolate")
+        model.method = "none"
+        basis = [0]
+    else:
+        model, basis = models[cfg.method]
+    names = ["rest"] + list(rig.example_names)
+    report = {
+        "vertices": int(geo.rest.shape[0]),
+        "triangles": int(geo.faces.shape[0]),
+        "handles": int(len(geo.handles)),
+        "anchors": int(len(rig.anchors)),
+        "feature_edges": int(len(geo.edges)),
+        "marker_spacing": geo.spacing,
+        "examples": len(rig.example_names),
+        "method": cfg.method,
+        "fit": cfg.fit,
+        "beta": beta,
+        "k_stretch": rig.config.shell.k_stretch,
+        "k_bend": rig.config.shell.k_bend,
+        "edges_per_vertex_mean": float((edge_weight > 0).sum(axis=1).mean()),
+        "large_scale_rms": {"mean": float(large_only.mean()) if len(large_only) else 0.0,
+                            "max": float(large_only.max()) if len(large_only) else 0.0},
+        "basis": [names[i] for i in basis],
+        "curves": {m: [dict(c, added=names[c["added"]]) for c in curve] for m, curve in curves.items()},
+        "seconds": {"geometry": t_geo, "greedy": t_fit, "total": time.perf_counter() - t0},
+        "digest": rig.digest,
+    }
+    return FitResult(geo, names, features, details, cfg.method, model, basis, curves, edge_index, edge_weight,
+                     beta, report)

@@ -1,0 +1,105 @@
+"""Per-vertex orthonormal frames of a deformed mesh, for storing details locally.
+
+Fine-scale details live in the tangent frames of the large-scale surface, so a wrinkle
+learned in one pose rotates with the skin in another (Bickel et al. 2008, §5).
+Frame of vertex v: normal n (area-weighted face normals), tangent t from the edge to a
+fixed neighbour projected into the tangent plane, bitangent b = n × t.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def vertex_face_matrix(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(V, T) incidence matrix: summing face quantities onto vertices is one sparse product."""
+    faces = np.asarray(faces, dtype=np.int64)
+    rows = faces.ravel()
+    cols = np.repeat(np.arange(faces.shape[0]), 3)
+    return sp.csr_matrix((np.ones(rows.shape[0]), (rows, cols)), shape=(n_vertices, faces.shape[0]))
+
+
+def frame_neighbors(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """A fixed neighbour per vertex (the lowest-index one) that defines its tangent.
+
+    Returns
+    -------
+    (V,) int64; a vertex without neighbours gets itself (its frame falls back to a default).
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.concatenate([e, e[:, ::-1]])
+    nb = np.full(n_vertices, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(nb, e[:, 0], e[:, 1])
+    missing = nb == np.iinfo(np.int64).max
+    nb[missing] = np.flatnonzero(missing)
+    return nb
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_matrix | None = None) -> np.ndarray:
+    """Area-weighted unit vertex normals, batched.
+
+    Parameters
+    ----------
+    vertices : (..., V, 3); faces : (T, 3); incidence : optional cached vertex_face_matrix.
+
+    Returns
+    -------
+    (..., V, 3) unit normals in the dtype of ``vertices``.
+    """
+    vertices = np.asarray(vertices)
+    n = vertices.shape[-2]
+    if incidence is None:
+        incidence = vertex_face_matrix(faces, n)
+    v0 = vertices[..., faces[:, 0], :]
+    fn = np.cross(vertices[..., faces[:, 1], :] - v0, vertices[..., faces[:, 2], :] - v0)
+    lead = fn.shape[:-2]
+    # sum over incident faces for all frames at once: (V, T) @ (T, batch*3)
+    flat = np.moveaxis(fn, -2, 0).reshape(fn.shape[-2], -1)
+    vn = np.asarray(incidence @ flat).reshape((n,) + lead + (3,))
+    vn = np.moveaxis(vn, 0, -2)
+    return _normalize(vn, fallback=np.array([0.0, 0.0, 1.0])).astype(vertices.dtype, copy=False)
+
+
+def _normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    ok = norm > 1e-30
+    return np.where(ok, v / np.where(ok, norm, 1.0), fallback)
+
+
+def local_frames(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray,
+                 incidence: sp.csr_matrix | None = None) -> np.ndarray:
+    """Orthonormal frames [t, b, n] as matrix columns, batched.
+
+    Parameters
+    ----------
+    vertices : (..., V, 3); faces : (T, 3); neighbors : (V,) from :func:`frame_neighbors`.
+
+    Returns
+    -------
+    R : (..., V, 3, 3) with R[..., :, 0] = t, R[..., :, 1] = b, R[..., :, 2] = n;
+        world = R @ local, local = Rᵀ @ world.
+    """
+    n = vertex_normals(vertices, faces, incidence)
+    e = vertices[..., neighbors, :] - vertices
+    t = e - np.einsum("...i,...i->...", e, n)[..., None] * n
+    # an edge parallel to the normal (degenerate) falls back to any perpendicular direction
+    alt = np.cross(n, np.array([1.0, 0.0, 0.0]))
+    alt = np.where(np.linalg.norm(alt, axis=-1, keepdims=True) < 1e-6, np.cross(n, np.array([0.0, 1.0, 0.0])), alt)
+    tlen = np.linalg.norm(t, axis=-1, keepdims=True)
+    elen = np.linalg.norm(e, axis=-1, keepdims=True)
+    t = np.where(tlen > 1e-6 * np.maximum(elen, 1e-30), t, alt)
+    t = _normalize(t, fallback=np.array([1.0, 0.0, 0.0]))
+    b = np.cross(n, t)
+    return np.stack([t, b, n], axis=-1).astype(np.asarray(vertices).dtype, copy=False)
+
+
+def to_local(frames: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """World vectors (..., V, 3) into local frame coordinates: Rᵀ v."""
+    return np.einsum("...ji,...j->...i", frames, vectors)
+
+
+def to_world(frames: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """Local frame coordinates (..., V, 3) into world vectors: R v."""
+    return np.einsum("...ij,...j->...i", frames, vectors)

@@ -1,0 +1,296 @@
+"""Pose-space deformation of fine-scale details over strain features.
+
+Bickel et al. 2008, §5.2–5.3. A detail d_v (3-vector in vertex v's local frame) is an RBF
+function of the strain feature vector f:
+
+    d_v(f) = Σ_i w_{v,i} φ(r_{v,i}(f)) + c_v,      φ(r) = r
+
+* PSD: r_i(f) = |f − f_i|, one distance per basis pose, shared by all vertices.
+* WPSD: r_{v,i}(f)² = Σ_e α_{v,e} (f_e − f_{i,e})², each vertex weighs the feature edges
+  near it, so independent regions of the face (left brow, right mouth corner) combine
+  freely from a small basis.
+
+φ(r) = r is conditionally negative definite of order 1: the constant term c_v with the
+side condition Σ_i w_{v,i} = 0 makes the interpolation system non-singular for distinct
+poses. A per-vertex WPSD system is singular where two basis poses have the same strain on
+all of the vertex's edges (a left-side expression seen from the right cheek looks like the
+rest pose); those systems are solved in the least-squares sense by a truncated
+pseudo-inverse, which averages coincident poses instead of blowing up.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+METHODS = ("wpsd", "psd", "none")
+
+
+# ----------------------------------------------------------------------------- weights
+
+
+def default_beta(rest_lengths: np.ndarray, scale: float = 1.0) -> float:
+    """WPSD falloff β (1/length) from the feature-edge spacing: β = scale / median(l)."""
+    return float(scale / np.median(rest_lengths))
+
+
+def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_lengths: np.ndarray, beta: float,
+                      min_weight: float = 0.025, max_edges: int = 16, min_keep: int = 3,
+                      chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex feature-edge weights α_{v,e} = exp(−β (L_{v,e} − l_e)), normalised.
+
+    L_{v,e} is the sum of the geodesic distances from v to the edge's two markers, so
+    L − l is 0 on the edge and grows with the distance from it.
+
+    Parameters
+    ----------
+    marker_distances : (M, V) geodesic distances from each marker to each vertex (length
+        units; ``inf`` where unreachable).
+    edges : (F, 2) marker index pairs; rest_lengths : (F,) lengths.
+    beta : falloff (1/length).
+    min_weight : normalised weights below it are dropped ...
+    max_edges : ... and at most this many edges are kept per vertex (the largest) ...
+    min_keep : ... but never fewer than this, so a vertex far from every edge still
+        keeps its nearest ones.
+
+    Returns
+    -------
+    edge_index : (V, K) int32 feature-edge indices, K = min(max_edges, F).
+    edge_weight : (V, K) float32, each row sums to 1; unused slots have weight 0.
+    """
+    edges = np.asarray(edges, dtype=np.int64)
+    F = edges.shape[0]
+    V = marker_distances.shape[1]
+    K = min(max_edges, F)
+    keep_min = min(min_keep, K)
+    index = np.zeros((V, K), dtype=np.int32)
+    weight = np.zeros((V, K), dtype=np.float32)
+    for start in range(0, V, chunk):
+        stop = min(V, start + chunk)
+        L = marker_distances[edges[:, 0], start:stop] + marker_distances[edges[:, 1], start:stop]  # (F, n)
+        excess = (L - rest_lengths[:, None]).T  # (n, F)
+        excess = np.where(np.isfinite(excess), excess, np.inf)
+        # subtracting the per-vertex minimum leaves the normalised weights unchanged and
+        # keeps far vertices (neck, back of the head) from underflowing to all-zero
+        base = excess.min(axis=1, keepdims=True)
+        base = np.where(np.isfinite(base), base, 0.0)
+        alpha = np.exp(-beta * (excess - base))
+        top = np.argpartition(-alpha, K - 1, axis=1)[:, :K] if K < F else np.tile(np.arange(F), (stop - start, 1))
+        a = np.take_along_axis(alpha, top, axis=1)
+        order = np.argsort(-a, axis=1)
+        top = np.take_along_axis(top, order, axis=1)
+        a = np.take_along_axis(a, order, axis=1)
+        total = a.sum(axis=1, keepdims=True)
+        a = a / np.where(total > 0, total, 1.0)
+        drop = a < min_weight
+        drop[:, :keep_min] = False
+        a = np.where(drop, 0.0, a)
+        a = a / a.sum(axis=1, keepdims=True)
+        index[start:stop] = top
+        weight[start:stop] = a
+    return index, weight
+
+
+def edge_weight_matrix(edge_index: np.ndarray, edge_weight: np.ndarray, n_edges: int) -> sp.csr_matrix:
+    """The α as a sparse (V, F) matrix, so per-vertex weighted sums are one sparse product."""
+    V, K = edge_index.shape
+    rows = np.repeat(np.arange(V), K)
+    W = sp.csr_matrix((edge_weight.ravel().astype(np.float64), (rows, edge_index.ravel())), shape=(V, n_edges))
+    W.eliminate_zeros()
+    return W
+
+
+# ----------------------------------------------------------------------------- distances
+
+
+def psd_distances(features: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """Global pose-space distances |f − f_i|: (Q, F), (P, F) → (Q, P)."""
+    diff = features[:, None, :] - basis[None, :, :]
+    return np.sqrt(np.einsum("qpf,qpf->qp", diff, diff))
+
+
+def wpsd_distances(features: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix) -> np.ndarray:
+    """Per-vertex weighted distances: (Q, F), (P, F), α (V, F) → (Q, V, P).
+
+    The squared strain differences form a (Q·P, F) table; the α-weighted sums over each
+    vertex's edges are then one sparse product.
+    """
+    Q, P = features.shape[0], basis.shape[0]
+    sq = (features[:, None, :] - basis[None, :, :]) ** 2  # (Q, P, F)
+    r2 = alpha @ sq.reshape(Q * P, -1).T  # (V, Q*P)
+    r2 = np.maximum(np.asarray(r2), 0.0).reshape(-1, Q, P)
+    return np.sqrt(np.moveaxis(r2, 1, 0))
+
+
+# ----------------------------------------------------------------------------- solve
+
+
+def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = 1e-6, smoothing: float = 0.0,
+              chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
+    """Weights and constant of d = Σ_i w_i φ_i + c, by interpolation or least squares.
+
+    Solves, per vertex, the rows [Φ 1] [w; c] = D together with the side condition
+    Σ_i w_i = 0 (least squares when there are more rows than basis poses; exact
+    interpolation when Φ is the basis-to-basis matrix and non-singular).
+
+    Parameters
+    ----------
+    phi : (R, P) shared kernel matrix (PSD) or (V, R, P) per vertex (WPSD); R rows are
+        training poses, P basis poses.
+    targets : (R, V, 3) details to reproduce.
+    rcond : singular values below ``rcond`` × the largest are cut (coincident poses).
+    smoothing : λ ≥ 0, relative to the mean kernel value; with R = P uses Φ − λI (for
+        φ = r, which is conditionally negative definite, Φ + λI can become singular).
+
+    Returns
+    -------
+    weights : (V, P, 3) float64; const : (V, 3) float64.
+    """
+    R, V = targets.shape[0], targets.shape[1]
+    shared = phi.ndim == 2
+    P = phi.shape[-1]
+    if shared:
+        x = _solve_block(phi[None], targets.reshape(R, -1)[None], rcond, smoothing)[0]  # (P+1, V*3)
+        x = x.reshape(P + 1, V, 3)
+        return np.moveaxis(x[:P], 0, 1), x[P]
+    weights = np.empty((V, P, 3))
+    const = np.empty((V, 3))
+    for start in range(0, V, chunk):
+        stop = min(V, start + chunk)
+        rhs = np.moveaxis(targets[:, start:stop], 1, 0)  # (n, R, 3)
+        x = _solve_block(phi[start:stop], rhs, rcond, smoothing)  # (n, P+1, 3)
+        weights[start:stop] = x[:, :P]
+        const[start:stop] = x[:, P]
+    return weights, const
+
+
+def _solve_block(phi: np.ndarray, rhs: np.ndarray, rcond: float, smoothing: float) -> np.ndarray:
+    """Batched least-squares solve of [Φ s·1; s·1ᵀ 0] [w; c/s] = [D; 0] by truncated pinv."""
+    n, R, P = phi.shape
+    scale = np.abs(phi).mean(axis=(1, 2), keepdims=True)
+    scale = np.where(scale > 0, scale, 1.0)
+    A = np.zeros((n, R + 1, P + 1))
+    A[:, :R, :P] = phi
+    if smoothing and R == P:
+        A[:, :R, :P] -= smoothing * scale * np.eye(P)
+    # the constant column is scaled like Φ so the SVD cut-off treats both alike
+    A[:, :R, P] = scale[:, 0, 0][:, None]
+    A[:, R, :P] = scale[:, 0, 0][:, None]
+    b = np.zeros((n, R + 1, rhs.shape[-1]))
+    b[:, :R] = rhs
+    x = np.linalg.pinv(A, rcond=rcond) @ b
+    x[:, P] *= scale[:, 0, 0][:, None]
+    return x
+
+
+# ----------------------------------------------------------------------------- model
+
+
+@dataclass
+class DetailModel:
+    """A fitted pose-space detail model.
+
+    Attributes
+    ----------
+    method : "psd" | "wpsd" | "none"
+    basis_features : (P, F) strain features of the basis poses (the rest pose first).
+    weights : (V, P, 3) RBF weights; const : (V, 3) constant term (local-frame units).
+    alpha : (V, F) sparse WPSD edge weights (None for PSD).
+    """
+
+    method: str
+    basis_features: np.ndarray
+    weights: np.ndarray
+    const: np.ndarray
+    alpha: sp.csr_matrix | None = None
+
+    def distances(self, features: np.ndarray) -> np.ndarray:
+        """Kernel values: (Q, P) for PSD, (Q, V, P) for WPSD."""
+        return kernel_matrix(self.method, features, self.basis_features, self.alpha)
+
+    def evaluate(self, features: np.ndarray) -> np.ndarray:
+        """Details in local frames for strain features (Q, F) → (Q, V, 3)."""
+        if self.method == "none":
+            return np.zeros((features.shape[0],) + self.const.shape)
+        phi = self.distances(features)
+        if phi.ndim == 2:
+            return np.einsum("qp,vpc->qvc", phi, self.weights, optimize=True) + self.const
+        return np.einsum("qvp,vpc->qvc", phi, self.weights, optimize=True) + self.const
+
+
+def kernel_matrix(method: str, features: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix | None) -> np.ndarray:
+    """φ(r) = r between query poses and basis poses for the given method."""
+    if method == "psd":
+        return psd_distances(features, basis)
+    if method == "wpsd":
+        return wpsd_distances(features, basis, alpha)
+    raise ValueError(f"unknown pose-space method {method!r}")
+
+
+def fit_details(method: str, features: np.ndarray, details: np.ndarray, basis: list[int], fit: str,
+                alpha: sp.csr_matrix | None = None, rcond: float = 1e-6, smoothing: float = 0.0) -> DetailModel:
+    """Fit the RBF weights for a chosen basis.
+
+    Parameters
+    ----------
+    features : (E, F) strain features of the training poses (pose 0 is the rest pose).
+    details : (E, V, 3) their details in local frames.
+    basis : indices into the training poses of the basis poses.
+    fit : "interpolate" (exact at the basis poses) or "least-squares" (over all E poses).
+    """
+    basis_features = features[basis]
+    rows = basis if fit == "interpolate" else list(range(features.shape[0]))
+    phi = kernel_matrix(method, features[rows], basis_features, alpha)  # (R, P) or (R, V, P)
+    if phi.ndim == 3:
+        phi = np.moveaxis(phi, 1, 0)  # (V, R, P)
+    weights, const = solve_rbf(phi, details[rows], rcond=rcond, smoothing=smoothing)
+    return DetailModel(method, basis_features, weights, const, alpha)
+
+
+def rms_per_pose(predicted: np.ndarray, target: np.ndarray, vertices: slice | np.ndarray = slice(None)) -> np.ndarray:
+    """RMS vertex distance per pose: (E, V, 3), (E, V, 3) → (E,)."""
+    d = predicted[:, vertices] - target[:, vertices]
+    return np.sqrt(np.einsum("evc,evc->ev", d, d).mean(axis=1))
+
+
+def greedy_basis(method: str, features: np.ndarray, details: np.ndarray, fit: str, max_poses: int,
+                 tolerance: float = 0.0, alpha: sp.csr_matrix | None = None, rcond: float = 1e-6,
+                 smoothing: float = 0.0, error_vertices: slice | np.ndarray = slice(None),
+                 candidates: np.ndarray | None = None, progress=None) -> tuple[DetailModel, list[int], list[dict]]:
+    """Greedy basis selection: start from the rest pose, add the worst-fit pose.
+
+    Parameters
+    ----------
+    features : (E, F), details : (E, V, 3) training poses; pose 0 must be the rest pose.
+    max_poses : number of poses to add beyond the rest pose.
+    tolerance : stop when the worst training error (RMS, length units) falls below it.
+    candidates : indices allowed into the basis (default: every pose but the rest).
+
+    Returns
+    -------
+    model : the DetailModel of the final basis.
+    basis : its pose indices (rest first).
+    curve : one dict per basis size: {"poses": n_added, "added": index, "mean_rms", "max_rms"}
+        — the error of the training poses as the basis grows.
+    """
+    E = features.shape[0]
+    if candidates is None:
+        candidates = np.arange(1, E)
+    basis = [0]
+    curve = []
+    model = fit_details(method, features, details, basis, fit, alpha, rcond, smoothing)
+    while True:
+        err = rms_per_pose(model.evaluate(features), details, error_vertices)
+        curve.append({"poses": len(basis) - 1, "added": int(basis[-1]),
+                      "mean_rms": float(err[1:].mean()) if E > 1 else 0.0, "max_rms": float(err.max())})
+        if progress is not None:
+            progress(len(basis) - 1, curve[-1])
+        open_ = [int(c) for c in candidates if c not in basis]
+        if len(basis) - 1 >= max_poses or not open_ or err.max() <= tolerance:
+            break
+        worst = open_[int(np.argmax(err[open_]))]
+        basis.append(worst)
+        model = fit_details(method, features, details, basis, fit, alpha, rcond, smoothing)
+    return model, basis, curve

@@ -1,0 +1,192 @@
+"""Per-frame evaluation of a model: the NumPy reference path and the chunked replay driver.
+
+Per frame: handle positions (head space) → u_H → large-scale u = B u_H → local frames of
+the large-scale mesh → strain features f → details d(f) → final = large + R d.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import atomic_path
+from .frames import local_frames, to_world, vertex_face_matrix
+from .model import Model
+from .strain import strain_features
+
+
+def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
+    """Least-squares rotation and translation with target ≈ R @ source + t (Kabsch), batched.
+
+    Parameters
+    ----------
+    source : (N, 3) or (..., N, 3); target : (..., N, 3); weights : (..., N) ≥ 0 or None
+        (a zero weight ignores a point, e.g. a missing marker).
+
+    Returns
+    -------
+    R : (..., 3, 3) proper rotations; t : (..., 3).
+    """
+    target = np.asarray(target, dtype=np.float64)
+    source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
+    if weights is None:
+        weights = np.ones(target.shape[:-1])
+    w = weights / np.maximum(weights.sum(axis=-1, keepdims=True), 1e-300)
+    cs = np.einsum("...n,...nc->...c", w, source)
+    ct = np.einsum("...n,...nc->...c", w, target)
+    cov = np.einsum("...n,...ni,...nj->...ij", w, target - ct[..., None, :], source - cs[..., None, :])
+    U, _, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.zeros(cov.shape)
+    D[..., 0, 0] = 1
+    D[..., 1, 1] = 1
+    D[..., 2, 2] = d
+    R = U @ D @ Vt
+    t = ct - np.einsum("...ij,...j->...i", R, cs)
+    return R, t
+
+
+def stabilise(handle_positions: np.ndarray, rest_handles: np.ndarray, stable: np.ndarray):
+    """Head motion from the stable markers, and the handles in head space.
+
+    Parameters
+    ----------
+    handle_positions : (T, H, 3) world; rest_handles : (H, 3); stable : (H,) bool.
+
+    Returns
+    -------
+    head : (T, H, 3) handles in head (rig) space; R : (T, 3, 3); t : (T, 3)
+        with world = R @ head + t.
+    """
+    T = handle_positions.shape[0]
+    if stable.sum() < 3:
+        return handle_positions, np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3))
+    R, t = rigid_fit(rest_handles[stable], handle_positions[:, stable])
+    head = np.einsum("tji,thj->thi", R, handle_positions - t[:, None, :])
+    return head, R, t
+
+
+class NumpyEvaluator:
+    """Reference evaluation of a model on frames of handle positions (float64 arithmetic)."""
+
+    backend = "numpy"
+    device = "cpu (numpy)"
+
+    def __init__(self, model: Model):
+        self.model = model
+        self.rest = model.rest.astype(np.float64)
+        self.B = model.B.astype(np.float64)
+        self.handles = model.handle_vertices.astype(np.int64)
+        self.faces = model.triangles.astype(np.int64)
+        self.neighbors = model.frame_neighbors.astype(np.int64)
+        self.edges = model.edges.astype(np.int64)
+        self.rest_lengths = model.rest_lengths.astype(np.float64)
+        self.incidence = vertex_face_matrix(self.faces, len(self.rest))
+        self.details = model.detail_model(np.float64)
+        self.stage_seconds = {"large_scale": 0.0, "frames": 0.0, "fine_scale": 0.0}
+
+    def evaluate(self, handle_positions: np.ndarray, with_large: bool = False):
+        """Final positions (C, V, 3) for head-space handle positions (C, H, 3).
+
+        With ``with_large`` also returns the large-scale positions.
+        """
+        t0 = time.perf_counter()
+        u = handle_positions - self.rest[self.handles]
+        large = np.einsum("vh,chx->cvx", self.B, u, optimize=True) + self.rest
+        t1 = time.perf_counter()
+        final = large
+        if self.details.method != "none":
+            frames = local_frames(large, self.faces, self.neighbors, self.incidence)
+            t2 = time.perf_counter()
+            f = strain_features(handle_positions, self.edges, self.rest_lengths)
+            final = large + to_world(frames, self.details.evaluate(f))
+            t3 = time.perf_counter()
+            self.stage_seconds["frames"] += t2 - t1
+            self.stage_seconds["fine_scale"] += t3 - t2
+        self.stage_seconds["large_scale"] += t1 - t0
+        return (final, large) if with_large else final
+
+
+@dataclass
+class ReplayResult:
+    positions_path: Path
+    report: dict
+
+
+def replay(model: Model, handle_world: np.ndarray, frames: np.ndarray, times: np.ndarray, out_dir: Path,
+           evaluator=None, chunk: int = 32, head_motion: str = "keep", progress=None, extra_report=None,
+           save_large: bool = False) -> ReplayResult:
+    """Replay handle trajectories onto the full mesh, streaming positions to disk.
+
+    Parameters
+    ----------
+    handle_world : (T, H, 3) clean handle positions in the take's (world) space, rig units.
+    frames : (T,) frame numbers; times : (T,) seconds.
+    out_dir : gets ``positions.npy`` (float32, T × V × 3, memory-mapped while written, renamed
+        into place when complete) and ``replay.json``.
+    head_motion : "keep" re-applies the head's rigid motion to the output, "remove" leaves
+        the face in rig space.
+    progress : callable(n_frames_done) or None.
+    """
+    evaluator = evaluator or NumpyEvaluator(model)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    T = handle_world.shape[0]
+    V = model.n_vertices
+    rest_handles = model.rest[model.handle_vertices].astype(np.float64)
+    head, R, t = stabilise(handle_world, rest_handles, model.stable.astype(bool))
+    t_start = time.perf_counter()
+    final_path = out_dir / "positions.npy"
+    large_path = out_dir / "large_scale.npy"
+    with atomic_path(final_path) as tmp, atomic_path(large_path) as tmp_large:
+        out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(T, V, 3))
+        out_large = (np.lib.format.open_memmap(tmp_large, mode="w+", dtype=np.float32, shape=(T, V, 3))
+                     if save_large else None)
+        for s in range(0, T, chunk):
+            e = min(T, s + chunk)
+            final, large = evaluator.evaluate(head[s:e], with_large=True)
+            if head_motion == "keep":
+                final = np.einsum("cij,cvj->cvi", R[s:e], final) + t[s:e, None, :]
+                large = np.einsum("cij,cvj->cvi", R[s:e], large) + t[s:e, None, :]
+            out[s:e] = final
+            if out_large is not None:
+                out_large[s:e] = large
+            if progress is not None:
+                progress(e - s)
+        out.flush()
+        del out
+        if out_large is not None:
+            out_large.flush()
+            del out_large
+    if not save_large:
+        large_path.unlink(missing_ok=True)
+    seconds = time.perf_counter() - t_start
+    angles = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    report = {
+        "frames": int(T),
+        "first_frame": int(frames[0]) if T else None,
+        "last_frame": int(frames[-1]) if T else None,
+        "frame_numbers": [int(f) for f in frames],
+        "times": [float(x) for x in times],
+        "vertices": int(V),
+        "method": model.method,
+        "backend": evaluator.backend,
+        "device": evaluator.device,
+        "head_motion": head_motion,
+        "head_rotation_deg_max": float(angles.max()) if T else 0.0,
+        "head_translation_max": float(np.linalg.norm(t, axis=1).max()) if T else 0.0,
+        "seconds": seconds,
+        "frames_per_second": T / seconds if seconds > 0 else None,
+        "stage_seconds": dict(evaluator.stage_seconds),
+        "model": model.path,
+        "config_digest": model.meta.get("config_digest"),
+    }
+    if extra_report:
+        report.update(extra_report)
+    with atomic_path(out_dir / "replay.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
+    return ReplayResult(final_path, report)

@@ -1,0 +1,317 @@
+"""The rig: config file (TOML) and the files it names, loaded and validated.
+
+Paths in the config are relative to the config file. Every problem is an InputError
+naming the file, the line or key, and the fix.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import hashlib
+import json
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose, load_mesh
+
+ROLES = ("handle", "stable", "ignore")
+
+
+@dataclass
+class ShellConfig:
+    k_stretch: float = 0.0  # relative to the marker spacing h: effective k_s = k_stretch / h²
+    k_bend: float = 1.0
+
+
+@dataclass
+class PsdConfig:
+    method: str = "wpsd"
+    fit: str = "interpolate"
+    max_poses: int = 12
+    tolerance: float = 0.0
+    max_edges_per_vertex: int = 16
+    min_edge_weight: float = 0.025
+    beta: float = 0.0  # WPSD falloff (1/length); 0 = beta_scale / median feature-edge length
+    beta_scale: float = 1.0
+    rcond: float = 1e-6
+    smoothing: float = 0.0
+
+
+@dataclass
+class Config:
+    path: Path
+    mesh: Path
+    markers: Path
+    anchors: Path | None = None
+    units: str = "cm"
+    example_meshes: list[str] = field(default_factory=list)
+    sequence: Path | None = None
+    sequence_stride: int = 1
+    graph: str = "auto"
+    shell: ShellConfig = field(default_factory=ShellConfig)
+    psd: PsdConfig = field(default_factory=PsdConfig)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return json.loads(json.dumps(d, default=str))
+
+
+_KNOWN = {
+    "rig": {"mesh", "markers", "anchors", "units"},
+    "examples": {"meshes", "sequence", "sequence_stride"},
+    "shell": {"k_stretch", "k_bend"},
+    "features": {"graph"},
+    "psd": set(PsdConfig.__dataclass_fields__),
+}
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a config TOML (see DESIGN.md for the keys)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("config file not found", path=path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML: {exc}", path=path) from None
+    for section, values in raw.items():
+        if section not in _KNOWN and section != "tune":
+            raise InputError(f"unknown section [{section}]", path=path, hint=f"known: {sorted(_KNOWN)}")
+        if isinstance(values, dict) and section in _KNOWN:
+            unknown = set(values) - _KNOWN[section]
+            if unknown:
+                raise InputError(f"unknown key(s) {sorted(unknown)} in [{section}]", path=path,
+                                 hint=f"known keys: {sorted(_KNOWN[section])}")
+    base = path.parent
+    rig = raw.get("rig", {})
+    for key in ("mesh", "markers"):
+        if not rig.get(key):
+            raise InputError(f"[rig] {key} is required", path=path)
+
+    def rel(p):
+        return None if not p else (base / p)
+
+    examples = raw.get("examples", {})
+    meshes = examples.get("meshes", [])
+    if isinstance(meshes, str):
+        meshes = [meshes]
+    shell = _section(ShellConfig, raw.get("shell", {}), path, "shell")
+    psd = _section(PsdConfig, raw.get("psd", {}), path, "psd")
+    if psd.method not in ("wpsd", "psd", "none"):
+        raise InputError(f"[psd] method = {psd.method!r}", path=path, hint="use wpsd, psd or none")
+    if psd.fit not in ("interpolate", "least-squares"):
+        raise InputError(f"[psd] fit = {psd.fit!r}", path=path, hint="use interpolate or least-squares")
+    if psd.max_poses < 0 or psd.max_edges_per_vertex < 1:
+        raise InputError("[psd] max_poses must be ≥ 0 and max_edges_per_vertex ≥ 1", path=path)
+    if shell.k_bend < 0 or shell.k_stretch < 0 or (shell.k_bend == 0 and shell.k_stretch == 0):
+        raise InputError("[shell] k_stretch and k_bend must be ≥ 0 and not both 0", path=path)
+    return Config(
+        path=path,
+        mesh=rel(rig["mesh"]),
+        markers=rel(rig["markers"]),
+        anchors=rel(rig.get("anchors")),
+        units=str(rig.get("units", "cm")),
+        example_meshes=[str(base / m) for m in meshes],
+        sequence=rel(examples.get("sequence")),
+        sequence_stride=int(examples.get("sequence_stride", 1)),
+        graph=str(raw.get("features", {}).get("graph", "auto")),
+        shell=shell,
+        psd=psd,
+    )
+
+
+def _section(cls, values: dict, path: Path, name: str):
+    out = cls()
+    for key, value in values.items():
+        default = getattr(out, key)
+        try:
+            value = type(default)(value)
+        except (TypeError, ValueError):
+            raise InputError(f"[{name}] {key} = {value!r} should be a {type(default).__name__}", path=path) from None
+        setattr(out, key, value)
+    return out
+
+
+@dataclass
+class Markers:
+    """Markers of the rig, in the file's order.
+
+    names / vertices / roles for every row; ``handles`` selects those that drive the shell
+    (every role but ``ignore``); ``stable`` flags, among the handles, those for head motion.
+    """
+
+    names: list[str]
+    vertices: np.ndarray
+    roles: list[str]
+
+    @property
+    def handle_mask(self) -> np.ndarray:
+        return np.array([r != "ignore" for r in self.roles], dtype=bool)
+
+    @property
+    def handle_names(self) -> list[str]:
+        return [n for n, r in zip(self.names, self.roles) if r != "ignore"]
+
+    @property
+    def handle_vertices(self) -> np.ndarray:
+        return self.vertices[self.handle_mask]
+
+    @property
+    def stable(self) -> np.ndarray:
+        return np.array([r == "stable" for r, keep in zip(self.roles, self.handle_mask) if keep], dtype=bool)
+
+
+def load_markers(path: Path, n_vertices: int) -> Markers:
+    """Read ``name,vertex[,role]`` (header optional); validate names, indices and roles."""
+    if not Path(path).is_file():
+        raise InputError("marker file not found", path=path)
+    names, vertices, roles, lines = [], [], [], []
+    with open(path, newline="", encoding="utf-8") as fh:
+        for line_no, row in enumerate(csv.reader(fh), start=1):
+            row = [c.strip() for c in row]
+            if not row or not any(row) or row[0].startswith("#"):
+                continue
+            if line_no == 1 and row[0].lower() == "name":
+                continue
+            if len(row) < 2:
+                raise InputError(f"line {line_no}: expected name,vertex[,role], got {','.join(row)!r}", path=path)
+            try:
+                vertex = int(row[1])
+            except ValueError:
+                raise InputError(f"line {line_no}: marker {row[0]!r} has vertex {row[1]!r}, not an integer",
+                                 path=path) from None
+            role = row[2].lower() if len(row) > 2 and row[2] else "handle"
+            if role not in ROLES:
+                raise InputError(f"line {line_no}: marker {row[0]!r} has role {role!r}", path=path,
+                                 hint="use handle, stable or ignore")
+            if row[0] in names:
+                raise InputError(f"line {line_no}: marker name {row[0]!r} appears twice", path=path)
+            names.append(row[0])
+            vertices.append(vertex)
+            roles.append(role)
+            lines.append(line_no)
+    if not names:
+        raise InputError("no markers", path=path)
+    vertices = np.asarray(vertices, dtype=np.int64)
+    check_marker_vertices(vertices, n_vertices, names, path, lines=lines)
+    markers = Markers(names, vertices, roles)
+    if markers.handle_mask.sum() < 3:
+        raise InputError("fewer than 3 markers drive the shell (role handle or stable)", path=path)
+    return markers
+
+
+def load_anchors(path: Path | None, n_vertices: int) -> np.ndarray:
+    """Vertex indices held fixed to the skull (one per line), or an empty array."""
+    if path is None:
+        return np.zeros(0, dtype=np.int64)
+    if not Path(path).is_file():
+        raise InputError("anchor file not found", path=path)
+    values = []
+    with open(path, encoding="utf-8") as fh:
+        for line_no, line in enumerate(fh, start=1):
+            text = line.split("#")[0].strip()
+            if not text:
+                continue
+            try:
+                v = int(text)
+            except ValueError:
+                raise InputError(f"line {line_no}: {text!r} is not a vertex index", path=path) from None
+            if not 0 <= v < n_vertices:
+                raise InputError(f"line {line_no}: anchor vertex {v} is out of range (mesh has {n_vertices})",
+                                 path=path)
+            values.append(v)
+    return np.unique(np.asarray(values, dtype=np.int64))
+
+
+def example_paths(config: Config) -> list[Path]:
+    """The example meshes named by the config's globs, sorted, without repeats."""
+    out: list[Path] = []
+    for pattern in config.example_meshes:
+        found = sorted(glob.glob(pattern))
+        if not found:
+            raise InputError(f"[examples] meshes: {pattern!r} matches no file", path=config.path)
+        out += [Path(p) for p in found if Path(p) not in out]
+    return out
+
+
+@dataclass
+class Rig:
+    """Everything the fit needs, validated."""
+
+    config: Config
+    mesh: Mesh
+    markers: Markers
+    anchors: np.ndarray
+    example_names: list[str]
+    example_positions: np.ndarray  # (E, V, 3) float64 (meshes, then sequence frames)
+    digest: str
+
+    @property
+    def handles(self) -> np.ndarray:
+        return self.markers.handle_vertices
+
+
+def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
+    """Load and check the rest mesh, markers, anchors and example poses of a config."""
+    if not isinstance(config, Config):
+        config = load_config(config)
+    mesh = load_mesh(config.mesh)
+    check_mesh(mesh)
+    markers = load_markers(config.markers, mesh.n_vertices)
+    anchors = load_anchors(config.anchors, mesh.n_vertices)
+    check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+    digest = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode())
+    for p in [config.mesh, config.markers, config.anchors]:
+        if p is not None:
+            digest.update(Path(p).read_bytes())
+    names: list[str] = []
+    poses: list[np.ndarray] = []
+    if load_examples:
+        for p in example_paths(config):
+            verts = load_mesh(p).vertices
+            check_pose(mesh, verts, p)
+            names.append(p.stem)
+            poses.append(verts)
+            digest.update(p.read_bytes())
+        if config.sequence is not None:
+            seq = load_sequence(config.sequence, mesh, config.sequence_stride)
+            names += [f"{config.sequence.stem}:{i}" for i in range(0, seq.shape[0] * config.sequence_stride,
+                                                                     config.sequence_stride)]
+            poses += list(seq)
+            digest.update(Path(config.sequence).read_bytes())
+        if not poses and config.psd.method != "none":
+            raise InputError("no example poses", path=config.path,
+                             hint="set [examples] meshes and/or sequence, or [psd] method = 'none'")
+    positions = np.stack(poses) if poses else np.zeros((0, mesh.n_vertices, 3))
+    return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16])
+
+
+def load_sequence(path: Path, mesh: Mesh, stride: int = 1) -> np.ndarray:
+    """Frames of a captured take with truth (.npz with ``positions`` (T, V, 3)), in head space.
+
+    Where the file has ``rotation``/``translation`` of the head, they are removed.
+    """
+    if not Path(path).is_file():
+        raise InputError("[examples] sequence file not found", path=path)
+    try:
+        data = np.load(path)
+        positions = np.asarray(data["positions"], dtype=np.float64)[::stride]
+    except KeyError:
+        raise InputError("the sequence .npz has no 'positions' array", path=path) from None
+    except Exception as exc:
+        raise InputError(f"cannot read the sequence: {exc}", path=path) from None
+    if positions.ndim != 3 or positions.shape[1:] != (mesh.n_vertices, 3):
+        raise InputError(f"positions have shape {positions.shape}, expected (frames, {mesh.n_vertices}, 3)",
+                         path=path)
+    if "rotation" in data and "translation" in data:
+        rot = np.asarray(data["rotation"], dtype=np.float64)[::stride]
+        trans = np.asarray(data["translation"], dtype=np.float64)[::stride]
+        positions = np.einsum("tvi,tij->tvj", positions - trans[:, None, :], rot)
+    for i, frame in enumerate(positions):
+        check_pose(mesh, frame, f"{path} (frame {i * stride})")
+    return positions

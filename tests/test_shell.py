@@ -1,0 +1,104 @@
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from facepipe.shell import (CholeskyFactor, cotmatrix, large_scale_positions, massmatrix, shell_basis,
+                            shell_operator)
+from tests.conftest import grid
+
+
+def test_cotmatrix_symmetric_psd_rows_sum_zero(sheet):
+    V, F = sheet
+    K = cotmatrix(V, F)
+    assert abs(K - K.T).max() < 1e-12
+    assert np.allclose(K.sum(axis=1), 0, atol=1e-10)
+    assert np.linalg.eigvalsh(K.toarray()).min() > -1e-9
+
+
+def test_cotmatrix_kills_linear_functions_inside_a_flat_sheet():
+    V, F = grid(curved=False)
+    K = cotmatrix(V, F)
+    f = 2.0 * V[:, 0] - 3.0 * V[:, 1] + 1.0
+    interior = (np.abs(V[:, 0]) < 4.9) & (np.abs(V[:, 1]) < 4.9)
+    assert np.abs((K @ f)[interior]).max() < 1e-9
+
+
+def test_cotmatrix_survives_degenerate_triangle():
+    V = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 1e-14], [1, 1, 0.]])
+    F = np.array([[0, 1, 2], [0, 1, 3]])
+    K = cotmatrix(V, F)
+    assert np.isfinite(K.data).all()
+
+
+def test_mass_sums_to_area():
+    V, F = grid(curved=False, size=10.0)
+    assert np.isclose(massmatrix(V, F).sum(), 100.0)
+
+
+def _handles(V, step=7):
+    return np.arange(0, len(V), step)
+
+
+def test_basis_interpolates_handles_and_reproduces_translation(sheet):
+    V, F = sheet
+    H = _handles(V)
+    for ks in (0.0, 1.0):
+        B = shell_basis(V, F, H, k_stretch=ks)
+        assert np.allclose(B[H], np.eye(len(H)))
+        assert np.allclose(B.sum(axis=1), 1.0, atol=1e-8)
+
+
+def test_basis_with_anchors_reproduces_translation_of_handles_and_anchors(sheet):
+    V, F = sheet
+    H = _handles(V)
+    anchors = np.setdiff1d(np.arange(0, 12), H)
+    B = shell_basis(V, F, H, anchors, columns=anchors)
+    assert np.allclose(B.sum(axis=1), 1.0, atol=1e-8)
+    assert np.allclose(B[anchors][:, len(H):], np.eye(len(anchors)))
+
+
+def test_basis_matches_independent_sparse_solve(sheet):
+    V, F = sheet
+    H = _handles(V, 5)
+    anchors = np.array([1, 2, 3])
+    k_stretch, spacing = 0.7, 1.3
+    B = shell_basis(V, F, H, anchors, k_stretch=k_stretch, spacing=spacing)
+    rng = np.random.default_rng(0)
+    uH = rng.normal(size=(len(H), 3))
+    # independent: the full system with constraint rows replaced by identity rows, solved by SuperLU
+    A = shell_operator(V, F, k_stretch, 1.0, spacing).tolil()
+    rhs = np.zeros((len(V), 3))
+    for rows, vals in ((H, uH), (anchors, np.zeros((len(anchors), 3)))):
+        for r, val in zip(rows, vals):
+            A.rows[r] = [r]
+            A.data[r] = [1.0]
+            rhs[r] = val
+    u_ref = spla.spsolve(sp.csc_matrix(A), rhs)
+    u = B @ uH
+    assert np.linalg.norm(u - u_ref) / np.linalg.norm(u_ref) < 1e-5
+
+
+def test_basis_is_scale_invariant(sheet):
+    V, F = sheet
+    H = _handles(V)
+    B1 = shell_basis(V, F, H, k_stretch=2.0)
+    B2 = shell_basis(10.0 * V, F, H, k_stretch=2.0)
+    assert np.abs(B1 - B2).max() < 1e-8
+
+
+def test_cholesky_factor_solves_multiple_rhs(sheet):
+    V, F = sheet
+    A = shell_operator(V, F, 1.0, 1.0) + sp.eye(len(V))
+    b = np.random.default_rng(1).normal(size=(len(V), 4))
+    x = CholeskyFactor(A).solve(b)
+    assert np.abs(A @ x - b).max() < 1e-8
+
+
+def test_large_scale_positions_batched(sheet):
+    V, F = sheet
+    H = _handles(V)
+    B = shell_basis(V, F, H)
+    u = np.random.default_rng(2).normal(size=(4, len(H), 3))
+    out = large_scale_positions(V, B, u)
+    assert out.shape == (4, len(V), 3)
+    assert np.allclose(out[2], V + B @ u[2])

@@ -1,0 +1,71 @@
+import numpy as np
+import pytest
+
+from facepipe.errors import InputError
+from facepipe.strain import auto_feature_graph, edge_lengths, graph_from_pairs, strain_features
+from tests.conftest import grid
+
+
+def _rotation(seed):
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_strain_invariant_under_rigid_motion():
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(20, 3))
+    edges = np.array([[i, j] for i in range(20) for j in range(i + 1, 20)][:40])
+    rest = edge_lengths(P, edges)
+    Q = P + 0.05 * rng.normal(size=P.shape)
+    f = strain_features(Q, edges, rest)
+    moved = Q @ _rotation(3).T + np.array([4.0, -2.0, 7.0])
+    assert np.allclose(strain_features(moved, edges, rest), f, atol=1e-12)
+    assert np.allclose(strain_features(P, edges, rest), 0)
+
+
+def test_strain_analytic_uniform_scaling():
+    P = np.random.default_rng(1).normal(size=(6, 3))
+    edges = np.array([[0, 1], [2, 5], [3, 4]])
+    f = strain_features(1.1 * P, edges, edge_lengths(P, edges))
+    assert np.allclose(f, 0.1)
+
+
+def test_auto_graph_is_planar_like_and_connected():
+    V, F = grid(30, 30)
+    markers = np.array([i * 30 + j for i in range(2, 30, 6) for j in range(2, 30, 6)])
+    edges = auto_feature_graph(V, F, markers)
+    M = len(markers)
+    # a planar triangulation has at most 3M - 6 edges; a grid of markers has at least its 4-neighbour edges
+    assert 2 * M - 2 * int(np.sqrt(M)) <= len(edges) <= 3 * M - 6
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    g = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(M, M))
+    assert connected_components(g, directed=False)[0] == 1
+    # no edge spans more than about two marker spacings
+    L = edge_lengths(V[markers], edges)
+    assert L.max() < 2.5 * np.median(L)
+
+
+def test_auto_graph_does_not_cross_a_hole():
+    V, F = grid(40, 20, curved=False)
+    # cut a slit: drop triangles across the middle row between columns 5 and 35
+    cy = V[F].mean(axis=1)
+    slit = (np.abs(cy[:, 1]) < 0.3) & (np.abs(cy[:, 0]) < 3.5)
+    F = F[~slit]
+    top = [np.argmin(np.linalg.norm(V - [x, 1.0, 0], axis=1)) for x in (-2.0, 0.0, 2.0)]
+    bottom = [np.argmin(np.linalg.norm(V - [x, -1.0, 0], axis=1)) for x in (-2.0, 0.0, 2.0)]
+    markers = np.array(top + bottom)
+    edges = auto_feature_graph(V, F, markers)
+    across = [(a, b) for a, b in edges if (a < 3) != (b < 3)]
+    # only the outermost markers can meet around the slit's ends, never the middle ones
+    assert all(1 not in (a, b) and 4 not in (a, b) for a, b in across)
+
+
+def test_graph_from_pairs_validates_names():
+    names = ["A", "B", "C"]
+    assert graph_from_pairs([("B", "A"), ("A", "B"), ("C", "B")], names).tolist() == [[0, 1], [1, 2]]
+    with pytest.raises(InputError, match="line 2: marker 'X'"):
+        graph_from_pairs([("A", "B"), ("X", "B")], names)
+    with pytest.raises(InputError, match="itself"):
+        graph_from_pairs([("A", "A")], names)
