@@ -186,25 +186,30 @@ def replay(ctx, take, model_path, output, backend, frames_text, chunk, head_moti
     from .model import load_model
     from .mocap import fill_gaps, read_take
     from .replay import replay as run_replay
+    from .stabilise import stabilise
 
     rep = _reporter(ctx, quiet, verbose)
     if chunk < 1:
         raise InputError("--chunk must be at least 1")
     model = load_model(model_path)
     take_data = read_take(take, model.marker_names, frames=_parse_frames(frames_text))
-    positions, gap_report = fill_gaps(take_data.positions, marker_names=model.marker_names)
-    T = positions.shape[0]
+    rest_handles = model.rest[model.handle_vertices].astype(np.float64)
+    # gaps are filled in head space, where a marker moves with the face only, not the head
+    head, R, t = stabilise(take_data.positions, rest_handles, model.stable.astype(bool), take_data.frames,
+                           model.marker_names)
+    head, gap_report = fill_gaps(head, marker_names=model.marker_names, times=take_data.times, path=take)
+    T = head.shape[0]
     with rep.bar(T, desc="replay") as bar:
-        result = run_replay(model, positions, take_data.frames, take_data.times, Path(output), chunk=chunk,
+        result = run_replay(model, head, R, t, take_data.frames, take_data.times, Path(output), chunk=chunk,
                             head_motion=head_motion, progress=bar.update,
                             extra_report={"take": str(take), "markers": gap_report,
                                           "extra_markers": take_data.extra_markers},
                             save_large=save_large_scale)
     r = result.report
-    totals = gap_report.get("totals", {})
+    totals = gap_report.get("total", {})
     rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
             f"at {r['frames_per_second']:.1f} frames/s")
-    rep.say(f"markers: {totals.get('samples_filled', 0)} missing samples filled in {totals.get('gaps', 0)} gaps; "
+    rep.say(f"markers: {totals.get('filled', 0)} missing samples filled in {totals.get('gaps', 0)} gaps; "
             f"head motion up to {r['head_rotation_deg_max']:.1f}° / {r['head_translation_max']:.2f}")
     rep.say(f"wrote {result.positions_path} and {Path(output) / 'replay.json'}")
 

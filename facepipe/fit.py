@@ -122,6 +122,21 @@ class FitResult:
     edge_weight: np.ndarray | None
     beta: float
     report: dict
+    bases: dict = field(default_factory=dict)  # method -> greedy basis (pose indices, rest first)
+    alpha: sp.csr_matrix | None = None
+
+    def detail_model(self, method: str, n_poses: int | None = None) -> DetailModel:
+        """The model of ``method`` with the first ``n_poses`` greedily chosen poses (all by default)."""
+        if method == "none":
+            model = fit_details("psd", self.features, self.details, [0], "interpolate")
+            model.method = "none"
+            return model
+        basis = self.bases[method] if n_poses is None else self.bases[method][: n_poses + 1]
+        cfg = self.config
+        return fit_details(method, self.features, self.details, basis, cfg.fit, self.alpha, cfg.rcond,
+                           cfg.smoothing)
+
+    config: object = None
 
 
 def fit_rig(rig: Rig, progress=None) -> FitResult:
@@ -183,4 +198,4 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
         "digest": rig.digest,
     }
     return FitResult(geo, names, features, details, cfg.method, model, basis, curves, edge_index, edge_weight,
-                     beta, report)
+                     beta, report, bases={m: b for m, (_, b) in models.items()}, alpha=alpha, config=cfg)

@@ -217,3 +217,15 @@ def fit_to_model(path_in, path_out) -> dict:
     save_model(path_out, data, meta)
     return meta
 
+
+
+def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = None) -> Model:
+    """An in-memory Model from a FitResult, optionally of another method or a smaller basis."""
+    arrays, meta = model_arrays(fit, rig)
+    if method is not None or n_poses is not None:
+        method = method or fit.method
+        detail = fit.detail_model(method, n_poses)
+        arrays.update(basis_features=detail.basis_features, rbf_weights=detail.weights, rbf_const=detail.const)
+        basis = [0] if method == "none" else fit.bases[method][: None if n_poses is None else n_poses + 1]
+        meta = dict(meta, method=method, basis=[fit.example_names[i] for i in basis])
+    return Model(arrays, meta, "(in memory)")

@@ -19,57 +19,6 @@ from .model import Model
 from .strain import strain_features
 
 
-def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
-    """Least-squares rotation and translation with target ≈ R @ source + t (Kabsch), batched.
-
-    Parameters
-    ----------
-    source : (N, 3) or (..., N, 3); target : (..., N, 3); weights : (..., N) ≥ 0 or None
-        (a zero weight ignores a point, e.g. a missing marker).
-
-    Returns
-    -------
-    R : (..., 3, 3) proper rotations; t : (..., 3).
-    """
-    target = np.asarray(target, dtype=np.float64)
-    source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
-    if weights is None:
-        weights = np.ones(target.shape[:-1])
-    w = weights / np.maximum(weights.sum(axis=-1, keepdims=True), 1e-300)
-    cs = np.einsum("...n,...nc->...c", w, source)
-    ct = np.einsum("...n,...nc->...c", w, target)
-    cov = np.einsum("...n,...ni,...nj->...ij", w, target - ct[..., None, :], source - cs[..., None, :])
-    U, _, Vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(U @ Vt))
-    D = np.zeros(cov.shape)
-    D[..., 0, 0] = 1
-    D[..., 1, 1] = 1
-    D[..., 2, 2] = d
-    R = U @ D @ Vt
-    t = ct - np.einsum("...ij,...j->...i", R, cs)
-    return R, t
-
-
-def stabilise(handle_positions: np.ndarray, rest_handles: np.ndarray, stable: np.ndarray):
-    """Head motion from the stable markers, and the handles in head space.
-
-    Parameters
-    ----------
-    handle_positions : (T, H, 3) world; rest_handles : (H, 3); stable : (H,) bool.
-
-    Returns
-    -------
-    head : (T, H, 3) handles in head (rig) space; R : (T, 3, 3); t : (T, 3)
-        with world = R @ head + t.
-    """
-    T = handle_positions.shape[0]
-    if stable.sum() < 3:
-        return handle_positions, np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3))
-    R, t = rigid_fit(rest_handles[stable], handle_positions[:, stable])
-    head = np.einsum("tji,thj->thi", R, handle_positions - t[:, None, :])
-    return head, R, t
-
-
 class NumpyEvaluator:
     """Reference evaluation of a model on frames of handle positions (float64 arithmetic)."""
 
@@ -117,14 +66,15 @@ class ReplayResult:
     report: dict
 
 
-def replay(model: Model, handle_world: np.ndarray, frames: np.ndarray, times: np.ndarray, out_dir: Path,
-           evaluator=None, chunk: int = 32, head_motion: str = "keep", progress=None, extra_report=None,
-           save_large: bool = False) -> ReplayResult:
+def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames: np.ndarray, times: np.ndarray,
+           out_dir: Path, evaluator=None, chunk: int = 32, head_motion: str = "keep", progress=None,
+           extra_report=None, save_large: bool = False) -> ReplayResult:
     """Replay handle trajectories onto the full mesh, streaming positions to disk.
 
     Parameters
     ----------
-    handle_world : (T, H, 3) clean handle positions in the take's (world) space, rig units.
+    head : (T, H, 3) clean handle positions in head (rig) space, rig units.
+    R, t : (T, 3, 3), (T, 3) the head's rigid motion, world = R @ head + t.
     frames : (T,) frame numbers; times : (T,) seconds.
     out_dir : gets ``positions.npy`` (float32, T × V × 3, memory-mapped while written, renamed
         into place when complete) and ``replay.json``.
@@ -135,10 +85,8 @@ def replay(model: Model, handle_world: np.ndarray, frames: np.ndarray, times: np
     evaluator = evaluator or NumpyEvaluator(model)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    T = handle_world.shape[0]
+    T = head.shape[0]
     V = model.n_vertices
-    rest_handles = model.rest[model.handle_vertices].astype(np.float64)
-    head, R, t = stabilise(handle_world, rest_handles, model.stable.astype(bool))
     t_start = time.perf_counter()
     final_path = out_dir / "positions.npy"
     large_path = out_dir / "large_scale.npy"
