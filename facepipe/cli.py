@@ -338,6 +338,24 @@ def sample(ctx, directory, vertices, examples, frames, seed, quiet, verbose):
                                                              if isinstance(v, (int, float))))
 
 
+@cli.command()
+@click.option("-o", "--output", default="bench/results.json", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--vertices", default=20000, show_default=True, help="Vertices of the generated rig.")
+@click.option("--frames", default=64, show_default=True)
+@click.option("--repeats", default=3, show_default=True, help="Timings are medians over this many runs.")
+@click.option("--work", default="bench/work", show_default=True, type=click.Path(file_okay=False))
+@_common
+@click.pass_context
+def bench(ctx, output, vertices, frames, repeats, work, quiet, verbose):
+    """Measure bake and replay speed on a generated rig; write the figures as JSON."""
+    from .bench import run_bench
+
+    rep = _reporter(ctx, quiet, verbose)
+    results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, log=rep.say)
+    _write_json(Path(output), results)
+    rep.say(f"wrote {output}")
+
+
 def main(argv=None) -> None:
     """Console entry point: maps InputError to exit status 2, anything unexpected to 1."""
     try:

@@ -1,0 +1,120 @@
+"""End-to-end runs of the command line on the built-in sample rig, and its bad-input paths."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facepipe.cli import main
+
+BOUNDS = json.loads((Path(__file__).parent / "data" / "sample_bounds.json").read_text())
+
+
+def run(*args) -> int:
+    with pytest.raises(SystemExit) as exc:
+        main([str(a) for a in args])
+    return exc.value.code
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    """sample → fit → bake → replay → export → eval, once for the module."""
+    d = tmp_path_factory.mktemp("e2e")
+    rig = d / "rig"
+    assert run("sample", rig, "--vertices", BOUNDS["vertices"], "--frames", BOUNDS["frames"], "-q") == 0
+    assert run("fit", rig / "sample.toml", "-o", d / "fit.npz", "-q") == 0
+    assert run("bake", d / "fit.npz", "-o", d / "model.npz", "-q") == 0
+    assert run("replay", rig / "take.csv", "-m", d / "model.npz", "-o", d / "out", "--save-large-scale", "-q") == 0
+    assert run("eval", d / "out", "--truth", rig / "take_truth.npz", "--large-scale", "-q") == 0
+    return d
+
+
+def test_outputs_and_reports(pipeline):
+    d = pipeline
+    pos = np.load(d / "out" / "positions.npy", mmap_mode="r")
+    assert pos.dtype == np.float32 and pos.shape[0] == BOUNDS["frames"]
+    report = json.loads((d / "out" / "replay.json").read_text())
+    assert report["frames"] == BOUNDS["frames"] and report["backend"] == "numpy"
+    fit = json.loads((d / "fit.json").read_text())
+    assert set(fit["curves"]) == {"psd", "wpsd"}
+    assert not list(d.rglob("*.part*")), "temporary files left behind"
+
+
+def test_error_figures_within_stored_bounds(pipeline):
+    ev = json.loads((pipeline / "out" / "eval.json").read_text())
+    final, large = ev["final"]["rms_mean"], ev["large_scale"]["rms_mean"]
+    assert final <= BOUNDS["final_rms_mean_max"], final
+    assert large <= BOUNDS["large_rms_mean_max"], large
+    assert large / final >= BOUNDS["wpsd_gain_min"], large / final
+
+
+def test_export_obj_sequence(pipeline):
+    d = pipeline
+    assert run("export", d / "out", "--format", "obj", "-o", d / "obj", "-q") == 0
+    files = sorted((d / "obj").glob("frame_*.obj"))
+    assert len(files) == BOUNDS["frames"] and files[0].name == "frame_0001.obj"
+    from facepipe.mesh import load_mesh
+
+    first = load_mesh(files[0])
+    pos = np.load(d / "out" / "positions.npy")
+    assert np.allclose(first.vertices, pos[0], atol=1e-4)
+    assert first.uvs is not None
+    # no overwrite without --force
+    assert run("export", d / "out", "--format", "obj", "-o", d / "obj", "-q") == 2
+    assert run("export", d / "out", "--format", "obj", "-o", d / "obj", "-q", "--force") == 0
+
+
+def test_bake_from_config_equals_bake_from_fit(pipeline, tmp_path):
+    d = pipeline
+    assert run("bake", d / "rig" / "sample.toml", "-o", tmp_path / "m.npz", "-q") == 0
+    a, b = np.load(d / "model.npz"), np.load(tmp_path / "m.npz")
+    for key in ("B", "rbf_weights", "edge_weight"):
+        assert np.array_equal(a[key], b[key])
+
+
+def test_frames_option(pipeline, tmp_path):
+    d = pipeline
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", tmp_path / "o", "--frames", "5:9",
+               "-q") == 0
+    full = np.load(d / "out" / "positions.npy")
+    part = np.load(tmp_path / "o" / "positions.npy")
+    assert part.shape[0] == 4 and np.allclose(part, full[5:9], atol=1e-5)
+
+
+def test_bad_inputs_exit_2_with_message(pipeline, tmp_path, capsys):
+    d = pipeline
+    assert run("fit", tmp_path / "missing.toml") == 2
+    assert "config file not found" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text((d / "rig" / "sample.toml").read_text().replace('markers = "markers.csv"',
+                                                                     'markers = "nope.csv"'))
+    assert run("fit", bad) == 2
+    # a config in another folder: relative paths now point nowhere
+    assert "not found" in capsys.readouterr().err
+    markers = (d / "rig" / "markers.csv").read_text().splitlines()
+    markers[3] = markers[3].split(",")[0] + ",99999999,handle"
+    (d / "rig" / "bad_markers.csv").write_text("\n".join(markers) + "\n")
+    cfg = d / "rig" / "bad_markers.toml"
+    cfg.write_text((d / "rig" / "sample.toml").read_text().replace("markers.csv", "bad_markers.csv"))
+    assert run("fit", cfg, "-o", tmp_path / "f.npz") == 2
+    err = capsys.readouterr().err
+    assert "99999999" in err and "line 4" in err
+    assert not (tmp_path / "f.npz").exists()
+    # a model file that is not one
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip")
+    assert run("replay", d / "rig" / "take.csv", "-m", junk, "-o", tmp_path / "o2") == 2
+    assert "junk.npz" in capsys.readouterr().err
+    assert not (tmp_path / "o2" / "positions.npy").exists()
+    # a take that is truncated
+    take = (d / "rig" / "take.csv").read_text().splitlines()
+    (tmp_path / "cut.csv").write_text("\n".join(take[:5] + [take[5][: len(take[5]) // 2]]) + "\n")
+    assert run("replay", tmp_path / "cut.csv", "-m", d / "model.npz", "-o", tmp_path / "o3") == 2
+    assert "line 6" in capsys.readouterr().err
+    assert not (tmp_path / "o3" / "positions.npy").exists()
+
+
+def test_help_everywhere():
+    for cmd in ([], ["fit"], ["bake"], ["replay"], ["export"], ["eval"], ["sample"], ["bench"]):
+        assert run(*cmd, "--help") == 0
