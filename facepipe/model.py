@@ -41,6 +41,7 @@ _MODEL_ARRAYS = {
     "rbf_const": np.float32,
     "edge_index": np.int32,
     "edge_weight": np.float32,
+    "example_handles": np.float32,
 }
 _OPTIONAL = {"uvs": np.float32, "polygon_uvs": np.int32}
 
@@ -111,6 +112,9 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         "rbf_const": fit.model.const,
         "edge_index": fit.edge_index,
         "edge_weight": fit.edge_weight,
+        # head-space handle positions of the rest pose and every example: the rig's prior over
+        # marker configurations (gap filling, blend-shape baselines)
+        "example_handles": np.concatenate([geo.rest[None, geo.handles], rig.example_positions[:, geo.handles]]),
     }
     if mesh.uvs is not None:
         arrays["uvs"] = mesh.uvs
@@ -124,6 +128,7 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         "config": str(rig.config.path),
         "config_digest": rig.digest,
         "basis": [fit.example_names[i] for i in fit.basis],
+        "example_names": list(fit.example_names),
         "beta": fit.beta,
         "marker_spacing": geo.spacing,
         "shell": {"k_stretch": rig.config.shell.k_stretch, "k_bend": rig.config.shell.k_bend},
@@ -187,14 +192,12 @@ def save_fit(path, fit, rig) -> None:
     """Write the fit file: the model's arrays plus per-example features, details and the report."""
     arrays, meta = model_arrays(fit, rig)
     geo = fit.geometry
-    poses_handles = np.concatenate([geo.rest[None, geo.handles], rig.example_positions[:, geo.handles]])
     extra = {
-        "example_handle_displacements": (poses_handles - geo.rest[geo.handles]).astype(np.float32),
         "example_features": fit.features.astype(np.float32),
         "example_details": fit.details.astype(np.float32),
         "basis_index": np.asarray(fit.basis, dtype=np.int32),
     }
-    meta = dict(meta, kind=FIT_KIND, example_names=fit.example_names, report=fit.report)
+    meta = dict(meta, kind=FIT_KIND, report=fit.report)
     out = {k: np.ascontiguousarray(v) for k, v in arrays.items() if v is not None}
     out.update(extra)
     out["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
@@ -212,7 +215,7 @@ def load_fit(path) -> tuple[dict, dict]:
 def fit_to_model(path_in, path_out) -> dict:
     """Bake a fit file into a model file; returns the model metadata."""
     data, meta = load_fit(path_in)
-    meta = {k: v for k, v in meta.items() if k not in ("example_names", "report")}
+    meta = {k: v for k, v in meta.items() if k != "report"}
     meta["kind"] = MODEL_KIND
     save_model(path_out, data, meta)
     return meta
