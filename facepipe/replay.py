@@ -77,7 +77,8 @@ def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames:
     R, t : (T, 3, 3), (T, 3) the head's rigid motion, world = R @ head + t.
     frames : (T,) frame numbers; times : (T,) seconds.
     out_dir : gets ``positions.npy`` (float32, T × V × 3, memory-mapped while written, renamed
-        into place when complete) and ``replay.json``.
+        into place when complete), ``replay.json``, and ``handles.npz`` (the clean head-space
+        handles and the head motion: what an exporter needs to re-evaluate any layer of the model).
     head_motion : "keep" re-applies the head's rigid motion to the output, "remove" leaves
         the face in rig space.
     progress : callable(n_frames_done) or None.
@@ -112,6 +113,11 @@ def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames:
             del out_large
     if not save_large:
         large_path.unlink(missing_ok=True)
+    with atomic_path(out_dir / "handles.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, head=head.astype(np.float32), rotation=R.astype(np.float32),
+                     translation=t.astype(np.float32), frame=np.asarray(frames), time=np.asarray(times),
+                     head_motion=np.array(head_motion))
     seconds = time.perf_counter() - t_start
     angles = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
     report = {
