@@ -15,6 +15,7 @@ from .errors import InputError
 from .frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
 from .psd import (DetailModel, default_beta, edge_weight_matrix, fit_details, greedy_basis, rms_per_pose,
                   wpsd_edge_weights)
+from .rbfmorph import multiquadric_basis, phantom_points
 from .rig import Rig
 from .shell import large_scale_positions, marker_spacing, shell_basis
 from .strain import auto_feature_graph, edge_graph, edge_lengths, geodesic_from, graph_from_pairs, strain_features
@@ -70,9 +71,13 @@ def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | Non
     faces = mesh.faces
     handles = rig.handles
     spacing = marker_spacing(rest, handles)
-    B = shell_basis(rest, faces, handles, rig.anchors,
-                    k_stretch=cfg.shell.k_stretch if k_stretch is None else k_stretch,
-                    k_bend=cfg.shell.k_bend if k_bend is None else k_bend, spacing=spacing)
+    if cfg.shell.method == "rbf":
+        phantoms = phantom_points(rest, faces, rig.anchors, handles, cfg.shell.phantoms or None)
+        B = multiquadric_basis(rest, handles, phantoms, cfg.shell.rbf_lambda)
+    else:
+        B = shell_basis(rest, faces, handles, rig.anchors,
+                        k_stretch=cfg.shell.k_stretch if k_stretch is None else k_stretch,
+                        k_bend=cfg.shell.k_bend if k_bend is None else k_bend, spacing=spacing)
     if cfg.graph == "auto":
         edges = auto_feature_graph(rest, faces, handles)
     else:
@@ -187,6 +192,7 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
         "method": cfg.method,
         "fit": cfg.fit,
         "beta": beta,
+        "deformer": rig.config.shell.method,
         "k_stretch": rig.config.shell.k_stretch,
         "k_bend": rig.config.shell.k_bend,
         "edges_per_vertex_mean": float((edge_weight > 0).sum(axis=1).mean()),

@@ -24,8 +24,11 @@ ROLES = ("handle", "stable", "ignore")
 
 @dataclass
 class ShellConfig:
+    method: str = "shell"  # shell (thin shell on the mesh) | rbf (volume morph, no connectivity needed)
     k_stretch: float = 0.0  # relative to the marker spacing h: effective k_s = k_stretch / h²
     k_bend: float = 1.0
+    rbf_lambda: float = 0.01  # rbf: Tikhonov λ relative to the marker spacing
+    phantoms: int = 0  # rbf: phantom points held still (from the anchors, else the border); 0 = 2 × handles
 
 
 @dataclass
@@ -64,7 +67,7 @@ class Config:
 _KNOWN = {
     "rig": {"mesh", "markers", "anchors", "units"},
     "examples": {"meshes", "sequence", "sequence_stride"},
-    "shell": {"k_stretch", "k_bend"},
+    "shell": set(ShellConfig.__dataclass_fields__),
     "features": {"graph"},
     "psd": set(PsdConfig.__dataclass_fields__),
 }
@@ -108,6 +111,10 @@ def load_config(path: str | Path) -> Config:
         raise InputError(f"[psd] fit = {psd.fit!r}", path=path, hint="use interpolate or least-squares")
     if psd.max_poses < 0 or psd.max_edges_per_vertex < 1:
         raise InputError("[psd] max_poses must be ≥ 0 and max_edges_per_vertex ≥ 1", path=path)
+    if shell.method not in ("shell", "rbf"):
+        raise InputError(f"[shell] method = {shell.method!r}", path=path, hint="use shell or rbf")
+    if shell.rbf_lambda < 0 or shell.phantoms < 0:
+        raise InputError("[shell] rbf_lambda and phantoms must be ≥ 0", path=path)
     if shell.k_bend < 0 or shell.k_stretch < 0 or (shell.k_bend == 0 and shell.k_stretch == 0):
         raise InputError("[shell] k_stretch and k_bend must be ≥ 0 and not both 0", path=path)
     return Config(
@@ -264,7 +271,9 @@ def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
     check_mesh(mesh)
     markers = load_markers(config.markers, mesh.n_vertices)
     anchors = load_anchors(config.anchors, mesh.n_vertices)
-    check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+    if config.shell.method == "shell":
+        # the RBF morph needs no connectivity; the shell is singular on a part without constraints
+        check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
     digest = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode())
     for p in [config.mesh, config.markers, config.anchors]:
         if p is not None:
