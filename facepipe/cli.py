@@ -196,7 +196,7 @@ def replay(ctx, take, model_path, output, backend, frames_text, chunk, head_moti
     rest_handles = model.rest[model.handle_vertices].astype(np.float64)
     # gaps are filled in head space, where a marker moves with the face only, not the head
     head, R, t = stabilise(take_data.positions, rest_handles, model.stable.astype(bool), take_data.frames,
-                           model.marker_names)
+                           model.marker_names, prior=model.example_handles.astype(np.float64))
     head, gap_report = fill_gaps(head, marker_names=model.marker_names, times=take_data.times, path=take)
     T = head.shape[0]
     with rep.bar(T, desc="replay") as bar:
