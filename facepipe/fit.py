@@ -13,8 +13,8 @@ import scipy.sparse as sp
 
 from .errors import InputError
 from .frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
-from .psd import (DetailModel, default_beta, edge_weight_matrix, fit_details, greedy_basis, rms_per_pose,
-                  wpsd_edge_weights)
+from .psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details,
+                  greedy_basis, novelty_gate, rms_per_pose, wpsd_edge_weights)
 from .rbfmorph import multiquadric_basis, phantom_points
 from .rig import Rig
 from .shell import large_scale_positions, marker_spacing, shell_basis
@@ -138,10 +138,13 @@ class FitResult:
             return model
         basis = self.bases[method] if n_poses is None else self.bases[method][: n_poses + 1]
         cfg = self.config
-        return fit_details(method, self.features, self.details, basis, cfg.fit, self.alpha, cfg.rcond,
-                           cfg.smoothing)
+        model = fit_details(method, self.features, self.details, basis, cfg.fit, self.alpha, cfg.rcond,
+                            cfg.smoothing)
+        model.gate = self.gate
+        return model
 
     config: object = None
+    gate: NoveltyGate | None = None
 
 
 def fit_rig(rig: Rig, progress=None) -> FitResult:
@@ -162,6 +165,10 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
     edge_index, edge_weight = wpsd_edge_weights(distances, geo.edges, geo.rest_lengths, beta,
                                                 cfg.min_edge_weight, cfg.max_edges_per_vertex)
     alpha = edge_weight_matrix(edge_index, edge_weight, len(geo.edges))
+    gate = None
+    if cfg.novelty_tau > 0 and len(poses) > 1:
+        gate = novelty_gate(features[1:], edge_distances(distances[:, geo.handles], geo.edges), alpha,
+                            cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)))
     large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
     curves = {}
     models = {}
@@ -180,6 +187,7 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
         basis = [0]
     else:
         model, basis = models[cfg.method]
+        model.gate = gate
     names = ["rest"] + list(rig.example_names)
     report = {
         "vertices": int(geo.rest.shape[0]),
@@ -204,4 +212,4 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
         "digest": rig.digest,
     }
     return FitResult(geo, names, features, details, cfg.method, model, basis, curves, edge_index, edge_weight,
-                     beta, report, bases={m: b for m, (_, b) in models.items()}, alpha=alpha, config=cfg)
+                     beta, report, bases={m: b for m, (_, b) in models.items()}, alpha=alpha, config=cfg, gate=gate)

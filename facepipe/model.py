@@ -17,7 +17,7 @@ import numpy as np
 from .atomic import atomic_path
 from .errors import InputError
 from .mesh import Mesh
-from .psd import DetailModel, edge_weight_matrix
+from .psd import DetailModel, NoveltyGate, edge_weight_matrix
 
 FORMAT_VERSION = 1
 MODEL_KIND = "facepipe-model"
@@ -43,7 +43,8 @@ _MODEL_ARRAYS = {
     "edge_weight": np.float32,
     "example_handles": np.float32,
 }
-_OPTIONAL = {"uvs": np.float32, "polygon_uvs": np.int32}
+_OPTIONAL = {"uvs": np.float32, "polygon_uvs": np.int32, "novelty_index": np.int32, "novelty_weight": np.float32,
+             "novelty_basis": np.float32}
 
 
 @dataclass
@@ -73,11 +74,13 @@ class Model:
         return int(self.arrays["rest"].shape[0])
 
     def detail_model(self, dtype=np.float64) -> DetailModel:
-        alpha = None
-        if self.method == "wpsd":
-            alpha = edge_weight_matrix(self.edge_index, self.edge_weight, len(self.edges)).astype(dtype)
+        weights = edge_weight_matrix(self.edge_index, self.edge_weight, len(self.edges)).astype(dtype)
+        gate = None
+        if "novelty_basis" in self.arrays and self.meta.get("novelty_tau", 0) > 0:
+            gate = NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype), self.novelty_basis.astype(dtype),
+                               float(self.meta["novelty_tau"]), weights)
         return DetailModel(self.method, self.basis_features.astype(dtype), self.rbf_weights.astype(dtype),
-                           self.rbf_const.astype(dtype), alpha)
+                           self.rbf_const.astype(dtype), weights if self.method == "wpsd" else None, gate)
 
     def mesh(self) -> Mesh:
         """The rest mesh with its original polygons and UVs (for export)."""
@@ -116,6 +119,9 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         # marker configurations (gap filling, blend-shape baselines)
         "example_handles": np.concatenate([geo.rest[None, geo.handles], rig.example_positions[:, geo.handles]]),
     }
+    gate = fit.model.gate
+    if gate is not None:
+        arrays.update(novelty_index=gate.index, novelty_weight=gate.sqrt_weight, novelty_basis=gate.basis)
     if mesh.uvs is not None:
         arrays["uvs"] = mesh.uvs
         arrays["polygon_uvs"] = mesh.polygon_uvs
@@ -130,6 +136,7 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         "basis": [fit.example_names[i] for i in fit.basis],
         "example_names": list(fit.example_names),
         "beta": fit.beta,
+        "novelty_tau": 0.0 if gate is None else gate.tau,
         "marker_spacing": geo.spacing,
         "shell": {"k_stretch": rig.config.shell.k_stretch, "k_bend": rig.config.shell.k_bend},
     }

@@ -198,6 +198,7 @@ class DetailModel:
     basis_features : (P, F) strain features of the basis poses (the rest pose first).
     weights : (V, P, 3) RBF weights; const : (V, 3) constant term (local-frame units).
     alpha : (V, F) sparse WPSD edge weights (None for PSD).
+    gate : optional :class:`NoveltyGate` fading details out on strain unlike the examples'.
     """
 
     method: str
@@ -205,6 +206,7 @@ class DetailModel:
     weights: np.ndarray
     const: np.ndarray
     alpha: sp.csr_matrix | None = None
+    gate: "NoveltyGate | None" = None
 
     def distances(self, features: np.ndarray) -> np.ndarray:
         """Kernel values: (Q, P) for PSD, (Q, V, P) for WPSD."""
@@ -216,8 +218,12 @@ class DetailModel:
             return np.zeros((features.shape[0],) + self.const.shape)
         phi = self.distances(features)
         if phi.ndim == 2:
-            return np.einsum("qp,vpc->qvc", phi, self.weights, optimize=True) + self.const
-        return np.einsum("qvp,vpc->qvc", phi, self.weights, optimize=True) + self.const
+            d = np.einsum("qp,vpc->qvc", phi, self.weights, optimize=True) + self.const
+        else:
+            d = np.einsum("qvp,vpc->qvc", phi, self.weights, optimize=True) + self.const
+        if self.gate is not None:
+            d *= self.gate.confidence(features)[..., None]
+        return d
 
 
 def kernel_matrix(method: str, features: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix | None) -> np.ndarray:
@@ -294,3 +300,95 @@ def greedy_basis(method: str, features: np.ndarray, details: np.ndarray, fit: st
         basis.append(worst)
         model = fit_details(method, features, details, basis, fit, alpha, rcond, smoothing)
     return model, basis, curve
+
+
+# ----------------------------------------------------------------------------- novelty gate
+
+
+def edge_distances(marker_distances: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Surface distance between feature edges: mean geodesic distance of their end markers.
+
+    Parameters
+    ----------
+    marker_distances : (M, M) geodesic distances between markers; edges : (F, 2).
+
+    Returns
+    -------
+    (F, F) float64, length units.
+    """
+    a, b = edges[:, 0], edges[:, 1]
+    D = marker_distances
+    return 0.25 * (D[np.ix_(a, a)] + D[np.ix_(a, b)] + D[np.ix_(b, a)] + D[np.ix_(b, b)])
+
+
+@dataclass
+class NoveltyGate:
+    """Fades the details out where the strain is unlike any combination of the examples'.
+
+    φ(r) = r extrapolates: on an expression no example shows, the details can make the face
+    worse than the large-scale motion alone. Seen expressions and their mixtures produce
+    strain (nearly) in the span of the examples' strain around each place on the face; an
+    unseen expression does not. For every feature edge (a *site*), the strain of the edges
+    around it is projected on the span of the examples' strain there; the unexplained
+    fraction ρ gives the site a confidence exp(−ρ/τ), which reaches the vertices through the
+    WPSD edge weights α. Computed at the F sites, not per vertex, it costs the same at any
+    mesh resolution.
+
+    Attributes
+    ----------
+    index : (F, K) int32 neighbour edges of each site; sqrt_weight : (F, K) their √weights.
+    basis : (F, R, K) orthonormal rows spanning the examples' weighted local strain (zero rows
+        where the span has fewer than R dimensions).
+    tau : fraction of unexplained strain at which confidence falls to 1/e (0 disables).
+    alpha : (V, F) sparse vertex weights over the sites.
+    """
+
+    index: np.ndarray
+    sqrt_weight: np.ndarray
+    basis: np.ndarray
+    tau: float
+    alpha: sp.csr_matrix
+
+    def novelty(self, features: np.ndarray) -> np.ndarray:
+        """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) → (Q, F)."""
+        x = features[:, self.index] * self.sqrt_weight  # (Q, F, K)
+        p = np.einsum("srk,qsk->qsr", self.basis, x)
+        energy = np.einsum("qsk,qsk->qs", x, x)
+        explained = np.einsum("qsr,qsr->qs", p, p)
+        # a site barely strained at all is treated as seen (its details are near zero anyway)
+        floor = 1e-8
+        return np.clip((energy - explained) / (energy + floor), 0.0, 1.0)
+
+    def confidence(self, features: np.ndarray) -> np.ndarray:
+        """Per-vertex confidence in [0, 1]: (Q, F) → (Q, V)."""
+        if self.tau <= 0:
+            return np.ones((features.shape[0], self.alpha.shape[0]))
+        site = np.exp(-self.novelty(features) / self.tau)
+        return np.asarray(self.alpha @ site.T).T
+
+
+def novelty_gate(example_features: np.ndarray, edge_distance: np.ndarray, alpha: sp.csr_matrix, tau: float,
+                 radius: float, max_edges: int = 48, rcond: float = 1e-3) -> NoveltyGate:
+    """Build the gate from the examples' strain features.
+
+    Parameters
+    ----------
+    example_features : (E, F) strain of the example poses (not the rest pose).
+    edge_distance : (F, F) from :func:`edge_distances`; radius : Gaussian radius of a site's
+        neighbourhood, length units.
+    alpha : (V, F) WPSD vertex weights; tau : see :class:`NoveltyGate`.
+    """
+    F = edge_distance.shape[0]
+    K = min(max_edges, F)
+    W = np.exp(-((edge_distance / radius) ** 2))
+    index = np.argsort(-W, axis=1, kind="stable")[:, :K]
+    sqrt_weight = np.sqrt(np.take_along_axis(W, index, axis=1))
+    A = np.moveaxis(example_features[:, index] * sqrt_weight[None], 1, 0)  # (F, E, K)
+    if A.shape[1] == 0:
+        basis = np.zeros((F, 1, K))
+    else:
+        _, S, Vt = np.linalg.svd(A, full_matrices=False)  # Vt: (F, R, K)
+        keep = S > rcond * np.maximum(S[:, :1], 1e-300)
+        basis = Vt * keep[..., None]
+    return NoveltyGate(index.astype(np.int32), sqrt_weight.astype(np.float32), basis.astype(np.float32), float(tau),
+                       alpha)
