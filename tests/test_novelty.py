@@ -1,0 +1,82 @@
+import numpy as np
+import scipy.sparse as sp
+
+from facepipe.compare import global_blend_weights, local_blend_operator, local_blend_positions
+from facepipe.psd import edge_distances, edge_weight_matrix, fit_details, novelty_gate
+
+
+def _graph(F=30, seed=0):
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(0, 10, size=(F, 2))
+    D = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
+    return D
+
+
+def _alpha(V, F, K=4, seed=1):
+    rng = np.random.default_rng(seed)
+    idx = np.stack([rng.choice(F, K, replace=False) for _ in range(V)])
+    w = rng.uniform(0.2, 1, size=(V, K))
+    w /= w.sum(1, keepdims=True)
+    return idx, w, edge_weight_matrix(idx, w, F)
+
+
+def test_gate_trusts_the_span_of_the_examples_and_fades_outside():
+    F, E = 30, 4
+    rng = np.random.default_rng(2)
+    ex = rng.normal(scale=0.1, size=(E, F))
+    _, _, alpha = _alpha(50, F)
+    gate = novelty_gate(ex, _graph(F), alpha, tau=0.2, radius=3.0, max_edges=8)
+    mixes = rng.uniform(0, 1, size=(6, E)) @ ex
+    assert np.allclose(gate.novelty(mixes), 0.0, atol=1e-6)
+    assert np.allclose(gate.confidence(mixes), 1.0, atol=1e-5)
+    # strain orthogonal to every example at every site: fully novel
+    Q, _ = np.linalg.qr(np.concatenate([ex.T, rng.normal(size=(F, F - E))], axis=1))
+    novel = Q[:, E:].T[:3]
+    rho = gate.novelty(novel)
+    assert ((rho >= 0) & (rho <= 1)).all() and rho.mean() > 0.3
+    c = gate.confidence(novel)
+    assert ((c > 0) & (c < 1)).all()
+    # at rest (no strain) the gate is open
+    assert np.allclose(gate.confidence(np.zeros((1, F))), 1.0)
+
+
+def test_gate_disabled_with_tau_zero_and_keeps_interpolation():
+    F, E, V = 20, 5, 40
+    rng = np.random.default_rng(3)
+    feats = np.concatenate([np.zeros((1, F)), rng.normal(scale=0.1, size=(E, F))])
+    details = np.concatenate([np.zeros((1, V, 3)), rng.normal(size=(E, V, 3))])
+    idx, w, alpha = _alpha(V, F)
+    model = fit_details("wpsd", feats, details, list(range(E + 1)), "interpolate", alpha)
+    model.gate = novelty_gate(feats[1:], _graph(F), alpha, tau=0.2, radius=3.0)
+    # the examples are in their own span: the gate leaves their interpolation exact
+    assert np.abs(model.evaluate(feats) - details).max() < 1e-5
+    off = novelty_gate(feats[1:], _graph(F), alpha, tau=0.0, radius=3.0)
+    assert np.allclose(off.confidence(rng.normal(size=(2, F))), 1.0)
+
+
+def test_edge_distances_symmetric_zero_diagonal_for_points():
+    D = _graph(6)
+    edges = np.array([[0, 1], [2, 3], [4, 5]])
+    ed = edge_distances(D, edges)
+    assert np.allclose(ed, ed.T)
+    assert np.allclose(np.diag(ed), 0.5 * np.array([D[0, 1], D[2, 3], D[4, 5]]))
+
+
+def test_global_blend_weights_recover_convex_mixture():
+    rng = np.random.default_rng(4)
+    prior = rng.normal(size=(5, 12, 3))
+    w = np.array([0.1, 0.2, 0.0, 0.3, 0.4])
+    got = global_blend_weights(prior, np.einsum("e,ehc->hc", w, prior)[None])
+    assert np.allclose(got[0], w, atol=1e-4)
+
+
+def test_local_blend_shapes_reproduce_an_example():
+    F, E, V = 25, 4, 30
+    rng = np.random.default_rng(5)
+    ex = rng.normal(scale=0.1, size=(E, F))
+    idx, w, _ = _alpha(V, F, K=8)
+    M = local_blend_operator(ex, idx, w, ridge=1e-9)
+    rest = rng.normal(size=(V, 3))
+    offsets = rng.normal(size=(E, V, 3))
+    pos = local_blend_positions(M, idx, ex[2:3], rest, offsets)
+    assert np.allclose(pos[0], rest + offsets[2], atol=1e-4)
