@@ -44,7 +44,7 @@ _MODEL_ARRAYS = {
     "example_handles": np.float32,
 }
 _OPTIONAL = {"uvs": np.float32, "polygon_uvs": np.int32, "novelty_index": np.int32, "novelty_weight": np.float32,
-             "novelty_basis": np.float32}
+             "novelty_examples": np.float32, "novelty_solve": np.float32}
 
 
 @dataclass
@@ -76,8 +76,9 @@ class Model:
     def detail_model(self, dtype=np.float64) -> DetailModel:
         weights = edge_weight_matrix(self.edge_index, self.edge_weight, len(self.edges)).astype(dtype)
         gate = None
-        if "novelty_basis" in self.arrays and self.meta.get("novelty_tau", 0) > 0:
-            gate = NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype), self.novelty_basis.astype(dtype),
+        if "novelty_solve" in self.arrays and self.meta.get("novelty_tau", 0) > 0:
+            gate = NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype),
+                               self.novelty_examples.astype(dtype), self.novelty_solve.astype(dtype),
                                float(self.meta["novelty_tau"]), weights)
         return DetailModel(self.method, self.basis_features.astype(dtype), self.rbf_weights.astype(dtype),
                            self.rbf_const.astype(dtype), weights if self.method == "wpsd" else None, gate)
@@ -121,7 +122,8 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
     }
     gate = fit.model.gate
     if gate is not None:
-        arrays.update(novelty_index=gate.index, novelty_weight=gate.sqrt_weight, novelty_basis=gate.basis)
+        arrays.update(novelty_index=gate.index, novelty_weight=gate.sqrt_weight, novelty_examples=gate.examples,
+                      novelty_solve=gate.solve)
     if mesh.uvs is not None:
         arrays["uvs"] = mesh.uvs
         arrays["polygon_uvs"] = mesh.polygon_uvs

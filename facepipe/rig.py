@@ -43,7 +43,7 @@ class PsdConfig:
     beta_scale: float = 1.0
     rcond: float = 1e-6
     smoothing: float = 0.0
-    novelty_tau: float = 0.2  # fade details where this fraction of local strain is unlike the examples' (0 = off)
+    novelty_tau: float = 0.3  # details fade where this fraction of local strain is unlike the examples' (0 = off)
     novelty_radius: float = 1.5  # neighbourhood of the novelty test, × median feature-edge length
 
 
