@@ -23,12 +23,14 @@ demo: venv
 	$(FP) replay $(DEMO)/rig/take.csv -m $(DEMO)/model.npz -o $(DEMO)/replay --save-large-scale
 	$(FP) export $(DEMO)/replay --format obj -o $(DEMO)/obj
 	$(FP) eval $(DEMO)/replay --truth $(DEMO)/rig/take_truth.npz --large-scale
+	$(FP) preview $(DEMO)/replay --truth $(DEMO)/rig/take_truth.npz -o $(DEMO)/preview.png
 
 test: venv
 	$(BIN)/python -m pytest -q -ra
 
+# the paper's configuration: ~530k vertices, 89 markers on the shell, 6 example poses (a few minutes)
 bench: venv
-	$(FP) bench -o bench/results.json
+	$(FP) bench -o bench/results.json --vertices 530000 --markers 89 --examples 6 --frames 128
 
 clean:
 	rm -rf $(DEMO) bench/results.* bench/work .pytest_cache

@@ -111,25 +111,45 @@ def _print_fit_summary(rep: Reporter, fit, units: str) -> None:
                         if c["poses"] in (0, 1, 2, 3, 6, 12) or c is curve[-1])
         rep.say(f"{method.upper():5s} training RMS by basis size: {pts}")
     rep.say(f"basis ({r['method']}): {', '.join(r['basis'])}")
+    if "holdout" in r:
+        h = r["holdout"]["summary"]
+        rep.say(f"held-out examples ({h['folds']} folds): large-scale RMS {h['large_rms_mean']:.4f}, final "
+                f"{h['final_rms_mean']:.4f} {units}; worst change {100 * h['worst_harm']:+.1f} %, "
+                f"{h['examples_made_worse_over_2pct']} made worse by more than 2 %")
 
 
 @cli.command()
 @click.argument("config", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default="fit.npz", show_default=True, type=click.Path(dir_okay=False),
               help="Fit file to write; a .json report is written beside it.")
+@click.option("--holdout", default=0, show_default=True,
+              help="Also cross-validate: refit leaving about K examples out at a time (left/right halves of an "
+                   "expression together) and report the error on them, large-scale vs final.")
 @_common
 @click.pass_context
-def fit(ctx, config, output, quiet, verbose):
+def fit(ctx, config, output, holdout, quiet, verbose):
     """Extract the examples' details and select the pose basis greedily."""
     from .model import save_fit
 
     rep = _reporter(ctx, quiet, verbose)
     rig, result = _run_fit(config, rep)
+    if holdout:
+        from .validate import holdout_errors
+
+        with rep.bar(0, unit="fold", desc="holdout") as bar:
+            def step(i, n):
+                bar.total = n
+                bar.update(1)
+
+            result.report["holdout"] = holdout_errors(rig, holdout, progress=step)
     save_fit(output, result, rig)
     report_path = Path(output).with_suffix(".json")
     _write_json(report_path, result.report)
+    from .preview import plot_fit_curves
+
+    plot_path = plot_fit_curves(result.report, Path(output).with_suffix(".png"), units=rig.config.units)
     _print_fit_summary(rep, result, rig.config.units)
-    rep.say(f"wrote {output} and {report_path} ({result.report['seconds']['total']:.1f} s)")
+    rep.say(f"wrote {output}, {report_path} and {plot_path} ({result.report['seconds']['total']:.1f} s)")
 
 
 @cli.command()
@@ -168,49 +188,105 @@ def _parse_frames(text: str | None) -> slice | None:
         raise InputError(f"--frames {text!r} is not of the form A:B (row indices, end exclusive)") from None
 
 
+def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Reporter):
+    """The replay evaluator: OpenCL when asked for, or (auto) when a device works; else NumPy."""
+    from .replay import NumpyEvaluator
+
+    if backend == "numpy":
+        return NumpyEvaluator(model)
+    from .opencl import OpenCLEvaluator, OpenCLUnavailable
+
+    try:
+        evaluator = OpenCLEvaluator(model, device=device, chunk=chunk)
+    except OpenCLUnavailable as exc:
+        if backend == "opencl":
+            raise
+        rep.say(f"note: {str(exc).splitlines()[0]}; replaying with the NumPy backend")
+        return NumpyEvaluator(model)
+    except InputError:
+        raise
+    except Exception as exc:  # a driver that lists a device but cannot build or run the kernels
+        if backend == "opencl":
+            raise
+        rep.say(f"note: OpenCL failed ({exc.__class__.__name__}: {exc}); replaying with the NumPy backend")
+        return NumpyEvaluator(model)
+    rep.say(f"OpenCL device: {evaluator.device}")
+    return evaluator
+
+
 @cli.command()
 @click.argument("take", type=click.Path(dir_okay=False))
 @click.option("-m", "--model", "model_path", required=True, type=click.Path(dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False), help="Output folder.")
-@click.option("--backend", type=click.Choice(["numpy"]), default="numpy", show_default=True)
+@click.option("--backend", type=click.Choice(["auto", "opencl", "numpy"]), default="auto", show_default=True,
+              help="opencl: the OpenCL kernels (GPU, else PoCL's CPU driver, installed with facepipe); numpy: the "
+                   "float64 reference; auto: opencl when a device works, else numpy.")
+@click.option("--device", default=None, help="OpenCL device: P:D, gpu, cpu or part of its name [default: "
+              "PYOPENCL_CTX, else the first GPU, else the CPU].")
 @click.option("--frames", "frames_text", default=None, help="Replay only rows A:B of the take.")
 @click.option("--chunk", default=32, show_default=True, help="Frames evaluated together.")
 @click.option("--head-motion", type=click.Choice(["keep", "remove"]), default="keep", show_default=True,
               help="Re-apply the head's rigid motion to the output, or leave the face in rig space.")
 @click.option("--save-large-scale", is_flag=True, help="Also write large_scale.npy (the shell alone).")
+@click.option("--neutral-frame", type=int, default=None,
+              help="Frame number of the take where the face is neutral: aligns the take to the rig by a similarity "
+                   "and removes each marker's offset from the rig's rest pose.")
+@click.option("--neutral-take", type=click.Path(dir_okay=False), default=None,
+              help="A separate take of the neutral face (any supported format), used like --neutral-frame.")
+@click.option("--take-units", default=None, help="Units of the take (mm, cm, m, in), overriding what the file says.")
+@click.option("--subject", default=None, help="Use this subject's markers when the take holds several.")
+@click.option("--no-stabilise", is_flag=True, help="Do not remove head motion: the take is already in head space.")
+@click.option("--no-clean", is_flag=True,
+              help="No prior-based cleaning (noise, outliers, long gaps): gaps are only interpolated (PCHIP).")
+@click.option("--smooth", type=float, default=0.0, show_default=True,
+              help="Temporal smoothing of the cleaned markers: Gaussian sigma in frames (0 = off).")
 @_common
 @click.pass_context
-def replay(ctx, take, model_path, output, backend, frames_text, chunk, head_motion, save_large_scale, quiet,
-           verbose):
-    """Replay a mocap TAKE onto the full-resolution face: OUTPUT/positions.npy and replay.json."""
+def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, neutral_frame,
+           neutral_take, take_units, subject, no_stabilise, no_clean, smooth, quiet, verbose):
+    """Replay a mocap TAKE onto the full-resolution face: OUTPUT/positions.npy and replay.json.
+
+    TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV; it is converted to the
+    rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section).
+    """
+    from .cleaning import CleanOptions
+    from .mocap import read_take
     from .model import load_model
-    from .mocap import fill_gaps, read_take
+    from .prepare import PrepareOptions, prepare_take, summary_lines
     from .replay import replay as run_replay
-    from .stabilise import stabilise
 
     rep = _reporter(ctx, quiet, verbose)
     if chunk < 1:
         raise InputError("--chunk must be at least 1")
+    if smooth < 0:
+        raise InputError("--smooth must be 0 (off) or a positive number of frames")
     model = load_model(model_path)
-    take_data = read_take(take, model.marker_names, frames=_parse_frames(frames_text))
-    rest_handles = model.rest[model.handle_vertices].astype(np.float64)
-    # gaps are filled in head space, where a marker moves with the face only, not the head
-    head, R, t = stabilise(take_data.positions, rest_handles, model.stable.astype(bool), take_data.frames,
-                           model.marker_names, prior=model.example_handles.astype(np.float64))
-    head, gap_report = fill_gaps(head, marker_names=model.marker_names, times=take_data.times, path=take)
+    units = model.meta.get("units")
+    # absent markers are filled through the prior when cleaning; without it they are an error
+    read = dict(units=units, take_units=take_units, subject=subject, absent="error" if no_clean else "missing",
+                allow_empty_frames=True)
+    take_data = read_take(take, model.marker_names, **read)
+    neutral = read_take(neutral_take, model.marker_names, **read) if neutral_take else None
+    options = PrepareOptions(neutral_frame=neutral_frame, neutral_take=neutral, stabilise=not no_stabilise,
+                             clean=not no_clean, frames=_parse_frames(frames_text),
+                             clean_options=CleanOptions(smooth=smooth))
+    head, R, t, gap_report = prepare_take(take_data, model, options)
+    take_data = take_data if options.frames is None else take_data.select(options.frames)
     T = head.shape[0]
     with rep.bar(T, desc="replay") as bar:
         result = run_replay(model, head, R, t, take_data.frames, take_data.times, Path(output), chunk=chunk,
+                            evaluator=_make_evaluator(model, backend, device, chunk, rep),
                             head_motion=head_motion, progress=bar.update,
-                            extra_report={"take": str(take), "markers": gap_report,
+                            extra_report={"take": str(take), "mocap": gap_report,
+                                          "markers": gap_report["markers"],
                                           "extra_markers": take_data.extra_markers},
                             save_large=save_large_scale)
     r = result.report
-    totals = gap_report.get("total", {})
     rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
             f"at {r['frames_per_second']:.1f} frames/s")
-    rep.say(f"markers: {totals.get('filled', 0)} missing samples filled in {totals.get('gaps', 0)} gaps; "
-            f"head motion up to {r['head_rotation_deg_max']:.1f}° / {r['head_translation_max']:.2f}")
+    for line in summary_lines(gap_report):
+        rep.say(line)
+    rep.say(f"head motion up to {r['head_rotation_deg_max']:.1f}° / {r['head_translation_max']:.2f}")
     rep.say(f"wrote {result.positions_path} and {Path(output) / 'replay.json'}")
 
 
@@ -239,32 +315,81 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
 
 @cli.command()
 @click.argument("outdir", type=click.Path(file_okay=False))
-@click.option("--format", "fmt", type=click.Choice(["obj"]), default="obj", show_default=True)
-@click.option("-o", "--dest", required=True, type=click.Path(file_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["obj", "exr", "wrinkle", "usd", "mdd", "pc2"]), default="obj",
+              show_default=True, help="obj: OBJ sequence; exr: displacement maps per frame; wrinkle: wrinkle-map set "
+              "(PSD); usd: .usdc with time-sampled points; mdd, pc2: point caches.")
+@click.option("-o", "--dest", required=True, type=click.Path(),
+              help="Folder (obj, exr, wrinkle) or file (usd: .usdc/.usd/.usda, mdd: .mdd, pc2: .pc2).")
 @click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
+@click.option("--layer", type=click.Choice(["final", "large"]), default="final", show_default=True,
+              help="Geometry formats: the final surface, or the large-scale one (needs replay --save-large-scale).")
+@click.option("--resolution", default="2048", show_default=True, help="Maps: N or WxH texels per UDIM tile.")
+@click.option("--padding", default=8, show_default=True, help="Maps: texels of edge padding around UV islands.")
+@click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float].")
+@click.option("--vector/--scalar", "vector", default=True, help="Maps: R,G,B vector, or Y along the normal. "
+              "[default: vector]")
+@click.option("--space", type=click.Choice(["local", "tangent", "object"]), default="local", show_default=True,
+              help="exr vector maps: the model's local frames (t, b, n), UV-aligned tangent frames (what renderers' "
+              "tangent-space vector displacement expects), or object-space vectors.")
+@click.option("--start", default=1, show_default=True, help="Sequences: number of the first file.")
+@click.option("--up-axis", type=click.Choice(["Y", "Z"]), default="Y", show_default=True, help="USD stage up axis.")
 @click.option("--force", is_flag=True, help="Overwrite existing files.")
-@click.option("--resume", is_flag=True, help="Skip frames whose file already exists.")
+@click.option("--resume", is_flag=True, help="Keep files already written and write only the missing ones.")
 @_common
 @click.pass_context
-def export(ctx, outdir, fmt, dest, model_path, force, resume, quiet, verbose):
-    """Export a replay (OUTDIR) as an OBJ sequence DEST/frame_0001.obj, ... with the rest mesh's polygons/UVs."""
-    from .export import write_obj_sequence
-    from .model import load_model
+def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half, vector, space, start, up_axis, force,
+           resume, quiet, verbose):
+    """Export a replay (OUTDIR) for other tools: OBJ sequence, EXR displacement or wrinkle maps, USD, MDD, PC2."""
+    from .exporters import export_replay, parse_resolution
 
     rep = _reporter(ctx, quiet, verbose)
-    outdir = Path(outdir)
-    info = _replay_info(outdir)
-    model = load_model(model_path or info["model"])
-    positions = _load_positions(outdir)
-    if positions.shape[1] != model.n_vertices:
-        raise InputError(f"positions have {positions.shape[1]} vertices, the model {model.n_vertices}",
-                         path=outdir / "positions.npy", hint="pass the model used for this replay with -m")
+    if padding < 0:
+        raise InputError("--padding must be 0 or more texels")
+    r = export_replay(outdir, fmt, dest, model_path=model_path, layer=layer, resolution=parse_resolution(resolution),
+                      padding=padding, half=half, mode="vector" if vector else "scalar", space=space, start=start,
+                      up_axis=up_axis, force=force, resume=resume,
+                      make_bar=lambda n, d, u="frame": rep.bar(n, unit=u, desc=d))
+    extra = ", existing file kept (--resume)" if r.get("kept_existing") else ""
+    rep.say(f"wrote {r['files']} {fmt.upper()} file{'s' if r['files'] != 1 else ''} to {r['dest']}: "
+            f"{r['bytes'] / 1e6:.1f} MB in {r['seconds']:.1f} s ({r['megabytes_per_second'] or 0:.1f} MB/s){extra}")
+    for note in r.get("notes", []):
+        rep.say(f"note: {note}")
+    rep.detail(json.dumps(r, default=_json_default))
+
+
+@cli.command()
+@click.argument("outdir", type=click.Path(file_okay=False))
+@click.option("-o", "--output", default="preview.png", show_default=True, type=click.Path(dir_okay=False),
+              help="Image to write (.png, .jpg, .pdf, .svg).")
+@click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
+@click.option("--truth", default=None, type=click.Path(dir_okay=False),
+              help="Truth .npz: adds the truth and heat maps of the vertex error of both layers.")
+@click.option("--frame", "frames", multiple=True, type=int,
+              help="Take frame number to show (repeatable) [default: the most expressive frame].")
+@click.option("--strip", default=0, show_default=True, help="Show this many evenly spaced frames, one row each.")
+@click.option("--size", default=420, show_default=True, help="Width of one panel in pixels.")
+@click.option("--force", is_flag=True, help="Overwrite an existing image.")
+@_common
+@click.pass_context
+def preview(ctx, outdir, output, model_path, truth, frames, strip, size, force, quiet, verbose):
+    """Render shaded frames of a replay (large scale vs final, error heat maps against --truth) to an image."""
+    from .preview import render_preview
+    from .replaydir import ReplayDir
+
+    rep = _reporter(ctx, quiet, verbose)
+    if not 32 <= size <= 4096:
+        raise InputError(f"--size {size} is outside 32..4096 pixels")
+    if strip < 0 or strip > 64:
+        raise InputError(f"--strip {strip} is outside 0..64 frames")
+    replay_dir = ReplayDir(outdir)
     t0 = time.perf_counter()
-    with rep.bar(positions.shape[0], desc="export") as bar:
-        written = write_obj_sequence(model.mesh(), positions, Path(dest), force=force, resume=resume,
-                                     progress=bar.update)
-    seconds = time.perf_counter() - t0
-    rep.say(f"wrote {len(written)} OBJ files to {dest} ({len(written) / max(seconds, 1e-9):.1f} files/s)")
+    s = render_preview(replay_dir, replay_dir.load_model(model_path), output, truth_path=truth,
+                       frame_numbers=list(frames), strip=strip, size=size, force=force)
+    for k, f in enumerate(s["frames"]):
+        errs = (f"; RMS vs truth: final {s['rms']['final'][k]:.4g}, large scale {s['rms']['large'][k]:.4g}"
+                if "rms" in s else "")
+        rep.say(f"frame {f}{errs}")
+    rep.say(f"wrote {output} ({time.perf_counter() - t0:.1f} s)")
 
 
 @cli.command(name="eval")
@@ -272,9 +397,12 @@ def export(ctx, outdir, fmt, dest, model_path, force, resume, quiet, verbose):
 @click.option("--truth", required=True, type=click.Path(dir_okay=False), help="Truth .npz with 'positions'.")
 @click.option("--vertices", "vertex_range", default=None, help="Vertex range A:B (default: all).")
 @click.option("--large-scale", is_flag=True, help="Also evaluate large_scale.npy if the replay wrote it.")
+@click.option("--compare", "compare_config", default=None, type=click.Path(dir_okay=False),
+              help="CONFIG.toml: also fit it and compare baselines (shell, RBF morph, global and local blend "
+                   "shapes, PSD and WPSD by basis size) on this replay's handles; writes compare.json/.png.")
 @_common
 @click.pass_context
-def eval_(ctx, outdir, truth, vertex_range, large_scale, quiet, verbose):
+def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, quiet, verbose):
     """Per-frame RMS and max vertex error of a replay against ground truth."""
     from .evaluate import frame_errors, match_frames, parse_vertex_range, summarize
 
@@ -307,12 +435,37 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, quiet, verbose):
             for f, a, b in zip(info["frame_numbers"], rms, mx):
                 rep.detail(f"  frame {f:6d}  rms {a:.5f}  max {b:.5f}")
     _write_json(outdir / "eval.json", result)
+    if compare_config:
+        _compare(rep, outdir, compare_config, np.asarray(truth_sel), vertices)
     for label, _ in sources:
         s = result[label]
         rep.say(f"{label}: {s['frames']} frames, vertices {vertices.start}:{vertices.stop}: RMS mean "
                 f"{s['rms_mean']:.5f}, p95 {s['rms_p95']:.5f}, max frame {s['rms_max']:.5f}; "
                 f"largest vertex error {s['max_error']:.5f}")
     rep.say(f"wrote {outdir / 'eval.json'}")
+
+
+def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertices: slice) -> None:
+    from .compare import compare_methods, plot_comparison
+
+    path = outdir / "handles.npz"
+    if not path.is_file():
+        raise InputError("no handles.npz here", path=outdir, hint="re-run 'facepipe replay' with this version")
+    handles = np.load(path)
+    rig, fit = _run_fit(config, rep)
+    if handles["head"].shape[1] != len(rig.handles):
+        raise InputError(f"the replay has {handles['head'].shape[1]} handles, the config's rig {len(rig.handles)}",
+                         path=config, hint="compare with the config the replayed model was baked from")
+    rep.say("comparing methods on the replay's handles:")
+    result = compare_methods(fit, rig, handles["head"].astype(np.float64), handles["rotation"].astype(np.float64),
+                             handles["translation"].astype(np.float64), truth, vertices, log=rep.say)
+    _write_json(outdir / "compare.json", result)
+    plot_comparison(result, outdir / "compare.png", title=f"{Path(config).stem}: error against basis size")
+    rep.say(f"{'method':26s} {'P':>3s} {'mean RMS':>9s} {'p95':>9s} {'frames/s':>9s}")
+    for r in result["rows"]:
+        p = "" if r["poses"] is None else str(r["poses"])
+        rep.say(f"{r['method']:26s} {p:>3s} {r['rms_mean']:9.5f} {r['rms_p95']:9.5f} {r['frames_per_second']:9.1f}")
+    rep.say(f"wrote {outdir / 'compare.json'} and {outdir / 'compare.png'}")
 
 
 # ----------------------------------------------------------------------------- sample
@@ -324,16 +477,19 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, quiet, verbose):
 @click.option("--examples", default=8, show_default=True, help="Example poses (6-12).")
 @click.option("--frames", default=120, show_default=True, help="Frames of the take.")
 @click.option("--seed", default=0, show_default=True)
+@click.option("--markers", default=None, type=int, help="Markers driving the shell, 6 stable ones included "
+              "[default: 96]; 89 is the paper's configuration.")
 @_common
 @click.pass_context
-def sample(ctx, directory, vertices, examples, frames, seed, quiet, verbose):
+def sample(ctx, directory, vertices, examples, frames, seed, markers, quiet, verbose):
     """Write a self-contained synthetic rig: mesh, markers, anchors, examples, a take with truth, a config."""
     from .sample import write_sample_rig
 
     rep = _reporter(ctx, quiet, verbose)
     if not 100 <= vertices <= 2_000_000:
         raise InputError(f"--vertices {vertices} is outside 100..2000000")
-    info = write_sample_rig(directory, n_vertices=vertices, n_examples=examples, n_frames=frames, seed=seed)
+    info = write_sample_rig(directory, n_vertices=vertices, n_examples=examples, n_frames=frames, seed=seed,
+                            n_markers=markers)
     rep.say(f"wrote sample rig to {directory}: " + ", ".join(f"{k} {v}" for k, v in info.items()
                                                              if isinstance(v, (int, float))))
 
@@ -344,14 +500,19 @@ def sample(ctx, directory, vertices, examples, frames, seed, quiet, verbose):
 @click.option("--frames", default=64, show_default=True)
 @click.option("--repeats", default=3, show_default=True, help="Timings are medians over this many runs.")
 @click.option("--work", default="bench/work", show_default=True, type=click.Path(file_okay=False))
+@click.option("--markers", default=None, type=int, help="Markers driving the shell [default: the sample's 96].")
+@click.option("--examples", default=6, show_default=True, help="Example poses of the generated rig.")
+@click.option("--chunk", default=32, show_default=True, help="Frames per OpenCL launch.")
+@click.option("--device", default=None, help="OpenCL device (as replay --device).")
 @_common
 @click.pass_context
-def bench(ctx, output, vertices, frames, repeats, work, quiet, verbose):
+def bench(ctx, output, vertices, frames, repeats, work, markers, examples, chunk, device, quiet, verbose):
     """Measure bake and replay speed on a generated rig; write the figures as JSON."""
     from .bench import run_bench
 
     rep = _reporter(ctx, quiet, verbose)
-    results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, log=rep.say)
+    results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, chunk=chunk,
+                        n_markers=markers, n_examples=examples, device=device, log=rep.say)
     _write_json(Path(output), results)
     rep.say(f"wrote {output}")
 

@@ -2,7 +2,8 @@
 
 An export is a folder of complete files: every frame is written under a temporary name and
 renamed when complete (:mod:`facepipe.atomic`), so an interrupted export leaves only whole
-frames, and ``resume=True`` carries on after the last one.
+frames, and ``resume=True`` carries on after the last one. :func:`check_targets` and
+:func:`remove_partial_files` give every other export (maps, caches, previews) the same rules.
 """
 
 from __future__ import annotations
@@ -96,9 +97,7 @@ def write_obj_sequence(
     -------
     >>> write_obj_sequence(mesh, np.load("out/positions.npy", mmap_mode="r"), "obj")  # doctest: +SKIP
     """
-    if force and resume:
-        raise InputError("--force and --resume contradict each other: choose one",
-                         hint="--force rewrites every frame, --resume keeps the frames already written")
+    check_flags(force, resume)
     if getattr(positions, "ndim", None) != 3 or positions.shape[1:] != (mesh.n_vertices, 3):
         shape = getattr(positions, "shape", None)
         raise InputError(
@@ -108,22 +107,10 @@ def write_obj_sequence(
         )
     dest_dir = Path(dest_dir)
     paths = frame_paths(dest_dir, positions.shape[0], start)
-    if dest_dir.exists() and not dest_dir.is_dir():
-        raise InputError("the export destination is a file, not a folder", path=dest_dir)
-    if not force and not resume:
-        # check every name before writing anything: a refused export must not be half done
-        existing = [p for p in paths if p.exists()]
-        if existing:
-            more = f" (and {len(existing) - 1} more frames)" if len(existing) > 1 else ""
-            raise InputError(
-                f"the file exists{more}",
-                path=existing[0],
-                hint="pass --force to overwrite it, --resume to keep the frames already written, "
-                     "or export to another folder",
-            )
+    check_targets(paths, force, resume, folder=dest_dir)
     dest_dir.mkdir(parents=True, exist_ok=True)
     if resume:
-        _remove_partial_files(dest_dir)
+        remove_partial_files(paths)
 
     # the topology is the same in every frame: format it once
     tail = format_obj_header(mesh) + format_obj_faces(mesh)
@@ -152,8 +139,60 @@ def write_obj_sequence(
     return paths
 
 
-def _remove_partial_files(dest_dir: Path) -> None:
-    """Delete temporary frame files (``.frame_*.part.obj``) of an export that was killed."""
-    for tmp in dest_dir.glob(f".{FRAME_PREFIX}*.part*"):
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+def check_flags(force: bool, resume: bool) -> None:
+    """InputError when both ``force`` and ``resume`` are given."""
+    if force and resume:
+        raise InputError("--force and --resume contradict each other: choose one",
+                         hint="--force rewrites every file, --resume keeps the files already written")
+
+
+def check_targets(paths: list[Path], force: bool, resume: bool, folder: Path | None = None) -> None:
+    """Refuse an export that would overwrite files, before anything is written.
+
+    Parameters
+    ----------
+    paths : every file the export will write.
+    force : overwriting is allowed.
+    resume : existing files will be kept (skipped), so they are no obstacle.
+    folder : the destination folder, which must not be a file.
+
+    Raises
+    ------
+    InputError
+        naming the first existing file (and how many more) and the ways out.
+    """
+    check_flags(force, resume)
+    if folder is not None and folder.exists() and not folder.is_dir():
+        raise InputError("the export destination is a file, not a folder", path=folder)
+    for p in {Path(p).parent for p in paths}:
+        if p.exists() and not p.is_dir():
+            raise InputError("the export destination is a file, not a folder", path=p)
+    if force or resume:
+        return
+    existing = [p for p in paths if Path(p).exists()]
+    if existing:
+        more = f" (and {len(existing) - 1} more files)" if len(existing) > 1 else ""
+        raise InputError(
+            f"the file exists{more}",
+            path=existing[0],
+            hint="pass --force to overwrite it, --resume to keep the files already written, "
+                 "or export to another destination",
+        )
+
+
+def remove_partial_files(paths: list[Path]) -> None:
+    """Delete temporary files that a killed export left for any of ``paths``.
+
+    :func:`facepipe.atomic.atomic_path` writes ``.NAME.XXXXXX.partSUFFIX`` beside ``NAME``.
+    """
+    by_dir: dict[Path, set] = {}
+    for p in paths:
+        by_dir.setdefault(Path(p).parent, set()).add(Path(p).name)
+    for folder, names in by_dir.items():
+        if not folder.is_dir():
+            continue
+        for tmp in folder.glob(".*.part*"):
+            base = tmp.name[1:].split(".part", 1)[0].rsplit(".", 1)[0]
+            if base in names:
+                with contextlib.suppress(OSError):
+                    tmp.unlink()

@@ -60,6 +60,91 @@ class NumpyEvaluator:
         return (final, large) if with_large else final
 
 
+class NpyWriter:
+    """Write a ``.npy`` file of known shape sequentially: the header, then rows in order.
+
+    Memory stays bounded for any take length (nothing is mapped); ``close`` checks that every
+    row was written. ``path=None`` makes a writer that accepts nothing (an absent output).
+
+    Example
+    -------
+    >>> with NpyWriter("positions.npy", (T, V, 3)) as w:   # doctest: +SKIP
+    ...     w.write(chunk)                                  # (n, V, 3), any float dtype
+    """
+
+    def __init__(self, path, shape: tuple, dtype=np.float32):
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        self.rows = 0
+        self.fh = None
+        if path is not None:
+            self.fh = open(path, "wb")
+            np.lib.format.write_array_header_1_0(
+                self.fh, {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False,
+                          "shape": self.shape})
+
+    def write(self, rows: np.ndarray) -> None:
+        rows = np.ascontiguousarray(rows, dtype=self.dtype)
+        if rows.shape[1:] != self.shape[1:] or self.rows + rows.shape[0] > self.shape[0]:
+            raise ValueError(f"rows {rows.shape} do not fit {self.shape} after {self.rows} rows")
+        self.fh.write(memoryview(rows.reshape(-1)).cast("B"))
+        self.rows += rows.shape[0]
+
+    def close(self) -> None:
+        if self.fh is not None:
+            self.fh.close()
+            self.fh = None
+            if self.rows != self.shape[0]:
+                raise RuntimeError(f"wrote {self.rows} of {self.shape[0]} rows")
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        elif self.fh is not None:
+            self.fh.close()
+            self.fh = None
+
+
+def stream_chunks(evaluator, head: np.ndarray, sink, R: np.ndarray | None = None, t: np.ndarray | None = None,
+                  chunk: int = 32, with_large: bool = False) -> None:
+    """Evaluate a take chunk by chunk and hand each chunk to ``sink`` in frame order, pipelined.
+
+    An evaluator with a ``stream`` method (the OpenCL one) runs its own pipeline, head motion
+    included, on the device. Any other (NumpyEvaluator) is driven here: chunk k + 1 is evaluated
+    while a worker thread sinks chunk k, so writing overlaps computing.
+
+    Parameters
+    ----------
+    head : (T, H, 3) head-space handle positions.
+    sink : callable(start, final (n, V, 3), large (n, V, 3) or None, normals None).
+    R, t : optional (T, 3, 3), (T, 3) head motion applied to the outputs (world = R p + t).
+    chunk : frames per evaluate() call (the OpenCL evaluator uses the chunk it was built with).
+    """
+    if hasattr(evaluator, "stream"):
+        evaluator.stream(head, sink, R, t, with_large=with_large)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    T = head.shape[0]
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="facepipe-sink") as pool:
+        pending = None
+        for s in range(0, T, chunk):
+            e = min(T, s + chunk)
+            final, large = evaluator.evaluate(head[s:e], with_large=True)
+            if R is not None:
+                final = np.einsum("cij,cvj->cvi", R[s:e], final) + t[s:e, None, :]
+                if with_large:
+                    large = np.einsum("cij,cvj->cvi", R[s:e], large) + t[s:e, None, :]
+            if pending is not None:
+                pending.result()
+            pending = pool.submit(sink, s, final, large if with_large else None, None)
+        if pending is not None:
+            pending.result()
+
+
 @dataclass
 class ReplayResult:
     positions_path: Path
@@ -76,8 +161,8 @@ def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames:
     head : (T, H, 3) clean handle positions in head (rig) space, rig units.
     R, t : (T, 3, 3), (T, 3) the head's rigid motion, world = R @ head + t.
     frames : (T,) frame numbers; times : (T,) seconds.
-    out_dir : gets ``positions.npy`` (float32, T × V × 3, memory-mapped while written, renamed
-        into place when complete), ``replay.json``, and ``handles.npz`` (the clean head-space
+    out_dir : gets ``positions.npy`` (float32, T × V × 3, written chunk by chunk while the next
+        chunk is evaluated, renamed into place when complete), ``replay.json``, and ``handles.npz`` (the clean head-space
         handles and the head motion: what an exporter needs to re-evaluate any layer of the model).
     head_motion : "keep" re-applies the head's rigid motion to the output, "remove" leaves
         the face in rig space.
@@ -92,25 +177,18 @@ def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames:
     final_path = out_dir / "positions.npy"
     large_path = out_dir / "large_scale.npy"
     with atomic_path(final_path) as tmp, atomic_path(large_path) as tmp_large:
-        out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=(T, V, 3))
-        out_large = (np.lib.format.open_memmap(tmp_large, mode="w+", dtype=np.float32, shape=(T, V, 3))
-                     if save_large else None)
-        for s in range(0, T, chunk):
-            e = min(T, s + chunk)
-            final, large = evaluator.evaluate(head[s:e], with_large=True)
-            if head_motion == "keep":
-                final = np.einsum("cij,cvj->cvi", R[s:e], final) + t[s:e, None, :]
-                large = np.einsum("cij,cvj->cvi", R[s:e], large) + t[s:e, None, :]
-            out[s:e] = final
-            if out_large is not None:
-                out_large[s:e] = large
-            if progress is not None:
-                progress(e - s)
-        out.flush()
-        del out
-        if out_large is not None:
-            out_large.flush()
-            del out_large
+        # positions stream to disk in frame order while the next chunk is evaluated
+        with NpyWriter(tmp, (T, V, 3)) as out, NpyWriter(tmp_large if save_large else None, (T, V, 3)) as out_large:
+            def sink(start, final, large=None, normals=None):
+                out.write(final)
+                if save_large:
+                    out_large.write(large)
+                if progress is not None:
+                    progress(final.shape[0])
+
+            keep = head_motion == "keep"
+            stream_chunks(evaluator, head, sink, R if keep else None, t if keep else None, chunk=chunk,
+                          with_large=save_large)
     if not save_large:
         large_path.unlink(missing_ok=True)
     with atomic_path(out_dir / "handles.npz") as tmp:

@@ -264,9 +264,9 @@ _LIP_MARKERS = [(x, _MOUTH_Y + dy) for dy in (0.45, -0.45) for x in (-1.2, 0.0, 
 _STABLE_MARKERS = [(0.0, 8.3), (-3.2, 8.2), (3.2, 8.2), (-7.4, 4.6), (7.4, 4.6), (0.0, 1.4)]
 
 
-@functools.lru_cache(maxsize=1)
-def _marker_uvs() -> np.ndarray:
-    """(96, 2) grid parameters of the 90 handle then 6 stable markers.
+@functools.lru_cache(maxsize=4)
+def _marker_uvs(n_handles: int = _N_HANDLES) -> np.ndarray:
+    """(n_handles + 6, 2) grid parameters of the handle (90 by default) then 6 stable markers.
 
     A centroidal Voronoi tessellation (Lloyd's iterations) of the face region on a fixed
     reference grid spreads the free handles evenly in 3D around the fixed lip and stable
@@ -283,7 +283,7 @@ def _marker_uvs() -> np.ndarray:
     fixed = cand[xy_tree.query(np.array(_LIP_MARKERS + _STABLE_MARKERS))[1]]
 
     # farthest-point start: deterministic and already well spread
-    n_free = _N_HANDLES - len(_LIP_MARKERS)
+    n_free = n_handles - len(_LIP_MARKERS)
     dist = np.min(np.linalg.norm(cand[:, None, :] - fixed[None], axis=2), axis=1)
     free = np.empty((n_free, 3))
     for k in range(n_free):
@@ -437,7 +437,7 @@ def _take_weights(n_frames: int, n_examples: int, rng: np.random.Generator) -> n
 
 
 def make_sample_arrays(n_vertices: int = 20000, n_examples: int = 8, n_frames: int = 120,
-                       seed: int = 0) -> SampleRig:
+                       seed: int = 0, n_markers: int | None = None) -> SampleRig:
     """Build the synthetic face rig and a take with ground truth, in memory.
 
     The face, its markers, anchors and example poses depend only on ``n_vertices`` (the
@@ -453,6 +453,9 @@ def make_sample_arrays(n_vertices: int = 20000, n_examples: int = 8, n_frames: i
         Frames of the take (30 fps), >= 1.
     seed : int
         Seed of the take's weights.
+    n_markers : int, optional
+        Markers that drive the shell, handles plus the 6 stable ones (default 96); e.g. 89 for
+        the paper's configuration. The handles are spread by the same Voronoi relaxation.
 
     Returns
     -------
@@ -487,12 +490,17 @@ def make_sample_arrays(n_vertices: int = 20000, n_examples: int = 8, n_frames: i
     mesh = Mesh(vertices=rest, polygon_offsets=np.arange(0, corners.size + 1, 3, dtype=np.int64),
                 polygon_vertices=corners, uvs=uv, polygon_uvs=corners.copy())
 
-    marker_uv = _marker_uvs()
+    n_stable = len(_STABLE_MARKERS)
+    # n_markers counts every marker that drives the shell: the handles plus the 6 stable ones
+    n_handles = _N_HANDLES if n_markers is None else int(n_markers) - n_stable
+    if n_handles < len(_LIP_MARKERS) + 4:
+        raise InputError(f"n_markers {n_markers} is too small for the sample rig",
+                         hint=f"use at least {len(_LIP_MARKERS) + 4 + n_stable}")
+    marker_uv = _marker_uvs(n_handles)
     marker_points = _surface(marker_uv[:, 0], marker_uv[:, 1])[0]
     marker_vertices = cKDTree(rest).query(marker_points)[1].astype(np.int64)
-    n_stable = len(_STABLE_MARKERS)
-    marker_names = [f"M{i + 1:03d}" for i in range(_N_HANDLES)] + [f"S{i + 1:02d}" for i in range(n_stable)]
-    marker_roles = ["handle"] * _N_HANDLES + ["stable"] * n_stable
+    marker_names = [f"M{i + 1:03d}" for i in range(n_handles)] + [f"S{i + 1:02d}" for i in range(n_stable)]
+    marker_roles = ["handle"] * n_handles + ["stable"] * n_stable
     anchors = np.flatnonzero(border < _ANCHOR_BAND).astype(np.int64)
 
     names = sorted(_PRIORITY[:n_examples])
@@ -569,7 +577,7 @@ def _take_csv(rig: SampleRig) -> str:
 
 
 def write_sample_rig(out_dir, n_vertices: int = 20000, n_examples: int = 8, n_frames: int = 120,
-                     seed: int = 0) -> dict:
+                     seed: int = 0, n_markers: int | None = None) -> dict:
     """Write the synthetic rig, a take and its ground truth, and a config, into ``out_dir``.
 
     Files (every one written atomically; ``sample.toml`` last): ``neutral.obj`` (with
@@ -582,7 +590,7 @@ def write_sample_rig(out_dir, n_vertices: int = 20000, n_examples: int = 8, n_fr
     out_dir : str or path
         Folder to write into (created if missing). Expression OBJs of an earlier sample run that
         this one does not write are removed, because the config globs ``expressions/*.obj``.
-    n_vertices, n_examples, n_frames, seed
+    n_vertices, n_examples, n_frames, seed, n_markers
         As for :func:`make_sample_arrays`.
 
     Returns
@@ -611,7 +619,7 @@ def write_sample_rig(out_dir, n_vertices: int = 20000, n_examples: int = 8, n_fr
             raise InputError(f"{expr_dir} holds OBJ files that the sample config's glob would load as "
                              f"examples: {', '.join(strangers[:5])}", path=out,
                              hint="write the sample rig into an empty folder")
-    rig = make_sample_arrays(n_vertices, n_examples, n_frames, seed)
+    rig = make_sample_arrays(n_vertices, n_examples, n_frames, seed, n_markers)
     mesh = rig.mesh
 
     paths = {"config": out / "sample.toml", "mesh": out / "neutral.obj", "markers": out / "markers.csv",

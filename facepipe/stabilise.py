@@ -6,6 +6,8 @@ out of the markers before and put back on the output after.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from .errors import InputError
@@ -122,3 +124,125 @@ def expression_fit(head: np.ndarray, rest_handles: np.ndarray, prior: np.ndarray
         w = np.linalg.solve(Dm @ Dm.T + lam * np.eye(len(D)), Dm @ u[rows][:, mask].T)  # (E', n)
         out[rows] = (w.T @ D)
     return rest_handles + out.reshape(head.shape)
+
+
+def similarity_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
+    """Least-squares similarity target ≈ s R @ source + t (Umeyama 1991), batched.
+
+    Parameters
+    ----------
+    source, target : (..., N, 3)
+    weights : (..., N) ≥ 0 or None (zero ignores a point).
+
+    Returns
+    -------
+    s : (...,) scale > 0; R : (..., 3, 3) proper rotations; t : (..., 3).
+
+    Example
+    -------
+    >>> P = np.random.default_rng(0).normal(size=(6, 3))
+    >>> s, R, t = similarity_fit(P, 2.5 * P + 1.0)
+    >>> round(float(s), 6), np.allclose(R, np.eye(3)), np.allclose(t, 1.0)
+    (2.5, True, True)
+    """
+    target = np.asarray(target, dtype=np.float64)
+    source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
+    if weights is None:
+        weights = np.ones(target.shape[:-1])
+    w = weights / np.maximum(weights.sum(axis=-1, keepdims=True), 1e-300)
+    cs = np.einsum("...n,...nc->...c", w, source)
+    ct = np.einsum("...n,...nc->...c", w, target)
+    xs = source - cs[..., None, :]
+    cov = np.einsum("...n,...ni,...nj->...ij", w, target - ct[..., None, :], xs)
+    U, S, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.ones(cov.shape[:-1])
+    D[..., 2] = d
+    R = U @ (D[..., :, None] * Vt)
+    var = np.einsum("...n,...nc,...nc->...", w, xs, xs)
+    s = (S * D).sum(axis=-1) / np.maximum(var, 1e-300)
+    t = ct - s[..., None] * np.einsum("...ij,...j->...i", R, cs)
+    return s, R, t
+
+
+def robust_rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None,
+                     iterations: int = 10, scale: float | None = None):
+    """Rigid fit target ≈ R @ source + t that down-weights points that do not follow (IRLS).
+
+    Iteratively reweighted Kabsch with Cauchy weights 1 / (1 + (r / c)²), where r is a
+    point's residual and c = 2.5 × the frame's robust residual scale (1.4826 × median), but
+    at least ``scale``: a marker that slid on the skin or jumped for a frame moves the pose
+    little, while with every point consistent it is the plain least-squares fit.
+
+    Parameters
+    ----------
+    source : (N, 3) or (T, N, 3); target : (T, N, 3), NaN allowed (ignored).
+    weights : (T, N) prior weights ≥ 0 (e.g. visibility × per-marker trust), or None.
+    iterations : reweighting rounds.
+    scale : residual floor (length units) below which points are not down-weighted, so a
+        noise-free frame is not reweighted by rounding error; default 1e-6 × the source's size.
+
+    Returns
+    -------
+    R : (T, 3, 3); t : (T, 3); w : (T, N) the final weights (0 for missing points).
+    Frames with fewer than 3 usable points get NaN (see :func:`interpolate_poses`).
+    """
+    target = np.asarray(target, dtype=np.float64)
+    source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
+    ok = np.isfinite(target).all(axis=-1) & np.isfinite(source).all(axis=-1)
+    base = ok.astype(np.float64) if weights is None else np.where(ok, weights, 0.0)
+    tgt = np.where(ok[..., None], target, 0.0)
+    if scale is None:
+        scale = 1e-6 * (1.0 + float(np.abs(np.where(ok[..., None], source, 0.0)).max(initial=0.0)))
+    w = base.copy()
+    for _ in range(max(1, iterations)):
+        R, t = rigid_fit(source, tgt, w)
+        r = np.linalg.norm(np.einsum("...ij,...nj->...ni", R, source) + t[..., None, :] - tgt, axis=-1)
+        with warnings.catch_warnings():  # frames without points have no median: NaN, handled below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(np.where(base > 0, r, np.nan), axis=-1, keepdims=True)
+        c = 2.5 * np.maximum(np.nan_to_num(1.4826 * med), scale)
+        w = base / (1.0 + (r / c) ** 2)
+    R, t = rigid_fit(source, tgt, w)
+    few = (base > 0).sum(axis=-1) < 3
+    R[few] = np.nan
+    t[few] = np.nan
+    return R, t, w
+
+
+def interpolate_poses(R: np.ndarray, t: np.ndarray, times: np.ndarray | None = None):
+    """Fill frames whose pose is NaN from the nearest known ones (slerp and linear; held at the ends).
+
+    Parameters
+    ----------
+    R : (T, 3, 3) with NaN rows for unknown poses; t : (T, 3); times : (T,) or None.
+
+    Returns
+    -------
+    R, t : filled copies; filled : (T,) bool, the frames filled.
+
+    Raises
+    ------
+    ValueError
+        No frame has a pose.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    R = np.array(R, dtype=np.float64)
+    t = np.array(t, dtype=np.float64)
+    bad = ~(np.isfinite(R).all(axis=(1, 2)) & np.isfinite(t).all(axis=1))
+    if not bad.any():
+        return R, t, bad
+    good = np.flatnonzero(~bad)
+    if good.size == 0:
+        raise ValueError("no frame has a pose")
+    x = np.arange(len(R), dtype=np.float64) if times is None else np.asarray(times, dtype=np.float64)
+    q = np.clip(x[bad], x[good[0]], x[good[-1]])
+    if good.size == 1:
+        R[bad] = R[good[0]]
+        t[bad] = t[good[0]]
+    else:
+        R[bad] = Slerp(x[good], Rotation.from_matrix(R[good]))(q).as_matrix()
+        for a in range(3):
+            t[bad, a] = np.interp(q, x[good], t[good, a])
+    return R, t, bad

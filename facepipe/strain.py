@@ -20,11 +20,14 @@ def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.unique(np.sort(e, axis=1), axis=0)
+    e = np.sort(e, axis=1)
+    n = vertices.shape[0]
+    # one int64 key per edge: a 1-D unique is ~10× faster than unique(axis=0), same (a, b) order
+    key = np.unique(e[:, 0] * max(n, 1) + e[:, 1])
+    e = np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
     length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     # a zero-length edge would vanish from the sparse graph and cut it apart
     length = np.maximum(length, 1e-12)
-    n = vertices.shape[0]
     g = sp.coo_matrix((length, (e[:, 0], e[:, 1])), shape=(n, n))
     return (g + g.T).tocsr()
 

@@ -13,8 +13,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from facepipe import mocap
 from facepipe.errors import InputError
+from facepipe.mocap import facepipe_csv as mocap
 from facepipe.mocap import Take, fill_gaps, parse_frame_slice, read_take, write_take_csv
 
 ICT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict"
@@ -181,7 +181,11 @@ def test_single_frame_has_no_fps(tmp_path):
 def test_unknown_suffix_is_sniffed(tmp_path):
     take = read_take(write(tmp_path, good_csv(), "take.txt"), NAMES)
     assert take.n_frames == 4
-    with pytest.raises(InputError, match="unknown mocap format '.c3d'"):
+    take = read_take(write(tmp_path, good_csv(), "take.dat"), NAMES)
+    assert take.n_frames == 4 and take.format == "facepipe-csv"
+    with pytest.raises(InputError, match="unknown mocap format '.bin'"):
+        read_take(write(tmp_path, b"\x01\x02binary", "take.bin"), NAMES)
+    with pytest.raises(InputError, match="not a C3D file"):
         read_take(write(tmp_path, b"\x01\x50binary", "take.c3d"), NAMES)
 
 

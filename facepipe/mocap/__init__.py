@@ -1,0 +1,39 @@
+"""Mocap takes: one reader and writer per file format behind one registry, and gap filling.
+
+``from facepipe.mocap import read_take, write_take, fill_gaps, Take, write_take_csv``.
+
+Formats (see :data:`FORMATS`): the facepipe CSV, C3D (through ezc3d), TRC, Vicon Nexus CSV
+(the Trajectories block) and OptiTrack Motive CSV. :func:`read_take` finds the format from
+the file's first bytes and suffix, matches the file's marker names to the rig's (subject
+prefixes stripped), converts units to the rig's and checks frame order and values.
+"""
+
+from . import c3d, facepipe_csv, motive_csv, trc, vicon_csv  # noqa: F401  (register the formats)
+from .facepipe_csv import read_csv_take, write_take_csv
+from .gaps import fill_gaps
+from .markers import MarkerMatch, match_markers, normalise_units, split_subject, unit_factor
+from .registry import (FORMATS, READERS, WRITERS, Format, available_memory, detect_format, read_take, register,
+                       write_take)
+from .take import Take, parse_frame_slice
+
+__all__ = [
+    "FORMATS",
+    "READERS",
+    "WRITERS",
+    "Format",
+    "MarkerMatch",
+    "Take",
+    "available_memory",
+    "detect_format",
+    "fill_gaps",
+    "match_markers",
+    "normalise_units",
+    "parse_frame_slice",
+    "read_csv_take",
+    "read_take",
+    "register",
+    "split_subject",
+    "unit_factor",
+    "write_take",
+    "write_take_csv",
+]

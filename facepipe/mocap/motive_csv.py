@@ -1,0 +1,171 @@
+"""OptiTrack Motive CSV takes (export format 1.2x).
+
+::
+
+    Format Version,1.23,Take Name,t,...,Export Frame Rate,120.000000,...,Length Units,Millimeters,...
+    (blank line)
+    ,Type,Marker,Marker,Marker,Rigid Body,...
+    ,Name,Actor:M001,Actor:M001,Actor:M001,Head,...
+    ,ID,1,1,1,...
+    ,,Position,Position,Position,Rotation,...
+    Frame,Time (Seconds),X,Y,Z,X,...
+    0,0.000000,12.3,45.6,78.9,...
+
+Only ``Marker`` columns' ``Position`` X, Y, Z are read (rigid bodies, bones and their
+constraint markers are other assets); a blank cell is a missing sample (an occlusion). The
+first line's ``Length Units`` gives the unit (files without it are taken to be in the rig's
+units, and the alignment's scale check catches a mismatch).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..atomic import atomic_open
+from ..errors import InputError
+from .markers import match_markers, normalise_units
+from .registry import Format, nominal_rate, marker_label, register
+from .table import frame_column, parse_rows, read_lines, split_fields
+from .take import Take
+
+_HINT = "export the take from Motive as CSV with markers and the header rows (Type, Name, ID, Position, Frame)"
+
+
+def _label(cells: list[str]) -> str:
+    """The row label of a header row: in column 1 (format 1.2x) or column 0 (older)."""
+    for c in cells[:2]:
+        if c:
+            return c.lower()
+    return ""
+
+
+def read_motive_take(path, marker_names: list[str], match=None) -> Take:
+    """Read the markers of an OptiTrack Motive CSV export.
+
+    Parameters
+    ----------
+    path : Path
+    marker_names : list[str]
+    match : callable(list[str]) -> MarkerMatch, optional
+
+    Returns
+    -------
+    Take
+        ``positions`` (T, M, 3) in ``Length Units``; frames and times from the Frame and
+        Time (Seconds) columns.
+
+    Raises
+    ------
+    InputError
+        A malformed header (naming its line), no marker columns, bad cells.
+    """
+    lines, ended = read_lines(path, _HINT)
+    first = split_fields(lines[0], b",")
+    if not first or first[0].lower() != "format version":
+        raise InputError("not a Motive CSV (line 1 must start with 'Format Version')", path=path, hint=_HINT)
+    info = {first[k].lower(): first[k + 1] for k in range(0, len(first) - 1, 2)}
+    units = normalise_units(info.get("length units"), path, "unit (Length Units)")
+    axis_line = next((i for i, ln in enumerate(lines[:64]) if split_fields(ln, b",")[0].lower() == "frame"), None)
+    if axis_line is None:
+        raise InputError("no 'Frame,Time (Seconds),X,Y,Z,...' header row", path=path, hint=_HINT)
+    rows = {}
+    for i in range(1, axis_line):
+        cells = split_fields(lines[i], b",")
+        label = _label(cells)
+        if label in ("type", "name", "id", "parent"):
+            rows[label] = (i, cells)
+        elif any(c.lower() in ("position", "rotation") for c in cells):
+            rows["component"] = (i, cells)
+    for need in ("type", "name", "component"):
+        if need not in rows:
+            raise InputError(f"line {axis_line + 1}: the header has no {need.title()} row above it",
+                             path=path, hint=_HINT)
+    axes = split_fields(lines[axis_line], b",")
+    n_cols = len(axes)
+
+    def cell(key, j):
+        cells = rows[key][1]
+        return cells[j] if j < len(cells) else ""
+
+    triples: dict[str, list[int]] = {}
+    for j in range(2, n_cols):
+        if cell("type", j).lower() != "marker" or cell("component", j).lower() != "position":
+            continue
+        axis = axes[j].upper()
+        if axis not in ("X", "Y", "Z"):
+            continue
+        triples.setdefault(cell("name", j), [-1, -1, -1])["XYZ".index(axis)] = j
+    for name, cols in triples.items():
+        if -1 in cols or not name:
+            raise InputError(f"line {rows['name'][0] + 1}: marker {name!r} lacks some of its X, Y, Z columns",
+                             path=path, hint=_HINT)
+    if not triples:
+        raise InputError("no marker position columns (Type 'Marker', 'Position', X/Y/Z)", path=path,
+                         hint="enable Markers in Motive's CSV export options")
+    file_markers = list(triples)
+    found = (match or (lambda names: match_markers(names, marker_names, path)))(file_markers)
+    present = found.index >= 0
+    col = np.asarray(list(triples.values()), dtype=np.int64)
+    columns = [axes[0] or "Frame", axes[1] if n_cols > 1 else "Time"] + [""] * (n_cols - 2)
+    for name, (a, b, c) in zip(file_markers, col.tolist()):
+        columns[a], columns[b], columns[c] = f"{name} X", f"{name} Y", f"{name} Z"
+    use = np.concatenate([[0, 1], col[found.index[present]].ravel()]).astype(np.int64)
+    values, line_no = parse_rows(lines, axis_line + 1, n_cols, use, columns, path, ended=ended)
+    positions = np.full((len(values), len(marker_names), 3), np.nan)
+    positions[:, present] = values[:, 2:].reshape(len(values), int(present.sum()), 3)
+    return Take(frames=frame_column(values[:, 0], line_no, "Frame", path), times=values[:, 1].copy(),
+                positions=positions, marker_names=list(marker_names), path=str(path), extra_markers=found.extra,
+                lines=line_no, units=units, markers=found.report)
+
+
+_UNIT_WORDS = {"mm": "Millimeters", "cm": "Centimeters", "m": "Meters", "in": "Inches", "dm": "Decimeters",
+               "ft": "Feet"}
+
+
+def write_motive_take(path, take: Take, units: str | None = None, subject: str | None = None,
+                      decimals: int = 6) -> None:
+    """Write a take as a Motive CSV (format 1.23, markers only), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+    take : Take
+    units : str, optional
+        ``Length Units`` (default ``take.units`` or ``m``, Motive's default).
+    subject : str, optional
+        Marker names become ``subject:name``.
+    decimals : int
+    """
+    pos = np.asarray(take.positions, dtype=np.float64)
+    T, M = pos.shape[:2]
+    rate = nominal_rate(take, 120.0)
+    units = units or take.units or "m"
+    names = [marker_label(n, subject) for n in take.marker_names]
+    head = [
+        f"Format Version,1.23,Take Name,facepipe,Take Notes,,Capture Frame Rate,{rate:.6f},"
+        f"Export Frame Rate,{rate:.6f},Capture Start Time,,Capture Start Frame,{int(take.frames[0]) if T else 0},"
+        f"Total Frames in Take,{T},Total Exported Frames,{T},Rotation Type,Quaternion,"
+        f"Length Units,{_UNIT_WORDS[units]},Coordinate Space,Global",
+        "",
+        ",Type," + ",".join(["Marker"] * (3 * M)),
+        ",Name," + ",".join(n for n in names for _ in range(3)),
+        ",ID," + ",".join(str(k + 1) for k in range(M) for _ in range(3)),
+        ",," + ",".join(["Position"] * (3 * M)),
+        "Frame,Time (Seconds)," + ",".join(["X,Y,Z"] * M),
+    ]
+    fmt = ",".join(["%d", "%.6f"] + [f"%.{decimals}f"] * (3 * M))
+    with atomic_open(path, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write("\n".join(head) + "\n")
+        for a in range(0, T, 4096):
+            b = min(T, a + 4096)
+            flat = pos[a:b].reshape(b - a, 3 * M)
+            text = "\n".join(fmt % (f, t, *p) for f, t, p in
+                             zip(take.frames[a:b].tolist(), take.times[a:b].tolist(), flat.tolist()))
+            fh.write(text.replace("nan", "") + "\n")
+
+
+def _sniff(head: bytes) -> bool:
+    return head.lower().startswith((b"format version,", b'"format version",'))
+
+
+register(Format("motive-csv", (".csv",), read_motive_take, write_motive_take, _sniff))

@@ -1,0 +1,133 @@
+"""TRC takes (the tab-separated marker format of Motion Analysis, OpenSim and Motive).
+
+::
+
+    PathFileType  4  (X/Y/Z)  take.trc
+    DataRate  CameraRate  NumFrames  NumMarkers  Units  OrigDataRate  OrigDataStartFrame  OrigNumFrames
+    30.00     30.00       60         96          mm     30.00         1                   60
+    Frame#  Time  M001        M002  ...
+                  X1  Y1  Z1  X2  Y2  Z2 ...
+    (blank line)
+    1  0.000  12.3  45.6  78.9  ...
+
+Marker names sit over their X column; an empty field is a missing sample.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_open
+from ..errors import InputError
+from .markers import match_markers, normalise_units
+from .registry import Format, nominal_rate, marker_label, register
+from .table import frame_column, parse_rows, read_lines, split_fields
+from .take import Take
+
+_HINT = "a TRC take starts with PathFileType, then the DataRate ... Units header and its values"
+
+
+def read_trc_take(path: Path, marker_names: list[str], match=None) -> Take:
+    """Read every frame of a TRC take.
+
+    Parameters
+    ----------
+    path : Path
+    marker_names : list[str]
+    match : callable(list[str]) -> MarkerMatch, optional
+
+    Returns
+    -------
+    Take
+        ``positions`` (T, M, 3) in the header's ``Units``; frames and times from the
+        ``Frame#`` and ``Time`` columns.
+
+    Raises
+    ------
+    InputError
+        Naming the line of a malformed header or body row.
+    """
+    lines, ended = read_lines(path, _HINT)
+    if len(lines) < 5 or not lines[0].lstrip().lower().startswith(b"pathfiletype"):
+        raise InputError("not a TRC file (line 1 must start with PathFileType)", path=path, hint=_HINT)
+    keys = split_fields(lines[1], b"\t")
+    vals = split_fields(lines[2], b"\t")
+    info = {k.lower(): v for k, v in zip(keys, vals) if k}
+    if "units" not in info:
+        raise InputError("line 2 (header): no Units column", path=path, hint=_HINT)
+    units = normalise_units(info["units"], path, "unit (line 3, Units)")
+    names_row = split_fields(lines[3], b"\t")
+    axes_row = split_fields(lines[4], b"\t")
+    if len(names_row) < 2 or names_row[0].lower().rstrip("#") != "frame" or names_row[1].lower() != "time":
+        raise InputError("line 4 (header): expected Frame# and Time, then the marker names", path=path, hint=_HINT)
+    file_markers, cols = [], []
+    for j in range(2, len(names_row)):
+        if names_row[j]:
+            if j + 2 >= len(axes_row):
+                raise InputError(f"line 5 (header): marker {names_row[j]!r} lacks its X, Y, Z columns",
+                                 path=path, hint=_HINT)
+            file_markers.append(names_row[j])
+            cols.append((j, j + 1, j + 2))
+    if not file_markers:
+        raise InputError("line 4 (header): no marker names", path=path, hint=_HINT)
+    found = (match or (lambda names: match_markers(names, marker_names, path)))(file_markers)
+    present = found.index >= 0
+    col = np.asarray(cols, dtype=np.int64)
+    n_cols = max(len(axes_row), len(names_row), int(col.max()) + 1)
+    columns = ["Frame#", "Time"] + [""] * (n_cols - 2)
+    for name, (a, b, c) in zip(file_markers, cols):
+        columns[a:c + 1] = [f"{name} X", f"{name} Y", f"{name} Z"]
+    use = np.concatenate([[0, 1], col[found.index[present]].ravel()]).astype(np.int64)
+    values, line_no = parse_rows(lines, 5, n_cols, use, columns, path, sep=b"\t", ended=ended)
+    positions = np.full((len(values), len(marker_names), 3), np.nan)
+    positions[:, present] = values[:, 2:].reshape(len(values), int(present.sum()), 3)
+    return Take(frames=frame_column(values[:, 0], line_no, "Frame#", path), times=values[:, 1].copy(),
+                positions=positions, marker_names=list(marker_names), path=str(path), extra_markers=found.extra,
+                lines=line_no, units=units, markers=found.report)
+
+
+def write_trc_take(path, take: Take, units: str | None = None, subject: str | None = None,
+                   decimals: int = 5) -> None:
+    """Write a take as TRC (tab-separated, empty fields for missing samples), atomically.
+
+    Parameters
+    ----------
+    path : str or Path
+    take : Take
+    units : str, optional
+        Declared in the header (default ``take.units`` or ``mm``).
+    subject : str, optional
+        Prefix marker names with ``subject:``.
+    decimals : int
+    """
+    pos = np.asarray(take.positions, dtype=np.float64)
+    T, M = pos.shape[:2]
+    rate = nominal_rate(take, 30.0)
+    units = units or take.units or "mm"
+    first = int(take.frames[0]) if T else 1
+    head = [
+        f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{rate:.6g}\t{rate:.6g}\t{T}\t{M}\t{units}\t{rate:.6g}\t{first}\t{T}",
+        "Frame#\tTime\t" + "\t".join(f"{marker_label(n, subject)}\t\t" for n in take.marker_names).rstrip("\t"),
+        "\t\t" + "\t".join(f"X{k + 1}\tY{k + 1}\tZ{k + 1}" for k in range(M)),
+        "",
+    ]
+    fmt = "\t".join(["%d", "%.6f"] + [f"%.{decimals}f"] * (3 * M))
+    with atomic_open(path, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write("\n".join(head) + "\n")
+        for a in range(0, T, 4096):
+            b = min(T, a + 4096)
+            flat = pos[a:b].reshape(b - a, 3 * M)
+            text = "\n".join(fmt % (f, t, *p) for f, t, p in
+                             zip(take.frames[a:b].tolist(), take.times[a:b].tolist(), flat.tolist()))
+            fh.write(text.replace("nan", "") + "\n")
+
+
+def _sniff(head: bytes) -> bool:
+    return head.lower().startswith(b"pathfiletype")
+
+
+register(Format("trc", (".trc",), read_trc_take, write_trc_take, _sniff))

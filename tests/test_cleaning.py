@@ -1,0 +1,392 @@
+"""Cleaning through the rig's prior and the prepare_take pipeline, against synthetic truth.
+
+A synthetic rig (markers on a face-sized patch, a few example expressions) and takes made
+from it with known head motion, weights, gaps, noise and jumps: the independent check is
+the truth the take was made from. The ICT kit's noisy take checks the issue's acceptance
+figures end to end (skipped when ../shared is absent).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from facepipe.cleaning import (CleanOptions, clean_take, find_jumps, fit_pose_expression, noise_sigma,
+                                rotation_from_vector)
+from facepipe.errors import InputError
+from facepipe.mocap import Take
+from facepipe.prepare import PrepareOptions, prepare_take, summary_lines
+
+H, K, T = 30, 5, 80
+
+
+def make_rig(seed=0):
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(-1.0, 1.0, H)
+    phi = rng.uniform(-0.8, 0.8, H)
+    rest = 8.0 * np.stack([np.sin(theta) * np.cos(phi), np.sin(phi), np.cos(theta) * np.cos(phi)], axis=1)
+    stable = np.zeros(H, bool)
+    stable[-6:] = True
+    centres = rng.normal(scale=4.0, size=(K, 3))
+    basis = np.stack([0.8 * np.exp(-np.sum((rest - c) ** 2, 1) / 20.0)[:, None] * rng.normal(size=3) for c in centres])
+    basis[:, stable] *= 0.1  # stable skin moves a little with expressions
+    names = [f"M{i:02d}" for i in range(H - 6)] + [f"S{i}" for i in range(6)]
+    model = SimpleNamespace(rest=rest, handle_vertices=np.arange(H), stable=stable,
+                            example_handles=np.concatenate([rest[None], rest + basis]),
+                            meta={"marker_spacing": 2.0, "units": "cm"}, marker_names=names)
+    return model, rest, basis, stable, names
+
+
+def make_truth(rest, basis, seed=1, degrees=15.0):
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0, 1, T)
+    weights = np.clip(np.stack([np.sin(np.pi * (s * (k + 1) + rng.uniform())) for k in range(K)], 1), 0, None)
+    head = rest + np.einsum("tk,khc->thc", weights, basis)
+    rotvec = np.radians(degrees) * np.stack([np.sin(3 * s), 0.5 * np.sin(2 * s + 1), 0.3 * s], 1)
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    t = np.stack([2 * s, np.sin(4 * s), -s], 1) + [0.0, 150.0, 10.0]
+    world = np.einsum("tij,thj->thi", R, head) + t[:, None, :]
+    return world, head, R, t, weights
+
+
+def take_of(world, names, units="cm") -> Take:
+    frames = np.arange(len(world), dtype=np.int64)
+    return Take(frames=frames, times=frames / 30.0, positions=world.copy(), marker_names=list(names), units=units,
+                source_units=units, fps=30.0, format="c3d", path="synthetic.c3d")
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def test_rotation_from_vector_matches_scipy():
+    v = np.random.default_rng(0).normal(size=(20, 3))
+    v[0] = 0.0
+    v[1] = 1e-10
+    np.testing.assert_allclose(rotation_from_vector(v), Rotation.from_rotvec(v).as_matrix(), atol=1e-12)
+
+
+def test_fit_pose_expression_is_exact_in_the_span():
+    _, rest, basis, _, _ = make_rig()
+    world, head, R, t, weights = make_truth(rest, basis)
+    R0 = np.tile(np.eye(3), (T, 1, 1))
+    t0 = world.mean(axis=1) - rest.mean(axis=0)
+    R2, t2, C, _ = fit_pose_expression(world, np.ones((T, H)), rest, basis, R0, t0, iterations=25)
+    np.testing.assert_allclose(R2, R, atol=1e-8)
+    np.testing.assert_allclose(t2, t, atol=1e-6)
+    np.testing.assert_allclose(C, weights, atol=1e-7)  # zeros stay exact zeros: non-negative weights
+    assert (C >= 0).all()
+
+
+def test_noise_sigma_of_white_noise_on_smooth_motion():
+    rng = np.random.default_rng(5)
+    s = np.linspace(0, 4, 400)[:, None, None]
+    smooth = 0.3 * np.sin(s + rng.uniform(size=(1, 20, 3)))
+    noise = rng.normal(scale=0.02, size=(400, 20, 3))
+    vis = rng.random((400, 20)) > 0.1
+    assert noise_sigma(smooth + noise, vis) == pytest.approx(0.02, rel=0.1)
+    assert noise_sigma(smooth, vis) < 1e-4
+
+
+def test_find_jumps_spikes_plateaus_and_edges_but_not_fast_motion():
+    rng = np.random.default_rng(4)
+    r = rng.normal(scale=0.01, size=(60, 4, 3))
+    known = np.ones((60, 4), bool)
+    r[10, 0] += [0.3, 0.0, 0.0]  # spike
+    r[20:28, 1] += [0.0, 0.4, 0.0]  # knocked loose for 8 frames
+    r[0, 2] += [0.0, 0.0, 0.5]  # a bad first sample
+    r[30:36, 3] += np.linspace(0, 1.0, 8)[1:-1, None] * [1.0, 0.0, 0.0]  # fast but continuous (a blink)
+    r[36:40, 3] += [1.0, 0.0, 0.0]
+    r[40:44, 3] += np.linspace(1.0, 0.0, 6)[1:-1, None] * [1.0, 0.0, 0.0]
+    out = find_jumps(r, known, floor=0.1)
+    assert np.flatnonzero(out[:, 0]).tolist() == [10]
+    assert np.flatnonzero(out[:, 1]).tolist() == list(range(20, 28))
+    assert np.flatnonzero(out[:, 2]).tolist() == [0]
+    assert not out[:, 3].any()
+    assert not find_jumps(r, known, floor=1.0).any()  # below the absolute floor
+    assert not find_jumps(r[:2], known[:2], floor=0.1).any()
+
+
+# --------------------------------------------------------------------------- clean_take
+
+
+def test_prior_fills_long_gaps_exactly_when_the_truth_is_in_its_span():
+    _, rest, basis, stable, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    world[10:50, 3] = np.nan  # 40 frames
+    world[:30, 7] = np.nan  # from the start
+    world[60:, [1, 2, 4]] = np.nan  # to the end
+    world[20:24, :12] = np.nan  # many at once
+    res = clean_take(world, rest, basis, stable, np.arange(T) / 30.0, CleanOptions(), spacing=2.0, names=names)
+    np.testing.assert_allclose(res.head, head, atol=1e-6)
+    np.testing.assert_allclose(res.R, R, atol=1e-7)
+    tot = res.report["total"]
+    assert tot["missing"] == 40 + 30 + 60 + 48 - 8 and tot["outliers"] == 0
+    assert res.report["markers"]["M03"]["longest_gap"] == 40 and res.report["markers"]["M03"]["from_prior"] == 40
+    json.dumps(res.report)
+
+
+def test_noise_is_reduced_below_the_markers_own():
+    _, rest, basis, stable, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    noisy = world + np.random.default_rng(2).normal(scale=0.02, size=world.shape)
+    res = clean_take(noisy, rest, basis, stable, np.arange(T) / 30.0, spacing=2.0)
+    raw = np.einsum("tji,thj->thi", R, noisy - t[:, None, :])
+    err_raw = np.sqrt(np.mean((raw - head) ** 2))
+    err = np.sqrt(np.mean((res.head - head) ** 2))
+    assert err < 0.5 * err_raw
+    assert res.report["noise"]["sigma"] == pytest.approx(0.02, rel=0.2)
+    from scipy.ndimage import gaussian_filter1d
+
+    smooth = clean_take(noisy, rest, basis, stable, np.arange(T) / 30.0, CleanOptions(smooth=1.5), spacing=2.0)
+    np.testing.assert_allclose(smooth.head, gaussian_filter1d(res.head, 1.5, axis=0, mode="nearest"), atol=1e-12)
+    jitter = [np.sqrt(np.mean(np.diff(h, 2, axis=0) ** 2)) for h in (res.head, smooth.head)]
+    assert jitter[1] < 0.5 * jitter[0] and smooth.report["smooth_frames"] == 1.5
+
+
+def test_jumps_are_outliers_and_filled():
+    _, rest, basis, stable, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    bad = world.copy()
+    bad[30, 5] += [1.0, -0.5, 0.5]  # a one-frame jump
+    bad[40:52, 9] += [0.0, 0.6, 0.0]  # a marker knocked loose for 12 frames
+    bad[55, -1] += [0.8, 0.0, 0.0]  # a stable marker jumps
+    res = clean_take(bad, rest, basis, stable, np.arange(T) / 30.0, spacing=2.0, names=names)
+    assert res.report["markers"]["M05"]["outliers"] == 1
+    assert res.report["markers"]["M09"]["outliers"] == 12
+    assert res.report["markers"]["S5"]["outliers"] == 1
+    assert res.report["total"]["outliers"] == 14
+    np.testing.assert_allclose(res.head, head, atol=1e-6)
+    np.testing.assert_allclose(res.R, R, atol=1e-7)
+
+
+def test_without_a_prior_long_gaps_decay_to_neutral():
+    _, rest, basis, stable, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis, degrees=0.0)
+    world[5:75, 2] = np.nan
+    res = clean_take(world, rest, basis, stable, np.arange(T) / 30.0, CleanOptions(prior=False), spacing=2.0)
+    # far from any sample of the marker the fill has faded to its rest position (35 frames
+    # from a sample, e^(-35 / 6) of the residual is left)
+    np.testing.assert_allclose(res.head[40, 2], rest[2], atol=0.01 * np.abs(head[:, 2] - rest[2]).max())
+    # next to a sample it continues the marker smoothly
+    assert np.linalg.norm(res.head[5, 2] - head[4, 2]) < np.linalg.norm(head[4, 2] - rest[2])
+
+
+def test_frames_without_markers_are_interpolated():
+    _, rest, basis, stable, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    world[30:33] = np.nan
+    world[50, :28] = np.nan  # 2 visible: no pose
+    res = clean_take(world, rest, basis, stable, np.arange(T) / 30.0, spacing=2.0)
+    assert res.report["total"]["frames_interpolated"] == 4
+    assert np.isfinite(res.head).all() and np.isfinite(res.R).all()
+    np.testing.assert_allclose(res.head[31], head[31], atol=0.1)  # smooth motion: close
+    np.testing.assert_allclose(res.head[:30], head[:30], atol=1e-6)
+
+
+# --------------------------------------------------------------------------- prepare_take
+
+
+def test_prepare_detects_a_unit_mismatch():
+    model, rest, basis, _, names = make_rig()
+    world, *_ = make_truth(rest, basis)
+    take = take_of(world * 10.0, names)  # mm numbers read as cm
+    take.format, take.units, take.source_units = "facepipe-csv", "cm", "cm"
+    with pytest.raises(InputError, match=r"unit mismatch.*in mm, not in cm.*\n  hint: pass --take-units mm"):
+        prepare_take(take, model)
+    with pytest.raises(InputError, match="seems to be in mm"):
+        prepare_take(take, model, PrepareOptions(neutral_frame=0))
+    take.positions = world * 1.8
+    with pytest.raises(InputError, match="no unit explains it"):
+        prepare_take(take, model)
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.1])
+def test_prepare_with_a_neutral_frame_removes_offsets_and_aligns(offset):
+    model, rest, basis, _, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    offsets = np.random.default_rng(7).normal(scale=offset, size=(H, 3))  # the actor's markers vs the rig's
+    A = Rotation.from_rotvec([0.0, 0.0, np.pi / 2]).as_matrix()  # capture space: another up axis
+    actor = np.einsum("tij,thj->thi", R, head + offsets) + t[:, None, :]
+    neutral = np.einsum("ij,hj->hi", R[0], rest + offsets) + t[0]
+    takeworld = np.concatenate([neutral[None], actor]) @ A.T * 1.05 + [5.0, 0, 0]
+    out, R2, t2, report = prepare_take(take_of(takeworld, names), model,
+                                       PrepareOptions(neutral_frame=0, frames=slice(1, None)))
+    # misplaced markers bias the neutral's scale a little (scale and offsets are not separable)
+    tol = 1e-9 if offset == 0 else 5e-3
+    assert report["alignment"]["scale"] == pytest.approx(1 / 1.05, rel=tol)
+    assert report["alignment"]["offsets_rms"] == pytest.approx(np.sqrt(np.mean(np.sum(offsets**2, 1))), abs=0.01)
+    np.testing.assert_allclose(out, head, atol=1e-6 if offset == 0 else 2e-3)
+    # the head motion maps the rig to where the take's face is (rigid, rig scale)
+    centre = rest.mean(axis=0)
+    placed = np.einsum("tij,j->ti", R2, centre) + t2
+    np.testing.assert_allclose(placed, (np.einsum("tij,j->ti", R, centre) + t) @ A.T * 1.05 + [5.0, 0, 0],
+                               atol=1e-6 if offset == 0 else 0.05)
+    np.testing.assert_allclose(np.linalg.det(R2), 1.0)
+
+
+def test_prepare_with_a_neutral_take():
+    model, rest, basis, _, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    offsets = np.zeros((H, 3))
+    offsets[:3] = [0.0, 0.2, 0.0]  # three markers sit higher on the actor
+    actor = np.einsum("tij,thj->thi", R, head + offsets) + t[:, None, :]
+    still = np.repeat((rest + offsets)[None], 5, 0) + [3.0, 1.0, 0.0]
+    still[2, 4] = np.nan
+    out, *_, rep = prepare_take(take_of(actor, names), model, PrepareOptions(neutral_take=take_of(still, names)))
+    np.testing.assert_allclose(out, head, atol=2e-3)
+    assert rep["alignment"]["offsets_max"] == pytest.approx(0.2, abs=0.02)
+    with pytest.raises(InputError, match="neutral frame 500 is not in the take"):
+        prepare_take(take_of(actor, names), model, PrepareOptions(neutral_frame=500))
+
+
+def test_prepare_switches_and_report():
+    model, rest, basis, _, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    world[10:20, 4] = np.nan
+    take = take_of(world, names)
+    full, *_ = prepare_take(take, model)
+    part, Rp, _, rep = prepare_take(take, model, PrepareOptions(frames=slice(20, 30)))
+    np.testing.assert_array_equal(part, full[20:30])  # a part replays as in the whole take
+    lines = summary_lines(rep)
+    assert any("10 missing samples" in ln for ln in lines) and json.dumps(rep)
+    # --no-clean: pose from the stable markers, PCHIP gaps; the stable markers' own motion costs accuracy
+    nc, Rn, _, rep_nc = prepare_take(take, model, PrepareOptions(clean=False))
+    assert np.isfinite(nc).all() and rep_nc["total"]["filled"] == 10 and not rep_nc["cleaning"]["enabled"]
+    assert np.abs(nc - head).max() > 1e-4
+    # --no-stabilise: the take is taken as head space
+    hs, Rs, ts, _ = prepare_take(take_of(head, names), model, PrepareOptions(stabilise=False))
+    np.testing.assert_allclose(hs, head, atol=1e-6)
+    np.testing.assert_array_equal(Rs, np.tile(np.eye(3), (T, 1, 1)))
+
+
+def test_prepare_fallbacks_are_reported():
+    model, rest, basis, stable, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    # no stable markers in the rig: the pose comes from all markers through the prior
+    model.stable = np.zeros(H, bool)
+    out, R2, _, rep = prepare_take(take_of(world, names), model)
+    np.testing.assert_allclose(out, head, atol=1e-6)
+    assert any("fewer than 3 stable markers in the rig" in n for n in rep["notes"])
+    model.stable = stable
+    # an absent marker (NaN everywhere) is filled from the others through the prior, and said so
+    take = take_of(world, names)
+    take.positions[:, 3] = np.nan
+    take.markers = {"absent": [names[3]]}
+    out, *_, rep = prepare_take(take, model)
+    np.testing.assert_allclose(out[:, 3], head[:, 3], atol=1e-6)
+    assert rep["markers"][names[3]]["absent"] and any("absent from the take" in n for n in rep["notes"])
+    with pytest.raises(InputError, match="never visible"):
+        prepare_take(take, model, PrepareOptions(clean=False))
+    take.positions[:] = np.nan
+    with pytest.raises(InputError, match="no marker is visible"):
+        prepare_take(take, model)
+
+
+# --------------------------------------------------------------------------- the ICT kit
+
+
+@pytest.fixture(scope="module")
+def ict_model():
+    from tests.conftest import ROOT, ict_or_skip
+
+    ict_or_skip()
+    from facepipe.fit import fit_rig
+    from facepipe.model import model_from_fit
+    from facepipe.rig import load_rig
+
+    rig = load_rig(ROOT / "configs" / "ict.toml")
+    model = model_from_fit(fit_rig(rig), rig)
+    return model
+
+
+def _replay(take, model, **options):
+    from facepipe.replay import NumpyEvaluator
+
+    head, R, t, report = prepare_take(take, model, PrepareOptions(**options))
+    out = NumpyEvaluator(model).evaluate(head)
+    return np.einsum("tij,tvj->tvi", R, out) + t[:, None, :], report
+
+
+@pytest.mark.ict
+def test_ict_noisy_take_meets_the_acceptance_figures(ict_model):
+    from facepipe.mocap import read_take
+    from tests.conftest import ICT
+
+    model = ict_model
+    noisy = read_take(ICT / "noisy_mocap.csv", model.marker_names, units="cm")
+    truth = np.load(ICT / "noisy_truth.npz")["positions"].astype(np.float64)
+    clean = take_of(truth[:, model.handle_vertices], model.marker_names)
+
+    def rms(out):
+        return np.sqrt(((out - truth)[:, :9409] ** 2).sum(-1).mean(-1))
+
+    e_noisy, report = _replay(noisy, model)
+    e_clean = rms(_replay(clean, model)[0])
+    e_noisy = rms(e_noisy)
+    assert e_noisy.mean() <= 1.25 * e_clean.mean(), (e_noisy.mean(), e_clean.mean())
+    assert (e_noisy / e_clean).max() <= 2.0, (e_noisy / e_clean).max()
+    assert report["total"]["missing"] == int(np.isnan(noisy.positions[..., 0]).sum())
+    assert report["cleaning"]["noise"]["sigma"] == pytest.approx(0.02, rel=0.15)
+
+
+@pytest.mark.ict
+def test_ict_take_replays_the_same_from_every_format(ict_model, tmp_path):
+    from facepipe.mocap import read_take, write_take
+    from tests.conftest import ICT
+
+    model = ict_model
+    names = model.marker_names
+    take = read_take(ICT / "noisy_mocap.csv", names, units="cm", frames="0:12")
+    reference, _ = _replay(take, model)
+    for fmt, suffix in [("c3d", ".c3d"), ("trc", ".trc"), ("vicon-csv", ".csv"), ("motive-csv", ".csv")]:
+        path = tmp_path / f"take_{fmt}{suffix}"
+        write_take(path, take, fmt, units="mm", subject="Actor")
+        back = read_take(path, names, units="cm")
+        assert back.source_units == "mm" and back.markers["subject"] == "Actor"
+        out, _ = _replay(back, model)
+        assert np.abs(out - reference).max() <= 1e-4, fmt
+
+
+@pytest.mark.ict
+def test_ict_replay_command_line(ict_model, tmp_path, capsys):
+    from facepipe.cli import main
+    from facepipe.mocap import read_take, write_take
+    from facepipe.model import save_model
+    from tests.conftest import ICT
+
+    model_path = tmp_path / "model.npz"
+    save_model(model_path, ict_model.arrays, ict_model.meta)
+    names = ict_model.marker_names
+    take = read_take(ICT / "noisy_mocap.csv", names, units="cm", frames="0:10")
+    c3d = tmp_path / "take.c3d"
+    write_take(c3d, take, units="mm", subject="Actor")
+
+    def run(*args):
+        with pytest.raises(SystemExit) as exit_:
+            main([str(a) for a in args])
+        return exit_.value.code
+
+    assert run("replay", c3d, "-m", model_path, "-o", tmp_path / "out", "--neutral-frame", 0, "--smooth", 1) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"alignment: frame 0, scale 1\.00\d\d", out) and "mm -> cm" in out and "missing samples" in out
+    info = json.loads((tmp_path / "out" / "replay.json").read_text())
+    assert info["mocap"]["alignment"]["reference"] == "frame 0" and info["mocap"]["subject"] == "Actor"
+    assert set(info["markers"]) == set(names) and info["mocap"]["cleaning"]["smooth_frames"] == 1.0
+    # a facepipe CSV in mm (it cannot say so): the unit mismatch is caught, exit 2
+    csv = tmp_path / "mm.csv"
+    write_take(csv, take, "facepipe-csv", units="mm")
+    assert run("replay", csv, "-m", model_path, "-o", tmp_path / "bad", "-q") == 2
+    err = capsys.readouterr().err
+    assert "seems to be in mm, not in cm" in err and "--take-units mm" in err
+    assert run("replay", csv, "-m", model_path, "-o", tmp_path / "ok", "-q", "--take-units", "mm") == 0
+    # three markers are missing in all 10 frames: the prior fills them, interpolation alone cannot
+    assert run("replay", csv, "-m", model_path, "-o", tmp_path / "bad", "-q", "--take-units", "mm", "--no-clean") == 2
+    assert "never visible in the take: M007, M018, S02" in capsys.readouterr().err
+    assert run("replay", c3d, "-m", model_path, "-o", tmp_path / "bad", "-q", "--neutral-frame", 99) == 2
+    assert "neutral frame 99 is not in the take" in capsys.readouterr().err
+    assert run("replay", c3d, "-m", model_path, "-o", tmp_path / "bad", "-q", "--smooth", -1) == 2

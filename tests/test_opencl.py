@@ -1,0 +1,252 @@
+"""The OpenCL replay engine against the NumPy reference, on PoCL's CPU device (or any device).
+
+Tolerance: 1e-4 × the mesh's bounding-box diagonal (float32 kernels, float64 reference).
+Tests skip cleanly when no OpenCL device exists; the 'no platform' paths are simulated.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from facepipe import opencl
+from facepipe.cli import main
+from facepipe.errors import InputError
+from facepipe.fit import fit_rig
+from facepipe.frames import vertex_normals
+from facepipe.model import model_from_fit
+from facepipe.replay import NumpyEvaluator, NpyWriter, stream_chunks
+from facepipe.rig import load_rig
+from facepipe.sample import write_sample_rig
+from tests.conftest import ROOT, ict_or_skip
+
+TOL = 1e-4
+
+
+def _device_or_skip():
+    if not opencl.opencl_available():
+        pytest.skip("no OpenCL device (pip install pocl-binary-distribution gives a CPU one)")
+
+
+def run(*args) -> int:
+    with pytest.raises(SystemExit) as exc:
+        main([str(a) for a in args])
+    return exc.value.code
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ocl")
+    write_sample_rig(d / "rig", n_vertices=3000, n_examples=6, n_frames=40)
+    rig = load_rig(d / "rig" / "sample.toml")
+    fit = fit_rig(rig)
+    truth = np.load(d / "rig" / "take_truth.npz")["positions"]
+    head = truth[:, rig.handles].astype(np.float64)
+    diag = float(np.linalg.norm(np.ptp(rig.mesh.vertices, axis=0)))
+    return d, rig, fit, head, diag
+
+
+def _motion(T, seed=3):
+    """Arbitrary rotations and translations: exercises the device-side head motion."""
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(T, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    R = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                  2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                  2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1).reshape(T, 3, 3)
+    return R, rng.normal(scale=5.0, size=(T, 3))
+
+
+# ----------------------------------------------------------------------------- host tables
+
+
+def test_vertex_face_ring_gives_each_face_in_its_winding():
+    faces = np.array([[0, 1, 2], [0, 2, 3], [3, 2, 4]])
+    ptr, ring = opencl.vertex_face_ring(faces, 6)
+    assert ptr.tolist() == [0, 2, 3, 6, 8, 9, 9]  # vertex 5 has no face
+    for v in range(5):
+        for a, b in ring[ptr[v]:ptr[v + 1]]:
+            rotations = {(v, a, b), (a, b, v), (b, v, a)}
+            assert any(tuple(f) in rotations for f in faces.tolist())
+
+
+def test_locality_order_only_reorders_scattered_meshes(sheet):
+    V, F = sheet
+    assert opencl.locality_order(F, len(V), "auto") is None  # scan-ordered grid: already local
+    shuffle = np.random.default_rng(0).permutation(len(V))
+    inv = np.argsort(shuffle)
+    perm = opencl.locality_order(inv[F], len(V), "auto")
+    assert perm is not None and sorted(perm.tolist()) == list(range(len(V)))
+    with pytest.raises(ValueError):
+        opencl.locality_order(F, len(V), np.zeros(len(V), dtype=int))
+
+
+def test_compact_edges_moves_dropped_edges_last():
+    index = np.array([[3, 1, 2], [0, 4, 5]])
+    weight = np.array([[0.0, 0.6, 0.4], [0.5, 0.0, 0.5]], dtype=np.float32)
+    i, w, n = opencl.compact_edges(index, weight)
+    assert n.tolist() == [2, 2] and i.tolist() == [[1, 2, 3], [0, 5, 4]] and w[:, 2].tolist() == [0, 0]
+
+
+# ----------------------------------------------------------------------------- against the reference
+
+
+@pytest.mark.parametrize("method", ["wpsd", "psd", "none"])
+@pytest.mark.parametrize("options", [{}, {"vector_width": 1, "chunk": 16}, {"vector_width": 4, "chunk": 12},
+                                     {"reorder": "rcm", "chunk": 8}])
+def test_matches_numpy_reference(sample, method, options):
+    _device_or_skip()
+    _, rig, fit, head, diag = sample
+    model = model_from_fit(fit, rig, method)
+    ref_final, ref_large = NumpyEvaluator(model).evaluate(head, with_large=True)
+    ev = opencl.OpenCLEvaluator(model, **options)
+    final, large = ev.evaluate(head, with_large=True)
+    assert final.shape == ref_final.shape and final.dtype == np.float32
+    assert np.abs(final - ref_final).max() <= TOL * diag
+    assert np.abs(large - ref_large).max() <= TOL * diag
+    assert ev.backend == "opencl" and "compute units" in ev.device
+    assert ev.stage_seconds["large_scale"] > 0 and ev.stage_seconds["frames_fine_scale"] > 0
+
+
+def test_head_motion_normals_and_permuted_order(sample):
+    _device_or_skip()
+    _, rig, fit, head, diag = sample
+    model = model_from_fit(fit, rig, "wpsd")
+    R, t = _motion(len(head))
+    ref_final, ref_large = NumpyEvaluator(model).evaluate(head, with_large=True)
+    ref_world = np.einsum("cij,cvj->cvi", R, ref_final) + t[:, None]
+    ref_large_world = np.einsum("cij,cvj->cvi", R, ref_large) + t[:, None]
+    perm = np.random.default_rng(1).permutation(model.n_vertices)  # worst case for locality
+    ev = opencl.OpenCLEvaluator(model, reorder=perm, chunk=16)
+    final, large, normals = ev.evaluate(head, with_large=True, rigid=(R, t), with_normals=True)
+    scale = diag + np.abs(t).max()
+    assert np.abs(final - ref_world).max() <= TOL * scale
+    assert np.abs(large - ref_large_world).max() <= TOL * scale
+    ref_normals = np.einsum("cij,cvj->cvi", R, vertex_normals(ref_final, model.triangles.astype(np.int64)))
+    assert np.abs(normals - ref_normals).max() <= 1e-3
+    assert np.allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-5)
+
+
+def test_stream_delivers_chunks_in_order_and_propagates_sink_errors(sample):
+    _device_or_skip()
+    _, rig, fit, head, _ = sample
+    ev = opencl.OpenCLEvaluator(model_from_fit(fit, rig, "psd"), chunk=8, slots=3)
+    starts = []
+    ev.stream(head[:27], lambda s, f, l, n: starts.append((s, f.shape[0], l, n)))
+    assert [(s, n) for s, n, _, _ in starts] == [(0, 8), (8, 8), (16, 8), (24, 3)]
+    assert all(l is None and n is None for _, _, l, n in starts)
+
+    def broken(start, *_):
+        if start == 8:
+            raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        ev.stream(head, broken)
+    ev.stream(head[:4], lambda *a: None)  # still usable afterwards
+
+
+def test_stream_chunks_drives_numpy_and_opencl_alike(sample, tmp_path):
+    _device_or_skip()
+    _, rig, fit, head, diag = sample
+    model = model_from_fit(fit, rig, "wpsd")
+    R, t = _motion(len(head), seed=5)
+    outputs = {}
+    for name, ev in (("numpy", NumpyEvaluator(model)), ("opencl", opencl.OpenCLEvaluator(model, chunk=16))):
+        path = tmp_path / f"{name}.npy"
+        with NpyWriter(path, (len(head), model.n_vertices, 3)) as w:
+            stream_chunks(ev, head, lambda s, f, l, n: w.write(f), R, t, chunk=16)
+        outputs[name] = np.load(path)
+    assert np.abs(outputs["numpy"] - outputs["opencl"]).max() <= TOL * (diag + np.abs(t).max())
+
+
+def test_npy_writer_refuses_incomplete_files(tmp_path):
+    with pytest.raises(RuntimeError, match="wrote 1 of 2"):
+        with NpyWriter(tmp_path / "a.npy", (2, 3)) as w:
+            w.write(np.zeros((1, 3)))
+    with pytest.raises(ValueError):
+        NpyWriter(tmp_path / "b.npy", (2, 3)).write(np.zeros((1, 4)))
+
+
+# ----------------------------------------------------------------------------- devices and the CLI
+
+
+def test_device_selection(monkeypatch):
+    _device_or_skip()
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    devices = opencl.list_devices()
+    first = opencl.select_device()
+    assert first in [d for _, _, d in devices]
+    p, d, dev = devices[0]
+    assert opencl.select_device(f"{p}:{d}") == dev
+    assert opencl.select_device(dev.name.split()[0].lower()) is not None
+    monkeypatch.setenv("PYOPENCL_CTX", f"{p}:{d}")
+    assert opencl.select_device() == dev
+    with pytest.raises(InputError, match="matches no OpenCL device"):
+        opencl.select_device("no-such-device-xyz")
+
+
+@pytest.fixture(scope="module")
+def baked(sample):
+    d = sample[0]
+    assert run("bake", d / "rig" / "sample.toml", "-o", d / "model.npz", "-q") == 0
+    return d
+
+
+def test_cli_replay_records_backend_and_device(baked):
+    _device_or_skip()
+    d = baked
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "ocl", "--backend", "opencl",
+               "--chunk", "16", "--frames", "3:29", "--save-large-scale", "-q") == 0
+    report = json.loads((d / "ocl" / "replay.json").read_text())
+    assert report["backend"] == "opencl" and "compute units" in report["device"]
+    assert report["frames"] == 26 and "frames_fine_scale" in report["stage_seconds"]
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "np", "--backend", "numpy",
+               "--frames", "3:29", "--save-large-scale", "-q") == 0
+    assert json.loads((d / "np" / "replay.json").read_text())["backend"] == "numpy"
+    diag = sample_diag = float(np.linalg.norm(np.ptp(np.load(d / "np" / "positions.npy")[0], axis=0)))
+    for name in ("positions.npy", "large_scale.npy"):
+        a, b = np.load(d / "ocl" / name), np.load(d / "np" / name)
+        assert a.shape == b.shape == (26, a.shape[1], 3)
+        assert np.abs(a - b).max() <= TOL * max(diag, sample_diag)
+
+
+def test_cli_without_opencl_platform(baked, monkeypatch, capsys):
+    d = baked
+    monkeypatch.setattr(opencl.device, "list_devices", lambda: [])
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "none", "--backend",
+               "opencl") == 2
+    err = capsys.readouterr().err
+    assert "no OpenCL platform" in err and "--backend numpy" in err
+    assert not (d / "none" / "positions.npy").exists()
+    # the default (auto) falls back to NumPy and says so
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "auto", "--frames", "0:4") == 0
+    assert "NumPy backend" in capsys.readouterr().out
+    assert json.loads((d / "auto" / "replay.json").read_text())["backend"] == "numpy"
+
+
+def test_cli_bad_device_is_input_error(baked, capsys):
+    _device_or_skip()
+    d = baked
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "bad", "--device",
+               "no-such-device-xyz") == 2
+    assert "matches no OpenCL device" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- the ICT kit
+
+
+@pytest.mark.ict
+def test_ict_matches_numpy_reference():
+    ict_or_skip()
+    _device_or_skip()
+    rig = load_rig(ROOT / "configs" / "ict.toml")
+    fit = fit_rig(rig)
+    truth = np.load(ict_or_skip() / "train_truth.npz")["positions"][:48]
+    head = truth[:, rig.handles].astype(np.float64)
+    diag = float(np.linalg.norm(np.ptp(rig.mesh.vertices, axis=0)))
+    for method in ("wpsd", "psd"):
+        model = model_from_fit(fit, rig, method)
+        ref = NumpyEvaluator(model).evaluate(head)
+        out = opencl.OpenCLEvaluator(model, reorder="rcm").evaluate(head)
+        assert np.abs(out - ref).max() <= TOL * diag, method
