@@ -119,3 +119,21 @@ def test_bad_inputs_exit_2_with_message(pipeline, tmp_path, capsys):
 def test_help_everywhere():
     for cmd in ([], ["fit"], ["bake"], ["replay"], ["export"], ["eval"], ["sample"], ["bench"]):
         assert run(*cmd, "--help") == 0
+
+
+def test_examples_from_a_captured_sequence(pipeline, tmp_path):
+    """[examples] sequence: frames of a take with truth serve as example poses (with meshes or alone)."""
+    from facepipe.fit import fit_rig
+    from facepipe.rig import load_rig
+
+    rig_dir = pipeline / "rig"
+    cfg = rig_dir / "seq.toml"
+    text = (rig_dir / "sample.toml").read_text()
+    text = text.replace('meshes = ["expressions/*.obj"]', "meshes = []")
+    text = text.replace('sequence = ""', 'sequence = "take_truth.npz"\nsequence_stride = 10')
+    cfg.write_text(text)
+    rig = load_rig(cfg)
+    assert len(rig.example_names) == (BOUNDS["frames"] + 9) // 10
+    assert rig.example_names[1].endswith(":10")
+    fit = fit_rig(rig)
+    assert fit.report["curves"]["wpsd"][-1]["mean_rms"] < fit.report["curves"]["wpsd"][0]["mean_rms"]
