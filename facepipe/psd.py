@@ -26,6 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 METHODS = ("wpsd", "psd", "none")
+REST_ROW_WEIGHT = 1e3
 
 
 # ----------------------------------------------------------------------------- weights
@@ -193,7 +194,8 @@ def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = 1e-6, smoothi
     ----------
     phi : (R, P) shared kernel matrix (PSD) or (V, R, P) per vertex (WPSD); R rows are
         training poses, P basis poses.
-    targets : (R, V, 3) details to reproduce.
+    targets : (R, V, 3) details to reproduce; row 0 must be the rest pose (details zero), which
+        is weighted so that it is reproduced even where other poses coincide with it.
     rcond : singular values below ``rcond`` × the largest are cut (coincident poses).
     smoothing : λ ≥ 0, relative to the mean kernel value; with R = P uses Φ − λI (for
         φ = r, which is conditionally negative definite, Φ + λI can become singular).
@@ -234,6 +236,10 @@ def _solve_block(phi: np.ndarray, rhs: np.ndarray, rcond: float, smoothing: floa
     A[:, R, :P] = scale[:, 0, 0][:, None]
     b = np.zeros((n, R + 1, rhs.shape[-1]))
     b[:, :R] = rhs
+    # row 0 is the rest pose, whose details are zero by construction: where coincident poses
+    # are averaged, the rest pose must still come out exactly (a still face stays still)
+    A[:, 0] *= REST_ROW_WEIGHT
+    b[:, 0] *= REST_ROW_WEIGHT
     x = np.linalg.pinv(A, rcond=rcond) @ b
     x[:, P] *= scale[:, 0, 0][:, None]
     return x
