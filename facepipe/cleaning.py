@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .mocap.gaps import fill_gaps
-from .stabilise import interpolate_poses, robust_rigid_fit
+from .stabilise import interpolate_poses, stable_marker_pose
 
 __all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "noise_sigma",
            "rotation_from_vector"]
@@ -487,31 +487,25 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         R0 = np.tile(np.eye(3), (T, 1, 1))
         t0 = np.zeros((T, 3))
     else:
-        if stable.sum() >= 3:
-            R0, t0, _ = robust_rigid_fit(reference[stable], world[:, stable])
-        else:
-            R0 = np.full((T, 3, 3), np.nan)
-            t0 = np.full((T, 3), np.nan)
-            notes.append("fewer than 3 stable markers in the rig: the head pose comes from all markers")
-        need = ~np.isfinite(t0).all(axis=1) & usable
-        if need.any():
-            Ra, ta, _ = robust_rigid_fit(reference, world[need])
-            R0[need], t0[need] = Ra, ta
-            if stable.sum() >= 3:
-                notes.append(f"{int(need.sum())} frame(s) with fewer than 3 visible stable markers: "
-                             "their starting pose comes from all visible markers")
+        R0, t0 = stable_marker_pose(reference, world, stable, notes, usable,
+                                    fallback="their starting pose comes from all visible markers")
         R0, t0, _ = interpolate_poses(np.where(usable[:, None, None], R0, np.nan),
                                       np.where(usable[:, None], t0, np.nan), times)
 
     rows = np.flatnonzero(usable)
     Wv = visible[rows].astype(np.float64)
+
+    def fit_residual(R_rows, t_rows, C_rows):
+        """(n, H, 3) the usable frames' markers in head space minus the model (missing markers at 0)."""
+        head = np.einsum("nji,nhj->nhi", R_rows, np.where(visible[rows][..., None], world[rows], 0.0)
+                         - t_rows[:, None, :])
+        return head - (reference + np.einsum("nk,khc->nhc", C_rows, basis))
+
     # pass 1: unweighted, no sparsity: residuals for the noise and per-marker scales
     sigma_floor = 1e-7 * spacing  # noise-free input: keep the weights finite, the L1 bias negligible
     R1, t1, C1, _ = fit_pose_expression(world[rows], Wv, reference, basis, R0[rows], t0[rows],
                                         iterations=opt.iterations, fix_pose=fix_pose, robust_scale=sigma_floor)
-    head1 = np.einsum("nji,nhj->nhi", R1, np.where(visible[rows][..., None], world[rows], 0.0) - t1[:, None, :])
-    model1 = reference + np.einsum("nk,khc->nhc", C1, basis)
-    res1 = np.where(visible[rows][..., None], head1 - model1, np.nan)
+    res1 = np.where(visible[rows][..., None], fit_residual(R1, t1, C1), np.nan)
     sigma = max(noise_sigma(np.nan_to_num(res1), visible[rows]), sigma_floor)
     # share of the noise the fit absorbs (parameters / equations), the rest stays in the residual
     absorbed = min(0.9, (6 * (not fix_pose) + K) / max(1.0, 3 * float(np.mean(n_vis[rows]))))
@@ -540,9 +534,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     R2, t2, C2, Wused = fit_pose_expression(world[rows], W, reference, basis, R1, t1, C1, l1=l1,
                                             iterations=opt.iterations, fix_pose=fix_pose,
                                             robust_scale=scale * np.sqrt(3.0))
-    head2 = np.einsum("nji,nhj->nhi", R2, np.where(visible[rows][..., None], world[rows], 0.0) - t2[:, None, :])
-    model2 = reference + np.einsum("nk,khc->nhc", C2, basis)
-    res2 = head2 - model2
+    res2 = fit_residual(R2, t2, C2)
     res_seq = np.full((T, H, 3), np.nan)
     res_seq[rows] = np.where(visible[rows][..., None], res2, np.nan)
     known_seq = np.zeros((T, H), dtype=bool)
@@ -557,9 +549,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         R2, t2, C2, _ = fit_pose_expression(world[rows], W2, reference, basis, R2, t2, C2, l1=l1,
                                             iterations=opt.iterations, fix_pose=fix_pose,
                                             robust_scale=scale * np.sqrt(3.0))
-        head2 = np.einsum("nji,nhj->nhi", R2, np.where(visible[rows][..., None], world[rows], 0.0) - t2[:, None, :])
-        model2 = reference + np.einsum("nk,khc->nhc", C2, basis)
-        res2 = head2 - model2
+        res2 = fit_residual(R2, t2, C2)
 
     if K and opt.sparsity > 0:
         # the L1 prior chose which expressions are active; refit them without its shrinkage
@@ -572,9 +562,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         # left alone (the L1 prior would bias every active weight by κ standard deviations)
         var = 1.0 / np.maximum(np.einsum("nh,khc->nk", W2, basis**2), 1e-300)
         C2 = C2 * np.maximum(0.0, 1.0 - opt.sparsity**2 * var / np.maximum(C2**2, 1e-300))
-        head2 = np.einsum("nji,nhj->nhi", R2, np.where(visible[rows][..., None], world[rows], 0.0) - t2[:, None, :])
-        model2 = reference + np.einsum("nk,khc->nhc", C2, basis)
-        res2 = head2 - model2
+        res2 = fit_residual(R2, t2, C2)
 
     # back to every frame: unusable frames get interpolated pose and weights
     R = np.full((T, 3, 3), np.nan)

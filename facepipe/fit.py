@@ -14,7 +14,7 @@ import scipy.sparse as sp
 from .errors import InputError
 from .frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
 from .psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details,
-                  greedy_basis, novelty_gate, rms_per_pose, wpsd_edge_weights, wpsd_marker_distances)
+                  greedy_basis, novelty_gate, rms_per_pose, wpsd_edge_weights)
 from .rbfmorph import multiquadric_basis, phantom_points
 from .rig import Rig
 from .shell import large_scale_positions, marker_spacing, shell_basis
@@ -161,9 +161,7 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
     details = geo.details(poses)
     features = geo.features(poses[:, geo.handles])
     beta = cfg.beta or default_beta(geo.rest_lengths, cfg.beta_scale)
-    # distances only as far as the weights need them (exact, see wpsd_marker_distances)
-    distances = wpsd_marker_distances(edge_graph(geo.rest, geo.faces), geo.handles, geo.edges, geo.rest_lengths,
-                                      cfg.max_edges_per_vertex)
+    distances = geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
     edge_index, edge_weight = wpsd_edge_weights(distances, geo.edges, geo.rest_lengths, beta,
                                                 cfg.min_edge_weight, cfg.max_edges_per_vertex)
     alpha = edge_weight_matrix(edge_index, edge_weight, len(geo.edges))

@@ -32,7 +32,7 @@ from .errors import InputError
 from .mocap.gaps import fill_gaps
 from .mocap.markers import known_unit_ratios
 from .mocap.take import Take
-from .stabilise import interpolate_poses, robust_rigid_fit, similarity_fit
+from .stabilise import interpolate_poses, robust_rigid_fit, similarity_fit, stable_marker_pose
 
 __all__ = ["PrepareOptions", "prepare_take", "summary_lines"]
 
@@ -248,18 +248,7 @@ def prepare_take(take: Take, model, options: PrepareOptions | None = None):
         notes += clean_report.pop("notes", [])
     else:
         if opt.stabilise:
-            if stable.sum() >= 3:
-                R, t, _ = robust_rigid_fit(reference[stable], world[:, stable])
-            else:
-                R, t = np.full((T, 3, 3), np.nan), np.full((T, 3), np.nan)
-                notes.append("fewer than 3 stable markers in the rig: the head pose comes from all markers")
-            need = ~np.isfinite(t).all(axis=1)
-            if need.any():
-                Ra, ta, _ = robust_rigid_fit(reference, world[need])
-                R[need], t[need] = Ra, ta
-                if stable.sum() >= 3:
-                    notes.append(f"{int(need.sum())} frame(s) with fewer than 3 visible stable markers: "
-                                 "head pose from all visible markers")
+            R, t = stable_marker_pose(reference, world, stable, notes)
             try:
                 R, t, filled = interpolate_poses(R, t, part.times)
             except ValueError:

@@ -94,60 +94,6 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
     return index, weight
 
 
-def wpsd_marker_distances(graph: sp.csr_matrix, markers: np.ndarray, edges: np.ndarray, rest_lengths: np.ndarray,
-                          max_edges: int = 16, chunk: int = 65536) -> np.ndarray:
-    """Geodesic distances from each marker, only as far as :func:`wpsd_edge_weights` needs them.
-
-    A full Dijkstra from every marker over a 530k-vertex mesh is the slowest step of a bake.
-    Every vertex keeps at most ``max_edges`` edges, those of least excess x = L − l; an edge with
-    an end beyond the radius R has x > 2R − 2g (g: the longest feature edge, geodesically). So
-    with distances cut at R, a vertex's kept edges are exactly the unlimited ones when its
-    ``max_edges``-th smallest excess is at most 2R − 2g. R starts at the largest distance from a
-    vertex to its nearest marker plus 1.5 × the longest feature edge, and grows by half until
-    every vertex passes: the weights equal those of full distance fields.
-
-    Parameters
-    ----------
-    graph : (V, V) mesh-edge lengths (:func:`facepipe.strain.edge_graph`).
-    markers : (M,) marker vertices; edges : (F, 2) marker-index pairs; rest_lengths : (F,).
-
-    Returns
-    -------
-    (M, V) float64 distances, ``inf`` beyond the radius.
-    """
-    from scipy.sparse.csgraph import dijkstra
-
-    markers = np.asarray(markers, dtype=np.int64)
-    edges = np.asarray(edges, dtype=np.int64)
-    rest_lengths = np.asarray(rest_lengths, dtype=np.float64)
-    F, V = edges.shape[0], graph.shape[0]
-    K = min(max_edges, F)
-    nearest = dijkstra(graph, directed=False, indices=markers, min_only=True)
-    reach = float(np.max(nearest[np.isfinite(nearest)], initial=0.0))
-    longest_path = float(graph.data.sum())  # no geodesic is longer: beyond it, cut nothing
-    radius = reach + 1.5 * float(rest_lengths.max(initial=0.0))
-    while True:
-        if radius >= longest_path:
-            radius = np.inf
-        d = dijkstra(graph, directed=False, indices=markers, limit=radius)
-        if not np.isfinite(radius):
-            return d
-        g = d[edges[:, 0], markers[edges[:, 1]]]
-        if np.all(np.isfinite(g)):
-            bound = 2.0 * radius - 2.0 * float(g.max(initial=0.0))
-            exact = True
-            for start in range(0, V, chunk):
-                stop = min(V, start + chunk)
-                excess = d[edges[:, 0], start:stop] + d[edges[:, 1], start:stop] - rest_lengths[:, None]
-                kth = np.partition(excess, K - 1, axis=0)[K - 1]
-                if np.any(kth > bound):
-                    exact = False
-                    break
-            if exact:
-                return d
-        radius *= 1.5
-
-
 def edge_weight_matrix(edge_index: np.ndarray, edge_weight: np.ndarray, n_edges: int) -> sp.csr_matrix:
     """The α as a sparse (V, F) matrix, so per-vertex weighted sums are one sparse product."""
     V, K = edge_index.shape

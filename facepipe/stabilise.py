@@ -13,6 +13,27 @@ import numpy as np
 from .errors import InputError
 
 
+def _weighted_cross_covariance(source, target, weights):
+    """The start of a weighted point-set fit (rigid or similarity), batched.
+
+    Returns
+    -------
+    w : (..., N) weights normalised to sum 1; cs, ct : (..., 3) weighted centroids of source
+    and target; xs : (..., N, 3) centred source; cov : (..., 3, 3) weighted cross-covariance
+    of the centred target and source.
+    """
+    target = np.asarray(target, dtype=np.float64)
+    source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
+    if weights is None:
+        weights = np.ones(target.shape[:-1])
+    w = weights / np.maximum(weights.sum(axis=-1, keepdims=True), 1e-300)
+    cs = np.einsum("...n,...nc->...c", w, source)
+    ct = np.einsum("...n,...nc->...c", w, target)
+    xs = source - cs[..., None, :]
+    cov = np.einsum("...n,...ni,...nj->...ij", w, target - ct[..., None, :], xs)
+    return w, cs, ct, xs, cov
+
+
 def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None):
     """Least-squares rotation and translation with target ≈ R @ source + t (Kabsch), batched.
 
@@ -25,14 +46,7 @@ def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
     -------
     R : (..., 3, 3) proper rotations; t : (..., 3).
     """
-    target = np.asarray(target, dtype=np.float64)
-    source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
-    if weights is None:
-        weights = np.ones(target.shape[:-1])
-    w = weights / np.maximum(weights.sum(axis=-1, keepdims=True), 1e-300)
-    cs = np.einsum("...n,...nc->...c", w, source)
-    ct = np.einsum("...n,...nc->...c", w, target)
-    cov = np.einsum("...n,...ni,...nj->...ij", w, target - ct[..., None, :], source - cs[..., None, :])
+    _, cs, ct, _, cov = _weighted_cross_covariance(source, target, weights)
     U, _, Vt = np.linalg.svd(cov)
     d = np.sign(np.linalg.det(U @ Vt))
     D = np.zeros(cov.shape)
@@ -41,6 +55,39 @@ def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
     D[..., 2, 2] = d
     R = U @ D @ Vt
     t = ct - np.einsum("...ij,...j->...i", R, cs)
+    return R, t
+
+
+def stable_marker_pose(reference: np.ndarray, world: np.ndarray, stable: np.ndarray, notes: list[str],
+                       usable: np.ndarray | None = None, fallback: str = "head pose from all visible markers"):
+    """Head pose per frame from the stable markers, from all markers where too few are seen.
+
+    Parameters
+    ----------
+    reference : (H, 3) rest positions; world : (T, H, 3), NaN where missing.
+    stable : (H,) bool, the rig's stable markers.
+    notes : list[str], appended to when all markers stand in for the stable ones.
+    usable : (T,) bool or None, the frames to fall back on all markers for (default every frame).
+    fallback : how the note names the frames posed from all visible markers.
+
+    Returns
+    -------
+    R : (T, 3, 3); t : (T, 3), NaN where no pose was found.
+    """
+    T = world.shape[0]
+    if stable.sum() >= 3:
+        R, t, _ = robust_rigid_fit(reference[stable], world[:, stable])
+    else:
+        R, t = np.full((T, 3, 3), np.nan), np.full((T, 3), np.nan)
+        notes.append("fewer than 3 stable markers in the rig: the head pose comes from all markers")
+    need = ~np.isfinite(t).all(axis=1)
+    if usable is not None:
+        need &= usable
+    if need.any():
+        Ra, ta, _ = robust_rigid_fit(reference, world[need])
+        R[need], t[need] = Ra, ta
+        if stable.sum() >= 3:
+            notes.append(f"{int(need.sum())} frame(s) with fewer than 3 visible stable markers: {fallback}")
     return R, t
 
 
@@ -145,15 +192,7 @@ def similarity_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray |
     >>> round(float(s), 6), np.allclose(R, np.eye(3)), np.allclose(t, 1.0)
     (2.5, True, True)
     """
-    target = np.asarray(target, dtype=np.float64)
-    source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
-    if weights is None:
-        weights = np.ones(target.shape[:-1])
-    w = weights / np.maximum(weights.sum(axis=-1, keepdims=True), 1e-300)
-    cs = np.einsum("...n,...nc->...c", w, source)
-    ct = np.einsum("...n,...nc->...c", w, target)
-    xs = source - cs[..., None, :]
-    cov = np.einsum("...n,...ni,...nj->...ij", w, target - ct[..., None, :], xs)
+    w, cs, ct, xs, cov = _weighted_cross_covariance(source, target, weights)
     U, S, Vt = np.linalg.svd(cov)
     d = np.sign(np.linalg.det(U @ Vt))
     D = np.ones(cov.shape[:-1])

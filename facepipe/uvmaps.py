@@ -34,6 +34,7 @@ import scipy.ndimage
 import scipy.sparse as sp
 
 from .errors import InputError
+from .render import triangle_pixels
 
 # a texel centre on a shared edge belongs to both triangles; the tolerance (in barycentric
 # units) closes hairline cracks from rounding without growing triangles visibly
@@ -171,7 +172,6 @@ def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, wid
     """
     corner_uv = np.asarray(corner_uv, dtype=np.float64)
     corner_slots = np.asarray(corner_slots, dtype=np.int64)
-    T = corner_uv.shape[0]
     x, y = uv_to_texel(corner_uv, width, height)  # (T, 3) each
     p = np.stack([x, y], axis=-1)  # (T, 3, 2)
     e1 = p[:, 1] - p[:, 0]
@@ -182,37 +182,12 @@ def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, wid
     x1 = np.clip(np.floor(x.max(axis=1) + 1e-7), -1, width - 1).astype(np.int64)
     y0 = np.clip(np.ceil(y.min(axis=1) - 1e-7), 0, height).astype(np.int64)
     y1 = np.clip(np.floor(y.max(axis=1) + 1e-7), -1, height - 1).astype(np.int64)
-    bw = np.maximum(x1 - x0 + 1, 0)
-    bh = np.maximum(y1 - y0 + 1, 0)
-    counts = np.where(ok, bw * bh, 0)
-
-    # barycentric coordinates are affine in the texel position: b1 = a·x + b·y + c (same for b2)
-    inv = 1.0 / np.where(ok, det, 1.0)
-    c1 = np.stack([e2[:, 1] * inv, -e2[:, 0] * inv], axis=1)
-    c2 = np.stack([-e1[:, 1] * inv, e1[:, 0] * inv], axis=1)
-    k1 = np.c_[c1, -(c1 * p[:, 0]).sum(axis=1)]
-    k2 = np.c_[c2, -(c2 * p[:, 0]).sum(axis=1)]
 
     hit_texel, hit_tri, hit_bary = [], [], []
-    bounds = np.searchsorted(np.cumsum(counts), np.arange(0, counts.sum() + chunk_texels, chunk_texels), side="left")
-    starts = np.unique(np.r_[0, bounds, T])
-    for a, b in zip(starts[:-1], starts[1:]):
-        n = counts[a:b]
-        if n.sum() == 0:
-            continue
-        t = np.repeat(np.arange(a, b), n)
-        row, col = np.divmod(np.arange(t.shape[0]) - np.repeat(np.cumsum(n) - n, n), np.repeat(bw[a:b], n))
-        col += np.repeat(x0[a:b], n)
-        row += np.repeat(y0[a:b], n)
-        fx, fy = col.astype(np.float64), row.astype(np.float64)
-        g1, g2 = k1[t], k2[t]
-        b1 = g1[:, 0] * fx + g1[:, 1] * fy + g1[:, 2]
-        b2 = g2[:, 0] * fx + g2[:, 1] * fy + g2[:, 2]
-        b0 = 1.0 - b1 - b2
-        inside = (b0 >= -_INSIDE_TOLERANCE) & (b1 >= -_INSIDE_TOLERANCE) & (b2 >= -_INSIDE_TOLERANCE)
-        hit_texel.append(row[inside] * width + col[inside])
-        hit_tri.append(t[inside])
-        hit_bary.append(np.stack([b0[inside], b1[inside], b2[inside]], axis=1))
+    for t, row, col, b0, b1, b2 in triangle_pixels(p, ok, x0, x1, y0, y1, chunk_texels, _INSIDE_TOLERANCE):
+        hit_texel.append(row * width + col)
+        hit_tri.append(t)
+        hit_bary.append(np.stack([b0, b1, b2], axis=1))
     texel = np.concatenate(hit_texel) if hit_texel else np.zeros(0, np.int64)
     tri = np.concatenate(hit_tri) if hit_tri else np.zeros(0, np.int64)
     bary = np.concatenate(hit_bary) if hit_bary else np.zeros((0, 3))

@@ -1,4 +1,5 @@
-"""Shared test fixtures: small analytic meshes and the location of the ICT kit."""
+"""Shared test fixtures: small analytic meshes, the location of the ICT kit, the command line
+runner and the replayed export rig."""
 
 from pathlib import Path
 
@@ -15,6 +16,24 @@ def ict_or_skip() -> Path:
     if not (ICT / "neutral.obj").is_file():
         pytest.skip(f"ICT kit not found at {ICT} (../shared is not beside this checkout)")
     return ICT
+
+
+def run_cli(*args) -> int:
+    """Run the command line with ``args`` (made strings); its exit code."""
+    from facepipe.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main([str(a) for a in args])
+    return exc.value.code
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    """The small replayed rig of :mod:`tests.export_rig` (built once per session); a test
+    module may define its own ``rig``."""
+    from tests.export_rig import build
+
+    return build(tmp_path_factory.getbasetemp() / "export_rig")
 
 
 def grid(nx: int = 12, ny: int = 10, curved: bool = True, size: float = 10.0):
@@ -36,3 +55,35 @@ def grid(nx: int = 12, ny: int = 10, curved: bool = True, size: float = 10.0):
 @pytest.fixture
 def sheet():
     return grid()
+
+
+def mutate_bytes(draw, data: bytearray, tokens: list[bytes], edits: int, insert: int, delete: int,
+                 swap: bool = False) -> bytes:
+    """Fuzzing: 1 to ``edits`` random edits of ``data`` (in place) drawn with hypothesis's ``draw``.
+
+    An edit inserts one of ``tokens`` or up to ``insert`` random bytes, deletes up to ``delete``
+    bytes, replaces a byte, truncates, duplicates a line, or (``swap``) swaps two lines.
+    """
+    import hypothesis.strategies as st
+
+    kinds = ["insert", "delete", "replace", "truncate"] + (["swap"] if swap else []) + ["dup"]
+    for _ in range(draw(st.integers(1, edits))):
+        kind = draw(st.sampled_from(kinds))
+        at = draw(st.integers(0, len(data)))
+        if kind == "insert":
+            data[at:at] = draw(st.sampled_from(tokens) | st.binary(max_size=insert))
+        elif kind == "delete":
+            del data[at:at + draw(st.integers(1, delete))]
+        elif kind == "replace" and at < len(data):
+            data[at] = draw(st.integers(0, 255))
+        elif kind == "truncate":
+            del data[at:]
+        else:
+            lines = bytes(data).split(b"\n")
+            i, j = draw(st.integers(0, len(lines) - 1)), draw(st.integers(0, len(lines) - 1))
+            if kind == "swap":
+                lines[i], lines[j] = lines[j], lines[i]
+            else:
+                lines.insert(i, lines[j])
+            data = bytearray(b"\n".join(lines))
+    return bytes(data)

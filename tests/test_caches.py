@@ -8,23 +8,11 @@ import numpy as np
 import pytest
 
 from facepipe.caches import write_mdd, write_pc2, write_usd
-from facepipe.cli import main
 from facepipe.errors import InputError
 from facepipe.model import load_model
 from facepipe.replaydir import frame_rate, is_uniform, time_codes
-from tests.export_rig import build
 from tests.test_export import rig_mesh, sequence
-
-
-def run(*args) -> int:
-    with pytest.raises(SystemExit) as exc:
-        main([str(a) for a in args])
-    return exc.value.code
-
-
-@pytest.fixture(scope="module")
-def rig(tmp_path_factory):
-    return build(tmp_path_factory.getbasetemp() / "export_rig")
+from tests.conftest import run_cli as run
 
 
 def read_mdd(path):

@@ -6,15 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facepipe.cli import main
+from tests.conftest import run_cli as run
 
 BOUNDS = json.loads((Path(__file__).parent / "data" / "sample_bounds.json").read_text())
-
-
-def run(*args) -> int:
-    with pytest.raises(SystemExit) as exc:
-        main([str(a) for a in args])
-    return exc.value.code
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,6 @@ import pytest
 import scipy.ndimage
 
 import facepipe.maps as maps
-from facepipe.cli import main
 from facepipe.errors import InputError
 from facepipe.frames import local_frames, to_local
 from facepipe.layers import uv_tangent_frames
@@ -24,18 +23,7 @@ from facepipe.model import load_model, save_model
 from facepipe.replay import NumpyEvaluator
 from facepipe.uvmaps import corner_uv_samples, uv_to_texel
 from tests.conftest import ROOT, ict_or_skip
-from tests.export_rig import build
-
-
-def run(*args) -> int:
-    with pytest.raises(SystemExit) as exc:
-        main([str(a) for a in args])
-    return exc.value.code
-
-
-@pytest.fixture(scope="module")
-def rig(tmp_path_factory):
-    return build(tmp_path_factory.getbasetemp() / "export_rig")
+from tests.conftest import run_cli as run
 
 
 def read(path):
@@ -66,10 +54,12 @@ def reference(model, replay_dir):
     return final, large, frames, to_local(frames, final - large)
 
 
-def relative_errors(got, want):
-    """|got − want| over the per-channel range of want: (n, C)."""
+def relative_errors(got, want, floor=1e-6):
+    """|got − want| over the per-channel range of want (at least ``floor``): (n, C)."""
     rng = want.max(axis=0) - want.min(axis=0)
-    return np.abs(got - want) / rng
+    # a still frame (the rest pose) has no details at all: judge it against the map's own
+    # precision instead of dividing by a zero range
+    return np.abs(got - want) / np.maximum(rng, floor)
 
 
 def test_detail_layer_is_final_minus_large_in_every_space(rig):
@@ -145,7 +135,8 @@ def test_object_and_tangent_maps_against_the_replay(rig, tmp_path):
         img, header, dtypes = read(tmp_path / "obj" / f"frame_{t + 1:04d}.exr")
         assert set(dtypes.values()) == {np.dtype(np.float32)} and header["facepipe/space"] == "object"
         want = (pos[t] - large[t])[v]
-        err = relative_errors(sample(img, uv), want)
+        # a still frame has no details: its floating-point residue is judged on the take's detail scale
+        err = relative_errors(sample(img, uv), want, floor=1e-2 * np.abs(pos - large).max())
         assert err.max() <= 0.04 and np.percentile(err, 99) <= 0.02, err.max(axis=0)
     # tangent space: the same vectors (in head space) in UV-aligned frames of the large surface
     final_head, large_head, _, _ = reference(model, replay_dir)
@@ -156,7 +147,8 @@ def test_object_and_tangent_maps_against_the_replay(rig, tmp_path):
         img, header, _ = read(tmp_path / "tan" / f"frame_{t + 1:04d}.exr")
         d = (final_head[t] - large_head[t])[v]
         want = np.einsum("nji,nj->ni", frames[t][uv_index], d)
-        err = relative_errors(sample(img, uv), want)
+        # a still frame has no details: its floating-point residue is judged on the take's detail scale
+        err = relative_errors(sample(img, uv), want, floor=1e-2 * np.abs(pos - large).max())
         assert err.max() <= 0.04 and np.percentile(err, 99) <= 0.02, err.max(axis=0)
         # the n channel is the same in every tangent convention
         np.testing.assert_allclose(want[:, 2], np.einsum("nj,nj->n", frames[t][uv_index][:, :, 2], d))

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from facepipe.errors import InputError
 from facepipe.mocap import facepipe_csv as mocap
 from facepipe.mocap import Take, fill_gaps, parse_frame_slice, read_take, write_take_csv
+from tests.conftest import mutate_bytes
 
 ICT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict"
 NAMES = ["A", "B", "C"]
@@ -329,26 +330,7 @@ ALPHABET_TOKENS = [b",", b"\n", b"\r\n", b"", b"-", b".", b"e", b"5", b"0", b"na
 def mutated_csv(draw):
     data = bytearray(good_csv(GOOD + [r.replace(r.split(",")[0], str(int(r.split(",")[0]) + 4), 1)
                                       .replace("0.", "1.", 1) for r in GOOD]).encode())
-    for _ in range(draw(st.integers(1, 6))):
-        kind = draw(st.sampled_from(["insert", "delete", "replace", "truncate", "swap", "dup"]))
-        at = draw(st.integers(0, len(data)))
-        if kind == "insert":
-            data[at:at] = draw(st.sampled_from(ALPHABET_TOKENS) | st.binary(max_size=4))
-        elif kind == "delete":
-            del data[at:at + draw(st.integers(1, 12))]
-        elif kind == "replace" and at < len(data):
-            data[at] = draw(st.integers(0, 255))
-        elif kind == "truncate":
-            del data[at:]
-        else:
-            lines = bytes(data).split(b"\n")
-            i, j = draw(st.integers(0, len(lines) - 1)), draw(st.integers(0, len(lines) - 1))
-            if kind == "swap":
-                lines[i], lines[j] = lines[j], lines[i]
-            else:
-                lines.insert(i, lines[j])
-            data = bytearray(b"\n".join(lines))
-    return bytes(data)
+    return mutate_bytes(draw, data, ALPHABET_TOKENS, edits=6, insert=4, delete=12, swap=True)
 
 
 def _read_or_input_error(path, data):

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from facepipe.errors import InputError
 from facepipe.mocap import FORMATS, Take, match_markers, normalise_units, read_take, registry, unit_factor, write_take
+from tests.conftest import mutate_bytes
 
 NAMES = ["M001", "M002", "M003", "S01", "S02"]
 VENDOR = ["c3d", "trc", "vicon-csv", "motive-csv"]
@@ -291,23 +292,7 @@ TOKENS = [b",", b"\t", b"\n", b"", b"-", b".", b"e", b"5", b"nan", b" ", b"\x00"
 
 
 def _mutate(draw, data: bytearray) -> bytes:
-    for _ in range(draw(st.integers(1, 5))):
-        kind = draw(st.sampled_from(["insert", "delete", "replace", "truncate", "dup"]))
-        at = draw(st.integers(0, len(data)))
-        if kind == "insert":
-            data[at:at] = draw(st.sampled_from(TOKENS) | st.binary(max_size=3))
-        elif kind == "delete":
-            del data[at:at + draw(st.integers(1, 10))]
-        elif kind == "replace" and at < len(data):
-            data[at] = draw(st.integers(0, 255))
-        elif kind == "truncate":
-            del data[at:]
-        else:
-            lines = bytes(data).split(b"\n")
-            i, j = draw(st.integers(0, len(lines) - 1)), draw(st.integers(0, len(lines) - 1))
-            lines.insert(i, lines[j])
-            data = bytearray(b"\n".join(lines))
-    return bytes(data)
+    return mutate_bytes(draw, data, TOKENS, edits=5, insert=3, delete=10)
 
 
 _SEEDS: dict[str, bytes] = {}

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from facepipe import opencl
-from facepipe.cli import main
 from facepipe.errors import InputError
 from facepipe.fit import fit_rig
 from facepipe.frames import vertex_normals
@@ -19,6 +18,7 @@ from facepipe.replay import NumpyEvaluator, NpyWriter, stream_chunks
 from facepipe.rig import load_rig
 from facepipe.sample import write_sample_rig
 from tests.conftest import ROOT, ict_or_skip
+from tests.conftest import run_cli as run
 
 TOL = 1e-4
 
@@ -26,12 +26,6 @@ TOL = 1e-4
 def _device_or_skip():
     if not opencl.opencl_available():
         pytest.skip("no OpenCL device (pip install pocl-binary-distribution gives a CPU one)")
-
-
-def run(*args) -> int:
-    with pytest.raises(SystemExit) as exc:
-        main([str(a) for a in args])
-    return exc.value.code
 
 
 @pytest.fixture(scope="module")

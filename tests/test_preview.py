@@ -8,24 +8,12 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from facepipe.cli import main
 from facepipe.errors import InputError
 from facepipe.preview import pick_frames, plot_fit_curves
 from facepipe.render import Camera, frame_camera, rasterize, render
-from tests.export_rig import build
+from tests.conftest import run_cli as run
 
 PNG = b"\x89PNG\r\n\x1a\n"
-
-
-def run(*args) -> int:
-    with pytest.raises(SystemExit) as exc:
-        main([str(a) for a in args])
-    return exc.value.code
-
-
-@pytest.fixture(scope="module")
-def rig(tmp_path_factory):
-    return build(tmp_path_factory.getbasetemp() / "export_rig")
 
 
 def square(z=0.0, size=1.0, center=(0.0, 0.0)):

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..atomic import atomic_path
 from ..errors import InputError
-from .markers import match_markers, normalise_units
+from .markers import find_markers, normalise_units
 from .registry import Format, nominal_rate, frames_from_rate, marker_label, register
 from .take import Take
 
@@ -179,7 +179,7 @@ def read_c3d_take(path: Path, marker_names: list[str], match=None) -> Take:
     if not np.isfinite(rate) or rate <= 0:
         raise InputError(f"POINT:RATE is {rate}: the frame rate is missing", path=path, hint=_HINT)
     units = normalise_units(raw["units"], path, "unit (POINT:UNITS)")
-    found = (match or (lambda names: match_markers(names, marker_names, path)))(labels)
+    found = find_markers(labels, marker_names, path, match)
     T = points.shape[2]
     positions = np.full((T, len(marker_names), 3), np.nan)
     present = found.index >= 0

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..atomic import atomic_open
 from ..errors import InputError
-from .markers import match_markers
+from .markers import find_markers
 from .registry import Format, marker_label, register
 from .take import AXES as _AXES
 from .take import Take
@@ -82,7 +82,7 @@ def read_csv_take(path: Path, marker_names: list[str], match=None) -> Take:
     columns = _header_columns(lines[h], h + 1, path)
     frame_col, time_col, file_markers, marker_cols = _parse_header(columns, h + 1, path)
     n_cols = len(columns)
-    found = (match or (lambda names: match_markers(names, marker_names, path)))(file_markers)
+    found = find_markers(file_markers, marker_names, path, match)
     index = found.index
     present = index >= 0
     # Columns to parse, in output order: frame, time, then x, y, z of each rig marker

@@ -197,3 +197,8 @@ def match_markers(file_names, marker_names, path=None, *, subject: str | None = 
         "subject": subject if subject is not None else (next(iter(used_subjects)) if used_subjects else None),
     }
     return MarkerMatch(index, report)
+
+
+def find_markers(file_markers: list[str], marker_names: list[str], path, match=None) -> MarkerMatch:
+    """The rig's markers among a file's: ``match(file_markers)`` if given, else :func:`match_markers`."""
+    return (match or (lambda names: match_markers(names, marker_names, path)))(file_markers)

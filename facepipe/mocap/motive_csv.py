@@ -23,9 +23,9 @@ import numpy as np
 
 from ..atomic import atomic_open
 from ..errors import InputError
-from .markers import match_markers, normalise_units
+from .markers import normalise_units
 from .registry import Format, nominal_rate, marker_label, register
-from .table import frame_column, parse_rows, read_lines, split_fields
+from .table import read_lines, read_marker_table, split_fields
 from .take import Take
 
 _HINT = "export the take from Motive as CSV with markers and the header rows (Type, Name, ID, Position, Frame)"
@@ -102,20 +102,9 @@ def read_motive_take(path, marker_names: list[str], match=None) -> Take:
     if not triples:
         raise InputError("no marker position columns (Type 'Marker', 'Position', X/Y/Z)", path=path,
                          hint="enable Markers in Motive's CSV export options")
-    file_markers = list(triples)
-    found = (match or (lambda names: match_markers(names, marker_names, path)))(file_markers)
-    present = found.index >= 0
-    col = np.asarray(list(triples.values()), dtype=np.int64)
-    columns = [axes[0] or "Frame", axes[1] if n_cols > 1 else "Time"] + [""] * (n_cols - 2)
-    for name, (a, b, c) in zip(file_markers, col.tolist()):
-        columns[a], columns[b], columns[c] = f"{name} X", f"{name} Y", f"{name} Z"
-    use = np.concatenate([[0, 1], col[found.index[present]].ravel()]).astype(np.int64)
-    values, line_no = parse_rows(lines, axis_line + 1, n_cols, use, columns, path, ended=ended)
-    positions = np.full((len(values), len(marker_names), 3), np.nan)
-    positions[:, present] = values[:, 2:].reshape(len(values), int(present.sum()), 3)
-    return Take(frames=frame_column(values[:, 0], line_no, "Frame", path), times=values[:, 1].copy(),
-                positions=positions, marker_names=list(marker_names), path=str(path), extra_markers=found.extra,
-                lines=line_no, units=units, markers=found.report)
+    head = [axes[0] or "Frame", axes[1] if n_cols > 1 else "Time"]
+    return read_marker_table(lines, axis_line + 1, n_cols, head, list(triples), list(triples.values()),
+                             marker_names, path, units, match, frame_name="Frame", ended=ended)
 
 
 _UNIT_WORDS = {"mm": "Millimeters", "cm": "Centimeters", "m": "Meters", "in": "Inches", "dm": "Decimeters",

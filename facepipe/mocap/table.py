@@ -11,6 +11,8 @@ import numpy as np
 
 from ..errors import InputError
 from .facepipe_csv import _BLOCK_BYTES, _NAN_FIELD, _parse_block_fast, _parse_block_slow, _read_bytes
+from .markers import find_markers
+from .take import Take
 
 
 def read_lines(path, binary_hint: str) -> tuple[list[bytes], bool]:
@@ -133,3 +135,54 @@ def frame_column(values: np.ndarray, line_no: np.ndarray, name: str, path) -> np
         raise InputError(f"line {line_no[bad[0]]}, column {name!r}: the frame number is missing or not an integer",
                          path=path, hint="the first field of every row is its integer frame number")
     return values.astype(np.int64)
+
+
+def read_marker_table(lines: list[bytes], first: int, n_cols: int, head: list[str], file_markers: list[str],
+                      cols, marker_names: list[str], path, units: str | None, match=None, rate: float | None = None,
+                      frame_name: str | None = None, **options) -> Take:
+    """Match a vendor header's markers to the rig's, parse the body and build the Take.
+
+    Parameters
+    ----------
+    lines : list[bytes]
+    first : int
+        Index of the first body line.
+    n_cols : int
+        Fields per row in the header.
+    head : list[str]
+        Names of the leading columns (frame, then time or sub frame) for messages.
+    file_markers : list[str]
+        The file's markers, in file order.
+    cols : sequence of (3,) int
+        The X, Y, Z column of each file marker.
+    marker_names : list[str]
+    path : Path
+    units : str or None
+    match : callable(list[str]) -> MarkerMatch, optional
+    rate : float, optional
+        Times are frame / rate; without it they are the second leading column.
+    frame_name : str, optional
+        The frame column's name in messages (default ``head[0]``).
+    **options
+        ``sep``, ``ended``, ``stop_at_blank`` for :func:`parse_rows`.
+
+    Returns
+    -------
+    Take
+        ``positions`` (T, M, 3), NaN for rig markers absent from the file; ``lines`` set.
+    """
+    found = find_markers(file_markers, marker_names, path, match)
+    present = found.index >= 0
+    col = np.asarray(cols, dtype=np.int64)
+    columns = list(head) + [""] * (n_cols - len(head))
+    for name, (a, b, c) in zip(file_markers, col.tolist()):
+        columns[a], columns[b], columns[c] = f"{name} X", f"{name} Y", f"{name} Z"
+    lead = [0] if rate is not None else [0, 1]
+    use = np.concatenate([lead, col[found.index[present]].ravel()]).astype(np.int64)
+    values, line_no = parse_rows(lines, first, n_cols, use, columns, path, **options)
+    frames = frame_column(values[:, 0], line_no, frame_name or head[0], path)
+    positions = np.full((len(values), len(marker_names), 3), np.nan)
+    positions[:, present] = values[:, len(lead):].reshape(len(values), int(present.sum()), 3)
+    times = frames / rate if rate is not None else values[:, 1].copy()
+    return Take(frames=frames, times=times, positions=positions, marker_names=list(marker_names), path=str(path),
+                extra_markers=found.extra, lines=line_no, units=units, markers=found.report)

@@ -21,9 +21,9 @@ import numpy as np
 
 from ..atomic import atomic_open
 from ..errors import InputError
-from .markers import match_markers, normalise_units
+from .markers import normalise_units
 from .registry import Format, nominal_rate, marker_label, register
-from .table import frame_column, parse_rows, read_lines, split_fields
+from .table import read_lines, read_marker_table, split_fields
 from .take import Take
 
 _HINT = "a TRC take starts with PathFileType, then the DataRate ... Units header and its values"
@@ -72,20 +72,9 @@ def read_trc_take(path: Path, marker_names: list[str], match=None) -> Take:
             cols.append((j, j + 1, j + 2))
     if not file_markers:
         raise InputError("line 4 (header): no marker names", path=path, hint=_HINT)
-    found = (match or (lambda names: match_markers(names, marker_names, path)))(file_markers)
-    present = found.index >= 0
-    col = np.asarray(cols, dtype=np.int64)
-    n_cols = max(len(axes_row), len(names_row), int(col.max()) + 1)
-    columns = ["Frame#", "Time"] + [""] * (n_cols - 2)
-    for name, (a, b, c) in zip(file_markers, cols):
-        columns[a:c + 1] = [f"{name} X", f"{name} Y", f"{name} Z"]
-    use = np.concatenate([[0, 1], col[found.index[present]].ravel()]).astype(np.int64)
-    values, line_no = parse_rows(lines, 5, n_cols, use, columns, path, sep=b"\t", ended=ended)
-    positions = np.full((len(values), len(marker_names), 3), np.nan)
-    positions[:, present] = values[:, 2:].reshape(len(values), int(present.sum()), 3)
-    return Take(frames=frame_column(values[:, 0], line_no, "Frame#", path), times=values[:, 1].copy(),
-                positions=positions, marker_names=list(marker_names), path=str(path), extra_markers=found.extra,
-                lines=line_no, units=units, markers=found.report)
+    n_cols = max(len(axes_row), len(names_row), cols[-1][2] + 1)
+    return read_marker_table(lines, 5, n_cols, ["Frame#", "Time"], file_markers, cols, marker_names, path, units,
+                             match, sep=b"\t", ended=ended)
 
 
 def write_trc_take(path, take: Take, units: str | None = None, subject: str | None = None,

@@ -21,9 +21,9 @@ import numpy as np
 
 from ..atomic import atomic_open
 from ..errors import InputError
-from .markers import match_markers, normalise_units
+from .markers import normalise_units
 from .registry import Format, nominal_rate, marker_label, register
-from .table import frame_column, parse_rows, read_lines, split_fields
+from .table import read_lines, read_marker_table, split_fields
 from .take import Take
 
 _HINT = "export the take from Nexus as CSV with the Trajectories block (Frame, Sub Frame, X, Y, Z per marker)"
@@ -89,23 +89,11 @@ def read_vicon_take(path, marker_names: list[str], match=None):
         raise InputError(f"line {start + 5}: markers in different units ({', '.join(sorted(unit_cells))})",
                          path=path, hint="export every trajectory in one unit")
     units = normalise_units(next(iter(unit_cells), None), path, f"unit (line {start + 5})")
-    found = (match or (lambda names: match_markers(names, marker_names, path)))(file_markers)
-    present = found.index >= 0
-    col = np.asarray(cols, dtype=np.int64)
-    n_cols = len(axes_row)
-    columns = ["Frame", "Sub Frame"] + [""] * (n_cols - 2)
-    for name, (a, b, c) in zip(file_markers, cols):
-        columns[a:c + 1] = [f"{name} X", f"{name} Y", f"{name} Z"]
-    use = np.concatenate([[0], col[found.index[present]].ravel()]).astype(np.int64)
     # the block ends at a blank line or the next block's title
     end = next((i for i in range(start + 5, len(lines)) if _first_cell(lines[i]) in _BLOCKS), len(lines))
-    values, line_no = parse_rows(lines[:end], start + 5, n_cols, use, columns, path,
-                                 ended=ended or end < len(lines), stop_at_blank=True)
-    frames = frame_column(values[:, 0], line_no, "Frame", path)
-    positions = np.full((len(values), len(marker_names), 3), np.nan)
-    positions[:, present] = values[:, 1:].reshape(len(values), int(present.sum()), 3)
-    return Take(frames=frames, times=frames / rate, positions=positions, marker_names=list(marker_names),
-                path=str(path), extra_markers=found.extra, lines=line_no, units=units, markers=found.report)
+    return read_marker_table(lines[:end], start + 5, len(axes_row), ["Frame", "Sub Frame"], file_markers, cols,
+                             marker_names, path, units, match, rate=rate, ended=ended or end < len(lines),
+                             stop_at_blank=True)
 
 
 def write_vicon_take(path, take: Take, units: str | None = None, subject: str | None = None,
