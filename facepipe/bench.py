@@ -30,14 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from .timing import median_time
 
 
 def _peak_rss_mb() -> float:
@@ -115,7 +108,7 @@ def copy_rate_gbs(megabytes: int = 256, repeats: int = 5) -> float:
     """This machine's memory bandwidth as seen by a large copy: (read + written) bytes / s, GB/s."""
     a = np.ones(megabytes * 2**20 // 4, dtype=np.float32)
     b = np.empty_like(a)
-    t = min(_median_time(lambda: np.copyto(b, a), 1) for _ in range(repeats))
+    t = min(median_time(lambda: np.copyto(b, a), 1) for _ in range(repeats))
     return 2 * a.nbytes / t / 1e9
 
 
@@ -158,7 +151,7 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
     dict of figures (seconds, frames/s, MB, GB/s), JSON-serialisable.
     """
     from .model import load_model
-    from .replay import NumpyEvaluator, replay, stream_chunks
+    from .replay import NumpyEvaluator, stream_chunks
 
     work_dir = Path(work_dir)
     rig_dir = work_dir / "rig"
@@ -209,7 +202,7 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
         stream_chunks(ev, head[:nf], lambda s, f, l, n: sink_out.__setitem__(slice(s, s + len(f)), f), R[:nf],
                       t[:nf], chunk=chunk)
 
-    t_numpy = _median_time(numpy_all, repeats)
+    t_numpy = median_time(numpy_all, repeats)
     stages = {k: v / repeats / nf * 1e3 for k, v in ev.stage_seconds.items()}
     stages["output"] = max(0.0, t_numpy / nf * 1e3 - sum(stages.values()))
     results["replay_numpy"] = {"frames": nf, "frames_per_second": nf / t_numpy, "ms_per_frame": t_numpy / nf * 1e3,
@@ -264,7 +257,7 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
     log(f"opencl: {ev.device}; setup {setup:.1f} s")
 
     ev.stage_seconds = dict.fromkeys(ev.stage_seconds, 0.0)
-    t_mem = _median_time(lambda: ev.stream(head, keep, R, t), repeats)
+    t_mem = median_time(lambda: ev.stream(head, keep, R, t), repeats)
     device_stages = {k: v / repeats / T * 1e3 for k, v in ev.stage_seconds.items()}
     log(f"opencl replay, positions kept in memory: {T / t_mem:.1f} frames/s ({t_mem / T * 1e3:.2f} ms/frame)")
 
@@ -274,7 +267,7 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
     def write():
         replay(model, head, R, t, frames, times, work_dir / "replay_opencl", evaluator=ev, chunk=chunk)
 
-    t_write = _median_time(write, repeats)
+    t_write = median_time(write, repeats)
     log(f"opencl replay, writing positions.npy: {T / t_write:.1f} frames/s ({t_write / T * 1e3:.2f} ms/frame)")
 
     # per stage: kernel variants, device time from profiling events, medians over repeats
@@ -343,7 +336,7 @@ def _bench_baseline(model, head, repeats: int, log) -> dict:
             out[hv] = u[f]
             out[free] = -factor.solve(np.asarray(A_fh @ u[f]))
 
-    t_solve = _median_time(solve_all, repeats)
+    t_solve = median_time(solve_all, repeats)
     n = u.shape[0]
     log(f"per-frame sparse solve ({factor.backend}, large scale only): {n / t_solve:.2f} frames/s "
         f"(factor once: {t_factor:.1f} s)")

@@ -9,22 +9,14 @@ not depend on what moves. Figures are medians of repeated runs; tests never asse
 from __future__ import annotations
 
 import shutil
-import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 
+from .timing import median_time
+
 ICT_MESH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "ict" / "neutral.obj"
-
-
-def _median(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def _size(path: Path) -> int:
@@ -95,7 +87,7 @@ def run_export_bench(work_dir: Path, mesh_path: Path | None = None, n_frames: in
                           "polygons": mesh.n_polygons}, "frames": n_frames, "repeats": repeats}
 
     def record(name, fn, target, frames=n_frames):
-        seconds = _median(fn, repeats)
+        seconds = median_time(fn, repeats)
         size = _size(target)
         out[name] = {"bytes": size, "seconds": seconds, "megabytes_per_second": size / 1e6 / seconds,
                      "ms_per_frame": seconds / frames * 1e3}

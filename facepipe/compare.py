@@ -20,7 +20,6 @@ import numpy as np
 from scipy.optimize import nnls
 
 from .evaluate import frame_errors
-from .frames import to_world
 
 
 def global_blend_weights(prior: np.ndarray, handles: np.ndarray, sum_weight: float = 1e3) -> np.ndarray:

@@ -200,7 +200,6 @@ def _read_npz(path, kind: str) -> tuple[dict, dict]:
 def save_fit(path, fit, rig) -> None:
     """Write the fit file: the model's arrays plus per-example features, details and the report."""
     arrays, meta = model_arrays(fit, rig)
-    geo = fit.geometry
     extra = {
         "example_features": fit.features.astype(np.float32),
         "example_details": fit.details.astype(np.float32),

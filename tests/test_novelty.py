@@ -1,5 +1,4 @@
 import numpy as np
-import scipy.sparse as sp
 
 from facepipe.compare import global_blend_weights, local_blend_operator, local_blend_positions
 from facepipe.psd import edge_distances, edge_weight_matrix, fit_details, novelty_gate
