@@ -178,16 +178,6 @@ def bake(ctx, source, output, quiet, verbose):
 # ----------------------------------------------------------------------------- replay
 
 
-def _parse_frames(text: str | None) -> slice | None:
-    if not text:
-        return None
-    try:
-        a, b = (text.split(":") + [""])[:2]
-        return slice(int(a) if a else None, int(b) if b else None)
-    except ValueError:
-        raise InputError(f"--frames {text!r} is not of the form A:B (row indices, end exclusive)") from None
-
-
 def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Reporter):
     """The replay evaluator: OpenCL when asked for, or (auto) when a device works; else NumPy."""
     from .replay import NumpyEvaluator
@@ -250,7 +240,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section).
     """
     from .cleaning import CleanOptions
-    from .mocap import read_take
+    from .mocap import parse_frame_slice, read_take
     from .model import load_model
     from .prepare import PrepareOptions, prepare_take, summary_lines
     from .replay import replay as run_replay
@@ -268,7 +258,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     take_data = read_take(take, model.marker_names, **read)
     neutral = read_take(neutral_take, model.marker_names, **read) if neutral_take else None
     options = PrepareOptions(neutral_frame=neutral_frame, neutral_take=neutral, stabilise=not no_stabilise,
-                             clean=not no_clean, frames=_parse_frames(frames_text),
+                             clean=not no_clean, frames=parse_frame_slice(frames_text) if frames_text else None,
                              clean_options=CleanOptions(smooth=smooth))
     head, R, t, gap_report = prepare_take(take_data, model, options)
     take_data = take_data if options.frames is None else take_data.select(options.frames)
