@@ -131,3 +131,21 @@ def test_examples_from_a_captured_sequence(pipeline, tmp_path):
     assert rig.example_names[1].endswith(":10")
     fit = fit_rig(rig)
     assert fit.report["curves"]["wpsd"][-1]["mean_rms"] < fit.report["curves"]["wpsd"][0]["mean_rms"]
+
+
+def test_bad_inputs_of_the_checking_commands(pipeline, tmp_path, capsys):
+    d = pipeline
+    rig = d / "rig"
+    cfg = rig / "bad_method.toml"
+    cfg.write_text((rig / "sample.toml").read_text().replace("[shell]", '[shell]\nmethod = "spline"'))
+    assert run("fit", cfg, "-o", tmp_path / "f.npz") == 2
+    assert "method = 'spline'" in capsys.readouterr().err and not (tmp_path / "f.npz").exists()
+    assert run("fit", rig / "sample.toml", "-o", tmp_path / "f.npz", "--holdout", "999") == 2
+    assert "--holdout 999" in capsys.readouterr().err and not (tmp_path / "f.npz").exists()
+    # --compare needs the replay's handles and a config of the same rig
+    (tmp_path / "r").mkdir()
+    for name in ("replay.json", "positions.npy"):
+        (tmp_path / "r" / name).write_bytes((d / "out" / name).read_bytes())
+    assert run("eval", tmp_path / "r", "--truth", rig / "take_truth.npz", "--compare", rig / "sample.toml") == 2
+    assert "no handles.npz" in capsys.readouterr().err
+    assert not (tmp_path / "r" / "compare.json").exists()

@@ -74,3 +74,27 @@ def test_interpolate_poses_slerps_between_known_frames():
     assert filled.tolist() == [False, True, False, True]
     with pytest.raises(ValueError):
         interpolate_poses(np.full((2, 3, 3), np.nan), np.full((2, 3), np.nan))
+
+
+def _rotation(seed, degrees):
+    axis = np.random.default_rng(seed).normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = np.radians(degrees)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def test_rigid_fit_recovers_a_known_motion():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(10, 3))
+    R = _rotation(2, 25.0)
+    t = np.array([1.0, -2.0, 0.5])
+    R2, t2 = rigid_fit(src, src @ R.T + t)
+    assert np.allclose(R2, R, atol=1e-12) and np.allclose(t2, t, atol=1e-12)
+    # a zero weight ignores a point entirely
+    tgt = src @ R.T + t
+    tgt[3] += 50.0
+    w = np.ones(10)
+    w[3] = 0
+    R3, _ = rigid_fit(src, tgt, w)
+    assert np.allclose(R3, R, atol=1e-12)

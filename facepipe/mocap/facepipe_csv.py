@@ -22,12 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_open
 from ..errors import InputError
 from .markers import find_markers
 from .registry import Format, marker_label, register
 from .take import AXES as _AXES
-from .take import Take
+from .take import Take, write_marker_rows
 
 _COLUMN_RE = re.compile(r"^(?P<name>.+)_(?P<axis>[xyzXYZ])$")
 # What a number cell may look like (the per-cell path): plain decimals, exponents,
@@ -405,16 +404,7 @@ def write_take_csv(path: str | os.PathLike, take: Take, decimals: int = 5, time_
         raise ValueError("take arrays do not match: frames (T,), times (T,), positions (T, M, 3), M names")
     header = ",".join(["frame", "time"] + [f"{marker_label(n, subject)}_{a}" for n in take.marker_names for a in _AXES])
     row_fmt = ",".join(["%d", f"%.{time_decimals}f"] + [f"%.{decimals}f"] * (3 * M))
-    with atomic_open(path, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write(header + "\n")
-        for a in range(0, T, 4096):  # blocks: bounded memory for long takes
-            b = min(T, a + 4096)
-            flat = pos[a:b].reshape(b - a, 3 * M)
-            # Only numbers are formatted, so "nan" can only be a missing sample.
-            text = "\n".join(
-                row_fmt % (f, t, *p) for f, t, p in zip(frames[a:b].tolist(), times[a:b].tolist(), flat.tolist())
-            )
-            fh.write(text.replace("nan", "") + "\n")
+    write_marker_rows(path, header + "\n", take, pos, row_fmt)
 
 
 

@@ -21,12 +21,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..atomic import atomic_open
 from ..errors import InputError
 from .markers import normalise_units
 from .registry import Format, nominal_rate, marker_label, register
 from .table import read_lines, read_marker_table, split_fields
-from .take import Take
+from .take import Take, write_marker_rows
 
 _HINT = "export the take from Motive as CSV with markers and the header rows (Type, Name, ID, Position, Frame)"
 
@@ -143,14 +142,7 @@ def write_motive_take(path, take: Take, units: str | None = None, subject: str |
         "Frame,Time (Seconds)," + ",".join(["X,Y,Z"] * M),
     ]
     fmt = ",".join(["%d", "%.6f"] + [f"%.{decimals}f"] * (3 * M))
-    with atomic_open(path, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write("\n".join(head) + "\n")
-        for a in range(0, T, 4096):
-            b = min(T, a + 4096)
-            flat = pos[a:b].reshape(b - a, 3 * M)
-            text = "\n".join(fmt % (f, t, *p) for f, t, p in
-                             zip(take.frames[a:b].tolist(), take.times[a:b].tolist(), flat.tolist()))
-            fh.write(text.replace("nan", "") + "\n")
+    write_marker_rows(path, "\n".join(head) + "\n", take, pos, fmt)
 
 
 def _sniff(head: bytes) -> bool:

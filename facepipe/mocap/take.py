@@ -221,3 +221,33 @@ def estimate_fps(times: np.ndarray) -> float:
     if times.size < 2:
         return float("nan")
     return float(1.0 / np.median(np.diff(times)))
+
+
+def write_marker_rows(path, header: str, take: "Take", positions: np.ndarray, row_format: str,
+                      with_times: bool = True, footer: str = "") -> None:
+    """Write a text take atomically: ``header``, then one formatted row per frame, then ``footer``.
+
+    Parameters
+    ----------
+    header : text before the rows (its own newlines included).
+    positions : (T, M, 3) in the file's units; NaN (a missing sample) becomes an empty field.
+    row_format : printf format of a row: frame, [time,] then 3·M coordinates.
+    with_times : whether rows carry the take's time after the frame number.
+    """
+    from ..atomic import atomic_open
+
+    pos = np.asarray(positions, dtype=np.float64)
+    T, M = pos.shape[:2]
+    frames = np.asarray(take.frames).tolist()
+    times = np.asarray(take.times).tolist()
+    with atomic_open(path, "w", encoding="utf-8", newline="\n") as fh:
+        fh.write(header)
+        for a in range(0, T, 4096):  # blocks: bounded memory for long takes
+            b = min(T, a + 4096)
+            flat = pos[a:b].reshape(b - a, 3 * M).tolist()
+            lead = zip(frames[a:b], times[a:b]) if with_times else ((f,) for f in frames[a:b])
+            # only numbers are formatted, so "nan" can only be a missing sample
+            text = "\n".join(row_format % (*head, *p) for head, p in zip(lead, flat))
+            fh.write(text.replace("nan", "") + "\n")
+        fh.write(footer)
+

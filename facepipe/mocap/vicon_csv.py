@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..atomic import atomic_open
 from ..errors import InputError
 from .markers import normalise_units
 from .registry import Format, nominal_rate, marker_label, register
 from .table import read_lines, read_marker_table, split_fields
-from .take import Take
+from .take import Take, write_marker_rows
 
 _HINT = "export the take from Nexus as CSV with the Trajectories block (Frame, Sub Frame, X, Y, Z per marker)"
 _BLOCKS = (b"trajectories", b"devices", b"model outputs", b"joints", b"segments")
@@ -123,14 +122,7 @@ def write_vicon_take(path, take: Take, units: str | None = None, subject: str | 
         ",," + ",".join([units] * (3 * M)),
     ]
     fmt = ",".join(["%d", "0"] + [f"%.{decimals}f"] * (3 * M))
-    with atomic_open(path, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write("\n".join(head) + "\n")
-        for a in range(0, T, 4096):
-            b = min(T, a + 4096)
-            flat = pos[a:b].reshape(b - a, 3 * M)
-            text = "\n".join(fmt % (f, *p) for f, p in zip(take.frames[a:b].tolist(), flat.tolist()))
-            fh.write(text.replace("nan", "") + "\n")
-        fh.write("\n")
+    write_marker_rows(path, "\n".join(head) + "\n", take, pos, fmt, with_times=False, footer="\n")
 
 
 def _sniff(head: bytes) -> bool:
