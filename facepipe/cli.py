@@ -82,7 +82,7 @@ def cli(ctx, quiet, verbose):
 # ----------------------------------------------------------------------------- fit / bake
 
 
-def _run_fit(config, rep: Reporter):
+def _run_fit(config, rep: Reporter, tune: bool = False):
     from .fit import fit_rig
     from .rig import load_rig
 
@@ -90,15 +90,46 @@ def _run_fit(config, rep: Reporter):
     rig = load_rig(config)
     rep.say(f"rig: {rig.mesh.n_vertices} vertices, {len(rig.handles)} handles, {len(rig.anchors)} anchors, "
             f"{len(rig.example_names)} example poses")
+    tuning = _tune(rig, rep) if tune else None
 
     def progress(method, n, curve):
         rep.detail(f"  {method}: {n:2d} poses  mean RMS {curve['mean_rms']:.4f}  max {curve['max_rms']:.4f}")
 
     t_load = time.perf_counter() - t0
     fit = fit_rig(rig, progress=progress)
+    if tuning is not None:
+        fit.report["tune"] = tuning
     fit.report["seconds"]["load"] = t_load
     fit.report["seconds"]["total"] = time.perf_counter() - t0
     return rig, fit
+
+
+def _tune(rig, rep: Reporter) -> dict:
+    """Cross-validate the [tune] candidates and switch the rig's config to the chosen values."""
+    from .tune import tune_rig, tuned_config
+
+    bars = {}
+
+    def step(stage, done, total):
+        if stage not in bars:
+            bars[stage] = rep.bar(total, unit="fit" if stage == "details" else "shell", desc=f"tune {stage}")
+        bars[stage].update(1)
+        if done == total:
+            bars[stage].close()
+
+    report = tune_rig(rig, progress=step)
+    rig.config = tuned_config(rig.config, report)
+    units = rig.config.units
+    c, d = report["chosen"], report["default"]
+    rep.say(f"tuned in {report['seconds']['total']:.1f} s: k_stretch {c['k_stretch']:g}, β ×{c['beta_scale']:g}, "
+            f"λ {c['smoothing']:g}, τ {c['novelty_tau']:g}, P {c['poses']}: held-out RMS {c['cv_rms']:.4f} {units} (defaults "
+            f"{d['cv_rms']:.4f}, large scale only {c['large_cv_rms']:.4f})")
+    if report["harm"]:
+        what = "details turned off ([psd] method = none)" if report["fallback"] else \
+            "kept, as [tune] fallback = false"
+        rep.say(f"warning: the validated error with details is not below the large-scale-only error: the details "
+                f"would do harm on unseen expressions; {what}")
+    return report
 
 
 def _print_fit_summary(rep: Reporter, fit, units: str) -> None:
@@ -125,14 +156,17 @@ def _print_fit_summary(rep: Reporter, fit, units: str) -> None:
 @click.option("--holdout", default=0, show_default=True,
               help="Also cross-validate: refit leaving about K examples out at a time (left/right halves of an "
                    "expression together) and report the error on them, large-scale vs final.")
+@click.option("--tune", is_flag=True,
+              help="Choose k_stretch, the WPSD β, the RBF regularisation and the basis size by validation on the "
+                   "examples (candidates in the config's [tune] table); writes FIT.tune.json and FIT.tune.png.")
 @_common
 @click.pass_context
-def fit(ctx, config, output, holdout, quiet, verbose):
+def fit(ctx, config, output, holdout, tune, quiet, verbose):
     """Extract the examples' details and select the pose basis greedily."""
     from .model import save_fit
 
     rep = _reporter(ctx, quiet, verbose)
-    rig, result = _run_fit(config, rep)
+    rig, result = _run_fit(config, rep, tune=tune)
     if holdout:
         from .validate import holdout_errors
 
@@ -148,6 +182,11 @@ def fit(ctx, config, output, holdout, quiet, verbose):
     from .preview import plot_fit_curves
 
     plot_path = plot_fit_curves(result.report, Path(output).with_suffix(".png"), units=rig.config.units)
+    if tune:
+        from .preview import plot_tuning
+
+        _write_json(Path(output).with_suffix(".tune.json"), result.report["tune"])
+        plot_tuning(result.report["tune"], Path(output).with_suffix(".tune.png"), units=rig.config.units)
     _print_fit_summary(rep, result, rig.config.units)
     rep.say(f"wrote {output}, {report_path} and {plot_path} ({result.report['seconds']['total']:.1f} s)")
 
@@ -390,9 +429,10 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, force, 
 @click.option("--compare", "compare_config", default=None, type=click.Path(dir_okay=False),
               help="CONFIG.toml: also fit it and compare baselines (shell, RBF morph, global and local blend "
                    "shapes, PSD and WPSD by basis size) on this replay's handles; writes compare.json/.png.")
+@click.option("--tune", is_flag=True, help="With --compare: fit the config with 'fit --tune' first.")
 @_common
 @click.pass_context
-def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, quiet, verbose):
+def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, quiet, verbose):
     """Per-frame RMS and max vertex error of a replay against ground truth."""
     from .evaluate import frame_errors, match_frames, parse_vertex_range, summarize
 
@@ -426,7 +466,7 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, quiet, 
                 rep.detail(f"  frame {f:6d}  rms {a:.5f}  max {b:.5f}")
     _write_json(outdir / "eval.json", result)
     if compare_config:
-        _compare(rep, outdir, compare_config, np.asarray(truth_sel), vertices)
+        _compare(rep, outdir, compare_config, np.asarray(truth_sel), vertices, tune)
     for label, _ in sources:
         s = result[label]
         rep.say(f"{label}: {s['frames']} frames, vertices {vertices.start}:{vertices.stop}: RMS mean "
@@ -435,14 +475,14 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, quiet, 
     rep.say(f"wrote {outdir / 'eval.json'}")
 
 
-def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertices: slice) -> None:
+def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertices: slice, tune: bool = False) -> None:
     from .compare import compare_methods, plot_comparison
 
     path = outdir / "handles.npz"
     if not path.is_file():
         raise InputError("no handles.npz here", path=outdir, hint="re-run 'facepipe replay' with this version")
     handles = np.load(path)
-    rig, fit = _run_fit(config, rep)
+    rig, fit = _run_fit(config, rep, tune=tune)
     if handles["head"].shape[1] != len(rig.handles):
         raise InputError(f"the replay has {handles['head'].shape[1]} handles, the config's rig {len(rig.handles)}",
                          path=config, hint="compare with the config the replayed model was baked from")
@@ -456,6 +496,56 @@ def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertic
         p = "" if r["poses"] is None else str(r["poses"])
         rep.say(f"{r['method']:26s} {p:>3s} {r['rms_mean']:9.5f} {r['rms_p95']:9.5f} {r['frames_per_second']:9.1f}")
     rep.say(f"wrote {outdir / 'compare.json'} and {outdir / 'compare.png'}")
+
+
+# ----------------------------------------------------------------------------- transfer
+
+
+@cli.command()
+@click.argument("model_path", metavar="MODEL", type=click.Path(dir_okay=False))
+@click.option("--target", required=True, type=click.Path(dir_okay=False), help="The other face's rest mesh (OBJ, PLY).")
+@click.option("--source-points", required=True, type=click.Path(dir_okay=False),
+              help="CSV name,vertex: marked points on the model's mesh (about 40, spread over the face).")
+@click.option("--target-points", required=True, type=click.Path(dir_okay=False),
+              help="CSV name,vertex: the same named points on the target.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Model to write; a .json summary is written beside it.")
+@click.option("--target-markers", default=None, type=click.Path(dir_okay=False),
+              help="markers.csv of the target (name,vertex[,role]) [default: each marker mapped to the nearest "
+                   "target vertex through the correspondence].")
+@click.option("--deform", type=click.Choice(["auto", "shell", "rbf"]), default="auto", show_default=True,
+              help="How the source is fitted to the target's points: thin shell, RBF volume morph, or auto (the "
+                   "shell when every part of the source holds a point).")
+@click.option("--max-distance", type=float, default=None,
+              help="Target vertices farther than this from the fitted source are an error [default: half the "
+                   "points' spacing].")
+@click.option("--allow-far", is_flag=True, help="Map vertices beyond --max-distance anyway (to the nearest source).")
+@click.option("--scale-details/--no-scale-details", default=True, show_default=True,
+              help="Scale the details by the size ratio of the faces (from the points' similarity).")
+@_common
+@click.pass_context
+def transfer(ctx, model_path, target, source_points, target_points, output, target_markers, deform, max_distance,
+             allow_far, scale_details, quiet, verbose):
+    """Transfer a MODEL's learned details onto another face: an ordinary model of the target."""
+    from .transfer import transfer_files
+
+    rep = _reporter(ctx, quiet, verbose)
+    if max_distance is not None and max_distance <= 0:
+        raise InputError("--max-distance must be a positive length")
+    s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
+                       max_distance=max_distance, allow_far=allow_far, scale_details=scale_details)
+    d = s["projection_distance"]
+    rep.say(f"{s['points']} points; similarity scale {s['similarity']['scale']:.4f}, rotation "
+            f"{s['similarity']['rotation_deg']:.1f}°; fitted by the {s['deformation']}")
+    rep.say(f"mapped {s['vertices_mapped']} target vertices onto {s['source_vertices']} source vertices: distance "
+            f"median {d['median']:.3g}, p99 {d['p99']:.3g}, max {d['max']:.3g}; {s['far_vertices']} beyond "
+            f"{s['far_limit']:.3g}; {s['normal_mismatches']} without a source triangle facing their way")
+    m = s["markers"]
+    rep.say(f"markers: {m.get('given', m.get('mapped'))} {'given' if 'given' in m else 'mapped'}; anchors "
+            f"{s['anchors']['target']}; method {s['method']}, details scaled by {s['detail_scale']:.4f}")
+    for note in s["notes"]:
+        rep.say(f"note: {note}")
+    rep.say(f"wrote {output} and {Path(output).with_suffix('.json')} ({s['seconds_total']:.1f} s)")
 
 
 # ----------------------------------------------------------------------------- sample

@@ -180,13 +180,23 @@ def export_replay(
             def values(s, e):
                 return detail(head[s:e], None if rot is None else rot[s:e])
 
+            samples: dict = {}
             with make_bar(replay.n_frames, "export exr") as bar:
                 per_frame = write_displacement_maps(
                     raster, values, replay.n_frames, dest, mode=mode, half=half, start=start, attributes=attrs,
                     frame_attributes=lambda t: {"facepipe/frame": int(frames[t]), "facepipe/time": float(times[t])},
-                    force=force, resume=resume, progress=bar.update)
+                    force=force, resume=resume, progress=bar.update, report=samples)
             paths = [p for d in per_frame for p in d.values()]
-            info.update(space=space, frames=replay.n_frames)
+            info.update(space=space, frames=replay.n_frames, vertex_samples=samples)
+            if samples.get("over_limit"):
+                w = samples["worst"]
+                info.setdefault("notes", []).append(
+                    f"{samples['over_limit']} of {samples['samples']} vertex samples of the maps are off by more than "
+                    f"{100 * samples['limit']:.0f} % of the detail range (at most {100 * samples['relative']:.2g} %, "
+                    f"{'UV' if slots == 'uv' else 'vertex'} {w['slot']} at UV {w['uv'][0]:.4f}, {w['uv'][1]:.4f} "
+                    f"in tile {w['tile']}, frame {int(frames[w['frame_index']])}; vertex_samples in --verbose): "
+                    f"where the UV layout gives vertices less than a texel each, no map of this size holds every "
+                    f"vertex value; a higher --resolution does (and --padding, at island borders)")
         else:
             from .maps import write_wrinkle_maps
 

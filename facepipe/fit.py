@@ -5,6 +5,7 @@ Everything here is arrays in, arrays out; the rig loader and the CLI do the I/O.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -63,6 +64,26 @@ class Geometry:
         return out
 
 
+def large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray, shell,
+                      spacing: float | None = None) -> np.ndarray:
+    """The large-scale basis B (V, H) of a mesh: the thin shell or the RBF volume morph.
+
+    Parameters
+    ----------
+    rest : (V, 3); faces : (T, 3); handles : (H,) and anchors : (A,) vertex indices.
+    shell : a :class:`~facepipe.rig.ShellConfig` (or anything with its attributes: method,
+        k_stretch, k_bend, rbf_lambda, phantoms).
+    spacing : marker spacing h (length units); default: mean nearest-handle distance.
+    """
+    if spacing is None:
+        spacing = marker_spacing(rest, handles)
+    if getattr(shell, "method", "shell") == "rbf":
+        phantoms = phantom_points(rest, faces, anchors, handles, shell.phantoms or None)
+        return multiquadric_basis(rest, handles, phantoms, shell.rbf_lambda)
+    return shell_basis(rest, faces, handles, anchors, k_stretch=shell.k_stretch, k_bend=shell.k_bend,
+                       spacing=spacing)
+
+
 def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | None = None) -> Geometry:
     """Large-scale basis and feature graph of a rig."""
     cfg = rig.config
@@ -71,13 +92,11 @@ def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | Non
     faces = mesh.faces
     handles = rig.handles
     spacing = marker_spacing(rest, handles)
-    if cfg.shell.method == "rbf":
-        phantoms = phantom_points(rest, faces, rig.anchors, handles, cfg.shell.phantoms or None)
-        B = multiquadric_basis(rest, handles, phantoms, cfg.shell.rbf_lambda)
-    else:
-        B = shell_basis(rest, faces, handles, rig.anchors,
-                        k_stretch=cfg.shell.k_stretch if k_stretch is None else k_stretch,
-                        k_bend=cfg.shell.k_bend if k_bend is None else k_bend, spacing=spacing)
+    shell = cfg.shell
+    if k_stretch is not None or k_bend is not None:
+        shell = dataclasses.replace(shell, k_stretch=shell.k_stretch if k_stretch is None else k_stretch,
+                                    k_bend=shell.k_bend if k_bend is None else k_bend)
+    B = large_scale_basis(rest, faces, handles, rig.anchors, shell, spacing)
     if cfg.graph == "auto":
         edges = auto_feature_graph(rest, faces, handles)
     else:

@@ -115,7 +115,8 @@ def uv_tangent_frames(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndar
     """Orthonormal UV-aligned frames [t, b, n] per UV index, batched over frames.
 
     Per triangle the surface gradient of u (dP/du from the corner positions and UVs) is
-    accumulated, weighted by the triangle's area, on the UV indices of its corners; t is
+    accumulated, weighted by the triangle's area, on the UV indices of its corners (UV indices
+    with the same coordinates on the same vertex count as one, so they share a frame); t is
     that direction made perpendicular to the vertex normal n (area-weighted face normals,
     as :func:`facepipe.frames.vertex_normals`), and b = ±n × t with the sign of dP/dv, so a
     mirrored UV island gets a left-handed frame, as renderers expect.
@@ -151,15 +152,22 @@ def uv_tangent_frames(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndar
     dpdu = dpdu / np.maximum(np.linalg.norm(dpdu, axis=-1, keepdims=True), 1e-30) * area
     dpdv = dpdv / np.maximum(np.linalg.norm(dpdv, axis=-1, keepdims=True), 1e-30) * area
     C, T = vertices.shape[0], faces.shape[0]
-    # summing the triangles' vectors onto their UV corners, all frames at once: (U, T) @ (T, C·3)
-    incidence = sp.csr_matrix((np.ones(3 * T), (face_uvs.ravel(), np.repeat(np.arange(T), 3))), shape=(U, T))
-
-    def gather(x):
-        return np.moveaxis(np.asarray(incidence @ np.moveaxis(x, 1, 0).reshape(T, -1)).reshape(U, C, 3), 1, 0)
-
-    T_acc, B_acc = gather(dpdu), gather(dpdv)
     uv_vertex = np.zeros(U, dtype=np.int64)
     uv_vertex[face_uvs.ravel()[::-1]] = faces.ravel()[::-1]
+    # UV indices naming the same point of the layout on the same vertex (duplicated 'vt' lines, not a
+    # seam) are one corner with one frame, as tangent generators weld them (MikkTSpace): otherwise
+    # each would see only its own triangles, and the maps two frames at one texel position
+    _, group = np.unique(np.c_[uv_vertex, np.asarray(uvs, dtype=np.float64)], axis=0, return_inverse=True)
+    group = group.ravel()
+    G = int(group.max()) + 1 if U else 0
+    # summing the triangles' vectors onto their UV corners, all frames at once: (G, T) @ (T, C·3)
+    incidence = sp.csr_matrix((np.ones(3 * T), (group[face_uvs.ravel()], np.repeat(np.arange(T), 3))), shape=(G, T))
+
+    def gather(x):
+        acc = np.asarray(incidence @ np.moveaxis(x, 1, 0).reshape(T, -1)).reshape(G, C, 3)[group]
+        return np.moveaxis(acc, 1, 0)
+
+    T_acc, B_acc = gather(dpdu), gather(dpdv)
     n = vertex_normals(vertices, faces)[:, uv_vertex]
     t = T_acc - np.einsum("cui,cui->cu", T_acc, n)[..., None] * n
     tlen = np.linalg.norm(t, axis=-1, keepdims=True)

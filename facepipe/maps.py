@@ -17,6 +17,10 @@ on the ICT mesh), so the t and b channels of ``local`` maps are exact at the ver
 interpolate differently oriented frames between them. The n channel (and ``scalar``),
 ``tangent`` and ``object`` maps have no such caveat (:mod:`facepipe.layers`).
 
+At the vertices' UVs a bilinear lookup gives the vertex values back (the raster fits the
+texels there, :class:`facepipe.uvmaps.SampleFit`) wherever the layout has texels enough; the
+export measures it on the pixels it writes, frame by frame (``report``, :func:`sample_report`).
+
 **Wrinkle maps** (``--format wrinkle``, PSD models): a PSD detail is
 d_v(f) = c_v + Σ_i w_{v,i} φ_i(f) with coefficients φ_i(f) = |f − f_i| shared by every
 vertex. Rasterising is linear, so the P + 1 maps C = map(c) and M_i = map(w_{·,i}) are
@@ -80,6 +84,7 @@ def write_displacement_maps(
     resume: bool = False,
     chunk: int = 16,
     progress: Callable[[int], object] | None = None,
+    report: dict | None = None,
 ) -> list[dict]:
     """Write one EXR displacement map per frame (per UDIM tile), atomically.
 
@@ -98,6 +103,8 @@ def write_displacement_maps(
     force, resume : overwrite existing files / keep them and write only the missing frames.
     chunk : frames evaluated together.
     progress : called with the number of frames done.
+    report : a dict to fill with how well the written maps (in their pixel type) give back the
+        vertex values by bilinear lookup at the vertices' UVs (:func:`sample_report`).
 
     Returns
     -------
@@ -119,6 +126,7 @@ def write_displacement_maps(
     dest_dir.mkdir(parents=True, exist_ok=True)
     if resume:
         remove_partial_files(flat)
+    check = _SampleCheck(raster) if report is not None else None
     for s in range(0, n_frames, chunk):
         e = min(n_frames, s + chunk)
         todo = [t for t in range(s, e) if not (resume and all(p.exists() for p in paths[t].values()))]
@@ -141,9 +149,77 @@ def write_displacement_maps(
                 images = raster(_channels(v, mode))
                 for tile, image in images.items():
                     write_exr(paths[t][tile], image, half=half, attributes=dict(attrs, **{"facepipe/tile": tile}))
+                if check is not None:
+                    check.add(t, _channels(v, mode), images, np.float16 if half else np.float32)
             if progress is not None:
                 progress(1)
+    if check is not None:
+        report.update(check.result())
     return paths
+
+
+class _SampleCheck:
+    """Accumulates, over frames, the vertex-sample errors of maps (see :func:`sample_report`)."""
+
+    def __init__(self, raster: TiledRaster):
+        self.raster = raster
+        self.err = {}  # tile -> (n, C) largest error per sample over the frames
+        self.where = {}  # tile -> (n, C) frame index of it
+        self.lo = self.hi = None
+        self.frames = 0
+
+    def add(self, t: int, values: np.ndarray, images: dict, pixel_type) -> None:
+        values = values.reshape(values.shape[0], -1)
+        for tile, image in images.items():
+            r = self.raster.tiles[tile]
+            e = r.sample_errors(values, image, pixel_type).reshape(r.sample_slots.shape[0], -1)
+            if tile not in self.err:
+                self.err[tile], self.where[tile] = e, np.full(e.shape, t)
+            else:
+                worse = e > self.err[tile]
+                self.err[tile] = np.where(worse, e, self.err[tile])
+                self.where[tile] = np.where(worse, t, self.where[tile])
+            vs = values[r.sample_slots]
+            if vs.shape[0]:
+                lo, hi = vs.min(axis=0), vs.max(axis=0)
+                self.lo = lo if self.lo is None else np.minimum(self.lo, lo)
+                self.hi = hi if self.hi is None else np.maximum(self.hi, hi)
+        self.frames += 1
+
+    def result(self) -> dict:
+        return sample_report(self.raster, self.err, self.where, self.lo, self.hi, self.frames)
+
+
+def sample_report(raster: TiledRaster, err: dict, where: dict, lo, hi, frames: int, limit: float = 0.02) -> dict:
+    """How well maps give back the vertex values at the vertices' UVs, over a take.
+
+    Every vertex sample (a distinct vertex/UV pair, :attr:`facepipe.uvmaps.UVRaster.sample_slots`)
+    is looked up bilinearly in its tile's map and compared with its value; errors are relative
+    to each channel's range over the samples and frames.
+
+    Returns
+    -------
+    dict: ``samples``, ``frames``, ``max_abs`` (per channel, length units), ``range`` (per
+    channel), ``relative`` (the worst, over channels), ``over_limit`` (samples above ``limit``
+    of the range) and ``limit``, ``worst`` (tile, slot, uv, channel, frame index).
+    """
+    if not err or lo is None:
+        return {"samples": 0, "frames": frames}
+    rng = np.maximum(hi - lo, np.finfo(np.float64).tiny)
+    C = rng.shape[0]
+    max_abs = np.max([e.max(axis=0) if e.shape[0] else np.zeros(C) for e in err.values()], axis=0)
+    rel = {tile: e / rng for tile, e in err.items()}
+    tile = max(rel, key=lambda k: rel[k].max() if rel[k].size else -1.0)
+    k, c = np.unravel_index(int(np.argmax(rel[tile])), rel[tile].shape) if rel[tile].size else (0, 0)
+    r = raster.tiles[tile]
+    worst = {"tile": int(tile), "slot": int(r.sample_slots[k]), "uv": [float(x) for x in r.sample_uv[k]],
+             "channel": int(c), "frame_index": int(where[tile][k, c])} if rel[tile].size else None
+    return {
+        "samples": int(sum(e.shape[0] for e in err.values())), "frames": int(frames),
+        "max_abs": [float(x) for x in max_abs], "range": [float(x) for x in hi - lo],
+        "relative": float(max(e.max() if e.size else 0.0 for e in rel.values())),
+        "limit": limit, "over_limit": int(sum((e > limit).any(axis=1).sum() for e in rel.values())),
+        "worst": worst}
 
 
 # ----------------------------------------------------------------------------- wrinkle maps

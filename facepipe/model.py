@@ -140,8 +140,13 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         "beta": fit.beta,
         "novelty_tau": 0.0 if gate is None else gate.tau,
         "marker_spacing": geo.spacing,
-        "shell": {"k_stretch": rig.config.shell.k_stretch, "k_bend": rig.config.shell.k_bend},
+        "shell": {"k_stretch": rig.config.shell.k_stretch, "k_bend": rig.config.shell.k_bend,
+                  "method": rig.config.shell.method, "rbf_lambda": rig.config.shell.rbf_lambda,
+                  "phantoms": rig.config.shell.phantoms},
+        "smoothing": rig.config.psd.smoothing,
     }
+    if "tune" in fit.report:  # the values `fit --tune` chose, with their validated error
+        meta["tuned"] = dict(fit.report["tune"]["chosen"], fallback=fit.report["tune"]["fallback"])
     return arrays, meta
 
 

@@ -52,6 +52,51 @@ def _save(fig, path: Path, force: bool) -> Path:
 # ----------------------------------------------------------------------------- fit curve
 
 
+def plot_tuning(report: dict, path: str | os.PathLike, units: str = "", force: bool = True) -> Path:
+    """The validation errors of ``fit --tune`` as an image (see :func:`facepipe.tune.tune_rig`).
+
+    Left: the examples' large-scale error against k_stretch. Right: the cross-validated error of
+    every (β, λ) candidate against the basis size, the large-scale-only level and the choice.
+    """
+    fig = _figure(10.5, 4.2, dpi=120)
+    left, right = fig.subplots(1, 2)
+    unit = f" ({units})" if units else ""
+    shell = report["shell"]
+    ks = [r["k_stretch"] for r in shell]
+    floor = min([k for k in ks if k > 0], default=1.0) / 3
+    left.plot([max(k, floor) for k in ks], [r["large_rms"] for r in shell], "-o", ms=4, color="tab:green")
+    rejected = [r for r in shell if not r.get("accepted", True)]
+    if rejected:
+        left.plot([max(r["k_stretch"], floor) for r in rejected], [r["large_rms"] for r in rejected], "x",
+                  ms=9, color="tab:red", label="rejected: an example worse than the default's")
+    left.set_xscale("log")
+    left.axvline(max(report["chosen"]["k_stretch"], floor), color="0.3", ls=":", label="chosen")
+    left.set_xlabel("k_stretch (relative to the marker spacing; 0 drawn at the left edge)")
+    left.set_ylabel(f"examples' large-scale RMS{unit}")
+    left.set_title("Shell stiffness")
+    left.grid(True, alpha=0.3)
+    left.legend(fontsize=8)
+    # one curve per (k, β, λ): the gate threshold τ that does best for it
+    curves: dict = {}
+    for r in report["details"]:
+        key = (r["k_stretch"], r["beta_scale"], r["smoothing"])
+        curves.setdefault(key, {}).setdefault(r.get("novelty_tau", 0.0), []).append((r["poses"], r["cv_rms"]))
+    for (k, b, s), by_tau in sorted(curves.items()):
+        t, pts = min(by_tau.items(), key=lambda item: min(e for _, e in item[1]))
+        pts.sort()
+        right.plot([p for p, _ in pts], [e for _, e in pts], "-", lw=1.2, label=f"k={k:g} β×{b:g} λ={s:g} τ={t:g}")
+    chosen = report["chosen"]
+    right.plot([chosen["poses"]], [chosen["cv_rms"]], "k*", ms=12, label="chosen")
+    right.axhline(chosen["large_cv_rms"], color="0.4", ls=":", label="large scale only")
+    right.set_xlabel("basis poses")
+    right.set_ylabel(f"held-out RMS{unit}")
+    right.set_title(f"{report['method'].upper()} cross-validation ({len(report['folds'])} folds)")
+    right.grid(True, alpha=0.3)
+    right.legend(fontsize=6, ncol=2)
+    fig.tight_layout()
+    return _save(fig, Path(path), force)
+
+
 def plot_fit_curves(report: dict, path: str | os.PathLike, units: str = "", force: bool = True) -> Path:
     """Training error against basis size (the fit report's ``curves``) as an image.
 

@@ -11,13 +11,14 @@ import glob
 import hashlib
 import json
 import tomllib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
-from .mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose, load_mesh
+from .mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose, load_mesh, load_vertices
 
 ROLES = ("handle", "stable", "ignore")
 
@@ -48,6 +49,24 @@ class PsdConfig:
 
 
 @dataclass
+class TuneConfig:
+    """Candidate ranges of ``fit --tune`` (the ``[tune]`` table of the config)."""
+
+    k_stretch: list = field(default_factory=lambda: [0.0, 0.03, 0.1, 0.2, 0.3, 1.0, 3.0, 10.0])
+    beta_scale: list = field(default_factory=lambda: [0.5, 1.0, 2.0])
+    smoothing: list = field(default_factory=lambda: [0.0, 0.01, 0.1])
+    novelty_tau: list = field(default_factory=lambda: [0.1, 0.15, 0.2, 0.3])  # the novelty gate (0 = off)
+    max_poses: int = 16  # largest basis tried (at least [psd] max_poses, at most the training examples)
+    folds: int = 5  # cross-validation folds (whole expressions per fold)
+    vertices: str = ""  # vertex range the errors are measured on, e.g. "0:9409" (default: all)
+    sample_vertices: int = 3000  # the details are cross-validated on this many of them, evenly spread
+    fallback: bool = True  # details validated worse than the large scale alone → method "none"
+    # a candidate may not make any held-out example worse than the defaults (model or large scale
+    # alone) by more than this fraction: better on average is not enough
+    max_regression: float = 0.01
+
+
+@dataclass
 class Config:
     path: Path
     mesh: Path
@@ -60,6 +79,7 @@ class Config:
     graph: str = "auto"
     shell: ShellConfig = field(default_factory=ShellConfig)
     psd: PsdConfig = field(default_factory=PsdConfig)
+    tune: TuneConfig = field(default_factory=TuneConfig)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -72,6 +92,7 @@ _KNOWN = {
     "shell": set(ShellConfig.__dataclass_fields__),
     "features": {"graph"},
     "psd": set(PsdConfig.__dataclass_fields__),
+    "tune": set(TuneConfig.__dataclass_fields__),
 }
 
 
@@ -85,7 +106,7 @@ def load_config(path: str | Path) -> Config:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"not valid TOML: {exc}", path=path) from None
     for section, values in raw.items():
-        if section not in _KNOWN and section != "tune":
+        if section not in _KNOWN:
             raise InputError(f"unknown section [{section}]", path=path, hint=f"known: {sorted(_KNOWN)}")
         if isinstance(values, dict) and section in _KNOWN:
             unknown = set(values) - _KNOWN[section]
@@ -107,6 +128,14 @@ def load_config(path: str | Path) -> Config:
         meshes = [meshes]
     shell = _section(ShellConfig, raw.get("shell", {}), path, "shell")
     psd = _section(PsdConfig, raw.get("psd", {}), path, "psd")
+    tune = _section(TuneConfig, raw.get("tune", {}), path, "tune")
+    for key in ("k_stretch", "beta_scale", "smoothing", "novelty_tau"):
+        values = getattr(tune, key)
+        if not values or any(not isinstance(v, (int, float)) or v < 0 for v in values):
+            raise InputError(f"[tune] {key} must be a non-empty list of numbers ≥ 0", path=path)
+    if tune.folds < 2 or tune.max_poses < 1 or tune.sample_vertices < 1 or tune.max_regression < 0:
+        raise InputError("[tune] folds must be ≥ 2, max_poses and sample_vertices ≥ 1, max_regression ≥ 0",
+                         path=path)
     if psd.method not in ("wpsd", "psd", "none"):
         raise InputError(f"[psd] method = {psd.method!r}", path=path, hint="use wpsd, psd or none")
     if psd.fit not in ("interpolate", "least-squares"):
@@ -131,6 +160,7 @@ def load_config(path: str | Path) -> Config:
         graph=str(raw.get("features", {}).get("graph", "auto")),
         shell=shell,
         psd=psd,
+        tune=tune,
     )
 
 
@@ -139,6 +169,8 @@ def _section(cls, values: dict, path: Path, name: str):
     for key, value in values.items():
         default = getattr(out, key)
         try:
+            if isinstance(default, (bool, list)) and not isinstance(value, type(default)):
+                raise TypeError  # bool("no") is True, list("ab") splits a string
             value = type(default)(value)
         except (TypeError, ValueError):
             raise InputError(f"[{name}] {key} = {value!r} should be a {type(default).__name__}", path=path) from None
@@ -283,12 +315,15 @@ def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
     names: list[str] = []
     poses: list[np.ndarray] = []
     if load_examples:
-        for p in example_paths(config):
-            verts = load_mesh(p).vertices
-            check_pose(mesh, verts, p)
-            names.append(p.stem)
-            poses.append(verts)
-            digest.update(p.read_bytes())
+        paths = example_paths(config)
+        # positions only (an OBJ pose's faces are not parsed), two files at a time: numpy's
+        # parsing releases the GIL; checked in order, so the first bad file is the one named
+        with ThreadPoolExecutor(2) as pool:
+            for p, verts in zip(paths, pool.map(load_vertices, paths)):
+                check_pose(mesh, verts, p)
+                names.append(p.stem)
+                poses.append(verts)
+                digest.update(p.read_bytes())
         if config.sequence is not None:
             seq = load_sequence(config.sequence, mesh, config.sequence_stride)
             names += [f"{config.sequence.stem}:{i}" for i in range(0, seq.shape[0] * config.sequence_stride,

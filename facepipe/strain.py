@@ -8,11 +8,14 @@ of the head and local to each region of the face, which is what makes the per-ve
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from .errors import InputError
+from .mesh import _sorted_unique
 
 
 def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
@@ -23,7 +26,7 @@ def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     e = np.sort(e, axis=1)
     n = vertices.shape[0]
     # one int64 key per edge: a 1-D unique is ~10× faster than unique(axis=0), same (a, b) order
-    key = np.unique(e[:, 0] * max(n, 1) + e[:, 1])
+    key = _sorted_unique(e[:, 0] * max(n, 1) + e[:, 1])  # sort-based: ~3x numpy 2's hashed unique here
     e = np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
     length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     # a zero-length edge would vanish from the sparse graph and cut it apart
@@ -39,7 +42,46 @@ def geodesic_from(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.i
     -------
     (S, V) float64; ``inf`` beyond ``limit`` or in other components.
     """
-    return dijkstra(graph, directed=False, indices=np.asarray(sources, dtype=np.int64), limit=limit)
+    sources = np.asarray(sources, dtype=np.int64)
+    # the graph is symmetric (edge_graph): the directed search gives the same distances without
+    # SciPy symmetrising it first, ~20 % faster
+    workers = min(os.cpu_count() or 1, len(sources) // 4, 8)
+    if workers <= 1 or not hasattr(os, "fork") or graph.shape[0] * len(sources) < 2_000_000:
+        return dijkstra(graph, directed=True, indices=sources, limit=limit)
+    return _dijkstra_forked(graph, sources, limit, workers)
+
+
+def _dijkstra_forked(graph: sp.csr_matrix, sources: np.ndarray, limit: float, workers: int) -> np.ndarray:
+    """The sources split over forked processes writing into one shared (anonymous) mapping.
+
+    SciPy's Dijkstra holds the GIL, so threads would not help; 89 sources on a 530k-vertex
+    mesh are ~10 s on one core. A child only runs Dijkstra and exits; a part whose child
+    failed is computed here.
+    """
+    import mmap
+
+    n = graph.shape[0]
+    graph = sp.csr_matrix(graph)
+    shared = mmap.mmap(-1, max(len(sources) * n * 8, 1))  # MAP_SHARED: the children's writes are seen here
+    out = np.frombuffer(shared, dtype=np.float64).reshape(len(sources), n)
+    parts = np.array_split(np.arange(len(sources)), workers)
+    children = {}
+    for part in parts[1:]:
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the child
+            code = 1
+            try:
+                out[part] = dijkstra(graph, directed=True, indices=sources[part], limit=limit)
+                code = 0
+            finally:
+                os._exit(code)
+        children[pid] = part
+    out[parts[0]] = dijkstra(graph, directed=True, indices=sources[parts[0]], limit=limit)
+    for pid, part in children.items():
+        _, status = os.waitpid(pid, 0)
+        if status != 0:
+            out[part] = dijkstra(graph, directed=True, indices=sources[part], limit=limit)
+    return out
 
 
 def auto_feature_graph(vertices: np.ndarray, faces: np.ndarray, marker_vertices: np.ndarray,

@@ -23,11 +23,25 @@ Conventions
   rings beyond take the value at the triangle's closest point (bounded by its corner values),
   so mip-maps do not blend in the empty background. A sliver whose continuation would reach
   beyond one triangle's width (a barycentric coordinate below −1) uses the closest point too.
+* Vertex samples: a bilinear lookup at a vertex's UV (what a renderer does, and what the maps
+  are checked by) blends the 2 × 2 texels around it. Where UV triangles span a few texels
+  (eyelid and lip rims) those texels lie in different triangles of the vertex's fan, or across
+  an island border, and the piecewise-linear field bends at the texel scale, so plain
+  rasterisation misses the vertex value by a sizeable fraction of the field's range. The
+  raster therefore also fits its texels to the vertices (:class:`SampleFit`): the texels of
+  the 2 × 2 footprints of every vertex sample (a distinct (slot, UV) pair: each UV corner of a
+  seam vertex is its own sample) take the smallest change from their rasterised values that
+  makes the bilinear lookups return the vertex values — a damped least-squares problem whose
+  matrix depends only on the layout and the resolution, factorised once; each map is then one
+  sparse product plus one sparse solve. Samples whose footprints overlap are fitted together;
+  contradictory ones (islands closer than a texel with different values) get the
+  least-squares compromise, which :meth:`UVRaster.sample_errors` measures. The fit is linear
+  in the values, so layered wrinkle maps stay exact blends.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.ndimage
@@ -39,6 +53,55 @@ from .render import triangle_pixels
 # a texel centre on a shared edge belongs to both triangles; the tolerance (in barycentric
 # units) closes hairline cracks from rounding without growing triangles visibly
 _INSIDE_TOLERANCE = 1e-9
+
+# damping μ of the vertex-sample fit (dimensionless: both terms are squared value differences).
+# An isolated sample keeps the fraction μ / (|b|² + μ) ≤ 4 μ of its misfit (|b|² ≥ ¼ for
+# bilinear weights), here ≤ 0.4 %; the texels of a cluster of coupled samples move by at most
+# |r| / (2 √μ) ≈ 16 |r| (r: the cluster's misfits), which bounds the overshoot where samples
+# closer than a texel contradict each other
+_FIT_DAMPING = 1e-3
+
+
+@dataclass
+class SampleFit:
+    """Texel corrections that make bilinear lookups at the vertex samples return their values.
+
+    With A the rasterisation (texels from slot values), B the bilinear weights of the samples
+    on the texels of their footprints and E the selection of each sample's slot, the misfit of
+    plain rasterisation is r = R v with R = E − B A. The correction δ of the footprint texels is
+
+        δ = argmin |B δ − r|² + μ |δ|² = (BᵀB + μ I)⁻¹ Bᵀ r,
+
+    the smallest change that fits the samples (a texel outside every footprint keeps its
+    rasterised value). BᵀB + μ I couples only texels within one texel of each other (≤ 9 per
+    row) and depends only on the layout: it is factorised once (sparse LU).
+
+    Attributes
+    ----------
+    rows : (F,) int64, the rows of :attr:`UVRaster.matrix` (filled texels) that the fit moves.
+    weights : (n, F) csr_matrix, B: bilinear weights of the fitted samples on those texels.
+    residual : (n, S) csr_matrix, R: sample value minus plain bilinear lookup, per slot value.
+    samples : (n,) int64, the fitted samples' indices into :attr:`UVRaster.sample_slots`.
+    damping : μ.
+    """
+
+    rows: np.ndarray
+    weights: sp.csr_matrix
+    residual: sp.csr_matrix
+    samples: np.ndarray
+    damping: float
+    factor: object = None  # scipy.sparse.linalg.SuperLU of BᵀB + μ I
+    _weights_t: sp.csr_matrix | None = field(default=None, repr=False)
+
+    def correction(self, flat: np.ndarray) -> np.ndarray:
+        """δ (F, C) for slot values ``flat`` (S, C) float64, one channel at a time (so a channel's
+        correction does not depend on which channels go with it)."""
+        if self._weights_t is None:
+            self._weights_t = self.weights.T.tocsr()
+        out = np.empty((self.rows.shape[0], flat.shape[1]))
+        for c in range(flat.shape[1]):
+            out[:, c] = self.factor.solve(self._weights_t @ (self.residual @ flat[:, c]))
+        return out
 
 
 @dataclass
@@ -56,6 +119,10 @@ class UVRaster:
     filled : (height, width) bool, covered texels plus the edge padding.
     triangle : (height, width) int64, the triangle whose values a filled texel shows
         (−1 where empty): for diagnostics and overlap checks.
+    sample_slots, sample_uv : (n,) int64 and (n, 2) float64, the vertex samples: every
+        distinct (slot, UV) pair of the triangles' corners within the tile.
+    fit : :class:`SampleFit` that corrects the texels around the samples (None: plain
+        rasterisation, ``matrix`` alone).
     """
 
     width: int
@@ -65,6 +132,9 @@ class UVRaster:
     covered: np.ndarray
     filled: np.ndarray
     triangle: np.ndarray
+    sample_slots: np.ndarray | None = None
+    sample_uv: np.ndarray | None = None
+    fit: SampleFit | None = None
 
     @property
     def n_slots(self) -> int:
@@ -93,8 +163,22 @@ class UVRaster:
             raise ValueError(f"{values.shape[0]} values for a raster of {self.n_slots} slots")
         flat = values.reshape(values.shape[0], -1).astype(np.float64, copy=False)
         out = np.full((self.height * self.width, flat.shape[1]), fill, dtype=dtype)
-        out[self.texels] = self.matrix @ flat
+        mapped = self.matrix @ flat
+        if self.fit is not None and self.fit.rows.shape[0]:
+            mapped[self.fit.rows] += self.fit.correction(flat)
+        out[self.texels] = mapped
         return out.reshape((self.height, self.width) + values.shape[1:])
+
+    def sample_errors(self, values: np.ndarray, image: np.ndarray, pixel_type=None) -> np.ndarray:
+        """|bilinear lookup of ``image`` at the vertex samples − their values|: (n,) or (n, C).
+
+        ``values`` (S[, C]) are what ``image`` (this raster's map of them) shows; a sample outside
+        the tile's filled texels compares with the fill value. ``pixel_type`` (e.g. np.float16)
+        rounds the texels looked up as a file of that type stores them.
+        """
+        want = np.asarray(values, dtype=np.float64)[self.sample_slots]
+        got = sample_bilinear(image, self.sample_uv, pixel_type).reshape(want.shape)
+        return np.abs(got - want)
 
 
 def uv_to_texel(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -143,7 +227,7 @@ def udim_tiles(corner_uv: np.ndarray, path=None) -> np.ndarray:
 
 
 def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, width: int, height: int,
-              padding: int = 8, chunk_texels: int = 1 << 22) -> UVRaster:
+              padding: int = 8, chunk_texels: int = 1 << 22, fit: bool = True) -> UVRaster:
     """Rasterise triangles given in UV space: the sparse map from slot values to texels.
 
     Vectorised over triangles: each triangle's bounding box of texel centres is enumerated
@@ -160,6 +244,11 @@ def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, wid
     n_slots : number of value slots (columns of the matrix).
     width, height : image size in texels.
     padding : texels of edge padding around every island (0 for none).
+    fit : fit the texels around the vertex samples so that bilinear lookups there return the
+        vertex values (:class:`SampleFit`); False for plain rasterisation. A sample whose
+        footprint reaches an empty texel (an island border without padding), or that lies
+        beyond the outermost texel centres (within half a texel of the tile's edge, where a
+        lookup depends on the wrap mode), is not fitted.
 
     Returns
     -------
@@ -226,8 +315,57 @@ def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, wid
     matrix = sp.csr_matrix((bary.ravel(), corner_slots[tri].ravel(), np.arange(0, 3 * n + 1, 3)), shape=(n, n_slots))
     filled = np.zeros(height * width, dtype=bool)
     filled[texel] = True
-    return UVRaster(width, height, matrix, texel, covered, filled.reshape(height, width),
-                    owner.reshape(height, width))
+    sample_slots, sample_uv = _vertex_samples(corner_uv, corner_slots)
+    raster = UVRaster(width, height, matrix, texel, covered, filled.reshape(height, width),
+                      owner.reshape(height, width), sample_slots, sample_uv)
+    if fit:
+        raster.fit = _fit_samples(raster)
+    return raster
+
+
+def _vertex_samples(corner_uv: np.ndarray, corner_slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct (slot, UV) pairs of the corners with a finite UV in the tile ([0, 1]²)."""
+    uv = corner_uv.reshape(-1, 2)
+    slot = corner_slots.reshape(-1)
+    inside = np.isfinite(uv).all(axis=1) & (uv >= 0.0).all(axis=1) & (uv <= 1.0).all(axis=1)
+    if not inside.any():
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    keys = np.unique(np.c_[slot[inside].astype(np.float64), uv[inside]], axis=0)
+    return keys[:, 0].astype(np.int64), keys[:, 1:]
+
+
+def _fit_samples(raster: UVRaster, damping: float = _FIT_DAMPING) -> SampleFit:
+    """The :class:`SampleFit` of a plain raster (see there for the least-squares problem)."""
+    import scipy.sparse.linalg as spla
+
+    W, H = raster.width, raster.height
+    index, weight = bilinear_footprint(raster.sample_uv, W, H)  # (n, 4) each
+    row_of = np.full(H * W, -1, dtype=np.int64)
+    row_of[raster.texels] = np.arange(raster.texels.shape[0])
+    rows = row_of[index]
+    used = weight > 0.0
+    ok = (~used | (rows >= 0)).all(axis=1)  # footprints within the filled texels
+    # beyond the outermost texel centres a lookup depends on the renderer's wrap mode (clamp,
+    # periodic, the next UDIM tile): such samples are not fitted
+    x, y = uv_to_texel(raster.sample_uv, W, H)
+    ok &= (x >= 0.0) & (x <= W - 1.0) & (y >= 0.0) & (y <= H - 1.0)
+    samples = np.flatnonzero(ok)
+    rows, weight, used = rows[ok], weight[ok], used[ok]
+    n = samples.shape[0]
+    S = raster.n_slots
+    unknown, col = np.unique(rows[used], return_inverse=True)
+    B = sp.csr_matrix((weight[used], col, np.r_[0, np.cumsum(used.sum(axis=1))]), shape=(n, unknown.shape[0]))
+    B.sum_duplicates()  # clamped footprints at the image border repeat a texel
+    E = sp.csr_matrix((np.ones(n), raster.sample_slots[samples], np.arange(n + 1)), shape=(n, S))
+    R = (E - B @ raster.matrix[unknown]).tocsr()
+    # plain rasterisation reproduces a sample exactly where its footprint lies in one
+    # triangle's plane: rounding there leaves entries at the 1e-16 level
+    R.data[np.abs(R.data) < 1e-12] = 0.0
+    R.eliminate_zeros()
+    normal = (B.T @ B + damping * sp.identity(unknown.shape[0], format="csr")).tocsc()
+    factor = spla.splu(normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True}) if unknown.shape[0] else None
+    return SampleFit(unknown, B, R, samples, damping, factor)
 
 
 def _barycentric(p: np.ndarray, q: np.ndarray, e1: np.ndarray, e2: np.ndarray, det: np.ndarray) -> np.ndarray:
@@ -265,34 +403,52 @@ def _closest_point_barycentric(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+def sample_bilinear(image: np.ndarray, uv: np.ndarray, pixel_type=None) -> np.ndarray:
     """Bilinear lookup of a map at UVs (one tile), clamped at the image border.
 
     Parameters
     ----------
     image : (H, W) or (H, W, C) map.
     uv : (n, 2) texture coordinates in [0, 1]².
+    pixel_type : round the texels read to this type first (e.g. np.float16, as a half file holds them).
 
     Returns
     -------
     (n,) or (n, C) float64 values.
     """
+    image = np.asarray(image)
     H, W = image.shape[:2]
-    x, y = uv_to_texel(uv, W, H)
-    x = np.clip(x, 0.0, W - 1.0)
-    y = np.clip(y, 0.0, H - 1.0)
-    j0 = np.minimum(np.floor(x).astype(np.int64), W - 2) if W > 1 else np.zeros(x.shape, np.int64)
-    i0 = np.minimum(np.floor(y).astype(np.int64), H - 2) if H > 1 else np.zeros(y.shape, np.int64)
-    fx = (x - j0) if W > 1 else np.zeros_like(x)
-    fy = (y - i0) if H > 1 else np.zeros_like(y)
-    j1 = np.minimum(j0 + 1, W - 1)
-    i1 = np.minimum(i0 + 1, H - 1)
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim == 3:
-        fx, fy = fx[:, None], fy[:, None]
-    top = img[i0, j0] * (1 - fx) + img[i0, j1] * fx
-    bottom = img[i1, j0] * (1 - fx) + img[i1, j1] * fx
-    return top * (1 - fy) + bottom * fy
+    index, weight = bilinear_footprint(uv, W, H)
+    texels = image.reshape((H * W,) + image.shape[2:])[index]  # (n, 4[, C]): only what the lookups read
+    if pixel_type is not None:
+        texels = texels.astype(pixel_type)
+    if texels.ndim == 3:
+        weight = weight[..., None]
+    return (texels.astype(np.float64) * weight).sum(axis=1)
+
+
+def bilinear_footprint(uv: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The texels and weights of bilinear lookups at UVs (one tile), clamped at the image border.
+
+    Texel centres sit at ``((j + ½) / W, 1 − (i + ½) / H)`` (:func:`uv_to_texel`), as OpenEXR
+    stores scanlines top down and renderers filter (GL_LINEAR, OIIO's bilinear with clamp).
+
+    Returns
+    -------
+    index : (n, 4) int64 flat texel indices (``row * width + column``) of the 2 × 2 texels.
+    weight : (n, 4) float64 bilinear weights (summing to 1).
+    """
+    x, y = uv_to_texel(uv, width, height)
+    x = np.clip(x, 0.0, width - 1.0)
+    y = np.clip(y, 0.0, height - 1.0)
+    j0 = np.minimum(np.floor(x).astype(np.int64), max(width - 2, 0))
+    i0 = np.minimum(np.floor(y).astype(np.int64), max(height - 2, 0))
+    fx, fy = x - j0, y - i0
+    j1 = np.minimum(j0 + 1, width - 1)
+    i1 = np.minimum(i0 + 1, height - 1)
+    index = np.stack([i0 * width + j0, i0 * width + j1, i1 * width + j0, i1 * width + j1], axis=-1)
+    weight = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=-1)
+    return index, weight
 
 
 @dataclass
@@ -316,7 +472,8 @@ class TiledRaster:
         return {tile: raster(values, dtype=dtype) for tile, raster in self.tiles.items()}
 
 
-def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "vertex") -> TiledRaster:
+def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "vertex",
+                fit: bool = True) -> TiledRaster:
     """Rasterisation of a mesh's per-vertex (or per-UV) values into its UV layout, tile by tile.
 
     Parameters
@@ -327,6 +484,8 @@ def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "v
     padding : texels of edge padding.
     slots : "vertex" (values per vertex, V) or "uv" (values per UV index, U: e.g. tangent
         frames, which differ on the two sides of a seam).
+    fit : fit the texels around the vertices' UVs so that bilinear lookups there return the
+        vertex values (see :func:`uv_raster`).
 
     Returns
     -------
@@ -351,7 +510,8 @@ def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "v
         sel = tiles == tile
         offset = np.array([(tile - 1001) % 10, (tile - 1001) // 10], dtype=np.float64)
         corner_slots, n_slots = (mesh.faces, mesh.n_vertices) if slots == "vertex" else (mesh.face_uvs, len(mesh.uvs))
-        out[int(tile)] = uv_raster(corner_uv[sel] - offset, corner_slots[sel], n_slots, width, height, padding)
+        out[int(tile)] = uv_raster(corner_uv[sel] - offset, corner_slots[sel], n_slots, width, height, padding,
+                                   fit=fit)
     return TiledRaster(out)
 
 

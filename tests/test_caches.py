@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from tests.conftest import run_cli as run
 
 def read_mdd(path):
     """MDD by the spec: big-endian int32 frames, int32 points, float32 times, float32 xyz per frame."""
-    data = open(path, "rb").read()
+    data = Path(path).read_bytes()
     T, V = struct.unpack_from(">ii", data, 0)
     times = struct.unpack_from(f">{T}f", data, 8)
     off = 8 + 4 * T
@@ -29,7 +30,7 @@ def read_mdd(path):
 def read_pc2(path):
     """PC2 by the spec: 'POINTCACHE2\\0', int32 version, int32 points, float32 start, float32 rate,
     int32 samples, then little-endian float32 xyz per sample."""
-    data = open(path, "rb").read()
+    data = Path(path).read_bytes()
     magic, version, V, start, rate, T = struct.unpack_from("<12siiffi", data, 0)
     assert struct.calcsize("<12siiffi") == 32
     assert len(data) == 32 + 12 * T * V, "file size"

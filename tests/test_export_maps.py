@@ -83,27 +83,48 @@ def test_detail_layer_is_final_minus_large_in_every_space(rig):
     np.testing.assert_allclose(tan[:, ui, 2], local[:, v, 2], atol=1e-9)  # the n coordinate is shared
 
 
-def test_vector_maps_at_2048_sample_back_within_2_percent(rig, tmp_path):
+def test_maps_at_2048_give_back_every_vertex_sample(rig, tmp_path):
+    """Bilinear lookups at the vertices' UVs return the vertex values in every space and in scalar
+    maps, at every sample, to half-float rounding; plain rasterisation misses by several times more."""
+    from dataclasses import replace
+
     from facepipe.layers import DetailLayer
     from facepipe.uvmaps import mesh_raster
 
     model = load_model(rig.models["wpsd"])
     mesh = model.mesh()
-    head = np.load(rig.replays["wpsd"] / "handles.npz")["head"]
+    replay_dir = rig.replays["wpsd"]
+    head = np.load(replay_dir / "handles.npz")["head"]
     pick = [1, 5]  # two frames keep the test quick; the CLI path is exercised below at lower resolutions
-    layer = DetailLayer(model)
-    paths = maps.write_displacement_maps(mesh_raster(mesh, 2048, 2048), lambda s, e: layer(head[pick][s:e]), 2,
-                                         tmp_path, attributes={"facepipe/space": "local"})
-    _, _, _, details = reference(model, rig.replays["wpsd"])
-    v, uv, tile, _ = corner_uv_samples(mesh)
+    final, large, _, local = reference(model, replay_dir)
+    v, uv, tile, ui = corner_uv_samples(mesh)
     assert set(tile.tolist()) == {1001}
-    for k, t in enumerate(pick):
-        img, header, dtypes = read(paths[k][1001])
-        assert img.shape == (2048, 2048, 3)
-        assert header["compression"] == OpenEXR.ZIP_COMPRESSION
-        assert set(dtypes.values()) == {np.dtype(np.float16)}
-        err = relative_errors(sample(img, uv), details[t][v])
-        assert err.max() <= 0.02, (t, err.max(axis=0))
+    frames = uv_tangent_frames(large, mesh.faces, mesh.face_uvs, mesh.uvs)
+    want = {"local": local[:, v], "object": (final - large)[:, v],  # head space: no rotation below
+            "tangent": np.einsum("tnji,tnj->tni", frames[:, ui], (final - large)[:, v]), "scalar": local[:, v, 2]}
+    rasters = {"vertex": mesh_raster(mesh, 2048, 2048), "uv": mesh_raster(mesh, 2048, 2048, slots="uv")}
+    for name, reference_values in want.items():
+        space, mode = ("local", "scalar") if name == "scalar" else (name, "vector")
+        layer = DetailLayer(model, space, mesh)
+        raster = rasters[layer.slots]
+        report = {}
+        paths = maps.write_displacement_maps(raster, lambda s, e: layer(head[pick][s:e]), 2, tmp_path / name,
+                                             mode=mode, attributes={"facepipe/space": space}, report=report)
+        plain = replace(raster.tiles[1001], fit=None)
+        for k, t in enumerate(pick):
+            img, header, dtypes = read(paths[k][1001])
+            assert img.shape == ((2048, 2048, 3) if mode == "vector" else (2048, 2048))
+            assert header["compression"] == OpenEXR.ZIP_COMPRESSION
+            assert set(dtypes.values()) == {np.dtype(np.float16)}
+            err = relative_errors(sample(img, uv), reference_values[t])
+            assert err.max() <= 1e-3, (name, t, err.max(axis=0))
+            values = layer(head[[t]])[0]
+            before = relative_errors(sample(plain(values if mode == "vector" else values[:, 2]), uv),
+                                     reference_values[t])
+            assert before.max() >= 3 * max(err.max(), 1e-3), (name, t, before.max(), err.max())
+        # the export's own report: every sample, measured on the half floats written
+        assert report["samples"] == len(raster.tiles[1001].sample_slots) and report["frames"] == 2
+        assert report["over_limit"] == 0 and report["relative"] <= 1e-3, report
 
 
 def test_cli_maps_files_and_header(rig, tmp_path):
@@ -314,35 +335,100 @@ def test_non_finite_displacement_names_the_frame(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["frame_0001.exr"]
 
 
+def unresolvable_samples(uv, width, height):
+    """Vertex samples (UVs within one tile) that no map of this size gives back for every choice of
+    values: those in a cluster of overlapping bilinear footprints whose weights have a lower rank
+    than the number of distinct sample positions (more UV corners than texels can tell apart)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    from facepipe.uvmaps import bilinear_footprint
+
+    index, weight = bilinear_footprint(uv, width, height)
+    n = len(uv)
+    B = sp.csr_matrix((weight.ravel(), index.ravel(), np.arange(0, 4 * n + 1, 4)), shape=(n, width * height))
+    B.sum_duplicates()
+    B.eliminate_zeros()
+    B = B[:, np.unique(B.indices)].tocsr()
+    n_comp, texel_comp = connected_components((B.T @ B).tocsr(), directed=False)
+    comp = texel_comp[B.indices[B.indptr[:-1]]]
+    bad = np.zeros(n, dtype=bool)
+    for c in np.flatnonzero(np.bincount(comp, minlength=n_comp) > 1):
+        rows = np.flatnonzero(comp == c)
+        block = B[rows][:, np.flatnonzero(texel_comp == c)].toarray()
+        bad[rows] = np.linalg.matrix_rank(block) < len(np.unique(uv[rows], axis=0))
+    return bad
+
+
 @pytest.mark.ict
-def test_ict_maps_sample_back(tmp_path):
-    """The ICT kit at 2048² (two UDIM tiles): vertex samples of object-space maps within 2 % of
-    the range for 99 % of them; the rest sit where UV triangles span a few texels."""
+def test_ict_maps_give_back_every_vertex_sample_the_layout_resolves(tmp_path):
+    """The ICT kit at 2048² (two UDIM tiles), a fitted model replayed on two expressive frames: in
+    every space and in scalar maps, every vertex sample (each UV corner of a seam vertex) is within
+    2 % of the range, where plain rasterisation misses rim samples (triangles of a few texels) by
+    more. The exception is what no map of this size can hold: clusters of UV corners closer than
+    the texels can tell apart (the nostrils' insides), found from the layout alone; the export
+    reports them."""
     kit = ict_or_skip()
+    from facepipe.exporters import export_replay
     from facepipe.fit import fit_rig
     from facepipe.model import model_from_fit
     from facepipe.replay import replay
     from facepipe.rig import load_rig
+    from facepipe.uvmaps import mesh_raster
 
     rig = load_rig(ROOT / "configs" / "ict.toml")
     model = model_from_fit(rig=rig, fit=fit_rig(rig))
     truth = np.load(kit / "train_truth.npz")
-    pick = np.array([40, 80])
+    # pursed lips and closed eyes (rims), and a frame whose details in the nostrils no map of this
+    # size can hold in local frames
+    pick = np.array([40, 104])
     head = truth["positions"][pick][:, model.handle_vertices].astype(np.float64)
     eye = np.broadcast_to(np.eye(3), (2, 3, 3))
     model.path = str(tmp_path / "model.npz")
     save_model(model.path, model.arrays, model.meta)
-    replay(load_model(model.path), head, eye, np.zeros((2, 3)), truth["frame"][pick], truth["time"][pick],
-           tmp_path / "r", save_large=True)
-    assert run("export", tmp_path / "r", "--format", "exr", "--space", "object", "-o", tmp_path / "m", "-q") == 0
-    mesh = load_model(model.path).mesh()
-    v, uv, tile, _ = corner_uv_samples(mesh)
-    pos = np.load(tmp_path / "r" / "positions.npy").astype(np.float64)
-    large = np.load(tmp_path / "r" / "large_scale.npy").astype(np.float64)
+    r = tmp_path / "r"
+    replay(load_model(model.path), head, eye, np.zeros((2, 3)), truth["frame"][pick], truth["time"][pick], r,
+           save_large=True)
+    model = load_model(model.path)
+    mesh = model.mesh()
+    v, uv, tile, ui = corner_uv_samples(mesh)
+    assert set(tile.tolist()) == {1001, 1002}
+    unresolvable = np.zeros(len(v), dtype=bool)
+    for k in (1001, 1002):
+        unresolvable[tile == k] = unresolvable_samples(uv[tile == k], 2048, 2048)
+    assert unresolvable.mean() < 0.05, unresolvable.sum()
+
+    final, large, _, local = reference(model, r)  # head space = the replay's space (no head motion)
+    frames = uv_tangent_frames(large, mesh.faces, mesh.face_uvs, mesh.uvs)
+    want = {"object": (final - large)[:, v], "local": local[:, v], "scalar": local[:, v, 2],
+            "tangent": np.einsum("tnji,tnj->tni", frames[:, ui], (final - large)[:, v])}
+
+    def sample_back(folder, t):
+        got = np.zeros(want[name].shape[1:])
+        for k in (1001, 1002):
+            img, _, _ = read(folder / f"frame_{t + 1:04d}.{k}.exr")
+            got[tile == k] = sample(img, uv[tile == k])
+        return got
+
+    for name in want:
+        space, mode = ("local", "scalar") if name == "scalar" else (name, "vector")
+        info = export_replay(r, "exr", tmp_path / name, space=space, mode=mode)
+        for t in range(2):
+            err = relative_errors(sample_back(tmp_path / name, t), want[name][t]).reshape(len(v), -1).max(axis=1)
+            assert err[~unresolvable].max() <= 0.02, (name, t, np.sort(err[~unresolvable])[-5:])
+        # the export measures the same and says where it misses: only where the layout cannot resolve
+        report = info["vertex_samples"]
+        assert report["frames"] == 2 and report["samples"] >= len(np.unique(uv, axis=0))
+        if report["over_limit"]:
+            w = report["worst"]
+            at = np.flatnonzero((tile == w["tile"]) & (np.abs(uv - w["uv"]).max(axis=1) < 1e-12))
+            assert unresolvable[at].all() and any("vertex samples" in note for note in info["notes"])
+
+    # the frames exercise the fit: plain rasterisation misses resolvable (rim) samples by more than 2 %
+    plain = mesh_raster(mesh, 2048, 2048, fit=False).tiles
     for t in range(2):
         got = np.zeros((len(v), 3))
         for k in (1001, 1002):
-            img, _, _ = read(tmp_path / "m" / f"frame_{t + 1:04d}.{k}.exr")
-            got[tile == k] = sample(img, uv[tile == k])
-        err = relative_errors(got, (pos[t] - large[t])[v]).max(axis=1)
-        assert np.percentile(err, 99) <= 0.02 and (err <= 0.02).mean() >= 0.995, np.percentile(err, [99, 100])
+            got[tile == k] = sample(plain[k](local[t]), uv[tile == k])
+        err = relative_errors(got, want["local"][t]).max(axis=1)
+        assert (err[~unresolvable] > 0.02).sum() >= 1, np.sort(err[~unresolvable])[-5:]

@@ -575,3 +575,131 @@ def test_ict_expressions_pass_check_pose_and_permutation_is_caught():
     perm = np.random.default_rng(0).permutation(len(P))
     with pytest.raises(InputError, match="vertex order differs"):
         check_pose(m, P[perm], "jawOpen_reordered.obj")
+
+
+# ---------------------------------------------------------------------------------------------
+# the fast (numpy) OBJ reader against a plain line-by-line reference
+
+def reference_obj(text: str):
+    """A minimal OBJ reader written for the tests: one statement at a time, no shortcuts."""
+    verts, uvs, offsets, corners_v, corners_t, groups, names = [], [], [0], [], [], [], ["default"]
+    group = 0
+    for raw in text.splitlines():
+        parts = raw.split("#")[0].split()
+        if not parts:
+            continue
+        tag, args = parts[0], parts[1:]
+        if tag == "v":
+            verts.append([float(x) for x in args[:3]])
+        elif tag == "vt":
+            uvs.append([float(args[0]), float(args[1]) if len(args) > 1 else 0.0])
+        elif tag in ("f", "fo"):
+            for c in args:
+                fields = c.split("/")
+                v = int(fields[0])
+                corners_v.append(v - 1 if v > 0 else len(verts) + v)
+                if len(fields) > 1 and fields[1]:
+                    t = int(fields[1])
+                    corners_t.append(t - 1 if t > 0 else len(uvs) + t)
+            offsets.append(len(corners_v))
+            groups.append(group)
+        elif tag in ("g", "o"):
+            name = " ".join(args) or "default"
+            if name not in names:
+                names.append(name)
+            group = names.index(name)
+    return (np.array(verts), np.array(offsets), np.array(corners_v), np.array(uvs).reshape(-1, 2),
+            np.array(corners_t) if corners_t else None, np.array(groups), names)
+
+
+TRICKY_OBJS = {
+    "crlf_comments_tabs": (
+        "# header\r\nv 0 0 0 # a comment after a statement\r\nv\t1.5e0  0 -0\r\n  v 0 1 0\r\n"
+        "v -1E-1 +2 3.25 0.5 0.5 0.5\r\nvt 0 0 0\r\nvt 1\r\nvt .5 .25\r\nvn 0 0 1\r\ns 1\r\n"
+        "usemtl skin\r\ng cheek  left\r\nf 1/1/1 2/2/1 3/3/1 4/1/1\r\no lip\r\nfo 2/2/1 3/3/1 4/1/1\r\n"
+        "g cheek left\r\nf 4/3/1 1/2/1 2/1/1 3/3/1 4/2/1"),  # no line end at the end
+    "negative_and_forward": (
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\nf 1 2 5\nv 1 1 0\nv 2 2 0\nf -1 -2 -3 1\n"),
+    "v_double_slash_vn": "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nvn 0 0 1\nf 1//1 2//1 3//1\nf 2//1 4//1 3//1\n",
+    "v_vt_negative": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\nf -3/-3 -2/-2 -1/-1\n"
+                      "vt 1 1\nv 1 1 0\nf 2/2 -1/-1 3/3\ng\nf 1/1 2/2 3/3\n"),
+    "ngons_and_groups": ("v 0 0 0\nv 1 0 0\nv 2 1 0\nv 1 2 0\nv 0 1 0\nv 3 3 3\n"
+                         "g a\nf 1 2 3 4 5\ng b\nf 1 2 6\ng a\nf 2 3 6 4\nf 1 2 3\n"),
+    "long_numbers": ("v 0.123456789012345678 -123456.5 1e-300\nv 12345678901234567890 0.5 -.5\n"
+                     "v 1. 2 3\nf 1 2 3\n"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(TRICKY_OBJS))
+def test_fast_obj_reader_matches_a_line_by_line_reference(tmp_path, name):
+    from facepipe.mesh import _fast_obj, _parse_obj_lists
+
+    text = TRICKY_OBJS[name]
+    p = write(tmp_path, f"{name}.obj", text.encode())
+    fast = _fast_obj(p.read_bytes(), p)
+    assert fast is not None  # the fast path reads these itself
+    V, offsets, cv, uvs, ct, groups, names = reference_obj(text)
+    assert np.array_equal(fast.vertices, V)
+    assert np.array_equal(fast.polygon_offsets, offsets)
+    assert np.array_equal(fast.polygon_vertices, cv)
+    if ct is None:
+        assert fast.polygon_uvs is None and fast.uvs is None
+    else:
+        assert np.array_equal(fast.polygon_uvs, ct) and np.array_equal(fast.uvs, uvs)
+    assert [fast.group_names[g] for g in fast.polygon_groups] == [names[g] for g in groups]
+    # and the list-based reader (the fallback) reads the same
+    slow = _parse_obj_lists(p, p.read_bytes())
+    for key in ("vertices", "polygon_offsets", "polygon_vertices", "uvs", "polygon_uvs", "polygon_groups"):
+        a, b = getattr(fast, key), getattr(slow, key)
+        assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b)), key
+    assert fast.group_names == slow.group_names
+    assert np.array_equal(load_vertices(p), V)
+
+
+def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
+    from facepipe.mesh import _fast_obj, _parse_obj_lists
+
+    rng = np.random.default_rng(11)
+    V = rng.normal(size=(3000, 3)) * 10.0 ** rng.integers(-4, 4, size=(3000, 3))
+    sizes = rng.integers(3, 6, size=2000)
+    lines = [f"v {float(x)!r} {y:.6f} {z:.9g}" for x, y, z in V]
+    lines += [f"vt {u:.5f} {v:.5f}" for u, v in rng.random((500, 2))]
+    for k, n in enumerate(sizes):
+        if k % 500 == 0:
+            lines.append(f"g part{k // 500 % 3}")
+        lines.append("f " + " ".join(f"{a}/{b}" for a, b in zip(rng.integers(1, 3001, n), rng.integers(1, 501, n))))
+    p = write(tmp_path, "big.obj", "\n".join(lines) + "\n")
+    fast = _fast_obj(p.read_bytes(), p)
+    slow = _parse_obj_lists(p, p.read_bytes())
+    assert fast is not None
+    for key in ("vertices", "polygon_offsets", "polygon_vertices", "uvs", "polygon_uvs", "polygon_groups"):
+        assert np.array_equal(getattr(fast, key), getattr(slow, key)), key
+    assert fast.group_names == slow.group_names
+    assert np.array_equal(fast.vertices[:, 0], V[:, 0])  # repr: exact
+    assert np.array_equal(load_vertices(p), slow.vertices)  # the positions-only path
+    for text in (b"v 1 2 3\nv 4 5 6\nv", b"v 1 2 3\r\nv 4 5 6 1\r\n", b"v 1 2 3\nv 4  5 6\n", b"v 1 2 3\n  v 4 5 6\n"):
+        p = write(tmp_path, "pts.obj", text)
+        if text.endswith(b"v"):
+            with pytest.raises(InputError, match="line 3"):
+                load_vertices(p)
+        else:
+            assert load_vertices(p).tolist() == [[1, 2, 3], [4, 5, 6]]
+
+
+@pytest.mark.parametrize("text", [
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nvn 0 0 1\nf 1//1 2//1 3//1\n",  # mixed corner layouts
+    "v 0 0 0\rv 1 0 0\rv 0 1 0\rf 1 2 3\r",                    # old Mac line ends
+    "v 0 0 0\nv 1 0 \\\n 0\nv 0 1 0\nf 1 2 3\n",              # a continuation
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nf 1/1/1 2/2/1 3/1/1\nf 1/1 2/2 3/1\n",  # v/vt/vn and v/vt
+    "v 0 0 nan\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",                  # a number numpy would read differently
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\ng caf\u00e9\u00a0x\nf 1 2 3\n",  # non-ASCII space in a name
+])
+def test_unusual_obj_files_are_read_by_the_list_reader(tmp_path, text):
+    from facepipe.mesh import _parse_obj_lists
+
+    p = write(tmp_path, "odd.obj", text.encode())
+    m = load_mesh(p)
+    ref = _parse_obj_lists(p, p.read_bytes())
+    assert np.array_equal(m.polygon_vertices, ref.polygon_vertices)
+    assert np.array_equal(m.vertices, ref.vertices, equal_nan=True)
+    assert m.group_names == ref.group_names

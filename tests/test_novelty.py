@@ -79,3 +79,25 @@ def test_local_blend_shapes_reproduce_an_example():
     offsets = rng.normal(size=(E, V, 3))
     pos = local_blend_positions(M, idx, ex[2:3], rest, offsets)
     assert np.allclose(pos[0], rest + offsets[2], atol=1e-4)
+
+
+def test_novelty_is_the_non_negative_least_squares_residual():
+    """ρ equals the residual of an exact NNLS (scipy) at every site, also where examples overlap
+    and where one example barely strains the site (where clipped least squares is far off)."""
+    from scipy.optimize import nnls
+
+    F, E = 24, 7
+    rng = np.random.default_rng(5)
+    base = rng.normal(scale=0.1, size=(3, F))
+    ex = np.concatenate([base, base[:2] + 0.3 * base[2], 0.02 * rng.normal(size=(2, F))])  # overlapping, weak
+    _, _, alpha = _alpha(20, F)
+    gate = novelty_gate(ex, _graph(F), alpha, tau=0.2, radius=3.0, max_edges=10)
+    queries = np.concatenate([rng.uniform(0, 1, size=(4, E)) @ ex, rng.normal(scale=0.1, size=(4, F)),
+                              rng.uniform(-1, 1, size=(4, E)) @ ex])
+    rho = gate.novelty(queries, iterations=400)
+    x = queries[:, gate.index] * gate.sqrt_weight
+    for q in range(len(queries)):
+        for s in range(F):
+            b = x[q, s].astype(np.float64)
+            _, r = nnls(gate.examples[s].T.astype(np.float64), b)
+            assert abs(rho[q, s] - r ** 2 / (b @ b + 1e-12)) < 2e-3

@@ -126,3 +126,35 @@ def test_greedy_stops_at_tolerance():
     f, d = _random_problem()
     _, basis, curve = greedy_basis("psd", f, d, "interpolate", max_poses=6, tolerance=1.0)
     assert basis == [0] and len(curve) == 1
+
+
+def test_pinv_solve_matches_the_pseudo_inverse():
+    from facepipe.psd import pinv_solve
+
+    rng = np.random.default_rng(4)
+    n, P = 400, 6
+    A = rng.normal(size=(n, P, P))
+    A[::4, 2] = A[::4, 1]                      # exactly singular (duplicate rows and columns)
+    A[::4, :, 2] = A[::4, :, 1]
+    A[1::4, 3] = A[1::4, 0] * (1 + 1e-9)       # nearly singular: a singular value is cut
+    A[2::4, 0] *= 1e3                          # badly scaled, as the weighted rest row
+    b = rng.normal(size=(n, P, 3))
+    for rcond in (1e-6, 1e-2):
+        expected = np.linalg.pinv(A, rcond=rcond) @ b
+        got = pinv_solve(A, b, rcond)
+        scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
+        assert np.abs(got - expected).max(axis=(1, 2), keepdims=True).max() <= 1e-9 * scale.max()
+        assert (np.abs(got - expected) <= 1e-9 * scale).all()
+    # non-square (least squares) systems take the SVD
+    A2, b2 = rng.normal(size=(20, 7, 4)), rng.normal(size=(20, 7, 3))
+    assert np.allclose(pinv_solve(A2, b2, 1e-6), np.linalg.pinv(A2, rcond=1e-6) @ b2, rtol=0, atol=1e-13)
+
+
+def test_solve_rbf_the_same_in_threads_and_in_one():
+    features, details = _random_problem(E=6, V=500)
+    index, weight = _alpha(500, features.shape[1])
+    alpha = edge_weight_matrix(index, weight, features.shape[1])
+    phi = np.moveaxis(wpsd_distances(features, features, alpha), 1, 0)
+    one = solve_rbf(phi, details, chunk=10_000)   # one block
+    many = solve_rbf(phi, details, chunk=37)      # blocks in threads
+    assert np.array_equal(one[0], many[0]) and np.array_equal(one[1], many[1])

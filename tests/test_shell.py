@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
@@ -102,3 +103,35 @@ def test_large_scale_positions_batched(sheet):
     out = large_scale_positions(V, B, u)
     assert out.shape == (4, len(V), 3)
     assert np.allclose(out[2], V + B @ u[2])
+
+
+@pytest.mark.parametrize("backend", ["pardiso", "superlu"])
+def test_solver_backends_agree_with_cholmod(sheet, backend):
+    V, F = sheet
+    H = _handles(V, 5)
+    A = shell_operator(V, F, 0.3, 1.0).tocsc()
+    free = np.setdiff1d(np.arange(len(V)), H)
+    A_ff, rhs = A[free][:, free], A[free][:, H].toarray()
+    ref = CholeskyFactor(A_ff, backends=("cholmod",))
+    other = CholeskyFactor(A_ff, backends=(backend, "cholmod"))
+    if other.backend != backend:
+        pytest.skip(f"{backend} is not installed here")
+    x_ref, x = ref.solve(rhs), other.solve(rhs)
+    assert np.abs(x - x_ref).max() < 1e-9 * np.abs(x_ref).max()
+    assert np.abs(other.solve(rhs[:, 2]) - x_ref[:, 2]).max() < 1e-9 * np.abs(x_ref).max()  # one right-hand side
+    other.close()
+
+
+def test_cholesky_factor_falls_back_when_a_backend_is_missing(sheet, monkeypatch):
+    import facepipe.shell as shell
+
+    def missing(A):
+        raise ImportError("not here")
+
+    monkeypatch.setitem(shell._BACKENDS, "pardiso", missing)
+    V, F = sheet
+    A = shell_operator(V, F, 1.0, 1.0) + sp.eye(len(V))
+    factor = CholeskyFactor(A)
+    assert factor.backend == "cholmod"
+    b = np.ones(len(V))
+    assert np.abs(A @ factor.solve(b) - b).max() < 1e-8

@@ -69,3 +69,15 @@ def test_graph_from_pairs_validates_names():
         graph_from_pairs([("A", "B"), ("X", "B")], names)
     with pytest.raises(InputError, match="itself"):
         graph_from_pairs([("A", "A")], names)
+
+
+def test_geodesics_in_forked_workers_match_scipy():
+    from scipy.sparse.csgraph import dijkstra
+
+    from facepipe.strain import edge_graph, geodesic_from
+
+    V, F = grid(150, 140)
+    g = edge_graph(V, F)
+    sources = np.arange(0, len(V), len(V) // 100)[:100]  # 21000 vertices x 100 sources: the forked path
+    assert np.array_equal(geodesic_from(g, sources), dijkstra(g, directed=False, indices=sources))
+    assert np.array_equal(geodesic_from(g, sources[:3]), dijkstra(g, directed=False, indices=sources[:3]))

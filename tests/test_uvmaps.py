@@ -115,7 +115,8 @@ def test_padding_continues_the_nearest_triangle_then_clamps_to_it():
 
     tuv = texel_uv(64, 64)
     for padding in (0, 1, 3):
-        r = uv_raster(uv, np.array([[0, 1, 2]]), 3, 64, 64, padding=padding)
+        # the plain rasterisation; the vertex-sample fit moves the texels around the corners only
+        r = uv_raster(uv, np.array([[0, 1, 2]]), 3, 64, 64, padding=padding, fit=False)
         dist = scipy.ndimage.distance_transform_edt(~r.covered)
         assert np.array_equal(r.filled, dist <= padding)
         img = r(values, fill=np.nan)
@@ -127,6 +128,15 @@ def test_padding_continues_the_nearest_triangle_then_clamps_to_it():
         # further out: the closest point of the triangle, bounded by the corner values
         if beyond.any():
             assert img[beyond].min() >= 1.0 - 1e-9 and img[beyond].max() <= 4.0 + 1e-9
+        fitted = uv_raster(uv, np.array([[0, 1, 2]]), 3, 64, 64, padding=padding)
+        assert np.array_equal(fitted.filled, r.filled)
+        moved = np.zeros(64 * 64, dtype=bool)
+        moved[fitted.texels[fitted.fit.rows]] = True
+        fimg = fitted(values, fill=np.nan)
+        assert np.array_equal(fimg[~moved.reshape(64, 64)], img[~moved.reshape(64, 64)], equal_nan=True)
+        if padding == 3:  # footprints within the filled texels: the corners give back their values
+            plain, fit = (np.abs(sample_bilinear(m, uv[0]) - values) for m in (img, fimg))
+            assert plain.max() > 1e-3 and fit.max() <= 0.01 * plain.max()
     # a texel 3 texels right of the edge (0.7, 0.3)-(0.5, 0.7) shows the value on that edge
     r = uv_raster(uv, np.array([[0, 1, 2]]), 3, 64, 64, padding=3)
     img = r(values)
@@ -135,6 +145,50 @@ def test_padding_continues_the_nearest_triangle_then_clamps_to_it():
     i, j = np.argwhere((dist > 2) & (dist <= 3) & (np.abs(tuv[..., 1] - 0.5) < 0.02) & (tuv[..., 0] > 0.5))[0]
     s = np.clip((tuv[i, j] - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
     assert img[i, j] == pytest.approx((1 - s) * 2.0 + s * 4.0, abs=1e-6)
+
+
+def test_vertex_samples_are_given_back_on_both_sides_of_a_seam():
+    """UV triangles of a few texels and values that are not affine: plain rasterisation misses the
+    values at the vertices' UVs; the fitted texels give them back, per UV corner of a seam vertex
+    (vertex values) and per UV index (values that differ across the seam)."""
+    mesh = grid_mesh(9, islands=True)
+    rng = np.random.default_rng(1)
+    v, uv, _, ui = corner_uv_samples(mesh)
+    x, y = uv_to_texel(uv, 40, 40)
+    # beyond the outermost texel centres a lookup depends on the wrap mode: not fitted
+    inner = (x >= 0) & (x <= 39) & (y >= 0) & (y <= 39)
+    assert inner.sum() > 50
+    for slots, values, at in (("vertex", rng.normal(size=(mesh.n_vertices, 2)), v),
+                              ("uv", rng.normal(size=(len(mesh.uvs), 2)), ui)):
+        fitted = mesh_raster(mesh, 40, 40, padding=2, slots=slots).tiles[1001]
+        plain = mesh_raster(mesh, 40, 40, padding=2, slots=slots, fit=False).tiles[1001]
+        assert np.array_equal(fitted.matrix.toarray(), plain.matrix.toarray())
+        span = values[at].max(axis=0) - values[at].min(axis=0)
+        before = np.abs(sample_bilinear(plain(values, dtype=np.float64), uv) - values[at]) / span
+        after = np.abs(sample_bilinear(fitted(values, dtype=np.float64), uv) - values[at]) / span
+        assert before[inner].max() > 0.05
+        assert after[inner].max() <= 0.01 * before[inner].max(), (slots, after[inner].max(), before[inner].max())
+        # the raster's own measure agrees with this one
+        errors = fitted.sample_errors(values, fitted(values, dtype=np.float64))
+        assert errors.shape == (len(fitted.sample_slots), 2)
+        assert errors.max() == pytest.approx((after * span).max(), rel=1e-9)
+        # only texels in the samples' footprints move
+        moved = np.zeros(40 * 40, dtype=bool)
+        moved[fitted.texels[fitted.fit.rows]] = True
+        same = ~moved.reshape(40, 40)
+        np.testing.assert_array_equal(fitted(values)[same], plain(values)[same])
+
+
+def test_contradicting_samples_get_the_least_squares_compromise():
+    # two islands stacked on the same UVs with different values: each corner's lookup can only be
+    # one value, the fit makes it the mean, and sample_errors says how far that is from each
+    uv = np.array([[[0.2, 0.2], [0.8, 0.25], [0.5, 0.8]]] * 2)
+    r = uv_raster(uv, np.array([[0, 1, 2], [3, 4, 5]]), 6, 32, 32, padding=4)
+    assert len(r.sample_slots) == 6 and len(r.fit.samples) == 6
+    values = np.array([0.0, 0.0, 0.0, 1.0, 2.0, 3.0])
+    err = r.sample_errors(values, r(values, dtype=np.float64))
+    want = np.abs(values[r.sample_slots] - np.array([0.5, 1.0, 1.5])[r.sample_slots % 3])
+    np.testing.assert_allclose(err, want, rtol=1e-2)
 
 
 def test_raster_is_linear_in_the_values():

@@ -1,0 +1,124 @@
+"""fit --tune: validation-driven shell stiffness, WPSD falloff, regularisation and basis size."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facepipe.errors import InputError
+from facepipe.rig import TuneConfig, load_config, load_rig
+from facepipe.sample import write_sample_rig
+from facepipe.shell import marker_spacing, shell_basis
+from facepipe.tune import tune_rig, tuned_config
+from tests.conftest import run_cli
+
+SMALL = dict(k_stretch=[0.0, 0.3, 3.0, 30.0], beta_scale=[0.5, 1.0], smoothing=[0.0, 0.1], max_poses=4, folds=3)
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tune_rig")
+    return write_sample_rig(out, n_vertices=2500, n_examples=6, n_frames=12)
+
+
+@pytest.fixture(scope="module")
+def sample_report(sample):
+    rig = load_rig(sample["config"])
+    return rig, tune_rig(rig, TuneConfig(**SMALL))
+
+
+def test_defaults_are_candidates_and_never_beaten(sample_report):
+    rig, report = sample_report
+    d, c = report["default"], report["chosen"]
+    assert d["k_stretch"] in report["candidates"]["k_stretch"]
+    assert c["cv_rms"] <= d["cv_rms"]
+    # every candidate of the grid was scored at every basis size
+    combos = {(r["k_stretch"], r["beta_scale"], r["smoothing"]) for r in report["details"]}
+    assert (c["k_stretch"], c["beta_scale"], c["smoothing"]) in combos
+    assert min(r["cv_rms"] for r in report["details"]) == pytest.approx(c["cv_rms"])
+    assert report["seconds"]["total"] > 0 and len(report["folds"]) >= 2
+
+
+def test_sample_rig_lands_in_a_good_region(sample_report):
+    """The chosen stiffness is the best of the shell sweep and the details help on held-out poses."""
+    rig, report = sample_report
+    shell = {r["k_stretch"]: r["large_rms"] for r in report["shell"]}
+    assert shell[report["chosen"]["k_stretch"]] == min(shell.values())
+    assert report["chosen"]["cv_rms"] < report["chosen"]["large_cv_rms"]
+    assert not report["harm"]
+
+
+def test_recovers_the_stiffness_examples_were_made_with(sample):
+    """Examples that are exact shell deformations at k_stretch = 3 have zero large-scale error there."""
+    rig = load_rig(sample["config"])
+    rest, handles = rig.mesh.vertices, rig.handles
+    B = shell_basis(rest, rig.mesh.faces, handles, rig.anchors, k_stretch=3.0, k_bend=1.0,
+                    spacing=marker_spacing(rest, handles))
+    rng = np.random.default_rng(1)
+    u = rng.normal(scale=0.05 * marker_spacing(rest, handles), size=(5, len(handles), 3))
+    rig.example_positions = rest + np.einsum("vh,ehc->evc", B, u)
+    rig.example_names = [f"pose{i}" for i in range(5)]
+    report = tune_rig(rig, TuneConfig(k_stretch=[0.0, 0.3, 3.0, 30.0], beta_scale=[1.0], smoothing=[0.0],
+                                      max_poses=2, folds=2))
+    assert report["chosen"]["k_stretch"] == 3.0
+    assert min(r["large_rms"] for r in report["shell"]) < 1e-6 * marker_spacing(rest, handles)
+
+
+def test_details_that_do_harm_fall_back(sample):
+    """Details uncorrelated with the strain cannot be predicted on held-out poses: fall back.
+
+    The examples are one expression at several strengths (so a held-out one is a seen kind of
+    strain and the novelty gate lets the details through) plus noise off the markers.
+    """
+    rig = load_rig(sample["config"])
+    rng = np.random.default_rng(2)
+    rest = rig.mesh.vertices
+    scale = 0.1 * marker_spacing(rest, rig.handles)
+    strengths = np.linspace(0.4, 1.0, 6)
+    noise = rng.normal(scale=scale, size=(6,) + rest.shape)
+    noise[:, rig.handles] = 0.0
+    rig.example_positions = rest + strengths[:, None, None] * (rig.example_positions[0] - rest) + noise
+    rig.example_names = [f"pose{i}" for i in range(6)]
+    report = tune_rig(rig, TuneConfig(k_stretch=[0.0], beta_scale=[1.0], smoothing=[0.0], max_poses=3, folds=3))
+    assert report["harm"] and report["fallback"]
+    assert tuned_config(rig.config, report).psd.method == "none"
+    report = tune_rig(rig, TuneConfig(k_stretch=[0.0], beta_scale=[1.0], smoothing=[0.0], max_poses=3, folds=3,
+                                      fallback=False))
+    assert report["harm"] and not report["fallback"]
+
+
+def test_cli_tune_writes_report_and_bake_carries_the_choice(sample, tmp_path):
+    cfg = Path(sample["config"]).parent / "tuned.toml"  # beside the sample config: its paths are relative
+    cfg.write_text(Path(sample["config"]).read_text(encoding="utf-8")
+                   + "\n[tune]\nk_stretch = [0.0, 1.0, 10.0]\nbeta_scale = [1.0]\nsmoothing = [0.0, 0.1]\n"
+                   "max_poses = 3\nfolds = 3\n", encoding="utf-8")
+    fit = tmp_path / "fit.npz"
+    assert run_cli("fit", cfg, "-o", fit, "--tune", "-q") == 0
+    report = json.loads((tmp_path / "fit.tune.json").read_text())
+    assert (tmp_path / "fit.tune.png").stat().st_size > 0
+    chosen = report["chosen"]
+    fit_report = json.loads((tmp_path / "fit.json").read_text())
+    assert fit_report["tune"]["chosen"] == chosen
+    assert fit_report["k_stretch"] == chosen["k_stretch"]
+    model = tmp_path / "model.npz"
+    assert run_cli("bake", fit, "-o", model, "-q") == 0
+    from facepipe.model import load_model
+
+    meta = load_model(model).meta
+    assert meta["tuned"]["k_stretch"] == chosen["k_stretch"] and meta["shell"]["k_stretch"] == chosen["k_stretch"]
+    assert len(meta["basis"]) - 1 == (0 if report["fallback"] else chosen["poses"])
+
+
+@pytest.mark.parametrize("table, message", [
+    ("k_stretch = 3.0", "k_stretch"),
+    ("smoothing = [-1.0]", "smoothing"),
+    ("folds = 1", "folds"),
+    ("fallback = 'no'", "fallback"),
+    ("colour = 1", "unknown key"),
+])
+def test_bad_tune_table(sample, tmp_path, table, message):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(Path(sample["config"]).read_text(encoding="utf-8") + f"\n[tune]\n{table}\n", encoding="utf-8")
+    with pytest.raises(InputError, match=message):
+        load_config(cfg)
