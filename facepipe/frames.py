@@ -81,6 +81,16 @@ def local_frames(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray,
     R : (..., V, 3, 3) with R[..., :, 0] = t, R[..., :, 1] = b, R[..., :, 2] = n;
         world = R @ local, local = Rᵀ @ world.
     """
+    vertices = np.asarray(vertices)
+    if vertices.ndim == 3 and vertices.shape[0] > 1 and vertices.shape[0] * vertices.shape[1] >= 1_000_000:
+        # a batch of large meshes: halves in two threads (numpy's loops release the GIL); every
+        # pose gets the same arithmetic as alone, so the frames are the same bit for bit
+        from concurrent.futures import ThreadPoolExecutor
+
+        halves = np.array_split(np.arange(vertices.shape[0]), 2)
+        with ThreadPoolExecutor(2) as pool:
+            parts = list(pool.map(lambda h: local_frames(vertices[h], faces, neighbors, incidence), halves))
+        return np.concatenate(parts)
     n = vertex_normals(vertices, faces, incidence)
     e = vertices[..., neighbors, :] - vertices
     t = e - np.einsum("...i,...i->...", e, n)[..., None] * n

@@ -72,16 +72,24 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
 
     def block(start):
         stop = min(V, start + chunk)
-        L = marker_distances[edges[:, 0], start:stop] + marker_distances[edges[:, 1], start:stop]  # (F, n)
-        excess = (L - rest_lengths[:, None]).T  # (n, F)
-        excess = np.where(np.isfinite(excess), excess, np.inf)
+        # (the (n, F) arrays are updated in place: the same arithmetic as out-of-place, without
+        # a fresh 100 MB array per step)
+        L = marker_distances[edges[:, 0], start:stop]
+        L += marker_distances[edges[:, 1], start:stop]  # (F, n)
+        L -= rest_lengths[:, None]
+        excess = np.ascontiguousarray(L.T)  # (n, F)
+        del L
+        np.copyto(excess, np.inf, where=~np.isfinite(excess))
         # subtracting the per-vertex minimum leaves the normalised weights unchanged and
         # keeps far vertices (neck, back of the head) from underflowing to all-zero
         base = excess.min(axis=1, keepdims=True)
         base = np.where(np.isfinite(base), base, 0.0)
-        alpha = np.exp(-beta * (excess - base))
-        top = np.argpartition(-alpha, K - 1, axis=1)[:, :K] if K < F else np.tile(np.arange(F), (stop - start, 1))
-        a = np.take_along_axis(alpha, top, axis=1)
+        excess -= base
+        excess *= -beta
+        neg_alpha = np.exp(excess, out=excess)
+        neg_alpha *= -1.0  # −α: the largest weights first
+        top = np.argpartition(neg_alpha, K - 1, axis=1)[:, :K] if K < F else np.tile(np.arange(F), (stop - start, 1))
+        a = -np.take_along_axis(neg_alpha, top, axis=1)
         order = np.argsort(-a, axis=1)
         top = np.take_along_axis(top, order, axis=1)
         a = np.take_along_axis(a, order, axis=1)

@@ -44,7 +44,7 @@ class PsdConfig:
     beta_scale: float = 1.0
     rcond: float = 1e-6
     smoothing: float = 0.0
-    novelty_tau: float = 0.3  # details fade where this fraction of local strain is unlike the examples' (0 = off)
+    novelty_tau: float = 0.15  # details fade where this fraction of local strain is unlike the examples' (0 = off)
     novelty_radius: float = 1.5  # neighbourhood of the novelty test, × median feature-edge length
 
 
@@ -207,11 +207,15 @@ class Markers:
         return np.array([r == "stable" for r, keep in zip(self.roles, self.handle_mask) if keep], dtype=bool)
 
 
-def load_markers(path: Path, n_vertices: int) -> Markers:
-    """Read ``name,vertex[,role]`` (header optional); validate names, indices and roles."""
+def name_vertex_rows(path, kind: str = "marker"):
+    """Rows of a ``name,vertex[,…]`` CSV (header and ``#`` comments allowed), checked.
+
+    Yields (line number, name, vertex, the remaining cells); names must be unique and vertices
+    integers (their range is the caller's to check, against its mesh).
+    """
     if not Path(path).is_file():
-        raise InputError("marker file not found", path=path)
-    names, vertices, roles, lines = [], [], [], []
+        raise InputError(f"{kind} file not found", path=path)
+    seen = set()
     with open(path, newline="", encoding="utf-8") as fh:
         for line_no, row in enumerate(csv.reader(fh), start=1):
             row = [c.strip() for c in row]
@@ -220,22 +224,30 @@ def load_markers(path: Path, n_vertices: int) -> Markers:
             if line_no == 1 and row[0].lower() == "name":
                 continue
             if len(row) < 2:
-                raise InputError(f"line {line_no}: expected name,vertex[,role], got {','.join(row)!r}", path=path)
+                raise InputError(f"line {line_no}: expected name,vertex, got {','.join(row)!r}", path=path)
             try:
                 vertex = int(row[1])
             except ValueError:
-                raise InputError(f"line {line_no}: marker {row[0]!r} has vertex {row[1]!r}, not an integer",
+                raise InputError(f"line {line_no}: {kind} {row[0]!r} has vertex {row[1]!r}, not an integer",
                                  path=path) from None
-            role = row[2].lower() if len(row) > 2 and row[2] else "handle"
-            if role not in ROLES:
-                raise InputError(f"line {line_no}: marker {row[0]!r} has role {role!r}", path=path,
-                                 hint="use handle, stable or ignore")
-            if row[0] in names:
-                raise InputError(f"line {line_no}: marker name {row[0]!r} appears twice", path=path)
-            names.append(row[0])
-            vertices.append(vertex)
-            roles.append(role)
-            lines.append(line_no)
+            if row[0] in seen:
+                raise InputError(f"line {line_no}: {kind} name {row[0]!r} appears twice", path=path)
+            seen.add(row[0])
+            yield line_no, row[0], vertex, row[2:]
+
+
+def load_markers(path: Path, n_vertices: int) -> Markers:
+    """Read ``name,vertex[,role]`` (header optional); validate names, indices and roles."""
+    names, vertices, roles, lines = [], [], [], []
+    for line_no, name, vertex, rest in name_vertex_rows(path, "marker"):
+        role = rest[0].lower() if rest and rest[0] else "handle"
+        if role not in ROLES:
+            raise InputError(f"line {line_no}: marker {name!r} has role {role!r}", path=path,
+                             hint="use handle, stable or ignore")
+        names.append(name)
+        vertices.append(vertex)
+        roles.append(role)
+        lines.append(line_no)
     if not names:
         raise InputError("no markers", path=path)
     vertices = np.asarray(vertices, dtype=np.int64)

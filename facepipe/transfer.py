@@ -25,7 +25,6 @@ Everything here is arrays in, arrays out, except :func:`transfer_files` (the CLI
 
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import time
@@ -63,28 +62,13 @@ def read_points(path, n_vertices: int) -> dict[str, int]:
     {name: vertex} in the file's order (0-based vertices).
     """
     from .mesh import check_marker_vertices
+    from .rig import name_vertex_rows
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("point file not found", path=path)
     names, vertices, lines = [], [], []
-    with open(path, newline="", encoding="utf-8") as fh:
-        for line_no, row in enumerate(csv.reader(fh), start=1):
-            row = [c.strip() for c in row]
-            if not row or not any(row) or row[0].startswith("#"):
-                continue
-            if line_no == 1 and row[0].lower() == "name":
-                continue
-            if len(row) < 2:
-                raise InputError(f"line {line_no}: expected name,vertex, got {','.join(row)!r}", path=path)
-            try:
-                vertex = int(row[1])
-            except ValueError:
-                raise InputError(f"line {line_no}: point {row[0]!r} has vertex {row[1]!r}, not an integer",
-                                 path=path) from None
-            names.append(row[0])
-            vertices.append(vertex)
-            lines.append(line_no)
+    for line_no, name, vertex, _ in name_vertex_rows(path, "point"):
+        names.append(name)
+        vertices.append(vertex)
+        lines.append(line_no)
     check_marker_vertices(np.asarray(vertices, dtype=np.int64), n_vertices, names, path, lines=lines)
     return dict(zip(names, vertices))
 

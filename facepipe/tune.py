@@ -19,10 +19,12 @@ The error of a held-out example is the RMS over the chosen vertices of (final �
 final = large + R·d with orthonormal frames R, it equals the RMS of the detail residual in the
 local frames, so the large-scale surfaces and frames are computed once per k_stretch.
 
-The defaults of the config are always among the candidates, and the choice is the smallest
-validated error, so tuning never picks a setting validated worse than the defaults. When the
-validated error with details is not below the large-scale-only error the details would do harm:
-``fallback`` then turns them off (method ``none``).
+The defaults of the config are always among the candidates. A candidate is accepted only if no
+held-out example gets worse than with the defaults by more than ``max_regression``; among the
+accepted ones that validate as well as the best (within a standard error) and no worse than the
+defaults, the largest basis wins (see :func:`tune_rig`). So tuning never picks a setting validated
+worse than the defaults. When the validated error with details is not below the large-scale-only
+error the details would do harm: ``fallback`` then turns them off (method ``none``).
 """
 
 from __future__ import annotations
@@ -176,10 +178,21 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
                          "accepted": bool(np.max(e[P] / reference) <= limit)})
     default_row = next(r for r in rows if (r["k_stretch"], r["beta_scale"], r["smoothing"], r["novelty_tau"],
                                            r["poses"]) == default_key + (default["poses"],))
-    # ties go to the smaller basis, then the stronger regularisation and gate: the simpler model
     default_row["accepted"] = True  # the defaults are always a candidate
-    chosen = min((r for r in rows if r["accepted"]),
-                 key=lambda r: (round(r["cv_rms"], 12), r["poses"], -r["smoothing"], r["novelty_tau"]))
+    accepted = [r for r in rows if r["accepted"]]
+    best = min(accepted, key=lambda r: (round(r["cv_rms"], 12), r["poses"]))
+    # Held-out expressions are unseen, so the novelty gate keeps their details small and the basis
+    # size barely shows in their error; yet every pose added is one more expression (and its
+    # mixtures) reproduced exactly. So among the candidates that validate as well as the best —
+    # within one standard error of the paired per-example differences — the largest basis wins.
+    best_errors = errors[_key(best)][best["poses"]]
+
+    def tied(r):
+        diff = errors[_key(r)][r["poses"]] - best_errors
+        return diff.mean() <= diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else r is best
+
+    chosen = min((r for r in accepted if tied(r) and r["cv_rms"] <= default_row["cv_rms"]),
+                 key=lambda r: (-r["poses"], round(r["cv_rms"], 12)))
     chosen = dict(chosen, large_cv_rms=float(large[chosen["k_stretch"]].mean()))
     harm = chosen["cv_rms"] >= chosen["large_cv_rms"]
     return {
@@ -200,6 +213,10 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
                        "novelty_tau": tau_values, "max_poses": max_poses},
         "seconds": {"shell": t_shell, "details": t_details, "total": time.perf_counter() - t0},
     }
+
+
+def _key(row: dict) -> tuple:
+    return row["k_stretch"], row["beta_scale"], row["smoothing"], row["novelty_tau"]
 
 
 def _confidence(gate, tau: float, features: np.ndarray) -> np.ndarray:
