@@ -184,7 +184,8 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
     # Held-out expressions are unseen, so the novelty gate keeps their details small and the basis
     # size barely shows in their error; yet every pose added is one more expression (and its
     # mixtures) reproduced exactly. So among the candidates that validate as well as the best —
-    # within one standard error of the paired per-example differences — the largest basis wins.
+    # within one standard error of the paired per-example differences — the largest basis wins,
+    # then the stronger gate (smaller τ: a margin for expressions validation has not seen).
     best_errors = errors[_key(best)][best["poses"]]
 
     def tied(r):
@@ -192,7 +193,7 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
         return diff.mean() <= diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else r is best
 
     chosen = min((r for r in accepted if tied(r) and r["cv_rms"] <= default_row["cv_rms"]),
-                 key=lambda r: (-r["poses"], round(r["cv_rms"], 12)))
+                 key=lambda r: (-r["poses"], r["novelty_tau"], round(r["cv_rms"], 12)))
     chosen = dict(chosen, large_cv_rms=float(large[chosen["k_stretch"]].mean()))
     harm = chosen["cv_rms"] >= chosen["large_cv_rms"]
     return {
