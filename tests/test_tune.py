@@ -36,7 +36,13 @@ def test_defaults_are_candidates_and_never_beaten(sample_report):
     # every candidate of the grid was scored at every basis size
     combos = {(r["k_stretch"], r["beta_scale"], r["smoothing"]) for r in report["details"]}
     assert (c["k_stretch"], c["beta_scale"], c["smoothing"]) in combos
-    assert min(r["cv_rms"] for r in report["details"]) == pytest.approx(c["cv_rms"])
+    assert c["accepted"]
+    # the choice validates as well as the best accepted candidate (within the noise of the folds)
+    best = min(r["cv_rms"] for r in report["details"] if r["accepted"])
+    assert c["cv_rms"] <= 1.05 * best
+    tied_larger = [r for r in report["details"] if r["accepted"] and r["poses"] > c["poses"]
+                   and r["cv_rms"] <= best]
+    assert not tied_larger  # nothing as good with a larger basis was passed over
     assert report["seconds"]["total"] > 0 and len(report["folds"]) >= 2
 
 
