@@ -101,9 +101,12 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
     geometries = {}
     shell_errors = {}
     for i, k in enumerate(k_values):
-        B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
-                        spacing=geo.spacing)
-        geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
+        if k == cfg.shell.k_stretch:  # build_geometry factored this one already
+            geometries[k] = geo
+        else:
+            B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
+                            spacing=geo.spacing)
+            geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
         shell_errors[k] = _rms(geometries[k].large_scale(poses[1:]) - poses[1:], vertices)
         say("shell", i + 1, len(k_values))
     t_shell = time.perf_counter() - t0

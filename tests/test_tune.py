@@ -128,3 +128,22 @@ def test_bad_tune_table(sample, tmp_path, table, message):
     cfg.write_text(Path(sample["config"]).read_text(encoding="utf-8") + f"\n[tune]\n{table}\n", encoding="utf-8")
     with pytest.raises(InputError, match=message):
         load_config(cfg)
+
+
+def test_tune_refuses_what_it_cannot_validate(sample):
+    rig = load_rig(sample["config"])
+    rig.config.shell.method = "rbf"
+    with pytest.raises(InputError, match="stiffness"):
+        tune_rig(rig, TuneConfig(**SMALL))
+    rig = load_rig(sample["config"])
+    rig.example_positions, rig.example_names = rig.example_positions[:2], rig.example_names[:2]
+    with pytest.raises(InputError, match="at least 3 example poses"):
+        tune_rig(rig, TuneConfig(**SMALL))
+
+
+def test_cli_tune_bad_input_exits_2(sample, tmp_path):
+    cfg = Path(sample["config"]).parent / "bad_tune.toml"
+    cfg.write_text(Path(sample["config"]).read_text(encoding="utf-8") + "\n[tune]\nfolds = 1\n", encoding="utf-8")
+    out = tmp_path / "fit.npz"
+    assert run_cli("fit", cfg, "-o", out, "--tune", "-q") == 2
+    assert not out.exists() and not (tmp_path / "fit.tune.json").exists()
