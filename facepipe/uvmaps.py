@@ -499,8 +499,9 @@ def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "v
     if mesh.uvs is None or mesh.polygon_uvs is None:
         raise InputError("the rest mesh has no texture coordinates (UVs), so it has no map layout",
                          path=mesh.path or None,
-                         hint="give the rig an OBJ with 'vt' lines and per-corner 'f v/vt' indices, then bake "
-                              "again; or export geometry (--format obj|usd|mdd|pc2)")
+                         hint="give the rig (or, for a transferred model, the transfer target) an OBJ with 'vt' "
+                              "lines and per-corner 'f v/vt' indices, then bake or transfer again; or export "
+                              "geometry (--format obj|usd|mdd|pc2)")
     if width < 1 or height < 1:
         raise InputError(f"map resolution {width}x{height} is not positive")
     corner_uv = mesh.uvs[mesh.face_uvs]
