@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -441,7 +442,7 @@ class NoveltyGate:
         energy = np.einsum("qsk,qsk->qs", x, x)
         if self.examples.shape[1] == 0:
             return np.ones_like(energy)
-        A, gram, step, norm = self._cone()
+        A, gram, step, norm = self._cone
         # sites first, queries last: the iterations are batched matrix products (BLAS)
         xs = np.moveaxis(x, 0, 2)  # (F, K, Q)
         b = np.matmul(A, xs)  # Aᵀx: (F, E, Q)
@@ -458,6 +459,7 @@ class NoveltyGate:
         # a site barely strained at all is treated as seen (its details are near zero anyway)
         return np.clip(np.maximum(residual, 0.0) / (energy + 1e-12), 0.0, 1.0)
 
+    @cached_property
     def _cone(self):
         """Per-site examples scaled to unit norm, their Gram matrices, FISTA steps and the norms.
 
@@ -465,15 +467,13 @@ class NoveltyGate:
         strains the site as quick to fit as a strong one; positive scales keep the cone. Examples
         with no strain at the site get scale 0 (they cannot explain anything there).
         """
-        if "_cone_cache" not in self.__dict__:
-            A = self.examples.astype(np.float64)  # (F, E, K)
-            norm = np.sqrt(np.einsum("sek,sek->se", A, A))  # (F, E)
-            live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
-            A = A * np.where(live, 1.0 / np.maximum(norm, 1e-300), 0.0)[..., None]
-            gram = np.matmul(A, np.swapaxes(A, 1, 2))  # (F, E, E)
-            step = 1.0 / np.maximum(np.linalg.eigvalsh(gram)[:, -1], 1e-30)[:, None, None]
-            self.__dict__["_cone_cache"] = (A, gram, step, np.where(live, norm, 0.0))
-        return self.__dict__["_cone_cache"]
+        A = self.examples.astype(np.float64)  # (F, E, K)
+        norm = np.sqrt(np.einsum("sek,sek->se", A, A))  # (F, E)
+        live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
+        A = A * np.where(live, 1.0 / np.maximum(norm, 1e-300), 0.0)[..., None]
+        gram = np.matmul(A, np.swapaxes(A, 1, 2))  # (F, E, E)
+        step = 1.0 / np.maximum(np.linalg.eigvalsh(gram)[:, -1], 1e-30)[:, None, None]
+        return A, gram, step, np.where(live, norm, 0.0)
 
     def confidence(self, features: np.ndarray) -> np.ndarray:
         """Per-vertex confidence in [0, 1]: (Q, F) → (Q, V)."""

@@ -195,7 +195,7 @@ def _every_part_has(faces: np.ndarray, n_vertices: int, vertices: np.ndarray) ->
 
 
 def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates of the closest point of triangles (a, b, c) to points p (Ericson).
+    """Barycentric coordinates of the closest point of triangles (a, b, c) to points p.
 
     Parameters
     ----------
@@ -205,34 +205,17 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
     -------
     (..., 3) barycentric weights (≥ 0, sum 1) of the closest point: q = w0 a + w1 b + w2 c.
     """
-    def dot(x, y):
-        return np.einsum("...i,...i->...", x, y)
+    from trimesh.triangles import closest_point, points_to_barycentric
 
-    ab, ac = b - a, c - a
-    ap, bp, cp = p - a, p - b, p - c
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-
-    def safe(x, y):
-        return x / np.where(np.abs(y) > 1e-300, y, 1.0)
-
-    denom = va + vb + vc
-    v_in, w_in = safe(vb, denom), safe(vc, denom)
-    v_ab = safe(d1, d1 - d3)
-    w_ac = safe(d2, d2 - d6)
-    w_bc = safe(d4 - d3, (d4 - d3) + (d5 - d6))
-    zero, one = np.zeros_like(d1), np.ones_like(d1)
-    # Ericson's regions in his order: the first that holds decides
-    conds = [(d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-             (d6 >= 0) & (d5 <= d6), (vb <= 0) & (d2 >= 0) & (d6 <= 0),
-             (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)]
-    v = np.select(conds, [zero, one, v_ab, zero, zero, 1 - w_bc], v_in)
-    w = np.select(conds, [zero, zero, zero, one, w_ac, w_bc], w_in)
-    bary = np.stack([1 - v - w, v, w], axis=-1)
+    p, a, b, c = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (p, a, b, c)))
+    shape = p.shape
+    tri = np.stack([a, b, c], axis=-2).reshape(-1, 3, 3)
+    q = closest_point(tri, p.reshape(-1, 3))
+    with np.errstate(all="ignore"):
+        bary = points_to_barycentric(tri, q)
+    # degenerate (zero-area) triangles give NaN: their centroid stands in, as good as any point
     bary = np.clip(np.nan_to_num(bary, nan=1.0 / 3.0), 0.0, 1.0)
-    return bary / bary.sum(axis=-1, keepdims=True)
+    return (bary / bary.sum(axis=-1, keepdims=True)).reshape(shape)
 
 
 def _incident_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:

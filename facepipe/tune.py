@@ -36,17 +36,11 @@ import time
 import numpy as np
 
 from .errors import InputError
-from .psd import (default_beta, edge_distances, edge_weight_matrix, greedy_basis, novelty_gate,
+from .psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose,
                   wpsd_edge_weights)
 from .shell import shell_basis
 from .strain import edge_graph, geodesic_from
 from .validate import holdout_folds
-
-
-def _rms(residual: np.ndarray, vertices) -> np.ndarray:
-    """RMS vertex distance per pose: (E, V, 3) → (E,)."""
-    r = residual[:, vertices]
-    return np.sqrt(np.einsum("evc,evc->ev", r, r).mean(axis=1))
 
 
 def _with_unique(values, default) -> list[float]:
@@ -107,7 +101,7 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
             B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
                             spacing=geo.spacing)
             geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
-        shell_errors[k] = _rms(geometries[k].large_scale(poses[1:]) - poses[1:], vertices)
+        shell_errors[k] = rms_per_pose(geometries[k].large_scale(poses[1:]), poses[1:], vertices)
         say("shell", i + 1, len(k_values))
     t_shell = time.perf_counter() - t0
     limit = 1.0 + tune.max_regression
@@ -138,7 +132,8 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
                                           cfg.psd.max_edges_per_vertex)
         alphas[b] = edge_weight_matrix(index, weight, len(geo.edges))
     details = {k: geometries[k].details(poses)[:, sample] for k in {g[0] for g in grid}}
-    large = {k: _rms(details[k][1:], slice(None)) for k in details}  # held-out error without details
+    # held-out error without details
+    large = {k: rms_per_pose(np.zeros_like(details[k][1:]), details[k][1:]) for k in details}
     # held-out error of every example per (k, β, λ, τ) and basis size; each example is held out once
     errors: dict[tuple, np.ndarray] = {}
     done = 0
@@ -160,7 +155,7 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
             def observe(model, basis, k=k, b=b, s=s, confidence=confidence):
                 raw = model.evaluate(features[held])
                 for t, c in confidence.items():
-                    errors[(k, b, s, t)][len(basis) - 1, fold] = _rms(raw * c - details[k][held], slice(None))
+                    errors[(k, b, s, t)][len(basis) - 1, fold] = rms_per_pose(raw * c, details[k][held])
 
             greedy_basis(cfg.psd.method, features[train], details[k][train], cfg.psd.fit, P_max,
                          alpha=alpha, rcond=cfg.psd.rcond, smoothing=s, observe=observe)
