@@ -81,19 +81,19 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
         excess = np.ascontiguousarray(L.T)  # (n, F)
         del L
         np.copyto(excess, np.inf, where=~np.isfinite(excess))
+        # the largest weights are the smallest excesses: choose them first, then take exp of K
+        # values per vertex rather than of all F
+        top = np.argpartition(excess, K - 1, axis=1)[:, :K] if K < F else np.tile(np.arange(F), (stop - start, 1))
+        ex = np.take_along_axis(excess, top, axis=1)
+        del excess
+        order = np.argsort(ex, axis=1)
+        top = np.take_along_axis(top, order, axis=1)
+        ex = np.take_along_axis(ex, order, axis=1)
         # subtracting the per-vertex minimum leaves the normalised weights unchanged and
         # keeps far vertices (neck, back of the head) from underflowing to all-zero
-        base = excess.min(axis=1, keepdims=True)
-        base = np.where(np.isfinite(base), base, 0.0)
-        excess -= base
-        excess *= -beta
-        neg_alpha = np.exp(excess, out=excess)
-        neg_alpha *= -1.0  # −α: the largest weights first
-        top = np.argpartition(neg_alpha, K - 1, axis=1)[:, :K] if K < F else np.tile(np.arange(F), (stop - start, 1))
-        a = -np.take_along_axis(neg_alpha, top, axis=1)
-        order = np.argsort(-a, axis=1)
-        top = np.take_along_axis(top, order, axis=1)
-        a = np.take_along_axis(a, order, axis=1)
+        base = ex[:, :1]
+        ex -= np.where(np.isfinite(base), base, 0.0)
+        a = np.exp(-beta * ex)  # exp(−inf) = 0: unreachable edges weigh nothing
         total = a.sum(axis=1, keepdims=True)
         a = a / np.where(total > 0, total, 1.0)
         drop = a < min_weight
@@ -325,6 +325,13 @@ def fit_details(method: str, features: np.ndarray, details: np.ndarray, basis: l
         phi = np.moveaxis(phi, 1, 0)  # (V, R, P)
     weights, const = solve_rbf(phi, details[rows], rcond=rcond, smoothing=smoothing)
     return DetailModel(method, basis_features, weights, const, alpha)
+
+
+def spread_sample(n: int, count: int) -> np.ndarray:
+    """``count`` indices evenly spread over ``range(n)`` (all of them when count is 0 or ≥ n)."""
+    if count <= 0 or count >= n:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, count).round().astype(np.int64))
 
 
 def rms_per_pose(predicted: np.ndarray, target: np.ndarray, vertices: slice | np.ndarray = slice(None)) -> np.ndarray:

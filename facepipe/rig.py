@@ -10,13 +10,14 @@ import csv
 import glob
 import hashlib
 import json
+import os
 import tomllib
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .background import BackgroundCall
 from .errors import InputError
 from .mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose, load_mesh, load_vertices
 
@@ -38,6 +39,9 @@ class PsdConfig:
     fit: str = "interpolate"
     max_poses: int = 12
     tolerance: float = 0.0
+    # the greedy choice scores the training poses on this many vertices, evenly spread (0 = all); the
+    # chosen basis is then fitted on every vertex
+    greedy_vertices: int = 32768
     max_edges_per_vertex: int = 16
     min_edge_weight: float = 0.025
     beta: float = 0.0  # WPSD falloff (1/length); 0 = beta_scale / median feature-edge length
@@ -140,8 +144,8 @@ def load_config(path: str | Path) -> Config:
         raise InputError(f"[psd] method = {psd.method!r}", path=path, hint="use wpsd, psd or none")
     if psd.fit not in ("interpolate", "least-squares"):
         raise InputError(f"[psd] fit = {psd.fit!r}", path=path, hint="use interpolate or least-squares")
-    if psd.max_poses < 0 or psd.max_edges_per_vertex < 1:
-        raise InputError("[psd] max_poses must be ≥ 0 and max_edges_per_vertex ≥ 1", path=path)
+    if psd.max_poses < 0 or psd.max_edges_per_vertex < 1 or psd.greedy_vertices < 0:
+        raise InputError("[psd] max_poses and greedy_vertices must be ≥ 0, max_edges_per_vertex ≥ 1", path=path)
     if shell.method not in ("shell", "rbf"):
         raise InputError(f"[shell] method = {shell.method!r}", path=path, hint="use shell or rbf")
     if shell.rbf_lambda < 0 or shell.phantoms < 0:
@@ -313,29 +317,44 @@ def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
     """Load and check the rest mesh, markers, anchors and example poses of a config."""
     if not isinstance(config, Config):
         config = load_config(config)
-    mesh = load_mesh(config.mesh)
-    check_mesh(mesh)
-    markers = load_markers(config.markers, mesh.n_vertices)
-    anchors = load_anchors(config.anchors, mesh.n_vertices)
-    if config.shell.method == "shell":
-        # the RBF morph needs no connectivity; the shell is singular on a part without constraints
-        check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+    # the example files are read (positions only: an OBJ pose's faces are not parsed) while this
+    # process reads the rest mesh: by a second process where they are large (text parsing holds
+    # the GIL for much of its time, so a thread would mostly wait)
+    try:
+        paths, paths_error = (example_paths(config) if load_examples else []), None
+    except InputError as exc:  # told after the rest mesh's own errors, as a user fixes them in that order
+        paths, paths_error = [], exc
+    size = sum(p.stat().st_size for p in paths if p.is_file())
+    reads = BackgroundCall(_read_examples, paths, background=size >= 64 * 2**20 and (os.cpu_count() or 1) >= 2)
+    try:
+        mesh = load_mesh(config.mesh)
+        check_mesh(mesh)
+        markers = load_markers(config.markers, mesh.n_vertices)
+        anchors = load_anchors(config.anchors, mesh.n_vertices)
+        if config.shell.method == "shell":
+            # the RBF morph needs no connectivity; the shell is singular on a part without constraints
+            check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+        if paths_error is not None:
+            raise paths_error
+        read = reads.result()
+    except BaseException:
+        reads.cancel()
+        raise
     digest = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode())
     for p in [config.mesh, config.markers, config.anchors]:
         if p is not None:
             digest.update(Path(p).read_bytes())
     names: list[str] = []
     poses: list[np.ndarray] = []
+    # checked in order, so the first bad file is the one named; a file the reader gave up on is
+    # read again here, which raises its error
+    for p, got in zip(paths, read):
+        verts, file_digest = got if got is not None else _read_example(p)
+        check_pose(mesh, verts, p)
+        names.append(p.stem)
+        poses.append(verts)
+        digest.update(file_digest)
     if load_examples:
-        paths = example_paths(config)
-        # positions only (an OBJ pose's faces are not parsed), two files at a time: numpy's
-        # parsing releases the GIL; checked in order, so the first bad file is the one named
-        with ThreadPoolExecutor(2) as pool:
-            for p, verts in zip(paths, pool.map(load_vertices, paths)):
-                check_pose(mesh, verts, p)
-                names.append(p.stem)
-                poses.append(verts)
-                digest.update(p.read_bytes())
         if config.sequence is not None:
             seq = load_sequence(config.sequence, mesh, config.sequence_stride)
             names += [f"{config.sequence.stem}:{i}" for i in range(0, seq.shape[0] * config.sequence_stride,
@@ -347,6 +366,22 @@ def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
                              hint="set [examples] meshes and/or sequence, or [psd] method = 'none'")
     positions = np.stack(poses) if poses else np.zeros((0, mesh.n_vertices, 3))
     return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16])
+
+
+def _read_example(path: Path) -> tuple[np.ndarray, bytes]:
+    """An example pose's positions and the SHA-256 of its file."""
+    return load_vertices(path), hashlib.sha256(Path(path).read_bytes()).digest()
+
+
+def _read_examples(paths: list[Path]) -> list:
+    """:func:`_read_example` of each path, None for a file that fails (its error is raised by the caller)."""
+    out = []
+    for p in paths:
+        try:
+            out.append(_read_example(p))
+        except Exception:  # noqa: BLE001 - re-read by the caller, which raises the file's own error
+            out.append(None)
+    return out
 
 
 def load_sequence(path: Path, mesh: Mesh, stride: int = 1) -> np.ndarray:

@@ -353,19 +353,23 @@ def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, an
 
 
 def _split_blocks(A: sp.spmatrix, free: np.ndarray, driven: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-    """A[free][:, free] and A[free][:, driven] in one pass over A's entries (SciPy's fancy
-    indexing of a 530k-row matrix takes seconds; the entries themselves are unchanged)."""
-    coo = sp.coo_matrix(A)
+    """A[free][:, free] and A[free][:, driven] from the rows of A, with their column indices renumbered
+    (SciPy's column fancy indexing of a 530k-row matrix takes seconds; the entries are unchanged).
+
+    ``free`` must be increasing (as :func:`constrained_split` gives it), so the free block's
+    column indices stay sorted."""
+    A = sp.csr_matrix(A)
+    rows = A[free]
     n = A.shape[0]
-    free_at = np.full(n, -1, dtype=np.int64)
-    free_at[free] = np.arange(len(free))
-    driven_at = np.full(n, -1, dtype=np.int64)
-    driven_at[driven] = np.arange(len(driven))
-    r = free_at[coo.row]
     blocks = []
-    for c, width in ((free_at[coo.col], len(free)), (driven_at[coo.col], len(driven))):
-        keep = (r >= 0) & (c >= 0)
-        blocks.append(sp.csr_matrix((coo.data[keep], (r[keep], c[keep])), shape=(len(free), width)))
+    for cols in (free, driven):
+        at = np.full(n, -1, dtype=np.int64)
+        at[cols] = np.arange(len(cols))
+        c = at[rows.indices]
+        keep = c >= 0
+        indptr = np.concatenate([[0], np.cumsum(keep, dtype=np.int64)])[rows.indptr]  # (a bool cumsum is ~10x slower)
+        blocks.append(sp.csr_matrix((rows.data[keep], c[keep].astype(rows.indices.dtype), indptr),
+                                    shape=(len(free), len(cols))))
     return blocks[0], blocks[1]
 
 

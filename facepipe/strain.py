@@ -43,45 +43,23 @@ def geodesic_from(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.i
     (S, V) float64; ``inf`` beyond ``limit`` or in other components.
     """
     sources = np.asarray(sources, dtype=np.int64)
+    # SciPy's Dijkstra holds the GIL, so threads would not help: on a large mesh half of the
+    # sources go to a second process (89 sources on a 530k-vertex mesh are ~10 s on one core)
+    if len(sources) < 8 or graph.shape[0] * len(sources) < 2_000_000 or (os.cpu_count() or 1) < 2:
+        return dijkstra_rows(graph, sources, limit)
+    from .background import BackgroundCall
+
+    half = len(sources) // 2
+    other = BackgroundCall(dijkstra_rows, sp.csr_matrix(graph), sources[half:], limit)
+    first = dijkstra_rows(graph, sources[:half], limit)
+    return np.concatenate([first, other.result()])
+
+
+def dijkstra_rows(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf) -> np.ndarray:
+    """Dijkstra distances (S, V) from ``sources`` in this process."""
     # the graph is symmetric (edge_graph): the directed search gives the same distances without
     # SciPy symmetrising it first, ~20 % faster
-    workers = min(os.cpu_count() or 1, len(sources) // 4, 8)
-    if workers <= 1 or not hasattr(os, "fork") or graph.shape[0] * len(sources) < 2_000_000:
-        return dijkstra(graph, directed=True, indices=sources, limit=limit)
-    return _dijkstra_forked(graph, sources, limit, workers)
-
-
-def _dijkstra_forked(graph: sp.csr_matrix, sources: np.ndarray, limit: float, workers: int) -> np.ndarray:
-    """The sources split over forked processes writing into one shared (anonymous) mapping.
-
-    SciPy's Dijkstra holds the GIL, so threads would not help; 89 sources on a 530k-vertex
-    mesh are ~10 s on one core. A child only runs Dijkstra and exits; a part whose child
-    failed is computed here.
-    """
-    import mmap
-
-    n = graph.shape[0]
-    graph = sp.csr_matrix(graph)
-    shared = mmap.mmap(-1, max(len(sources) * n * 8, 1))  # MAP_SHARED: the children's writes are seen here
-    out = np.frombuffer(shared, dtype=np.float64).reshape(len(sources), n)
-    parts = np.array_split(np.arange(len(sources)), workers)
-    children = {}
-    for part in parts[1:]:
-        pid = os.fork()
-        if pid == 0:  # pragma: no cover - the child
-            code = 1
-            try:
-                out[part] = dijkstra(graph, directed=True, indices=sources[part], limit=limit)
-                code = 0
-            finally:
-                os._exit(code)
-        children[pid] = part
-    out[parts[0]] = dijkstra(graph, directed=True, indices=sources[parts[0]], limit=limit)
-    for pid, part in children.items():
-        _, status = os.waitpid(pid, 0)
-        if status != 0:
-            out[part] = dijkstra(graph, directed=True, indices=sources[part], limit=limit)
-    return out
+    return dijkstra(graph, directed=True, indices=sources, limit=limit)
 
 
 def auto_feature_graph(vertices: np.ndarray, faces: np.ndarray, marker_vertices: np.ndarray,

@@ -36,7 +36,7 @@ import time
 import numpy as np
 
 from .errors import InputError
-from .psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose,
+from .psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_sample,
                   wpsd_edge_weights)
 from .shell import shell_basis
 from .strain import edge_graph, geodesic_from
@@ -79,8 +79,7 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
                          path=cfg.path)
     V = rig.mesh.n_vertices
     vertices = np.arange(V)[parse_vertex_range(tune.vertices, V) if tune.vertices else slice(None)]
-    sample = vertices[np.unique(np.linspace(0, len(vertices) - 1, min(tune.sample_vertices, len(vertices)))
-                                .round().astype(np.int64))]
+    sample = vertices[spread_sample(len(vertices), tune.sample_vertices)]
     t0 = time.perf_counter()
     say = progress or (lambda *a: None)
 

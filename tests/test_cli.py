@@ -133,6 +133,31 @@ def test_examples_from_a_captured_sequence(pipeline, tmp_path):
     assert fit.report["curves"]["wpsd"][-1]["mean_rms"] < fit.report["curves"]["wpsd"][0]["mean_rms"]
 
 
+def test_greedy_scored_on_a_vertex_sample(pipeline):
+    """[psd] greedy_vertices: the basis is chosen on a spread sample, then fitted on every vertex."""
+    from facepipe.fit import fit_rig
+    from facepipe.psd import fit_details
+    from facepipe.rig import load_rig
+
+    rig = load_rig(pipeline / "rig" / "sample.toml")
+    rig.config.psd.greedy_vertices = 0
+    full = fit_rig(rig)
+    V = rig.mesh.n_vertices
+    rig.config.psd.greedy_vertices = V // 4
+    part = fit_rig(rig)
+    assert full.report["greedy_vertices"] == V and part.report["greedy_vertices"] == V // 4
+    assert part.basis == full.basis
+    # the model covers every vertex and equals a fit of that basis on all of them
+    again = fit_details(part.method, part.features, part.details, part.basis, rig.config.psd.fit, part.alpha,
+                        rig.config.psd.rcond, rig.config.psd.smoothing)
+    assert part.model.weights.shape[0] == V
+    np.testing.assert_allclose(part.model.weights, again.weights, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(part.model.weights, full.model.weights)
+    # the sampled error curve estimates the full one
+    for a, b in zip(part.curves["wpsd"], full.curves["wpsd"]):
+        assert a["mean_rms"] == pytest.approx(b["mean_rms"], rel=0.25, abs=1e-9)
+
+
 def test_bad_inputs_of_the_checking_commands(pipeline, tmp_path, capsys):
     d = pipeline
     rig = d / "rig"

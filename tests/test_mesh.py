@@ -260,6 +260,29 @@ def test_strong_expression_passes():
     check_pose(m, P, "jaw_open.obj")
 
 
+def test_large_pose_checked_on_an_edge_sample_with_the_same_verdicts():
+    """Past 400k edges a sample passes clearly good poses; anything else gets the exact check."""
+    from facepipe import mesh as mesh_module
+
+    m = bumpy_grid(400)  # 160k vertices, ~479k edges
+    assert m.edges.shape[0] > 2 * mesh_module._CHECK_EDGES
+    P = m.vertices.copy()
+    y = float(np.median(P[:, 1]))
+    P[:, 1] = np.where(P[:, 1] > y, y + (P[:, 1] - y) * 1.9, P[:, 1])
+    check_pose(m, P, "jaw_open.obj")
+    assert hasattr(m, "_sample_edge_lengths") and not hasattr(m, "_edge_lengths")  # passed on the sample
+    rng = np.random.default_rng(0)
+    # 3 % of the vertices swapped among themselves: near the limit, so every edge is measured
+    swap = rng.choice(m.n_vertices, m.n_vertices * 3 // 100, replace=False)
+    Q = m.vertices.copy()
+    Q[swap] = Q[rng.permutation(swap)]
+    with pytest.raises(InputError, match="vertex order differs"):
+        check_pose(m, Q, "smile.obj")
+    assert hasattr(m, "_edge_lengths")
+    with pytest.raises(InputError, match="10 times the size"):
+        check_pose(m, m.vertices * 10.0, "mm.obj")
+
+
 def test_pose_with_nan():
     m = bumpy_grid()
     P = m.vertices.copy()
