@@ -164,6 +164,7 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
                                   str(model_path)], log).strip().splitlines()[-1])
     log(f"bake: {bake['total']:.1f} s (load {bake['load']:.1f}, fit {bake['fit']:.1f}, save {bake['save']:.1f}), "
         f"peak {bake['peak_rss_mb'] / 1024:.2f} GB")
+    log("  fit: " + ", ".join(f"{k} {v:.1f}" for k, v in bake["fit_phases"].items() if k != "total") + " s")
 
     model = load_model(model_path)
     V, H = model.n_vertices, int(len(model.handle_vertices))

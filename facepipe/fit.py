@@ -25,6 +25,10 @@ from .strain import (auto_feature_graph, dijkstra_rows, edge_graph, edge_lengths
                      strain_features)
 
 
+# vertices × handles from which the WPSD weights are computed by a second process during the shell solve
+WEIGHTS_IN_A_PROCESS = 2_000_000
+
+
 @dataclass
 class Geometry:
     """Rest-pose quantities shared by fitting and replay.
@@ -135,7 +139,7 @@ def edge_weights_on_mesh(rest: np.ndarray, faces: np.ndarray, handles: np.ndarra
     second process (False where this call already runs in one).
     """
     graph = edge_graph(rest, faces)
-    distances = geodesic_from(graph, handles) if split else dijkstra_rows(graph, handles)
+    distances = geodesic_from(graph, handles) if split else dijkstra_rows(graph, handles)  # (not a grandchild)
     index, weight = wpsd_edge_weights(distances, edges, rest_lengths, beta, min_weight, max_edges)
     return index, weight, np.ascontiguousarray(distances[:, handles])
 
@@ -214,7 +218,7 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
     # the WPSD weights need the geodesic distances to every handle: on a large mesh a second
     # process computes them while this one solves the shell and the examples' details
     rest, faces, handles = rig.mesh.vertices, rig.mesh.faces, rig.handles
-    big = rest.shape[0] * len(handles) >= 2_000_000 and (os.cpu_count() or 1) >= 2
+    big = rest.shape[0] * len(handles) >= WEIGHTS_IN_A_PROCESS and (os.cpu_count() or 1) >= 2
     weights_job = BackgroundCall(edge_weights_on_mesh, rest, faces, handles, graph[0], graph[1], beta,
                                  cfg.min_edge_weight, cfg.max_edges_per_vertex, not big, background=big)
     try:

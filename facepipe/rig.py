@@ -22,6 +22,8 @@ from .errors import InputError
 from .mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose, load_mesh, load_vertices
 
 ROLES = ("handle", "stable", "ignore")
+# example files of this many bytes in all are read by a second process (below, the start costs more)
+EXAMPLES_IN_A_PROCESS = 64 * 2**20
 
 
 @dataclass
@@ -325,7 +327,8 @@ def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
     except InputError as exc:  # told after the rest mesh's own errors, as a user fixes them in that order
         paths, paths_error = [], exc
     size = sum(p.stat().st_size for p in paths if p.is_file())
-    reads = BackgroundCall(_read_examples, paths, background=size >= 64 * 2**20 and (os.cpu_count() or 1) >= 2)
+    reads = BackgroundCall(_read_examples, paths,
+                           background=size >= EXAMPLES_IN_A_PROCESS and (os.cpu_count() or 1) >= 2)
     try:
         mesh = load_mesh(config.mesh)
         check_mesh(mesh)

@@ -232,7 +232,7 @@ class _Pardiso:
     pypardiso's own solver class treats every matrix as unsymmetric (an LU, twice the work),
     refines each solution iteratively (default iparm), and copies and hashes the matrix on
     each call: 17 s for the 89 right-hand sides. Here: the upper triangle, Cholesky,
-    METIS nested dissection (iparm[1] = 2), the two-level parallel factorisation
+    METIS nested dissection (iparm[1] = 3, the parallel version), the two-level parallel factorisation
     (iparm[23] = 1), no refinement, all right-hand sides in one call, 0-based indices.
     """
 
@@ -252,7 +252,7 @@ class _Pardiso:
         self._iparm = np.zeros(64, dtype=np.int32)
         iparm = self._iparm
         iparm[0] = 1    # these settings, not the defaults
-        iparm[1] = 2    # METIS nested dissection
+        iparm[1] = 3    # METIS nested dissection, its OpenMP version (the same fill, ~30 % quicker on two cores)
         iparm[7] = 0    # no iterative refinement (a Cholesky factor needs none)
         iparm[9] = 8    # pivot perturbation 1e-8 (unused for SPD)
         iparm[17] = -1  # report the factor's non-zeros

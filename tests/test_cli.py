@@ -158,6 +158,47 @@ def test_greedy_scored_on_a_vertex_sample(pipeline):
         assert a["mean_rms"] == pytest.approx(b["mean_rms"], rel=0.25, abs=1e-9)
 
 
+def test_weights_from_a_second_process_are_the_same(pipeline, monkeypatch):
+    """On a large mesh the geodesics and WPSD weights come from a child process: identical fits."""
+    from facepipe import fit as fit_module
+    from facepipe.rig import load_rig
+
+    rig = load_rig(pipeline / "rig" / "sample.toml")
+    here = fit_module.fit_rig(rig)
+    monkeypatch.setattr(fit_module, "WEIGHTS_IN_A_PROCESS", 0)
+    there = fit_module.fit_rig(rig)
+    assert there.report["seconds"]["weights_work"] > 0
+    np.testing.assert_array_equal(there.edge_weight, here.edge_weight)
+    np.testing.assert_array_equal(there.edge_index, here.edge_index)
+    np.testing.assert_array_equal(there.model.weights, here.model.weights)
+    np.testing.assert_array_equal(there.gate.examples, here.gate.examples)
+
+
+def test_examples_read_by_a_second_process_are_the_same(pipeline, tmp_path, monkeypatch):
+    """Large example sets are read by a child process: the same poses and digest, the same errors."""
+    import shutil
+
+    from facepipe import rig as rig_module
+    from facepipe.errors import InputError
+
+    here = rig_module.load_rig(pipeline / "rig" / "sample.toml")
+    monkeypatch.setattr(rig_module, "EXAMPLES_IN_A_PROCESS", 0)
+    there = rig_module.load_rig(pipeline / "rig" / "sample.toml")
+    assert there.example_names == here.example_names and there.digest == here.digest
+    np.testing.assert_array_equal(there.example_positions, here.example_positions)
+    # a broken second example: the child gives up on it, this process names it
+    copy = tmp_path / "rig"
+    shutil.copytree(pipeline / "rig", copy)
+    second = sorted((copy / "expressions").glob("*.obj"))[1]
+    text = second.read_text().splitlines()
+    first_v = next(i for i, line in enumerate(text) if line.startswith("v "))
+    text[first_v] = "v 1.0 nan 2.0"
+    second.write_text("\n".join(text) + "\n")
+    with pytest.raises(InputError) as exc:
+        rig_module.load_rig(copy / "sample.toml")
+    assert second.name in str(exc.value)
+
+
 def test_bad_inputs_of_the_checking_commands(pipeline, tmp_path, capsys):
     d = pipeline
     rig = d / "rig"

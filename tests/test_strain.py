@@ -71,13 +71,41 @@ def test_graph_from_pairs_validates_names():
         graph_from_pairs([("A", "A")], names)
 
 
-def test_geodesics_in_forked_workers_match_scipy():
+def test_geodesics_shared_with_a_second_process_match_scipy():
     from scipy.sparse.csgraph import dijkstra
 
-    from facepipe.strain import edge_graph, geodesic_from
+    from facepipe.strain import GeodesicsInBackground, edge_graph, geodesic_from
 
     V, F = grid(150, 140)
     g = edge_graph(V, F)
-    sources = np.arange(0, len(V), len(V) // 100)[:100]  # 21000 vertices x 100 sources: the forked path
-    assert np.array_equal(geodesic_from(g, sources), dijkstra(g, directed=False, indices=sources))
-    assert np.array_equal(geodesic_from(g, sources[:3]), dijkstra(g, directed=False, indices=sources[:3]))
+    sources = np.arange(0, len(V), len(V) // 100)[:100]  # 21000 vertices x 100 sources: two processes
+    reference = dijkstra(g, directed=False, indices=sources)
+    assert np.array_equal(geodesic_from(g, sources), reference)
+    assert np.array_equal(geodesic_from(g, sources[:3]), reference[:3])
+    # the child starts on the first sources while this process waits; it takes the rest from the end
+    job = GeodesicsInBackground(g, sources)
+    import time
+
+    time.sleep(1.5)
+    assert np.array_equal(job.finish(), reference)
+    assert job.child_sources > 0
+
+
+def test_geodesics_when_the_child_fails(monkeypatch):
+    """A second process that cannot start (or dies) leaves its sources to this one: same distances."""
+    from scipy.sparse.csgraph import dijkstra
+
+    from facepipe import background
+    from facepipe.strain import GeodesicsInBackground, edge_graph
+
+    V, F = grid(60, 50)
+    g = edge_graph(V, F)
+    sources = np.arange(0, len(V), 30)
+
+    def no_process(*args, **kwargs):
+        raise OSError("no processes here")
+
+    monkeypatch.setattr(background.subprocess, "Popen", no_process)
+    job = GeodesicsInBackground(g, sources)
+    assert np.array_equal(job.finish(), dijkstra(g, directed=False, indices=sources))
+    assert job.child_sources == 0
