@@ -83,14 +83,19 @@ def local_frames(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray,
     """
     vertices = np.asarray(vertices)
     if vertices.ndim == 3 and vertices.shape[0] > 1 and vertices.shape[0] * vertices.shape[1] >= 1_000_000:
-        # a batch of large meshes: halves in two threads (numpy's loops release the GIL); every
-        # pose gets the same arithmetic as alone, so the frames are the same bit for bit
+        # a batch of large meshes: one pose at a time in two threads (numpy's loops release the
+        # GIL; one pose's temporaries are small enough to be reused rather than freshly mapped);
+        # every pose gets the same arithmetic as alone, so the frames are the same bit for bit
         from concurrent.futures import ThreadPoolExecutor
 
-        halves = np.array_split(np.arange(vertices.shape[0]), 2)
+        out = np.empty(vertices.shape + (3,), dtype=vertices.dtype)
+
+        def one(i):
+            out[i] = local_frames(vertices[i], faces, neighbors, incidence)
+
         with ThreadPoolExecutor(2) as pool:
-            parts = list(pool.map(lambda h: local_frames(vertices[h], faces, neighbors, incidence), halves))
-        return np.concatenate(parts)
+            list(pool.map(one, range(vertices.shape[0])))
+        return out
     n = vertex_normals(vertices, faces, incidence)
     e = vertices[..., neighbors, :] - vertices
     t = e - np.einsum("...i,...i->...", e, n)[..., None] * n

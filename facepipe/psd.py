@@ -125,17 +125,23 @@ def psd_distances(features: np.ndarray, basis: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("qpf,qpf->qp", diff, diff))
 
 
-def wpsd_distances(features: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix) -> np.ndarray:
+def wpsd_distances(features: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix, chunk: int = 32768) -> np.ndarray:
     """Per-vertex weighted distances: (Q, F), (P, F), α (V, F) → (Q, V, P).
 
     The squared strain differences form a (Q·P, F) table; the α-weighted sums over each
-    vertex's edges are then one sparse product.
+    vertex's edges are then one sparse product, taken over blocks of vertices so that the
+    temporaries stay small (each vertex's sum is the same either way).
     """
     Q, P = features.shape[0], basis.shape[0]
-    sq = (features[:, None, :] - basis[None, :, :]) ** 2  # (Q, P, F)
-    r2 = alpha @ sq.reshape(Q * P, -1).T  # (V, Q*P)
-    r2 = np.maximum(np.asarray(r2), 0.0).reshape(-1, Q, P)
-    return np.sqrt(np.moveaxis(r2, 1, 0))
+    sq = ((features[:, None, :] - basis[None, :, :]) ** 2).reshape(Q * P, -1).T  # (F, Q*P)
+    V = alpha.shape[0]
+    out = np.empty((Q, V, P))
+    for start in range(0, V, chunk):
+        r2 = np.asarray(alpha[start:start + chunk] @ sq)  # (n, Q*P)
+        np.maximum(r2, 0.0, out=r2)
+        np.sqrt(r2, out=r2)
+        out[:, start:start + chunk] = r2.reshape(-1, Q, P).transpose(1, 0, 2)
+    return out
 
 
 # ----------------------------------------------------------------------------- solve
