@@ -174,6 +174,18 @@ def test_weights_from_a_second_process_are_the_same(pipeline, monkeypatch):
     np.testing.assert_array_equal(there.gate.examples, here.gate.examples)
 
 
+def test_bad_psd_counts_exit_2_without_output(pipeline, tmp_path, capsys):
+    rig = pipeline / "rig"
+    for key, value in (("greedy_vertices", -1),):
+        cfg = rig / f"bad_{key}.toml"
+        cfg.write_text((rig / "sample.toml").read_text().replace("[psd]", f"[psd]\n{key} = {value}"))
+        out = tmp_path / f"{key}.npz"
+        assert run("fit", cfg, "-o", out) == 2
+        err = capsys.readouterr().err
+        assert "[psd]" in err and "greedy_vertices" in err and str(cfg) in err
+        assert not out.exists()
+
+
 def test_examples_read_by_a_second_process_are_the_same(pipeline, tmp_path, monkeypatch):
     """Large example sets are read by a child process: the same poses and digest, the same errors."""
     import shutil
