@@ -61,13 +61,11 @@ def _load() -> list[float]:
 _BAKE_CHILD = r"""
 import json, resource, sys, time
 t0 = time.perf_counter()
-from facepipe.rig import load_rig
-from facepipe.fit import fit_rig
+from facepipe.fit import fit_config
 from facepipe.model import model_arrays, save_model
-rig = load_rig(sys.argv[1])
-t1 = time.perf_counter()
-fit = fit_rig(rig)
+rig, fit = fit_config(sys.argv[1])
 t2 = time.perf_counter()
+t1 = t2 - fit.report["seconds"]["total"]
 arrays, meta = model_arrays(fit, rig)
 save_model(sys.argv[2], arrays, meta)
 t3 = time.perf_counter()

@@ -83,28 +83,28 @@ def cli(ctx, quiet, verbose):
 
 
 def _run_fit(config, rep: Reporter, tune: bool = False):
-    from .fit import fit_rig
-    from .rig import load_rig
+    from .fit import fit_config
 
     t0 = time.perf_counter()
-    rig = load_rig(config)
-    rep.say(f"rig: {rig.mesh.n_vertices} vertices, {len(rig.handles)} handles, {len(rig.anchors)} anchors, "
-            f"{len(rig.example_names)} example poses")
-    tuning = _tune(rig, rep) if tune else None
+    tuning = {}
+
+    def prepare(rig, geodesics):
+        rep.say(f"rig: {rig.mesh.n_vertices} vertices, {len(rig.handles)} handles, {len(rig.anchors)} anchors, "
+                f"{len(rig.example_names)} example poses")
+        if tune:
+            tuning["report"] = _tune(rig, rep, geodesics)
 
     def progress(method, n, curve):
         rep.detail(f"  {method}: {n:2d} poses  mean RMS {curve['mean_rms']:.4f}  max {curve['max_rms']:.4f}")
 
-    t_load = time.perf_counter() - t0
-    fit = fit_rig(rig, progress=progress)
-    if tuning is not None:
-        fit.report["tune"] = tuning
-    fit.report["seconds"]["load"] = t_load
+    rig, fit = fit_config(config, progress=progress, prepare=prepare)
+    if tuning:
+        fit.report["tune"] = tuning["report"]
     fit.report["seconds"]["total"] = time.perf_counter() - t0
     return rig, fit
 
 
-def _tune(rig, rep: Reporter) -> dict:
+def _tune(rig, rep: Reporter, geodesics=None) -> dict:
     """Cross-validate the [tune] candidates and switch the rig's config to the chosen values."""
     from .tune import tune_rig, tuned_config
 
@@ -117,7 +117,7 @@ def _tune(rig, rep: Reporter) -> dict:
         if done == total:
             bars[stage].close()
 
-    report = tune_rig(rig, progress=step)
+    report = tune_rig(rig, progress=step, geodesics=geodesics)
     rig.config = tuned_config(rig.config, report)
     units = rig.config.units
     c, d = report["chosen"], report["default"]

@@ -13,20 +13,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .background import BackgroundCall
 from .errors import InputError
 from .frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
 from .psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details,
                   greedy_basis, novelty_gate, rms_per_pose, spread_sample, wpsd_edge_weights)
 from .rbfmorph import multiquadric_basis, phantom_points
-from .rig import Rig
+from .rig import Rig, load_rig
 from .shell import large_scale_positions, marker_spacing, shell_basis
-from .strain import (auto_feature_graph, dijkstra_rows, edge_graph, edge_lengths, geodesic_from, graph_from_pairs,
-                     strain_features)
-
-
-# vertices × handles from which the WPSD weights are computed by a second process during the shell solve
-WEIGHTS_IN_A_PROCESS = 2_000_000
+from .strain import Geodesics, auto_feature_graph, edge_graph, edge_lengths, graph_from_pairs, strain_features
 
 
 @dataclass
@@ -129,21 +123,6 @@ def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | Non
     return Geometry(rest, faces, handles, B, edges, rest_lengths, frame_neighbors(faces, len(rest)), spacing)
 
 
-def edge_weights_on_mesh(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, edges: np.ndarray,
-                         rest_lengths: np.ndarray, beta: float, min_weight: float, max_edges: int,
-                         split: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """WPSD weights of every vertex from the geodesic distances to the handles.
-
-    Returns ``edge_index`` (V, K), ``edge_weight`` (V, K) (:func:`~facepipe.psd.wpsd_edge_weights`)
-    and the handles' distances to each other (H, H). ``split``: share the Dijkstra runs with a
-    second process (False where this call already runs in one).
-    """
-    graph = edge_graph(rest, faces)
-    distances = geodesic_from(graph, handles) if split else dijkstra_rows(graph, handles)  # (not a grandchild)
-    index, weight = wpsd_edge_weights(distances, edges, rest_lengths, beta, min_weight, max_edges)
-    return index, weight, np.ascontiguousarray(distances[:, handles])
-
-
 def read_graph_csv(path) -> list[tuple[str, str]]:
     """Marker-name pairs, one per line (``a,b``; a header ``a,b`` or comments are allowed)."""
     import csv
@@ -197,11 +176,44 @@ class FitResult:
     gate: NoveltyGate | None = None
 
 
-def fit_rig(rig: Rig, progress=None) -> FitResult:
+def handle_geodesics(mesh, handles: np.ndarray) -> Geodesics:
+    """The Dijkstra runs from the handles over the mesh edges, started (the WPSD weights need them).
+
+    They are the longest single-threaded part of a fit; on a large mesh a second process takes
+    them on at once (:class:`~facepipe.strain.Geodesics`)."""
+    return Geodesics(edge_graph(mesh.vertices, mesh.faces), handles)
+
+
+def fit_config(config, progress=None, prepare=None) -> tuple[Rig, "FitResult"]:
+    """:func:`~facepipe.rig.load_rig` and :func:`fit_rig`, with the geodesics from the handles
+    started as soon as the rest mesh and markers are read, while the examples are still loading.
+
+    ``prepare(rig, geodesics)``, if given, runs between the two (it may change ``rig.config``;
+    ``geodesics.finish()`` gives the distances, which the fit then reuses). The load time is in
+    ``fit.report["seconds"]["load"]``.
+    """
+    t0 = time.perf_counter()
+    started: list[Geodesics] = []
+    try:
+        rig = load_rig(config, on_mesh=lambda mesh, markers: started.append(
+            handle_geodesics(mesh, markers.handle_vertices)))
+        t_load = time.perf_counter() - t0
+        if prepare is not None:
+            prepare(rig, started[0])
+        fit = fit_rig(rig, progress=progress, geodesics=started[0])
+    finally:
+        for job in started:
+            job.close()
+    fit.report["seconds"]["load"] = t_load
+    return rig, fit
+
+
+def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitResult:
     """Fit the whole rig: geometry, details of every example, greedy basis for PSD and WPSD.
 
     The configured method's model is returned; the error curves of both methods are reported
-    (the paper's Fig. 4: error against basis size).
+    (the paper's Fig. 4: error against basis size). ``geodesics``: the Dijkstra runs from
+    ``rig.handles``, if already started (:func:`fit_config`); they are started here otherwise.
     """
     cfg = rig.config.psd
     seconds: dict[str, float] = {}
@@ -213,15 +225,14 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
         clock[0] = now
 
     t0 = clock[0]
-    graph = feature_graph(rig)
-    beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
-    # the WPSD weights need the geodesic distances to every handle: on a large mesh a second
-    # process computes them while this one solves the shell and the examples' details
     rest, faces, handles = rig.mesh.vertices, rig.mesh.faces, rig.handles
-    big = rest.shape[0] * len(handles) >= WEIGHTS_IN_A_PROCESS and (os.cpu_count() or 1) >= 2
-    weights_job = BackgroundCall(edge_weights_on_mesh, rest, faces, handles, graph[0], graph[1], beta,
-                                 cfg.min_edge_weight, cfg.max_edges_per_vertex, not big, background=big)
+    if geodesics is None:
+        geodesics = handle_geodesics(rig.mesh, handles)
+    elif geodesics.n_vertices != rest.shape[0] or not np.array_equal(geodesics.sources, handles):
+        raise ValueError("the geodesics were started for another mesh or other handles")
     try:
+        graph = feature_graph(rig)
+        beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
         geo = build_geometry(rig, graph=graph)
         lap("geometry")
         poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) \
@@ -229,12 +240,15 @@ def fit_rig(rig: Rig, progress=None) -> FitResult:
         details = geo.details(poses)
         features = geo.features(poses[:, geo.handles])
         lap("details")
-        edge_index, edge_weight, handle_distances = weights_job.result()
-    except BaseException:
-        weights_job.cancel()
-        raise
-    lap("weights_wait")
-    seconds["weights_work"] = weights_job.seconds
+        distances = geodesics.finish()  # (H, V)
+    finally:
+        geodesics.close()
+    lap("geodesics_wait")
+    seconds["geodesics_child_sources"] = geodesics.child_sources
+    edge_index, edge_weight = wpsd_edge_weights(distances, geo.edges, geo.rest_lengths, beta, cfg.min_edge_weight,
+                                                cfg.max_edges_per_vertex)
+    handle_distances = np.ascontiguousarray(distances[:, handles])
+    del distances
     alpha = edge_weight_matrix(edge_index, edge_weight, len(geo.edges))
     gate = None
     if cfg.novelty_tau > 0 and len(poses) > 1:

@@ -41,7 +41,7 @@ def default_beta(rest_lengths: np.ndarray, scale: float = 1.0) -> float:
 
 def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_lengths: np.ndarray, beta: float,
                       min_weight: float = 0.025, max_edges: int = 16, min_keep: int = 3,
-                      chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
+                      chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
     """Per-vertex feature-edge weights α_{v,e} = exp(−β (L_{v,e} − l_e)), normalised.
 
     L_{v,e} is the sum of the geodesic distances from v to the edge's two markers, so
@@ -73,8 +73,8 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
 
     def block(start):
         stop = min(V, start + chunk)
-        # (the (n, F) arrays are updated in place: the same arithmetic as out-of-place, without
-        # a fresh 100 MB array per step)
+        # small blocks keep the (n, F) temporaries in cache (at 530k vertices: 65536-vertex blocks
+        # take 1.5× as long); they are updated in place, the same arithmetic as out-of-place
         L = marker_distances[edges[:, 0], start:stop]
         L += marker_distances[edges[:, 1], start:stop]  # (F, n)
         L -= rest_lengths[:, None]

@@ -315,8 +315,13 @@ class Rig:
         return self.markers.handle_vertices
 
 
-def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
-    """Load and check the rest mesh, markers, anchors and example poses of a config."""
+def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=None) -> Rig:
+    """Load and check the rest mesh, markers, anchors and example poses of a config.
+
+    ``on_mesh(mesh, markers)``, if given, is called as soon as the rest mesh and the markers are
+    read and checked, while the examples are still being read: work that needs only those two
+    starts early (:func:`facepipe.fit.fit_config`). An error raised later is still raised.
+    """
     if not isinstance(config, Config):
         config = load_config(config)
     # the example files are read (positions only: an OBJ pose's faces are not parsed) while this
@@ -334,6 +339,8 @@ def load_rig(config: Config | str | Path, load_examples: bool = True) -> Rig:
         check_mesh(mesh)
         markers = load_markers(config.markers, mesh.n_vertices)
         anchors = load_anchors(config.anchors, mesh.n_vertices)
+        if on_mesh is not None:
+            on_mesh(mesh, markers)
         if config.shell.method == "shell":
             # the RBF morph needs no connectivity; the shell is singular on a part without constraints
             check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))

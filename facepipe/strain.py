@@ -35,6 +35,10 @@ def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     return (g + g.T).tocsr()
 
 
+# from this many vertex × source pairs (and 8 sources), a second process shares the Dijkstra runs
+GEODESICS_IN_A_PROCESS = 2_000_000
+
+
 def geodesic_from(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf) -> np.ndarray:
     """Dijkstra distances along mesh edges from each source vertex.
 
@@ -42,54 +46,79 @@ def geodesic_from(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.i
     -------
     (S, V) float64; ``inf`` beyond ``limit`` or in other components.
     """
-    sources = np.asarray(sources, dtype=np.int64)
-    if len(sources) < 8 or graph.shape[0] * len(sources) < 2_000_000 or (os.cpu_count() or 1) < 2:
-        return dijkstra_rows(graph, sources, limit)
-    return GeodesicsInBackground(graph, sources, limit).finish()
+    return Geodesics(graph, sources, limit).finish()
 
 
-class GeodesicsInBackground:
-    """Dijkstra from many sources, shared by a second process and this one.
+class Geodesics:
+    """Dijkstra from many sources: started on construction, collected by :meth:`finish`.
 
     SciPy's Dijkstra holds the GIL, so threads would not help; 89 sources on a 530k-vertex
-    mesh are ~12 s on one core. A child process starts on the sources at once, first to last,
-    while this one does other work; :meth:`finish` then takes sources from the last down until
-    the two meet, so neither waits for the other however busy this process was. The rows are
-    written into one file-backed mapping; a source claimed by both at the same instant is
-    computed twice, to the same values. If the child fails, its sources are computed here.
+    mesh are ~12 s on one core. On a large problem (``background``: by default from
+    :data:`GEODESICS_IN_A_PROCESS` pairs on two cores or more) a child process starts on
+    the sources at once, first to last, while this one does other work; :meth:`finish` then
+    takes sources from the last down until the two meet, so neither waits for the other
+    however busy this process was. The rows are written into one file-backed mapping; a
+    source claimed by both at the same instant is computed twice, to the same values. If the
+    child fails, its sources are computed here. A small problem is computed by :meth:`finish`.
+    The distances are kept for later calls of :meth:`finish` until :meth:`close`.
     """
 
-    def __init__(self, graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf):
+    def __init__(self, graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf,
+                 background: bool | None = None):
         import tempfile
 
         from .background import BackgroundCall
 
-        self._dir = tempfile.TemporaryDirectory(prefix="facepipe-geodesics-")
         graph = sp.csr_matrix(graph)
-        sources = np.asarray(sources, dtype=np.int64)
+        self.sources = np.asarray(sources, dtype=np.int64)
+        self.n_vertices = graph.shape[0]
+        self.child_sources = 0
+        if background is None:
+            background = len(self.sources) >= 8 and (os.cpu_count() or 1) >= 2 and \
+                self.n_vertices * len(self.sources) >= GEODESICS_IN_A_PROCESS
+        self._dir = self._child = self._result = None
+        self._closed = False
+        if not background:
+            self._args = (graph, self.sources, limit)
+            return
+        self._dir = tempfile.TemporaryDirectory(prefix="facepipe-geodesics-")
         self._paths = (os.path.join(self._dir.name, "distances.npy"), os.path.join(self._dir.name, "claims.npy"))
         np.lib.format.open_memmap(self._paths[0], mode="w+", dtype=np.float64,
-                                  shape=(len(sources), graph.shape[0])).flush()
-        np.lib.format.open_memmap(self._paths[1], mode="w+", dtype=np.uint8, shape=(2, len(sources))).flush()
-        self._args = (graph, sources, limit) + self._paths
+                                  shape=(len(self.sources), self.n_vertices)).flush()
+        np.lib.format.open_memmap(self._paths[1], mode="w+", dtype=np.uint8, shape=(2, len(self.sources))).flush()
+        self._args = (graph, self.sources, limit) + self._paths
         self._child = BackgroundCall(_claimed_rows, *self._args, 0)
-        self.child_sources = 0
 
     def finish(self) -> np.ndarray:
         """Compute the sources the child has not reached, wait for it, return the (S, V) distances."""
+        if self._result is not None:
+            return self._result
+        if self._closed:
+            raise RuntimeError("the geodesics were closed before they were finished")
+        if self._child is None:
+            self._result = dijkstra_rows(*self._args)
+            return self._result
         try:
             _claimed_rows(*self._args, 1)
             self._child.result()
             claims = np.load(self._paths[1])
             self.child_sources = int((claims[0] & ~claims[1]).sum())
-            return np.array(np.load(self._paths[0], mmap_mode="r"))
+            self._result = np.array(np.load(self._paths[0], mmap_mode="r"))
         finally:
-            self.close()
+            self._stop()
+        return self._result
 
     def close(self) -> None:
-        """Stop the child if it still runs (an error here) and remove the files."""
-        self._child.cancel()
-        self._dir.cleanup()
+        """Stop the child if it still runs (an error, or the result not wanted), remove the files and
+        let go of the distances."""
+        self._stop()
+        self._result = None
+        self._closed = True
+
+    def _stop(self) -> None:
+        if self._child is not None:
+            self._child.cancel()
+            self._dir.cleanup()
 
 
 def _claimed_rows(graph, sources, limit, distances_path, claims_path, side: int) -> int:

@@ -48,7 +48,7 @@ def _with_unique(values, default) -> list[float]:
     return sorted({float(v) for v in values} | {float(default)})
 
 
-def tune_rig(rig, tune=None, progress=None) -> dict:
+def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     """Validate the candidates of ``tune`` on the rig's examples; return the report.
 
     Parameters
@@ -56,6 +56,7 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
     rig : a loaded :class:`facepipe.rig.Rig` with at least 2 examples.
     tune : :class:`facepipe.rig.TuneConfig` candidate ranges (default: the config's ``[tune]`` table).
     progress : optional callable(stage: str, done: int, total: int).
+    geodesics : the rig's :class:`~facepipe.strain.Geodesics` from its handles, if already started.
 
     Returns
     -------
@@ -113,7 +114,8 @@ def tune_rig(rig, tune=None, progress=None) -> dict:
 
     # ---- stage 2: β, λ, τ and P by leaving whole expressions out
     folds = holdout_folds(names, max(1, int(round(len(names) / max(tune.folds, 2)))))
-    distances = geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
+    distances = geodesics.finish() if geodesics is not None else \
+        geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
     site_distance = edge_distances(distances[:, geo.handles], geo.edges)
     radius = cfg.psd.novelty_radius * float(np.median(geo.rest_lengths))
     max_poses = min(max(tune.max_poses, default["poses"]), len(names))

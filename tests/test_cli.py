@@ -158,16 +158,27 @@ def test_greedy_scored_on_a_vertex_sample(pipeline):
         assert a["mean_rms"] == pytest.approx(b["mean_rms"], rel=0.25, abs=1e-9)
 
 
-def test_weights_from_a_second_process_are_the_same(pipeline, monkeypatch):
-    """On a large mesh the geodesics and WPSD weights come from a child process: identical fits."""
+def test_geodesics_from_a_second_process_give_the_same_fit(pipeline, monkeypatch):
+    """On a large mesh a child process starts the geodesics as soon as the rest mesh is read and this
+    one joins in after the shell solve: the same fit as computing them here."""
+    import time
+
     from facepipe import fit as fit_module
+    from facepipe import strain
     from facepipe.rig import load_rig
 
-    rig = load_rig(pipeline / "rig" / "sample.toml")
-    here = fit_module.fit_rig(rig)
-    monkeypatch.setattr(fit_module, "WEIGHTS_IN_A_PROCESS", 0)
-    there = fit_module.fit_rig(rig)
-    assert there.report["seconds"]["weights_work"] > 0
+    here = fit_module.fit_rig(load_rig(pipeline / "rig" / "sample.toml"))
+    monkeypatch.setattr(strain, "GEODESICS_IN_A_PROCESS", 0)
+    build = fit_module.build_geometry
+
+    def slow_build(*args, **kwargs):  # long enough for the child to start and take sources
+        time.sleep(2.0)
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "build_geometry", slow_build)
+    _, there = fit_module.fit_config(pipeline / "rig" / "sample.toml")
+    assert there.report["seconds"]["geodesics_child_sources"] > 0
+    assert there.report["seconds"]["load"] > 0
     np.testing.assert_array_equal(there.edge_weight, here.edge_weight)
     np.testing.assert_array_equal(there.edge_index, here.edge_index)
     np.testing.assert_array_equal(there.model.weights, here.model.weights)

@@ -74,7 +74,7 @@ def test_graph_from_pairs_validates_names():
 def test_geodesics_shared_with_a_second_process_match_scipy():
     from scipy.sparse.csgraph import dijkstra
 
-    from facepipe.strain import GeodesicsInBackground, edge_graph, geodesic_from
+    from facepipe.strain import Geodesics, edge_graph, geodesic_from
 
     V, F = grid(150, 140)
     g = edge_graph(V, F)
@@ -83,7 +83,7 @@ def test_geodesics_shared_with_a_second_process_match_scipy():
     assert np.array_equal(geodesic_from(g, sources), reference)
     assert np.array_equal(geodesic_from(g, sources[:3]), reference[:3])
     # the child starts on the first sources while this process waits; it takes the rest from the end
-    job = GeodesicsInBackground(g, sources)
+    job = Geodesics(g, sources, background=True)
     import time
 
     time.sleep(1.5)
@@ -96,7 +96,7 @@ def test_geodesics_when_the_child_fails(monkeypatch):
     from scipy.sparse.csgraph import dijkstra
 
     from facepipe import background
-    from facepipe.strain import GeodesicsInBackground, edge_graph
+    from facepipe.strain import Geodesics, edge_graph
 
     V, F = grid(60, 50)
     g = edge_graph(V, F)
@@ -106,6 +106,6 @@ def test_geodesics_when_the_child_fails(monkeypatch):
         raise OSError("no processes here")
 
     monkeypatch.setattr(background.subprocess, "Popen", no_process)
-    job = GeodesicsInBackground(g, sources)
+    job = Geodesics(g, sources, background=True)
     assert np.array_equal(job.finish(), dijkstra(g, directed=False, indices=sources))
     assert job.child_sources == 0
