@@ -65,8 +65,6 @@ class Geodesics:
 
     def __init__(self, graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf,
                  background: bool | None = None):
-        import tempfile
-
         from .background import BackgroundCall
 
         graph = sp.csr_matrix(graph)
@@ -81,13 +79,36 @@ class Geodesics:
         if not background:
             self._args = (graph, self.sources, limit)
             return
-        self._dir = tempfile.TemporaryDirectory(prefix="facepipe-geodesics-")
-        self._paths = (os.path.join(self._dir.name, "distances.npy"), os.path.join(self._dir.name, "claims.npy"))
-        np.lib.format.open_memmap(self._paths[0], mode="w+", dtype=np.float64,
-                                  shape=(len(self.sources), self.n_vertices)).flush()
-        np.lib.format.open_memmap(self._paths[1], mode="w+", dtype=np.uint8, shape=(2, len(self.sources))).flush()
+        try:
+            self._paths = self._shared_files(len(self.sources), self.n_vertices)
+        except OSError:  # no room for the shared rows (the child and this process write them): all here
+            self._args = (graph, self.sources, limit)
+            return
         self._args = (graph, self.sources, limit) + self._paths
         self._child = BackgroundCall(_claimed_rows, *self._args, 0)
+
+    def _shared_files(self, n_sources: int, n_vertices: int) -> tuple[str, str]:
+        """The distance rows and the claims, as files both processes map. The space is allocated now:
+        a write into a mapped file that the disk cannot hold would kill the process (SIGBUS)."""
+        import tempfile
+
+        self._dir = tempfile.TemporaryDirectory(prefix="facepipe-geodesics-")
+        try:
+            paths = (os.path.join(self._dir.name, "distances.npy"), os.path.join(self._dir.name, "claims.npy"))
+            for path, dtype, shape in ((paths[0], np.float64, (n_sources, n_vertices)),
+                                       (paths[1], np.uint8, (2, n_sources))):
+                np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape).flush()
+                if hasattr(os, "posix_fallocate"):
+                    fd = os.open(path, os.O_RDWR)
+                    try:
+                        os.posix_fallocate(fd, 0, os.fstat(fd).st_size)
+                    finally:
+                        os.close(fd)
+            return paths
+        except OSError:
+            self._dir.cleanup()
+            self._dir = None
+            raise
 
     def finish(self) -> np.ndarray:
         """Compute the sources the child has not reached, wait for it, return the (S, V) distances."""

@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -107,5 +109,36 @@ def test_geodesics_when_the_child_fails(monkeypatch):
 
     monkeypatch.setattr(background.subprocess, "Popen", no_process)
     job = Geodesics(g, sources, background=True)
+    assert np.array_equal(job.finish(), dijkstra(g, directed=False, indices=sources))
+    assert job.child_sources == 0
+
+
+def test_geodesics_without_room_for_the_shared_rows(monkeypatch):
+    """No space for the file both processes map (a full temp disk): every source is computed here,
+    and no temp folder is left behind."""
+    import errno
+    import tempfile
+
+    from scipy.sparse.csgraph import dijkstra
+
+    from facepipe.strain import Geodesics, edge_graph
+
+    V, F = grid(40, 30)
+    g = edge_graph(V, F)
+    sources = np.arange(0, len(V), 25)
+    made = []
+    real = tempfile.TemporaryDirectory
+
+    def recording(*args, **kwargs):
+        made.append(real(*args, **kwargs))
+        return made[-1]
+
+    def full(*args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(tempfile, "TemporaryDirectory", recording)
+    monkeypatch.setattr("os.posix_fallocate", full, raising=False)
+    job = Geodesics(g, sources, background=True)
+    assert made and not Path(made[0].name).exists()
     assert np.array_equal(job.finish(), dijkstra(g, directed=False, indices=sources))
     assert job.child_sources == 0
