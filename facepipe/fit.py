@@ -85,12 +85,14 @@ def large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, 
                        spacing=spacing)
 
 
-def feature_graph(rig: Rig) -> tuple[np.ndarray, np.ndarray]:
-    """The rig's feature edges (F, 2) (handle-index pairs) and their rest lengths (F,)."""
+def feature_graph(rig: Rig, mesh_graph: sp.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The rig's feature edges (F, 2) (handle-index pairs) and their rest lengths (F,).
+
+    ``mesh_graph``: the mesh's :func:`~facepipe.strain.edge_graph`, if at hand."""
     cfg = rig.config
     rest, handles = rig.mesh.vertices, rig.handles
     if cfg.graph == "auto":
-        edges = auto_feature_graph(rest, rig.mesh.faces, handles)
+        edges = auto_feature_graph(rest, rig.mesh.faces, handles, graph=mesh_graph)
     else:
         edges = graph_from_pairs(read_graph_csv(cfg.path.parent / cfg.graph), rig.markers.handle_names,
                                  str(cfg.path.parent / cfg.graph))
@@ -231,7 +233,7 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
     elif geodesics.n_vertices != rest.shape[0] or not np.array_equal(geodesics.sources, handles):
         raise ValueError("the geodesics were started for another mesh or other handles")
     try:
-        graph = feature_graph(rig)
+        graph = feature_graph(rig, geodesics.graph)
         beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
         geo = build_geometry(rig, graph=graph)
         lap("geometry")

@@ -67,7 +67,7 @@ class Geodesics:
                  background: bool | None = None):
         from .background import BackgroundCall
 
-        graph = sp.csr_matrix(graph)
+        self.graph = graph = sp.csr_matrix(graph)
         self.sources = np.asarray(sources, dtype=np.int64)
         self.n_vertices = graph.shape[0]
         self.child_sources = 0
@@ -167,7 +167,7 @@ def dijkstra_rows(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.i
 
 
 def auto_feature_graph(vertices: np.ndarray, faces: np.ndarray, marker_vertices: np.ndarray,
-                       min_contact: int = 2) -> np.ndarray:
+                       min_contact: int = 2, graph: sp.csr_matrix | None = None) -> np.ndarray:
     """Feature edges between markers whose geodesic Voronoi regions on the surface touch.
 
     This is the geodesic Delaunay graph of the markers: planar on the surface, it needs
@@ -178,19 +178,21 @@ def auto_feature_graph(vertices: np.ndarray, faces: np.ndarray, marker_vertices:
     ----------
     vertices : (V, 3); faces : (T, 3); marker_vertices : (M,) vertex indices.
     min_contact : regions must share at least this many mesh edges (ignores corner contacts).
+    graph : :func:`edge_graph` of the mesh, if already at hand.
 
     Returns
     -------
     edges : (F, 2) int64 marker indices (into ``marker_vertices``), a < b, sorted.
     """
     marker_vertices = np.asarray(marker_vertices, dtype=np.int64)
-    graph = edge_graph(vertices, faces)
-    _, _, source = dijkstra(graph, directed=False, indices=marker_vertices, min_only=True,
+    if graph is None:
+        graph = edge_graph(vertices, faces)
+    # (the graph is symmetric: the directed search is the same, without SciPy symmetrising it)
+    _, _, source = dijkstra(graph, directed=True, indices=marker_vertices, min_only=True,
                             return_predecessors=True)
-    owner = np.full(len(vertices), -1, dtype=np.int64)
-    reached = source >= 0
-    lookup = {int(v): i for i, v in enumerate(marker_vertices)}
-    owner[reached] = np.vectorize(lookup.__getitem__, otypes=[np.int64])(source[reached]) if reached.any() else []
+    marker_of = np.full(len(vertices), -1, dtype=np.int64)
+    marker_of[marker_vertices] = np.arange(len(marker_vertices))
+    owner = np.where(source >= 0, marker_of[np.maximum(source, 0)], -1)
     coo = sp.triu(graph, k=1).tocoo()
     a, b = owner[coo.row], owner[coo.col]
     keep = (a >= 0) & (b >= 0) & (a != b)
