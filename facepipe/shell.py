@@ -122,6 +122,10 @@ def shell_operator(vertices: np.ndarray, faces: np.ndarray, k_stretch: float, k_
     return A.tocsr()
 
 
+# PARDISO is told the right-hand sides are sparse when at most 1 / this of the rows are non-zero
+SPARSE_RHS_FRACTION = 4
+
+
 class CholeskyFactor:
     """A sparse Cholesky factorisation of a symmetric positive definite matrix.
 
@@ -142,13 +146,26 @@ class CholeskyFactor:
     right-hand sides.
     """
 
-    def __init__(self, A: sp.spmatrix, backends: tuple[str, ...] = ("pardiso", "cholmod", "superlu")):
+    def __init__(self, A: sp.spmatrix, backends: tuple[str, ...] = ("pardiso", "cholmod", "superlu"),
+                 upper: bool = False, rhs_rows: np.ndarray | None = None):
+        """``upper``: A holds only the upper triangle of the matrix (what PARDISO reads, so it
+        is not cut out again). ``rhs_rows``: the rows where the right-hand sides given to
+        :meth:`solve` may be non-zero (they must be zero elsewhere); PARDISO then skips the
+        forward substitution's work below the other rows (its sparse right-hand sides,
+        iparm[30] = 2: the 89 handle columns of the shell solve touch ~2k of 530k rows, and
+        the solve takes half the time)."""
         A = sp.csr_matrix(A)
         self.n = A.shape[0]
         self._solver = None
+        full = None
         for backend in backends:
             try:
-                self._solver = _BACKENDS[backend](A)
+                if backend == "pardiso":
+                    self._solver = _BACKENDS[backend](A if upper else _upper_triangle(A), rhs_rows)
+                else:
+                    if full is None:
+                        full = A + sp.triu(A, k=1, format="csr").T if upper else A
+                    self._solver = _BACKENDS[backend](sp.csr_matrix(full))
             except (ImportError, OSError, _PardisoError):
                 continue  # not installed here (or refused the matrix): the next one
             self.backend = backend
@@ -238,11 +255,12 @@ class _Pardiso:
 
     MTYPE = 2  # real symmetric positive definite
 
-    def __init__(self, A: sp.csr_matrix):
+    def __init__(self, U: sp.csr_matrix, rhs_rows: np.ndarray | None = None):
+        """``U``: the matrix's upper triangle (:func:`_upper_triangle`); ``rhs_rows``: see
+        :class:`CholeskyFactor`."""
         import ctypes
 
         self._fn = _mkl_pardiso()
-        U = sp.triu(A, format="csr")
         U.sort_indices()
         self.n = U.shape[0]
         self._ia = U.indptr.astype(np.int32)
@@ -259,6 +277,12 @@ class _Pardiso:
         iparm[23] = 1   # two-level parallel factorisation
         iparm[34] = 1   # 0-based indices
         self._perm = np.zeros(1, dtype=np.int32)
+        # sparse right-hand sides pay where most rows are empty (and MKL 2026's two-level
+        # factorisation fails or crashes in that mode when every row is marked)
+        if rhs_rows is not None and len(np.unique(rhs_rows)) <= self.n // SPARSE_RHS_FRACTION:
+            iparm[30] = 2  # sparse right-hand sides, non-zero where perm is 1; every solution row computed
+            self._perm = np.zeros(self.n, dtype=np.int32)
+            self._perm[np.asarray(rhs_rows, dtype=np.int64)] = 1
         self._ctypes = ctypes
         self._open = True
         try:
@@ -305,6 +329,10 @@ class _Pardiso:
 _BACKENDS = {"pardiso": _Pardiso, "cholmod": _Cholmod, "superlu": _SuperLU}
 
 
+def _upper_triangle(A: sp.csr_matrix) -> sp.csr_matrix:
+    return sp.triu(A, format="csr")
+
+
 def constrained_split(n_vertices: int, handles: np.ndarray, anchors: np.ndarray | None):
     """Indices of the free vertices and a boolean mask of the constrained ones."""
     constrained = np.zeros(n_vertices, dtype=bool)
@@ -340,37 +368,72 @@ def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, an
     if spacing is None:
         spacing = marker_spacing(vertices, handles)
     A = shell_operator(vertices, faces, k_stretch, k_bend, spacing)
-    free, _ = constrained_split(n, handles, anchors)
+    free, constrained = constrained_split(n, handles, anchors)
     driven = handles if columns is None else np.concatenate([handles, np.asarray(columns, dtype=np.int64)])
-    A_ff, A_fh = _split_blocks(A, free, driven)
-    B = np.zeros((n, len(driven)), dtype=np.float64)
-    B[driven, np.arange(len(driven))] = 1.0
-    if len(free):
-        factor = CholeskyFactor(A_ff)
-        B[free] = factor.solve((-A_fh).toarray(order="F"))  # column-major: what PARDISO reads
-        factor.close()
-    return B
+    U, R, rhs_rows = constrained_system(A, constrained, driven)
+    if not len(free):
+        return np.ascontiguousarray(R)
+    factor = CholeskyFactor(U, upper=True, rhs_rows=rhs_rows)
+    del U
+    B = factor.solve(R)
+    factor.close()
+    B[constrained] = R[constrained]  # exactly the prescribed values (the solve gives them up to round-off)
+    del R
+    return np.ascontiguousarray(B)
 
 
-def _split_blocks(A: sp.spmatrix, free: np.ndarray, driven: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
-    """A[free][:, free] and A[free][:, driven] from the rows of A, with their column indices renumbered
-    (SciPy's column fancy indexing of a 530k-row matrix takes seconds; the entries are unchanged).
+def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarray
+                       ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+    """The symmetric system A with its constrained rows and columns replaced by the identity.
 
-    ``free`` must be increasing (as :func:`constrained_split` gives it), so the free block's
-    column indices stay sorted."""
+    Returns its upper triangle U (what PARDISO reads), the right-hand sides R (n, D) in column
+    order (−A[:, driven] on the free rows, the identity on the driven rows, zero on the other
+    constrained rows) and the rows where R may be non-zero. U X = R gives X[free] =
+    −A_ff⁻¹ A_f,driven and X = R on the constrained rows: the basis B itself, without cutting
+    the free block out of A (at 530k vertices a second copy of 12M non-zeros and a second
+    pass to cut its triangle).
+
+    Parameters
+    ----------
+    A : (n, n) symmetric sparse matrix; constrained : (n,) bool; driven : (D,) constrained
+        vertex indices whose columns are returned.
+    """
     A = sp.csr_matrix(A)
-    rows = A[free]
     n = A.shape[0]
-    blocks = []
-    for cols in (free, driven):
-        at = np.full(n, -1, dtype=np.int64)
-        at[cols] = np.arange(len(cols))
-        c = at[rows.indices]
-        keep = c >= 0
-        indptr = np.concatenate([[0], np.cumsum(keep, dtype=np.int64)])[rows.indptr]  # (a bool cumsum is ~10x slower)
-        blocks.append(sp.csr_matrix((rows.data[keep], c[keep].astype(rows.indices.dtype), indptr),
-                                    shape=(len(free), len(cols))))
-    return blocks[0], blocks[1]
+    indptr, indices = A.indptr, A.indices
+    rows = np.repeat(np.arange(n, dtype=indices.dtype), np.diff(indptr))
+    free = ~constrained
+    keep = indices > rows
+    keep &= free[indices]
+    keep &= free[rows]
+    del rows
+    # each row of U: its diagonal (A's on a free row, 1 on a constrained one), then the kept entries
+    per_row = np.add.reduceat(keep, indptr[:-1]) if len(keep) else np.zeros(n, dtype=np.int64)
+    per_row = np.where(np.diff(indptr) > 0, per_row, 0) + 1  # (reduceat repeats a value at an empty row)
+    u_ptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(per_row, out=u_ptr[1:])
+    if u_ptr[-1] > np.iinfo(np.int32).max:
+        raise ValueError("the shell system is too large for 32-bit sparse indices")
+    is_diag = np.zeros(int(u_ptr[-1]), dtype=bool)
+    is_diag[u_ptr[:-1]] = True
+    u_indices = np.empty(is_diag.shape[0], dtype=np.int32)
+    u_data = np.empty(is_diag.shape[0], dtype=np.float64)
+    u_indices[is_diag] = np.arange(n, dtype=np.int32)
+    u_data[is_diag] = np.where(constrained, 1.0, A.diagonal())
+    u_indices[~is_diag] = indices[keep]
+    u_data[~is_diag] = A.data[keep]
+    U = sp.csr_matrix((u_data, u_indices, u_ptr.astype(np.int32)), shape=(n, n))
+    # A's columns of the driven vertices are its rows (symmetric): a few thousand entries
+    driven = np.asarray(driven, dtype=np.int64)
+    rows_d = A[driven]
+    R = np.zeros((n, len(driven)), order="F")
+    for j in range(len(driven)):
+        lo, hi = rows_d.indptr[j], rows_d.indptr[j + 1]
+        R[rows_d.indices[lo:hi], j] = -rows_d.data[lo:hi]
+    R[constrained] = 0.0
+    R[driven, np.arange(len(driven))] = 1.0
+    rhs_rows = np.union1d(rows_d.indices, driven)
+    return U, R, rhs_rows
 
 
 def large_scale_positions(rest: np.ndarray, B: np.ndarray, handle_displacements: np.ndarray) -> np.ndarray:

@@ -3,8 +3,8 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from facepipe.shell import (CholeskyFactor, cotmatrix, large_scale_positions, massmatrix, shell_basis,
-                            shell_operator)
+from facepipe.shell import (CholeskyFactor, constrained_split, constrained_system, cotmatrix, large_scale_positions,
+                            massmatrix, shell_basis, shell_operator)
 from tests.conftest import grid
 
 
@@ -125,7 +125,7 @@ def test_solver_backends_agree_with_cholmod(sheet, backend):
 def test_cholesky_factor_falls_back_when_a_backend_is_missing(sheet, monkeypatch):
     import facepipe.shell as shell
 
-    def missing(A):
+    def missing(*args):
         raise ImportError("not here")
 
     monkeypatch.setitem(shell._BACKENDS, "pardiso", missing)
@@ -135,3 +135,43 @@ def test_cholesky_factor_falls_back_when_a_backend_is_missing(sheet, monkeypatch
     assert factor.backend == "cholmod"
     b = np.ones(len(V))
     assert np.abs(A @ factor.solve(b) - b).max() < 1e-8
+
+
+def test_constrained_system_is_the_identity_at_the_constraints(sheet):
+    V, F = sheet
+    H = _handles(V, 5)
+    anchors = np.array([1, 2, 3])
+    A = shell_operator(V, F, 0.4, 1.0)
+    free, constrained = constrained_split(len(V), H, anchors)
+    U, R, rhs_rows = constrained_system(A, constrained, H)
+    assert U.indices.dtype == np.int32 and abs(U - sp.triu(U)).max() == 0
+    full = (U + sp.triu(U, k=1).T).toarray()
+    # independent: the same blocks cut out by SciPy's indexing
+    dense = A.toarray()
+    ff = np.ix_(free, free)
+    assert np.array_equal(np.triu(full[ff]), np.triu(dense[ff]))  # A's own entries, not recomputed
+    assert np.array_equal(full[constrained][:, constrained], np.eye(constrained.sum()))
+    assert not full[constrained][:, free].any() and not full[free][:, constrained].any()
+    assert np.abs(R[free] + dense[np.ix_(free, H)]).max() < 1e-12 * np.abs(dense).max()
+    assert np.array_equal(R[H], np.eye(len(H))) and not R[anchors].any()
+    assert set(np.flatnonzero(np.abs(R).sum(axis=1))) <= set(rhs_rows)
+
+
+@pytest.mark.parametrize("backend", ["pardiso", "cholmod", "superlu"])
+def test_factor_of_an_upper_triangle_with_sparse_right_hand_sides(backend):
+    V, F = grid(nx=30, ny=30)
+    H = _handles(V, 97)  # a few handles: their rows are a small part of the system's
+    A = shell_operator(V, F, 0.3, 1.0)
+    _, constrained = constrained_split(len(V), H, None)
+    U, R, rhs_rows = constrained_system(A, constrained, H)
+    full = sp.csc_matrix(U + sp.triu(U, k=1).T)
+    reference = spla.spsolve(full, R)
+    factor = CholeskyFactor(U, backends=(backend,) if backend != "pardiso" else ("pardiso", "cholmod"),
+                            upper=True, rhs_rows=rhs_rows)
+    if factor.backend != backend:
+        pytest.skip(f"{backend} is not installed here")
+    if backend == "pardiso":
+        assert len(rhs_rows) < len(V) / 4 and factor._solver._iparm[30] == 2  # the sparse solve is the one tested
+    x = factor.solve(R)
+    assert np.abs(x - reference).max() < 1e-9 * np.abs(reference).max()
+    factor.close()
