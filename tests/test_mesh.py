@@ -700,7 +700,10 @@ def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
     assert fast.group_names == slow.group_names
     assert np.array_equal(fast.vertices[:, 0], V[:, 0])  # repr: exact
     assert np.array_equal(load_vertices(p), slow.vertices)  # the positions-only path
-    for text in (b"v 1 2 3\nv 4 5 6\nv", b"v 1 2 3\r\nv 4 5 6 1\r\n", b"v 1 2 3\nv 4  5 6\n", b"v 1 2 3\n  v 4 5 6\n"):
+    for text in (b"v 1 2 3\nv 4 5 6\nv", b"v 1 2 3\r\nv 4 5 6 1\r\n", b"v 1 2 3\nv 4  5 6\n", b"v 1 2 3\n  v 4 5 6\n",
+                 # vertices after the faces, plain or indented (the faces after the last vertex are skipped)
+                 b"v 1 2 3\nf 1 1 1\nv 4 5 6\nf 1 2 2\n", b"v 1 2 3\nf 1 1 1\n v 4 5 6\nf 1 2 2\n",
+                 b"v 1 2 3\nvt 0 0\nf 1/1 1/1 1/1\n\tv 4 5 6\n", b"v 1 2 3\r\nv 4 5 6\r\nf 1 2 2\r\n"):
         p = write(tmp_path, "pts.obj", text)
         if text.endswith(b"v"):
             with pytest.raises(InputError, match="line 3"):
