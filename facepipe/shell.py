@@ -42,24 +42,26 @@ def cotmatrix(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     n = vertices.shape[0]
+    corner = [vertices[faces[:, k]] for k in range(3)]
+    # |a × b| is twice the triangle's area at every corner: one cross product per triangle
+    cross = np.linalg.norm(np.cross(corner[1] - corner[0], corner[2] - corner[0]), axis=1)
     rows, cols, vals = [], [], []
     for k in range(3):
         # the angle at corner k is opposite the edge (i, j)
-        i, j, o = faces[:, (k + 1) % 3], faces[:, (k + 2) % 3], faces[:, k]
-        a = vertices[i] - vertices[o]
-        b = vertices[j] - vertices[o]
-        cross = np.linalg.norm(np.cross(a, b), axis=1)
+        i, j = (k + 1) % 3, (k + 2) % 3
+        a = corner[i] - corner[k]
+        b = corner[j] - corner[k]
         dot = np.einsum("ij,ij->i", a, b)
         scale = np.einsum("ij,ij->i", a, a) + np.einsum("ij,ij->i", b, b)
         cot = dot / np.maximum(cross, 1e-12 * scale + 1e-300)
         w = 0.5 * np.clip(cot, -COT_LIMIT, COT_LIMIT)
-        rows += [i, j]
-        cols += [j, i]
+        rows += [faces[:, i], faces[:, j]]
+        cols += [faces[:, j], faces[:, i]]
         vals += [-w, -w]
     rows = np.concatenate(rows)
     cols = np.concatenate(cols)
     vals = np.concatenate(vals)
-    off = sp.coo_matrix((vals, (rows, cols)), shape=(n, n)).tocsr()
+    off = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))  # duplicates (an edge's two triangles) summed
     diag = -np.asarray(off.sum(axis=1)).ravel()
     return (off + sp.diags(diag)).tocsr()
 
@@ -113,13 +115,15 @@ def shell_operator(vertices: np.ndarray, faces: np.ndarray, k_stretch: float, k_
     A : (V, V) csr_matrix float64.
     """
     K = cotmatrix(vertices, faces)
-    A = sp.csr_matrix(K.shape)
+    terms = []
     if k_bend:
         Minv = sp.diags(1.0 / massmatrix(vertices, faces))
-        A = A + k_bend * (K @ Minv @ K)
+        terms.append(k_bend * (K @ Minv @ K))
     if k_stretch:
-        A = A + (k_stretch / spacing**2) * K
-    return A.tocsr()
+        terms.append((k_stretch / spacing**2) * K)
+    if not terms:
+        return sp.csr_matrix(K.shape)
+    return (terms[0] + terms[1] if len(terms) == 2 else terms[0]).tocsr()
 
 
 # PARDISO is told the right-hand sides are sparse when at most 1 / this of the rows are non-zero
