@@ -148,6 +148,9 @@ def test_pinv_solve_matches_the_pseudo_inverse():
     # non-square (least squares) systems take the SVD
     A2, b2 = rng.normal(size=(20, 7, 4)), rng.normal(size=(20, 7, 3))
     assert np.allclose(pinv_solve(A2, b2, 1e-6), np.linalg.pinv(A2, rcond=1e-6) @ b2, rtol=0, atol=1e-13)
+    A3, b3 = rng.normal(size=(20, 3, 5)), rng.normal(size=(20, 3, 2))  # and wide ones, and none
+    assert np.allclose(pinv_solve(A3, b3, 1e-6), np.linalg.pinv(A3, rcond=1e-6) @ b3, rtol=0, atol=1e-13)
+    assert pinv_solve(A3[:0], b3[:0], 1e-6).shape == (0, 5, 2)
 
 
 def test_solve_rbf_the_same_in_threads_and_in_one():
