@@ -579,6 +579,7 @@ def sample(ctx, directory, vertices, examples, frames, seed, markers, quiet, ver
 @click.option("--vertices", default=20000, show_default=True, help="Vertices of the generated rig.")
 @click.option("--frames", default=64, show_default=True)
 @click.option("--repeats", default=3, show_default=True, help="Timings are medians over this many runs.")
+@click.option("--bake-repeats", default=5, show_default=True, help="Bakes timed (the median is reported).")
 @click.option("--work", default="bench/work", show_default=True, type=click.Path(file_okay=False))
 @click.option("--markers", default=None, type=int, help="Markers driving the shell [default: the sample's 96].")
 @click.option("--examples", default=6, show_default=True, help="Example poses of the generated rig.")
@@ -586,13 +587,15 @@ def sample(ctx, directory, vertices, examples, frames, seed, markers, quiet, ver
 @click.option("--device", default=None, help="OpenCL device (as replay --device).")
 @_common
 @click.pass_context
-def bench(ctx, output, vertices, frames, repeats, work, markers, examples, chunk, device, quiet, verbose):
+def bench(ctx, output, vertices, frames, repeats, bake_repeats, work, markers, examples, chunk, device, quiet,
+          verbose):
     """Measure bake and replay speed on a generated rig; write the figures as JSON."""
     from .bench import run_bench
 
     rep = _reporter(ctx, quiet, verbose)
     results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, chunk=chunk,
-                        n_markers=markers, n_examples=examples, device=device, log=rep.say)
+                        n_markers=markers, n_examples=examples, device=device, bake_repeats=bake_repeats,
+                        log=rep.say)
     _write_json(Path(output), results)
     rep.say(f"wrote {output}")
 

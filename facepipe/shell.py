@@ -140,14 +140,13 @@ class CholeskyFactor:
     * ``cholmod``: CHOLMOD through cholespy (ships it in a wheel, any platform);
     * ``superlu``: SciPy's SuperLU.
 
-    Why PARDISO: on the paper-scale rig (A_ff 427k × 427k, 9.8M non-zeros, 89 right-hand
-    sides) cholespy took ~30 s to factor and ~8 s to solve on two cores: its CHOLMOD build
-    orders with AMD (no METIS) and factors with one thread. PARDISO with METIS nested
-    dissection has less fill and factors in parallel: at 530k vertices (96M non-zeros in L)
-    ~3 s analysis, ~2 s factorisation, ~1.3 s for the 89 sparse right-hand sides at once
-    (2.3 s dense), each done by the same exact Cholesky method (B agrees with CHOLMOD's to ~1e-11, round-off). SuperLU is an LU without
-    symmetry and a poor ordering: minutes at that size. ``solve`` takes one or many
-    right-hand sides.
+    Why PARDISO: on the paper-scale rig (528k vertices, 12M non-zeros, 89 right-hand sides)
+    cholespy took ~30 s to factor and ~8 s to solve on two cores: its CHOLMOD build orders
+    with AMD (no METIS) and factors with one thread. PARDISO orders by METIS nested dissection
+    and factors in parallel (96M non-zeros in L): ~3 s analysis, ~2 s factorisation, ~1.3 s
+    for the 89 sparse right-hand sides at once (2.3 s dense), by the same exact Cholesky method
+    (B agrees with CHOLMOD's to ~1e-11, round-off). SuperLU is an LU without symmetry and a
+    poor ordering: minutes at that size. ``solve`` takes one or many right-hand sides.
     """
 
     def __init__(self, A: sp.spmatrix, backends: tuple[str, ...] = ("pardiso", "cholmod", "superlu"),

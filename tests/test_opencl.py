@@ -244,3 +244,19 @@ def test_ict_matches_numpy_reference():
         ref = NumpyEvaluator(model).evaluate(head)
         out = opencl.OpenCLEvaluator(model, reorder="rcm").evaluate(head)
         assert np.abs(out - ref).max() <= TOL * diag, method
+
+
+def test_bench_end_to_end_on_a_small_rig(tmp_path):
+    """`facepipe bench` at a small size: every section is measured and written (no times asserted)."""
+    _device_or_skip()
+    out = tmp_path / "results.json"
+    assert run("bench", "-o", out, "--vertices", 2500, "--frames", 8, "--repeats", 1, "--bake-repeats", 3,
+               "--work", tmp_path / "work", "-q") == 0
+    res = json.loads(out.read_text())
+    runs = res["bake"]["runs_seconds"]
+    assert len(runs) == 3 and round(res["bake"]["seconds"], 2) == sorted(runs)[1]  # the median run
+    assert res["bake"]["peak_rss_mb"] > 0 and res["bake"]["fit_phases"]["geometry"] > 0
+    for section in ("replay_opencl", "replay_numpy", "baseline_sparse_solve", "ratios", "export"):
+        assert res[section], section
+    assert res["baseline_sparse_solve"]["frames_per_second"] > 0
+    assert res["replay_opencl"]["in_memory"]["frames_per_second"] > 0
