@@ -362,7 +362,7 @@ def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, an
 
     Returns
     -------
-    B : (V, H) float64 (or (V, H + len(columns))) — rows of handles are unit rows.
+    B : (V, H) float64, column-major (or (V, H + len(columns))) — rows of handles are unit rows.
         Without anchors, every row sums to 1: a rigid translation is reproduced.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
@@ -380,9 +380,13 @@ def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, an
     del U
     B = factor.solve(R)
     factor.close()
-    B[constrained] = R[constrained]  # exactly the prescribed values (the solve gives them up to round-off)
     del R
-    return np.ascontiguousarray(B)
+    # exactly the prescribed values on the constrained rows (the solve gives them up to round-off);
+    # B stays column-major as the solver wrote it: a C-order copy would be 0.4 GB at 530k vertices,
+    # and the products with B and the model file's float32 copy take either order
+    B[constrained] = 0.0
+    B[driven, np.arange(len(driven))] = 1.0
+    return B
 
 
 def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarray
@@ -429,11 +433,15 @@ def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarr
     # A's columns of the driven vertices are its rows (symmetric): a few thousand entries
     driven = np.asarray(driven, dtype=np.int64)
     rows_d = A[driven]
+    # only the few rows the driven columns reach are written: the rest of R's pages stay untouched
+    # zeros (PARDISO reads just the rhs_rows; zeroing the constrained rows explicitly would touch
+    # pages all over a 0.4 GB array)
     R = np.zeros((n, len(driven)), order="F")
     for j in range(len(driven)):
         lo, hi = rows_d.indptr[j], rows_d.indptr[j + 1]
-        R[rows_d.indices[lo:hi], j] = -rows_d.data[lo:hi]
-    R[constrained] = 0.0
+        rows = rows_d.indices[lo:hi]
+        on_free = ~constrained[rows]
+        R[rows[on_free], j] = -rows_d.data[lo:hi][on_free]
     R[driven, np.arange(len(driven))] = 1.0
     rhs_rows = np.union1d(rows_d.indices, driven)
     return U, R, rhs_rows
