@@ -16,6 +16,7 @@ import numpy as np
 from .atomic import atomic_path
 from .frames import local_frames, to_world, vertex_face_matrix
 from .model import Model
+from .npystream import NpyWriter
 from .strain import strain_features
 
 
@@ -58,54 +59,6 @@ class NumpyEvaluator:
             self.stage_seconds["fine_scale"] += t3 - t2
         self.stage_seconds["large_scale"] += t1 - t0
         return (final, large) if with_large else final
-
-
-class NpyWriter:
-    """Write a ``.npy`` file of known shape sequentially: the header, then rows in order.
-
-    Memory stays bounded for any take length (nothing is mapped); ``close`` checks that every
-    row was written. ``path=None`` makes a writer that accepts nothing (an absent output).
-
-    Example
-    -------
-    >>> with NpyWriter("positions.npy", (T, V, 3)) as w:   # doctest: +SKIP
-    ...     w.write(chunk)                                  # (n, V, 3), any float dtype
-    """
-
-    def __init__(self, path, shape: tuple, dtype=np.float32):
-        self.shape = tuple(int(n) for n in shape)
-        self.dtype = np.dtype(dtype)
-        self.rows = 0
-        self.fh = None
-        if path is not None:
-            self.fh = open(path, "wb")
-            np.lib.format.write_array_header_1_0(
-                self.fh, {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False,
-                          "shape": self.shape})
-
-    def write(self, rows: np.ndarray) -> None:
-        rows = np.ascontiguousarray(rows, dtype=self.dtype)
-        if rows.shape[1:] != self.shape[1:] or self.rows + rows.shape[0] > self.shape[0]:
-            raise ValueError(f"rows {rows.shape} do not fit {self.shape} after {self.rows} rows")
-        self.fh.write(memoryview(rows.reshape(-1)).cast("B"))
-        self.rows += rows.shape[0]
-
-    def close(self) -> None:
-        if self.fh is not None:
-            self.fh.close()
-            self.fh = None
-            if self.rows != self.shape[0]:
-                raise RuntimeError(f"wrote {self.rows} of {self.shape[0]} rows")
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb):
-        if exc_type is None:
-            self.close()
-        elif self.fh is not None:
-            self.fh.close()
-            self.fh = None
 
 
 def stream_chunks(evaluator, head: np.ndarray, sink, R: np.ndarray | None = None, t: np.ndarray | None = None,

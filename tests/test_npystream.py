@@ -1,0 +1,77 @@
+"""The streaming .npy writer: the same file whether written directly or through the page cache."""
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from facepipe import npystream
+from facepipe.npystream import BLOCK, NpyWriter, npy_header
+
+
+def _rows(shape, seed=0):
+    return np.random.default_rng(seed).normal(size=shape)
+
+
+@pytest.mark.parametrize("direct", [True, False])
+@pytest.mark.parametrize("chunks", [[7], [1, 2, 4], [3, 3, 1]])
+def test_round_trip_in_any_chunking(tmp_path, monkeypatch, direct, chunks):
+    # a buffer of three blocks makes the 12 kB rows cross it, and 1001 × 3 float32 rows end mid-block
+    monkeypatch.setattr(npystream, "BUFFER", 3 * BLOCK)
+    data = _rows((7, 1001, 3))
+    path = tmp_path / "p.npy"
+    with NpyWriter(path, data.shape, direct=direct) as w:
+        start = 0
+        for n in chunks:
+            w.write(data[start:start + n])
+            start += n
+    if direct and not w.direct:
+        pytest.skip("this file system does not do direct I/O (the buffered path wrote it)")
+    assert path.stat().st_size == BLOCK + data.size * 4
+    back = np.load(path)
+    assert back.dtype == np.float32 and back.shape == data.shape
+    np.testing.assert_array_equal(back, data.astype(np.float32))
+    np.testing.assert_array_equal(np.load(path, mmap_mode="r")[3], data[3].astype(np.float32))
+
+
+def test_header_is_one_block_that_numpy_reads(tmp_path):
+    header = npy_header((5, 530000, 3), np.float32)
+    assert len(header) == BLOCK and header.endswith(b"\n")
+    path = tmp_path / "h.npy"
+    path.write_bytes(header)
+    with open(path, "rb") as fh:
+        assert np.lib.format.read_magic(fh) == (1, 0)
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+        assert fh.tell() == BLOCK
+    assert (shape, fortran, dtype) == ((5, 530000, 3), False, np.dtype(np.float32))
+
+
+def test_falls_back_to_buffered_where_direct_io_is_refused(tmp_path, monkeypatch):
+    real_open = os.open
+
+    def no_direct(path, flags, *args):
+        if flags & getattr(os, "O_DIRECT", 0):
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(npystream.os, "open", no_direct)
+    data = _rows((4, 10, 3), seed=1)
+    with NpyWriter(tmp_path / "b.npy", data.shape, direct=True) as w:
+        w.write(data)
+    assert not w.direct
+    np.testing.assert_array_equal(np.load(tmp_path / "b.npy"), data.astype(np.float32))
+
+
+@pytest.mark.parametrize("direct", [True, False])
+def test_refuses_incomplete_files_and_wrong_rows(tmp_path, direct):
+    with pytest.raises(RuntimeError, match="wrote 1 of 2"):
+        with NpyWriter(tmp_path / "a.npy", (2, 3), direct=direct) as w:
+            w.write(np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="do not fit"):
+        NpyWriter(tmp_path / "b.npy", (2, 3), direct=direct).write(np.zeros((1, 4)))
+    with pytest.raises(ValueError, match="do not fit"):
+        with NpyWriter(tmp_path / "c.npy", (2, 3), direct=direct) as w:
+            w.write(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="no open file"):
+        NpyWriter(None, (2, 3)).write(np.zeros((1, 3)))
