@@ -308,6 +308,7 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
         "basis": [names[i] for i in basis],
         "curves": {m: [dict(c, added=names[c["added"]]) for c in curve] for m, curve in curves.items()},
         "greedy_vertices": int(len(sample)) if methods else 0,
+        "geodesics": geodesics.where,
         "seconds": seconds,
         "digest": rig.digest,
     }

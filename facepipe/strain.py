@@ -35,8 +35,10 @@ def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     return (g + g.T).tocsr()
 
 
-# from this many vertex × source pairs (and 8 sources), a second process shares the Dijkstra runs
+# from this many vertex × source pairs (and 8 sources), the Dijkstra runs start in the background
 GEODESICS_IN_A_PROCESS = 2_000_000
+# ... on an OpenCL CPU device where there is one (else in a second process)
+GEODESICS_ON_DEVICE = True
 
 
 def geodesic_from(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf) -> np.ndarray:
@@ -53,39 +55,54 @@ class Geodesics:
     """Dijkstra from many sources: started on construction, collected by :meth:`finish`.
 
     SciPy's Dijkstra holds the GIL, so threads would not help; 89 sources on a 530k-vertex
-    mesh are ~12 s on one core. On a large problem (``background``: by default from
-    :data:`GEODESICS_IN_A_PROCESS` pairs on two cores or more) a child process starts on
-    the sources at once, first to last, while this one does other work; :meth:`finish` then
-    takes sources from the last down until the two meet, so neither waits for the other
-    however busy this process was. The rows are written into one file-backed mapping; a
-    source claimed by both at the same instant is computed twice, to the same values. If the
-    child fails, its sources are computed here. A small problem is computed by :meth:`finish`.
-    The distances are kept for later calls of :meth:`finish` until :meth:`close`.
+    mesh are ~11 s on one core. A large problem (``background``: by default from
+    :data:`GEODESICS_IN_A_PROCESS` pairs on two cores or more) is started at once, to run while
+    this process does other work:
+
+    * on an OpenCL CPU device (``device``; by default where there is one,
+      :mod:`facepipe.opencl.geodesics`): the same distances to the bit in half the CPU time, on
+      the driver's threads;
+    * else in a child process that takes the sources first to last, while :meth:`finish`
+      takes them from the last down until the two meet, so neither waits for the other however
+      busy this process was. The rows are written into one file-backed mapping; a source
+      claimed by both at the same instant is computed twice, to the same values. If the child
+      fails, its sources are computed here.
+
+    A small problem is computed by :meth:`finish`. ``where`` says which ("opencl", "process",
+    "here"). The distances are kept for later calls of :meth:`finish` until :meth:`close`.
     """
 
     def __init__(self, graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.inf,
-                 background: bool | None = None):
+                 background: bool | None = None, device: bool | None = None):
         from .background import BackgroundCall
 
         self.graph = graph = sp.csr_matrix(graph)
         self.sources = np.asarray(sources, dtype=np.int64)
         self.n_vertices = graph.shape[0]
         self.child_sources = 0
+        self.where = "here"
         if background is None:
             background = len(self.sources) >= 8 and (os.cpu_count() or 1) >= 2 and \
                 self.n_vertices * len(self.sources) >= GEODESICS_IN_A_PROCESS
-        self._dir = self._child = self._result = None
+        self._dir = self._child = self._result = self._device = None
         self._closed = False
+        self._args = (graph, self.sources, limit)
         if not background:
-            self._args = (graph, self.sources, limit)
             return
+        if (GEODESICS_ON_DEVICE if device is None else device) and np.isinf(limit):
+            from .opencl.geodesics import start
+
+            self._device = start(graph, self.sources)
+            if self._device is not None:
+                self.where = "opencl"
+                return
         try:
             self._paths = self._shared_files(len(self.sources), self.n_vertices)
         except OSError:  # no room for the shared rows (the child and this process write them): all here
-            self._args = (graph, self.sources, limit)
             return
         self._args = (graph, self.sources, limit) + self._paths
         self._child = BackgroundCall(_claimed_rows, *self._args, 0)
+        self.where = "process"
 
     def _shared_files(self, n_sources: int, n_vertices: int) -> tuple[str, str]:
         """The distance rows and the claims, as files both processes map. The space is allocated now:
@@ -116,8 +133,18 @@ class Geodesics:
             return self._result
         if self._closed:
             raise RuntimeError("the geodesics were closed before they were finished")
+        if self._device is not None:
+            try:
+                self._result = self._device.finish()
+            except Exception:  # noqa: BLE001 - the driver failed at run time: the same rows by SciPy
+                self.where = "here after the device failed"
+            finally:
+                self._device.close()
+                self._device = None
+            if self._result is not None:
+                return self._result
         if self._child is None:
-            self._result = dijkstra_rows(*self._args)
+            self._result = dijkstra_rows(*self._args[:3])
             return self._result
         try:
             _claimed_rows(*self._args, 1)
@@ -140,6 +167,9 @@ class Geodesics:
         self._closed = True
 
     def _stop(self) -> None:
+        if self._device is not None:
+            self._device.close()
+            self._device = None
         if self._child is not None:
             self._child.cancel()
             self._dir.cleanup()

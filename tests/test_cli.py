@@ -169,6 +169,7 @@ def test_geodesics_from_a_second_process_give_the_same_fit(pipeline, monkeypatch
 
     here = fit_module.fit_rig(load_rig(pipeline / "rig" / "sample.toml"))
     monkeypatch.setattr(strain, "GEODESICS_IN_A_PROCESS", 0)
+    monkeypatch.setattr(strain, "GEODESICS_ON_DEVICE", False)  # the second process (the device: test_strain)
     build = fit_module.build_geometry
 
     def slow_build(*args, **kwargs):  # long enough for the child to start and take sources

@@ -85,12 +85,77 @@ def test_geodesics_shared_with_a_second_process_match_scipy():
     assert np.array_equal(geodesic_from(g, sources), reference)
     assert np.array_equal(geodesic_from(g, sources[:3]), reference[:3])
     # the child starts on the first sources while this process waits; it takes the rest from the end
-    job = Geodesics(g, sources, background=True)
+    job = Geodesics(g, sources, background=True, device=False)
     import time
 
     time.sleep(1.5)
     assert np.array_equal(job.finish(), reference)
     assert job.child_sources > 0
+
+
+def _cpu_device_or_skip():
+    from facepipe.opencl.geodesics import _cpu_device
+
+    if _cpu_device() is None:
+        pytest.skip("no OpenCL CPU device with double precision here")
+
+
+def test_geodesics_on_the_device_equal_scipy_to_the_bit():
+    """The bucket Dijkstra on the OpenCL CPU device: the same distances as SciPy's heap, bit for bit,
+    on uneven edge lengths (a jittered grid, a sliver-heavy strip) and with unreachable vertices."""
+    from scipy.sparse.csgraph import dijkstra
+
+    from facepipe.strain import Geodesics, edge_graph
+
+    _cpu_device_or_skip()
+    rng = np.random.default_rng(3)
+    V, F = grid(90, 70)
+    V = V + rng.uniform(-0.3, 0.3, V.shape) * [1.0 / 89, 1.0 / 69, 0.0]
+    V[:, 2] = 0.05 * np.sin(7 * V[:, 0]) * np.cos(5 * V[:, 1])
+    island = np.array([[5.0, 5.0, 0.0], [6.0, 5.0, 0.0], [5.0, 6.0, 0.0]])  # a separate triangle
+    V = np.vstack([V, island])
+    F = np.vstack([F, len(V) - 3 + np.array([[0, 1, 2]])])
+    g = edge_graph(V, F)
+    sources = np.r_[np.arange(0, len(V) - 3, 97), [len(V) - 1]]
+    job = Geodesics(g, sources, background=True, device=True)
+    assert job.where == "opencl"
+    got = job.finish()
+    assert np.array_equal(got, dijkstra(g, directed=True, indices=sources))
+    assert np.isinf(got[0, -1]) and np.isinf(got[-1, 0])
+    job.close()
+
+
+def test_device_geodesics_decline_what_buckets_cannot_do(monkeypatch):
+    """Edge lengths too uneven for a ring of buckets, limited searches, or a device that fails at run
+    time: SciPy computes the same rows."""
+    from scipy.sparse.csgraph import dijkstra
+
+    from facepipe.opencl import geodesics as device_geodesics
+    from facepipe.strain import Geodesics, edge_graph
+
+    assert device_geodesics.ring_size(np.array([1.0, 2.0, 3.0])) == (8, 1.0 * (1 - 1e-9))  # 3 / δ + 2 → 8
+    assert device_geodesics.ring_size(np.array([1e-6, 1.0])) is None
+    assert device_geodesics.ring_size(np.array([0.0, 1.0])) is None
+    V, F = grid(30, 20)
+    g = edge_graph(V, F)
+    sources = np.arange(0, len(V), 40)
+    reference = dijkstra(g, directed=True, indices=sources)
+    limited = Geodesics(g, sources, limit=0.2, background=True, device=True)
+    assert limited.where != "opencl"
+    assert np.array_equal(limited.finish(), dijkstra(g, directed=True, indices=sources, limit=0.2))
+    limited.close()
+
+    _cpu_device_or_skip()
+
+    def broken(self):
+        raise RuntimeError("the driver lost the device")
+
+    monkeypatch.setattr(device_geodesics.DeviceGeodesics, "finish", broken)
+    job = Geodesics(g, sources, background=True, device=True)
+    assert job.where == "opencl"
+    assert np.array_equal(job.finish(), reference)
+    assert job.where == "here after the device failed"
+    job.close()
 
 
 def test_geodesics_when_the_child_fails(monkeypatch):
@@ -108,7 +173,7 @@ def test_geodesics_when_the_child_fails(monkeypatch):
         raise OSError("no processes here")
 
     monkeypatch.setattr(background.subprocess, "Popen", no_process)
-    job = Geodesics(g, sources, background=True)
+    job = Geodesics(g, sources, background=True, device=False)
     assert np.array_equal(job.finish(), dijkstra(g, directed=False, indices=sources))
     assert job.child_sources == 0
 
@@ -138,7 +203,7 @@ def test_geodesics_without_room_for_the_shared_rows(monkeypatch):
 
     monkeypatch.setattr(tempfile, "TemporaryDirectory", recording)
     monkeypatch.setattr("os.posix_fallocate", full, raising=False)
-    job = Geodesics(g, sources, background=True)
+    job = Geodesics(g, sources, background=True, device=False)
     assert made and not Path(made[0].name).exists()
     assert np.array_equal(job.finish(), dijkstra(g, directed=False, indices=sources))
     assert job.child_sources == 0

@@ -1,4 +1,5 @@
-"""The OpenCL replay path: kernels shipped as package data (``*.cl``) and their host code.
+"""The OpenCL replay path: kernels shipped as package data (``*.cl``) and their host code; and
+the bake's geodesic distances on the CPU device (:mod:`facepipe.opencl.geodesics`).
 
 ``OpenCLEvaluator`` has NumpyEvaluator's interface (``evaluate(handles, with_large=False)``,
 ``backend``, ``device``, ``stage_seconds``) plus ``stream`` for pipelined replay; the device is
