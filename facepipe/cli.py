@@ -217,6 +217,33 @@ def bake(ctx, source, output, quiet, verbose):
 # ----------------------------------------------------------------------------- replay
 
 
+class _background:
+    """``fn(*args)`` on a thread from now on; :meth:`result` waits and returns it (or raises its error)."""
+
+    def __init__(self, fn, *args):
+        import threading
+
+        self._value = self._error = None
+
+        def run():
+            try:
+                self._value = fn(*args)
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller by result()
+                self._error = exc
+
+        self._thread = threading.Thread(target=run, daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        self._thread.join()
+
+    def result(self):
+        self.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
 def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Reporter):
     """The replay evaluator: OpenCL when asked for, or (auto) when a device works; else NumPy."""
     from .replay import NumpyEvaluator
@@ -291,20 +318,28 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         raise InputError("--smooth must be 0 (off) or a positive number of frames")
     model = load_model(model_path)
     units = model.meta.get("units")
-    # absent markers are filled through the prior when cleaning; without it they are an error
-    read = dict(units=units, take_units=take_units, subject=subject, absent="error" if no_clean else "missing",
-                allow_empty_frames=True)
-    take_data = read_take(take, model.marker_names, **read)
-    neutral = read_take(neutral_take, model.marker_names, **read) if neutral_take else None
-    options = PrepareOptions(neutral_frame=neutral_frame, neutral_take=neutral, stabilise=not no_stabilise,
-                             clean=not no_clean, frames=parse_frame_slice(frames_text) if frames_text else None,
-                             clean_options=CleanOptions(smooth=smooth))
-    head, R, t, gap_report = prepare_take(take_data, model, options)
+    # the device is set up (B and the tables uploaded, kernels built: seconds at 530k vertices)
+    # while the take is read and cleaned
+    setup = _background(_make_evaluator, model, backend, device, chunk, rep)
+    try:
+        # absent markers are filled through the prior when cleaning; without it they are an error
+        read = dict(units=units, take_units=take_units, subject=subject, absent="error" if no_clean else "missing",
+                    allow_empty_frames=True)
+        take_data = read_take(take, model.marker_names, **read)
+        neutral = read_take(neutral_take, model.marker_names, **read) if neutral_take else None
+        options = PrepareOptions(neutral_frame=neutral_frame, neutral_take=neutral, stabilise=not no_stabilise,
+                                 clean=not no_clean, frames=parse_frame_slice(frames_text) if frames_text else None,
+                                 clean_options=CleanOptions(smooth=smooth))
+        head, R, t, gap_report = prepare_take(take_data, model, options)
+    except BaseException:
+        setup.wait()  # the take's error is the one to report; the setup's outcome no longer matters
+        raise
+    evaluator = setup.result()
     take_data = take_data if options.frames is None else take_data.select(options.frames)
     T = head.shape[0]
     with rep.bar(T, desc="replay") as bar:
         result = run_replay(model, head, R, t, take_data.frames, take_data.times, Path(output), chunk=chunk,
-                            evaluator=_make_evaluator(model, backend, device, chunk, rep),
+                            evaluator=evaluator,
                             head_motion=head_motion, progress=bar.update,
                             extra_report={"take": str(take), "mocap": gap_report,
                                           "markers": gap_report["markers"],
