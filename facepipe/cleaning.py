@@ -41,8 +41,8 @@ import numpy as np
 from .mocap.gaps import fill_gaps
 from .stabilise import interpolate_poses, stable_marker_pose
 
-__all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "noise_sigma",
-           "rotation_from_vector"]
+__all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "gap_counts",
+           "noise_sigma", "rotation_from_vector"]
 
 
 @dataclass
@@ -103,6 +103,8 @@ class CleanResult:
         Expression weights of the examples.
     report : dict
         JSON-serialisable: ``markers`` (per marker counts), ``total``, ``noise``.
+    outliers : (T, H) bool
+        Samples dropped as outliers (and filled like gaps).
     """
 
     head: np.ndarray
@@ -110,6 +112,7 @@ class CleanResult:
     t: np.ndarray
     weights: np.ndarray
     report: dict
+    outliers: np.ndarray | None = None
 
 
 def rotation_from_vector(v: np.ndarray) -> np.ndarray:
@@ -595,13 +598,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
 
     # report
     missing = ~visible
-    col, start, stop = _runs(missing)
-    run_len = stop - start
-    gaps = np.bincount(col, minlength=H)
-    longest = np.zeros(H, dtype=np.int64)
-    np.maximum.at(longest, col, run_len)
-    short_fill = np.zeros(H, dtype=np.int64)
-    np.add.at(short_fill, col, np.where(run_len <= opt.short_gap, run_len, 0))
+    gaps, longest, short_fill = gap_counts(missing, opt.short_gap)
     per = {}
     for m in range(H):
         per[names[m]] = {
@@ -641,4 +638,18 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         "smooth_frames": float(opt.smooth or 0.0),
         "notes": notes,
     }
-    return CleanResult(clean, R, t, C, report)
+    return CleanResult(clean, R, t, C, report, outlier)
+
+
+def gap_counts(missing: np.ndarray, short_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per marker of a (T, H) mask of missing samples: the number of gaps (runs), the longest, and
+    the samples in gaps of at most ``short_gap`` frames (those reported as interpolated)."""
+    H = missing.shape[1]
+    col, start, stop = _runs(missing)
+    run_len = stop - start
+    gaps = np.bincount(col, minlength=H)
+    longest = np.zeros(H, dtype=np.int64)
+    np.maximum.at(longest, col, run_len)
+    short_fill = np.zeros(H, dtype=np.int64)
+    np.add.at(short_fill, col, np.where(run_len <= short_gap, run_len, 0))
+    return gaps, longest, short_fill

@@ -308,8 +308,8 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     from .cleaning import CleanOptions
     from .mocap import parse_frame_slice, read_take
     from .model import load_model
-    from .prepare import PrepareOptions, prepare_take, summary_lines
-    from .replay import replay as run_replay
+    from .prepare import PrepareOptions, prepare_take_windows, summary_lines
+    from .replay import replay_windows
 
     rep = _reporter(ctx, quiet, verbose)
     if chunk < 1:
@@ -330,21 +330,24 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         options = PrepareOptions(neutral_frame=neutral_frame, neutral_take=neutral, stabilise=not no_stabilise,
                                  clean=not no_clean, frames=parse_frame_slice(frames_text) if frames_text else None,
                                  clean_options=CleanOptions(smooth=smooth))
-        head, R, t, gap_report = prepare_take(take_data, model, options)
+        # a long take is cleaned window by window, each while the previous one is on the device
+        prepared = prepare_take_windows(take_data, model, options)
     except BaseException:
         setup.wait()  # the take's error is the one to report; the setup's outcome no longer matters
         raise
     evaluator = setup.result()
     take_data = take_data if options.frames is None else take_data.select(options.frames)
-    T = head.shape[0]
-    with rep.bar(T, desc="replay") as bar:
-        result = run_replay(model, head, R, t, take_data.frames, take_data.times, Path(output), chunk=chunk,
-                            evaluator=evaluator,
-                            head_motion=head_motion, progress=bar.update,
-                            extra_report={"take": str(take), "mocap": gap_report,
-                                          "markers": gap_report["markers"],
-                                          "extra_markers": take_data.extra_markers},
-                            save_large=save_large_scale)
+
+    def take_report():  # complete once every window is cleaned
+        gap_report = prepared.report
+        return {"take": str(take), "mocap": gap_report, "markers": gap_report["markers"],
+                "extra_markers": take_data.extra_markers}
+
+    with rep.bar(prepared.n_frames, desc="replay") as bar:
+        result = replay_windows(model, prepared.windows(), take_data.frames, take_data.times, Path(output),
+                                chunk=chunk, evaluator=evaluator, head_motion=head_motion, progress=bar.update,
+                                extra_report=take_report, save_large=save_large_scale)
+    gap_report = prepared.report
     r = result.report
     rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
             f"at {r['frames_per_second']:.1f} frames/s")

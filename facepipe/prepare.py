@@ -27,14 +27,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cleaning import CleanOptions, clean_take
+from .cleaning import CleanOptions, clean_take, gap_counts
 from .errors import InputError
 from .mocap.gaps import fill_gaps
 from .mocap.markers import known_unit_ratios
 from .mocap.take import Take
 from .stabilise import interpolate_poses, robust_rigid_fit, similarity_fit, stable_marker_pose
 
-__all__ = ["PrepareOptions", "prepare_take", "summary_lines"]
+__all__ = ["CLEAN_WINDOW", "PrepareOptions", "PreparedTake", "clean_margin", "prepare_take", "prepare_take_windows",
+           "summary_lines"]
+
+#: Takes longer than this many frames (and the context) are cleaned window by window.
+CLEAN_WINDOW = 4096
 
 #: Faces differ in size, units by factors of 2.54 or more: a scale outside this range is a
 #: unit mismatch (or not a face), never silently applied.
@@ -122,8 +126,28 @@ def _unit_error(scale: float, take: Take, rig_units: str, what: str) -> InputErr
     )
 
 
-def prepare_take(take: Take, model, options: PrepareOptions | None = None):
+def prepare_take(take: Take, model, options: PrepareOptions | None = None, window: int | None = None):
     """Clean head-space handles and head motion of a take, and a report of what was done.
+
+    The whole selection at once; :func:`prepare_take_windows` gives it window by window (what
+    replay streams). Parameters, returns and errors as there.
+    """
+    prepared = prepare_take_windows(take, model, options, window)
+    parts = list(prepared.windows())
+    head, R, t = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    return head, R, t, prepared.report
+
+
+def prepare_take_windows(take: Take, model, options: PrepareOptions | None = None,
+                         window: int | None = None) -> "PreparedTake":
+    """Clean head-space handles and head motion of a take, and a report of what was done, as a
+    :class:`PreparedTake`: its windows are cleaned as they are asked for.
+
+    A take of more than ``window`` frames (default :data:`CLEAN_WINDOW`; plus the context) is
+    cleaned window by window: each window with :func:`clean_margin` frames of context on both
+    sides and its own noise statistics, so cleaning needs memory for one window, not the take,
+    and replay evaluates one window while the next is cleaned. A shorter take (and one replayed
+    with cleaning off) is prepared whole.
 
     Parameters
     ----------
@@ -135,7 +159,7 @@ def prepare_take(take: Take, model, options: PrepareOptions | None = None):
         ``meta["marker_spacing"]`` and ``meta["units"]``.
     options : PrepareOptions
 
-    Returns
+    Returns (:func:`prepare_take`; the windows of :class:`PreparedTake` hold the same in parts)
     -------
     head : (T, H, 3) float64
         Handle positions in head (rig) space relative to the rest pose, no NaN.
@@ -157,6 +181,7 @@ def prepare_take(take: Take, model, options: PrepareOptions | None = None):
     >>> head, R, t, report = prepare_take(take, model, PrepareOptions(neutral_frame=0))  # doctest: +SKIP
     """
     opt = options or PrepareOptions()
+    window = CLEAN_WINDOW if window is None else int(window)
     names = take.marker_names
     rest = model.rest[model.handle_vertices].astype(np.float64)
     H = rest.shape[0]
@@ -221,36 +246,59 @@ def prepare_take(take: Take, model, options: PrepareOptions | None = None):
     alignment["units"] = {"take": take.source_units, "rig": rig_units}
 
     # ---- frames to prepare
-    # the whole take is cleaned (noise and marker scales are measured over all of it, gaps are
-    # bridged from both sides), so a --frames part replays exactly as in the whole take
-    rows = np.arange(take.n_frames)[opt.frames] if opt.frames is not None else None
-    if rows is not None and rows.size == 0:
+    # the take is cleaned whole (noise and marker scales are measured over all of it, gaps are
+    # bridged from both sides), or a long take window by window with context on both sides; the
+    # windows are fixed by the take's rows, so a --frames part replays exactly as in the whole take
+    rows = np.arange(take.n_frames)[opt.frames] if opt.frames is not None else np.arange(take.n_frames)
+    if rows.size == 0:
         raise InputError(f"the frame range selects none of the take's {take.n_frames} frames", path=take.path,
                          hint=f"choose rows within 0:{take.n_frames} with --frames A:B")
-    part = take
-    T = part.n_frames
-    world = part.positions
-    if neutral is not None:
-        world = s * np.einsum("ij,thj->thi", Q, world) + b
-    reference = rest + offsets
-    visible = np.isfinite(world).all(axis=-1)
-    if not visible.any():
+    T = take.n_frames
+    if not np.isfinite(take.positions).all(axis=-1).any():
         raise InputError("no marker is visible in the selected frames", path=take.path,
                          hint="choose other frames with --frames")
-
+    reference = rest + offsets
     absent = list(take.markers.get("absent", [])) if take.markers else []
-    if opt.clean:
-        result = clean_take(world, reference, basis, stable, part.times, opt.clean_options,
-                            fix_pose=not opt.stabilise, spacing=spacing, names=names)
-        head = result.head - offsets
-        R, t = result.R, result.t
-        clean_report = result.report
-        notes += clean_report.pop("notes", [])
+    times = take.times
+    fps = 1.0 / float(np.median(np.diff(times))) if T > 1 else 30.0
+    margin = clean_margin(opt.clean_options, fps)
+    if opt.clean and T > window + 2 * margin:
+        cores = [(a, min(T, a + window)) for a in range(0, T, window)]
+        cores = [(a, b) for a, b in cores if ((rows >= a) & (rows < b)).any()]
+        spans = [(a, b, max(0, a - margin), min(T, b + margin)) for a, b in cores]
+        # a window needs frames with enough markers to fit the head (else its poses come from
+        # neighbouring frames, which only the whole take has): such a take is cleaned whole
+        enough = np.isfinite(take.positions).all(axis=-1).sum(axis=1) >= (3 if opt.stabilise else 1)
+        if not all(enough[lo:hi].any() for _, _, lo, hi in spans):
+            spans = [(0, T, 0, T)]
+            notes.append(f"a stretch of {window} or more frames without markers: the take was cleaned whole")
     else:
+        spans = [(0, T, 0, T)]
+
+    def span_world(lo, hi):
+        world = take.positions[lo:hi]
+        return s * np.einsum("ij,thj->thi", Q, world) + b if neutral is not None else world
+
+    def to_take_space(R, t):
+        """Head motion in the take's space: undo the alignment (rigid part, rig scale)."""
+        if neutral is None:
+            return R, t
+        c = rest.mean(axis=0)
+        Rw = np.einsum("ji,tjk->tik", Q, R)
+        return Rw, np.einsum("ji,tj->ti", Q, np.einsum("tij,j->ti", R, c) + t - b) / s - np.einsum("tij,j->ti", Rw, c)
+
+    def clean_span(lo, hi):
+        result = clean_take(span_world(lo, hi), reference, basis, stable, times[lo:hi], opt.clean_options,
+                            fix_pose=not opt.stabilise, spacing=spacing, names=names)
+        return result.head - offsets, result.R, result.t, result
+
+    def fill_span(lo, hi):
+        world = span_world(lo, hi)
+        n = hi - lo
         if opt.stabilise:
             R, t = stable_marker_pose(reference, world, stable, notes)
             try:
-                R, t, filled = interpolate_poses(R, t, part.times)
+                R, t, filled = interpolate_poses(R, t, times[lo:hi])
             except ValueError:
                 raise InputError("no frame has 3 visible markers: the head's motion cannot be found",
                                  path=take.path, hint="check the take's markers, or use --no-stabilise") from None
@@ -258,46 +306,145 @@ def prepare_take(take: Take, model, options: PrepareOptions | None = None):
                 notes.append(f"{int(filled.sum())} frame(s) without 3 visible markers: head pose interpolated")
             head_ref = np.einsum("tji,thj->thi", R, world - t[:, None, :])
         else:
-            R, t = np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3))
+            R, t = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
             head_ref = world.copy()
-        head_ref, gap = fill_gaps(head_ref, times=part.times, marker_names=names, path=take.path)
-        head = head_ref - offsets
-        clean_report = {"markers": gap["markers"], "total": gap["total"]}
+        head_ref, gap = fill_gaps(head_ref, times=times[lo:hi], marker_names=names, path=take.path)
+        return head_ref - offsets, R, t, {"markers": gap["markers"], "total": gap["total"]}
 
-    # ---- head motion in the take's space: undo the alignment (rigid part, rig scale)
-    if neutral is not None:
-        c = rest.mean(axis=0)
-        Rw = np.einsum("ji,tjk->tik", Q, R)
-        tw = np.einsum("ji,tj->ti", Q, np.einsum("tij,j->ti", R, c) + t - b) / s - np.einsum("tij,j->ti", Rw, c)
-        R, t = Rw, tw
-    if rows is not None:
-        head, R, t = head[rows], R[rows], t[rows]
-    angles = np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    def finish_report(clean_report, angle_max):
+        notes.extend(clean_report.pop("notes", []))
+        markers = clean_report["markers"]
+        for name in absent:
+            markers.setdefault(name, {})["absent"] = True
+        if absent:
+            notes.append(f"{len(absent)} rig marker(s) absent from the take, filled from the others through the "
+                         "rig's prior: " + ", ".join(absent[:8]) + (" ..." if len(absent) > 8 else ""))
+        return {
+            "format": take.format,
+            "alignment": alignment,
+            "head_motion": {"stabilised": bool(opt.stabilise), "rotation_deg_max": angle_max},
+            "cleaning": {"prior": bool(opt.clean and opt.clean_options.prior), "enabled": bool(opt.clean),
+                         **{k: v for k, v in clean_report.items() if k not in ("markers", "total")}},
+            "markers": markers,
+            "total": clean_report["total"],
+            "absent_markers": absent,
+            "extra_markers": list(take.extra_markers),
+            "duplicate_markers": dict(take.markers.get("duplicates", {})) if take.markers else {},
+            "renamed_markers": len(take.markers.get("renamed", {})) if take.markers else 0,
+            "subject": take.markers.get("subject") if take.markers else None,
+            "notes": notes,
+        }
 
-    markers = clean_report["markers"]
-    for name in absent:
-        markers.setdefault(name, {})["absent"] = True
-    total = clean_report["total"]
-    report = {
-        "format": take.format,
-        "alignment": alignment,
-        "head_motion": {"stabilised": bool(opt.stabilise),
-                        "rotation_deg_max": float(angles.max()) if angles.size else 0.0},
-        "cleaning": {"prior": bool(opt.clean and opt.clean_options.prior), "enabled": bool(opt.clean),
-                     **{k: v for k, v in clean_report.items() if k not in ("markers", "total")}},
-        "markers": markers,
-        "total": total,
-        "absent_markers": absent,
-        "extra_markers": list(take.extra_markers),
-        "duplicate_markers": dict(take.markers.get("duplicates", {})) if take.markers else {},
-        "renamed_markers": len(take.markers.get("renamed", {})) if take.markers else 0,
-        "subject": take.markers.get("subject") if take.markers else None,
+    prepared = PreparedTake(rows, len(spans))
+
+    def windows():
+        angle_max = 0.0
+        results = []
+        for a, b_, lo, hi in spans:
+            head, R, t, info = (clean_span if opt.clean else fill_span)(lo, hi)
+            R, t = to_take_space(R, t)
+            local = rows[(rows >= a) & (rows < b_)] - lo
+            if len(spans) == 1:
+                clean_report = info.report if opt.clean else info
+            else:
+                results.append((a - lo, b_ - lo, info))
+            angles = np.degrees(np.arccos(np.clip((np.trace(R[local], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+            angle_max = max(angle_max, float(angles.max()) if angles.size else 0.0)
+            yield head[local], R[local], t[local]
+        if len(spans) > 1:
+            covered = np.concatenate([take.positions[a:b_] for a, b_, _, _ in spans])
+            clean_report = merged_clean_report(results, covered, names, opt.clean_options, fix_pose=not opt.stabilise)
+        prepared.report = finish_report(clean_report, angle_max)
+
+    prepared._windows = windows
+    return prepared
+
+
+class PreparedTake:
+    """A take prepared window by window (:func:`prepare_take_windows`).
+
+    ``rows``: the take's rows it yields (the ``--frames`` selection); :meth:`windows` yields
+    (head, R, t) for consecutive runs of them, cleaned as they are asked for; ``report`` is set
+    once the last is taken.
+    """
+
+    def __init__(self, rows: np.ndarray, n_windows: int):
+        self.rows = rows
+        self.n_frames = int(len(rows))
+        self.n_windows = n_windows
+        self.report: dict | None = None
+        self._windows = None
+
+    def windows(self):
+        return self._windows()
+
+
+def clean_margin(options: CleanOptions, fps: float) -> int:
+    """Frames of context cleaned on each side of a window: twice the reach of the jump test
+    (``max_jump``) and of the fade into gaps (3 × ``decay``), plus the smoothing's 4σ."""
+    reach = max(options.max_jump, 3.0 * options.decay) * fps
+    return int(np.ceil(2.0 * reach + 4.0 * (options.smooth or 0.0))) + 16
+
+
+def merged_clean_report(results, world, names, options: CleanOptions, fix_pose: bool) -> dict:
+    """One cleaning report for windows cleaned apart: ``results`` holds (core start, core stop,
+    CleanResult) per window (core: the rows it yields, in its span's rows); ``world`` the markers
+    of the rows the cores cover, in order (visibility only). Counts cover the cores once; per-marker
+    weights and scales are means over the frames; the noise is each window's (median, range)."""
+    visible = np.isfinite(world).all(axis=-1)
+    missing = ~visible
+    T, H = missing.shape
+    gaps, longest, short_fill = gap_counts(missing, options.short_gap)
+    outliers = np.zeros(H, dtype=np.int64)
+    frames = np.array([b - a for a, b, _ in results], dtype=np.float64)
+    share = frames / frames.sum()
+    per_window = [r.report for _, _, r in results]
+    for a, b, r in results:
+        outliers += r.outliers[a:b].sum(axis=0)
+    per = {}
+    for m, name in enumerate(names):
+        per[name] = {
+            "missing": int(missing[:, m].sum()),
+            "gaps": int(gaps[m]),
+            "longest_gap": int(longest[m]),
+            "interpolated": int(short_fill[m]),
+            "from_prior": int(missing[:, m].sum() - short_fill[m]),
+            "outliers": int(outliers[m]),
+            "weight": float(sum(w * rep["markers"][name]["weight"] for w, rep in zip(share, per_window))),
+            "residual_rms": float(sum(w * rep["markers"][name]["residual_rms"] for w, rep in zip(share, per_window))),
+        }
+    empty = visible.sum(axis=1) < (1 if fix_pose else 3)
+    sigmas = [rep["noise"]["sigma"] for rep in per_window]
+    noise = dict(per_window[0]["noise"])
+    noise.update(
+        sigma=float(np.median(sigmas)), sigma_range=[float(min(sigmas)), float(max(sigmas))], windows=len(results),
+        off_span_rms_median=float(np.median([rep["noise"]["off_span_rms_median"] for rep in per_window])),
+        residual_kept_median=float(np.median([rep["noise"]["residual_kept_median"] for rep in per_window])),
+        active_expressions_mean=float(sum(w * rep["noise"]["active_expressions_mean"]
+                                          for w, rep in zip(share, per_window))))
+    notes = []
+    for rep in per_window:
+        notes += [n for n in rep.get("notes", []) if n not in notes]
+    return {
+        "markers": per,
+        "total": {
+            "frames": int(T),
+            "markers": int(H),
+            "missing": int(missing.sum()),
+            "missing_fraction": float(missing.mean()) if T else 0.0,
+            "gaps": int(gaps.sum()),
+            "longest_gap": int(longest.max()) if H else 0,
+            "longest_gap_marker": names[int(np.argmax(longest))] if H and longest.max() > 0 else None,
+            "filled": int(missing.sum() + outliers.sum()),
+            "interpolated": int(short_fill.sum()),
+            "from_prior": int(missing.sum() - short_fill.sum()),
+            "outliers": int(outliers.sum()),
+            "frames_interpolated": int(empty.sum()),
+        },
+        "noise": noise,
+        "smooth_frames": float(options.smooth or 0.0),
         "notes": notes,
     }
-    if absent:
-        notes.append(f"{len(absent)} rig marker(s) absent from the take, filled from the others through the "
-                     "rig's prior: " + ", ".join(absent[:8]) + (" ..." if len(absent) > 8 else ""))
-    return head, R, t, report
 
 
 def summary_lines(report: dict) -> list[str]:

@@ -61,6 +61,45 @@ class NumpyEvaluator:
         return (final, large) if with_large else final
 
 
+def prefetched(items):
+    """The items of an iterable, each next one computed on a thread while the caller works on the
+    current one (an error is raised where that item would have come)."""
+    import queue
+    import threading
+
+    box: queue.Queue = queue.Queue(maxsize=1)
+    done = object()
+    stop = threading.Event()
+
+    def produce():
+        try:
+            for item in items:
+                box.put((item, None))
+                if stop.is_set():
+                    return
+            box.put((done, None))
+        except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+            box.put((None, exc))
+
+    worker = threading.Thread(target=produce, daemon=True)
+    worker.start()
+    try:
+        while True:
+            item, error = box.get()
+            if error is not None:
+                raise error
+            if item is done:
+                return
+            yield item
+    finally:
+        stop.set()
+        while worker.is_alive():  # let a producer blocked on a full box finish
+            try:
+                box.get(timeout=0.1)
+            except queue.Empty:
+                pass
+
+
 def stream_chunks(evaluator, head: np.ndarray, sink, R: np.ndarray | None = None, t: np.ndarray | None = None,
                   chunk: int = 32, with_large: bool = False) -> None:
     """Evaluate a take chunk by chunk and hand each chunk to ``sink`` in frame order, pipelined.
@@ -107,25 +146,38 @@ class ReplayResult:
 def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames: np.ndarray, times: np.ndarray,
            out_dir: Path, evaluator=None, chunk: int = 32, head_motion: str = "keep", progress=None,
            extra_report=None, save_large: bool = False) -> ReplayResult:
+    """Replay handle trajectories onto the full mesh: :func:`replay_windows` with one window."""
+    return replay_windows(model, [(head, R, t)], frames, times, out_dir, evaluator, chunk, head_motion, progress,
+                          extra_report, save_large)
+
+
+def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray, out_dir: Path, evaluator=None,
+                   chunk: int = 32, head_motion: str = "keep", progress=None, extra_report=None,
+                   save_large: bool = False) -> ReplayResult:
     """Replay handle trajectories onto the full mesh, streaming positions to disk.
 
     Parameters
     ----------
-    head : (T, H, 3) clean handle positions in head (rig) space, rig units.
-    R, t : (T, 3, 3), (T, 3) the head's rigid motion, world = R @ head + t.
-    frames : (T,) frame numbers; times : (T,) seconds.
+    windows : iterable of (head, R, t) for consecutive frames (e.g. a take cleaned window by
+        window, :func:`facepipe.prepare.prepare_take_windows`): head (n, H, 3) clean handle
+        positions in head (rig) space, rig units; R, t (n, 3, 3), (n, 3) the head's rigid
+        motion, world = R @ head + t. The next window is taken on a second thread while this
+        one is evaluated.
+    frames : (T,) frame numbers; times : (T,) seconds, of all the windows' frames.
     out_dir : gets ``positions.npy`` (float32, T × V × 3, written chunk by chunk while the next
         chunk is evaluated, renamed into place when complete), ``replay.json``, and ``handles.npz`` (the clean head-space
         handles and the head motion: what an exporter needs to re-evaluate any layer of the model).
     head_motion : "keep" re-applies the head's rigid motion to the output, "remove" leaves
         the face in rig space.
     progress : callable(n_frames_done) or None.
+    extra_report : dict for replay.json, or a callable returning it once the windows are taken.
     """
     evaluator = evaluator or NumpyEvaluator(model)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    T = head.shape[0]
+    T = len(frames)
     V = model.n_vertices
+    heads, rotations, translations = [], [], []
     t_start = time.perf_counter()
     final_path = out_dir / "positions.npy"
     large_path = out_dir / "large_scale.npy"
@@ -140,8 +192,17 @@ def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames:
                     progress(final.shape[0])
 
             keep = head_motion == "keep"
-            stream_chunks(evaluator, head, sink, R if keep else None, t if keep else None, chunk=chunk,
-                          with_large=save_large)
+            for head, R, t in prefetched(windows):
+                stream_chunks(evaluator, head, sink, R if keep else None, t if keep else None, chunk=chunk,
+                              with_large=save_large)
+                heads.append(head.astype(np.float32))
+                rotations.append(R)
+                translations.append(t)
+            if sum(len(h) for h in heads) != T:
+                raise ValueError(f"the windows hold {sum(len(h) for h in heads)} frames, not {T}")
+    head = np.concatenate(heads) if heads else np.zeros((0, len(model.handle_vertices), 3), np.float32)
+    R = np.concatenate(rotations) if rotations else np.zeros((0, 3, 3))
+    t = np.concatenate(translations) if translations else np.zeros((0, 3))
     if not save_large:
         large_path.unlink(missing_ok=True)
     with atomic_path(out_dir / "handles.npz") as tmp:
@@ -170,6 +231,8 @@ def replay(model: Model, head: np.ndarray, R: np.ndarray, t: np.ndarray, frames:
         "model": model.path,
         "config_digest": model.meta.get("config_digest"),
     }
+    if callable(extra_report):  # (what the windows made known, now that they are all taken)
+        extra_report = extra_report()
     if extra_report:
         report.update(extra_report)
     with atomic_path(out_dir / "replay.json") as tmp:

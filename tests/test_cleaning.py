@@ -390,3 +390,70 @@ def test_ict_replay_command_line(ict_model, tmp_path, capsys):
     assert run("replay", c3d, "-m", model_path, "-o", tmp_path / "bad", "-q", "--neutral-frame", 99) == 2
     assert "neutral frame 99 is not in the take" in capsys.readouterr().err
     assert run("replay", c3d, "-m", model_path, "-o", tmp_path / "bad", "-q", "--smooth", -1) == 2
+
+
+# --------------------------------------------------------------------------- long takes, window by window
+
+
+def long_take(rest, basis, n=900, noise=0.01, seed=2):
+    """A noisy take of ``n`` frames with gaps, one of them across a window boundary."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0, 6, n)
+    weights = np.clip(np.stack([np.sin(np.pi * (s * (k + 1) / 3 + rng.uniform())) for k in range(K)], 1), 0, None)
+    head = rest + np.einsum("tk,khc->thc", weights, basis)
+    R = Rotation.from_rotvec(np.radians(10) * np.stack([np.sin(s), 0.5 * np.sin(0.7 * s + 1), 0.2 * s], 1)).as_matrix()
+    t = np.stack([np.sin(0.5 * s), 0.3 * np.sin(s), -0.2 * s], 1) + [0.0, 150.0, 10.0]
+    world = np.einsum("tij,thj->thi", R, head) + t[:, None, :] + rng.normal(scale=noise, size=(n, H, 3))
+    world[190:215, 3] = np.nan  # across the boundary of 200-frame windows
+    world[500:506, 7] = np.nan
+    world[640, 11] = [40.0, 0.0, 0.0]  # an outlier
+    return world, head
+
+
+def test_long_takes_are_cleaned_window_by_window_as_well_as_whole():
+    from facepipe.prepare import clean_margin, prepare_take_windows
+
+    model, rest, basis, _, names = make_rig()
+    world, head = long_take(rest, basis)
+    take = take_of(world, names)
+    assert len(world) > 200 + 2 * clean_margin(CleanOptions(), 30.0)
+    whole, Rw, tw, rep_whole = prepare_take(take, model, window=10 ** 6)
+    win, Rv, tv, rep_win = prepare_take(take, model, window=200)
+    assert rep_win["cleaning"]["noise"]["windows"] == 5 and "windows" not in rep_whole["cleaning"]["noise"]
+
+    def rms(x):
+        return float(np.sqrt(np.mean(np.sum((x - head) ** 2, axis=-1))))
+
+    assert rms(win) <= 1.1 * rms(whole)
+    assert np.abs(win - whole).max() < 3 * 0.01  # the seams between windows: within the noise
+    np.testing.assert_allclose(Rv, Rw, atol=2e-3)
+    for key in ("frames", "missing", "gaps", "longest_gap", "interpolated", "from_prior", "outliers"):
+        assert rep_win["total"][key] == rep_whole["total"][key], key
+    assert rep_win["markers"][names[11]]["outliers"] == 1
+    lo, hi = rep_win["cleaning"]["noise"]["sigma_range"]
+    assert 0.5 * 0.01 < lo <= rep_win["cleaning"]["noise"]["sigma"] <= hi < 2 * 0.01
+    json.dumps(rep_win)
+
+    # a part replays exactly as in the whole take (the windows are fixed by the take's rows)
+    part, Rp, tp, _ = prepare_take(take, model, PrepareOptions(frames=slice(350, 620)), window=200)
+    np.testing.assert_array_equal(part, win[350:620])
+    np.testing.assert_array_equal(Rp, Rv[350:620])
+
+    # windows are cleaned as they are asked for; the report comes with the last
+    prepared = prepare_take_windows(take, model, PrepareOptions(frames=slice(150, 450)), window=200)
+    assert prepared.n_windows == 3 and prepared.n_frames == 300
+    windows = prepared.windows()
+    first = next(windows)
+    assert prepared.report is None and len(first[0]) == 50
+    rest_ = list(windows)
+    assert [len(w[0]) for w in rest_] == [200, 50] and prepared.report["total"]["frames"] == 600
+    np.testing.assert_array_equal(np.concatenate([first[0]] + [w[0] for w in rest_]), win[150:450])
+
+
+def test_a_long_stretch_without_markers_is_cleaned_whole():
+    model, rest, basis, _, names = make_rig()
+    world, head = long_take(rest, basis)
+    world[220:700] = np.nan  # no window from 200 to 600 can fit a pose
+    out, *_, rep = prepare_take(take_of(world, names), model, window=200)
+    assert np.isfinite(out).all() and "windows" not in rep["cleaning"]["noise"]
+    assert any("cleaned whole" in n for n in rep["notes"])

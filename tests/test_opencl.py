@@ -154,6 +154,36 @@ def test_stream_chunks_drives_numpy_and_opencl_alike(sample, tmp_path):
     assert np.abs(outputs["numpy"] - outputs["opencl"]).max() <= TOL * (diag + np.abs(t).max())
 
 
+def test_replay_in_windows_equals_replay_whole(sample, tmp_path):
+    """A take handed over window by window (cleaned while the previous window is evaluated) gives the
+    same files as the whole take at once; an error in a later window leaves no positions file."""
+    from facepipe.replay import replay, replay_windows
+
+    _, rig, fit, head, _ = sample
+    model = model_from_fit(fit, rig, "wpsd")
+    R, t = _motion(len(head), seed=7)
+    frames = np.arange(len(head))
+    times = frames / 30.0
+    whole = replay(model, head, R, t, frames, times, tmp_path / "whole", chunk=8)
+    cuts = [0, 5, 6, 23, len(head)]
+    windows = [(head[a:b], R[a:b], t[a:b]) for a, b in zip(cuts, cuts[1:])]
+    parts = replay_windows(model, iter(windows), frames, times, tmp_path / "parts", chunk=8,
+                           extra_report=lambda: {"windows": len(windows)})
+    np.testing.assert_array_equal(np.load(parts.positions_path), np.load(whole.positions_path))
+    a, b = np.load(tmp_path / "whole" / "handles.npz"), np.load(tmp_path / "parts" / "handles.npz")
+    for key in ("head", "rotation", "translation", "frame"):
+        np.testing.assert_array_equal(a[key], b[key])
+    assert parts.report["windows"] == 4 and parts.report["frames"] == len(head)
+
+    def failing():
+        yield windows[0]
+        raise RuntimeError("window 2 could not be cleaned")
+
+    with pytest.raises(RuntimeError, match="window 2"):
+        replay_windows(model, failing(), frames, times, tmp_path / "failed", chunk=8)
+    assert not (tmp_path / "failed" / "positions.npy").exists()
+
+
 # ----------------------------------------------------------------------------- devices and the CLI
 
 
@@ -195,6 +225,27 @@ def test_cli_replay_records_backend_and_device(baked):
         a, b = np.load(d / "ocl" / name), np.load(d / "np" / name)
         assert a.shape == b.shape == (26, a.shape[1], 3)
         assert np.abs(a - b).max() <= TOL * max(diag, sample_diag)
+
+
+def test_cli_replay_cleans_a_long_take_window_by_window(baked, monkeypatch):
+    """replay cleans a take longer than a window window by window (here 8 frames, 4 of context) and
+    says so in replay.json; the result stays that of the whole take up to the windows' own noise
+    estimates (this take has no noise)."""
+    from facepipe import prepare
+
+    d = baked
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "w1", "--backend", "numpy",
+               "-q") == 0
+    monkeypatch.setattr(prepare, "CLEAN_WINDOW", 8)
+    monkeypatch.setattr(prepare, "clean_margin", lambda options, fps: 4)
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "w8", "--backend", "numpy",
+               "-q") == 0
+    one, eight = (json.loads((d / name / "replay.json").read_text()) for name in ("w1", "w8"))
+    assert "windows" not in one["mocap"]["cleaning"]["noise"]
+    assert eight["mocap"]["cleaning"]["noise"]["windows"] == 5 and eight["frames"] == one["frames"] == 40
+    a, b = np.load(d / "w1" / "positions.npy"), np.load(d / "w8" / "positions.npy")
+    diag = float(np.linalg.norm(np.ptp(a[0], axis=0)))
+    assert np.abs(a - b).max() <= 1e-3 * diag
 
 
 def test_cli_without_opencl_platform(baked, monkeypatch, capsys):
