@@ -25,6 +25,7 @@ class NumpyEvaluator:
 
     backend = "numpy"
     device = "cpu (numpy)"
+    on_host_cores = True  # (see the OpenCL evaluator)
 
     def __init__(self, model: Model):
         self.model = model
@@ -161,8 +162,9 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
     windows : iterable of (head, R, t) for consecutive frames (e.g. a take cleaned window by
         window, :func:`facepipe.prepare.prepare_take_windows`): head (n, H, 3) clean handle
         positions in head (rig) space, rig units; R, t (n, 3, 3), (n, 3) the head's rigid
-        motion, world = R @ head + t. The next window is taken on a second thread while this
-        one is evaluated.
+        motion, world = R @ head + t. Where the evaluator runs off the host's cores (a GPU), the
+        next window is taken on a second thread while this one is evaluated (on a CPU device
+        both would compete for the same cores: there they take turns).
     frames : (T,) frame numbers; times : (T,) seconds, of all the windows' frames.
     out_dir : gets ``positions.npy`` (float32, T × V × 3, written chunk by chunk while the next
         chunk is evaluated, renamed into place when complete), ``replay.json``, and ``handles.npz`` (the clean head-space
@@ -192,7 +194,8 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
                     progress(final.shape[0])
 
             keep = head_motion == "keep"
-            for head, R, t in prefetched(windows):
+            overlap = not getattr(evaluator, "on_host_cores", True)
+            for head, R, t in (prefetched(windows) if overlap else windows):
                 stream_chunks(evaluator, head, sink, R if keep else None, t if keep else None, chunk=chunk,
                               with_large=save_large)
                 heads.append(head.astype(np.float32))

@@ -167,21 +167,49 @@ def test_replay_in_windows_equals_replay_whole(sample, tmp_path):
     whole = replay(model, head, R, t, frames, times, tmp_path / "whole", chunk=8)
     cuts = [0, 5, 6, 23, len(head)]
     windows = [(head[a:b], R[a:b], t[a:b]) for a, b in zip(cuts, cuts[1:])]
-    parts = replay_windows(model, iter(windows), frames, times, tmp_path / "parts", chunk=8,
-                           extra_report=lambda: {"windows": len(windows)})
-    np.testing.assert_array_equal(np.load(parts.positions_path), np.load(whole.positions_path))
-    a, b = np.load(tmp_path / "whole" / "handles.npz"), np.load(tmp_path / "parts" / "handles.npz")
-    for key in ("head", "rotation", "translation", "frame"):
-        np.testing.assert_array_equal(a[key], b[key])
-    assert parts.report["windows"] == 4 and parts.report["frames"] == len(head)
+
+    class OffHost(NumpyEvaluator):  # as a GPU: the next window is prepared on a thread meanwhile
+        on_host_cores = False
+
+    for name, ev in (("parts", NumpyEvaluator(model)), ("overlapped", OffHost(model))):
+        parts = replay_windows(model, iter(windows), frames, times, tmp_path / name, evaluator=ev, chunk=8,
+                               extra_report=lambda: {"windows": len(windows)})
+        np.testing.assert_array_equal(np.load(parts.positions_path), np.load(whole.positions_path))
+        a, b = np.load(tmp_path / "whole" / "handles.npz"), np.load(tmp_path / name / "handles.npz")
+        for key in ("head", "rotation", "translation", "frame"):
+            np.testing.assert_array_equal(a[key], b[key])
+        assert parts.report["windows"] == 4 and parts.report["frames"] == len(head)
 
     def failing():
         yield windows[0]
         raise RuntimeError("window 2 could not be cleaned")
 
-    with pytest.raises(RuntimeError, match="window 2"):
-        replay_windows(model, failing(), frames, times, tmp_path / "failed", chunk=8)
-    assert not (tmp_path / "failed" / "positions.npy").exists()
+    for ev in (NumpyEvaluator(model), OffHost(model)):
+        with pytest.raises(RuntimeError, match="window 2"):
+            replay_windows(model, failing(), frames, times, tmp_path / "failed", evaluator=ev, chunk=8)
+        assert not (tmp_path / "failed" / "positions.npy").exists()
+
+
+def test_prefetched_keeps_order_raises_in_place_and_stops():
+    import threading
+
+    from facepipe.replay import prefetched
+
+    assert list(prefetched(iter(range(5)))) == [0, 1, 2, 3, 4]
+
+    def bad():
+        yield 1
+        raise ValueError("the second item")
+
+    items = prefetched(bad())
+    assert next(items) == 1
+    with pytest.raises(ValueError, match="second item"):
+        next(items)
+    before = threading.active_count()
+    items = prefetched(iter(range(100)))
+    assert next(items) == 0
+    items.close()  # the consumer stops early: the producer thread ends too
+    assert threading.active_count() == before
 
 
 # ----------------------------------------------------------------------------- devices and the CLI

@@ -203,6 +203,9 @@ class OpenCLEvaluator:
         self.device = device_label(self.cl_device)
         dev = self.cl_device
         gpu = bool(dev.type & cl.device_type.GPU)
+        # whether evaluating takes the host's own cores (a CPU device): work overlapped with it
+        # then only competes for them
+        self.on_host_cores = not gpu
         self.vw = int(vector_width or (1 if gpu else 8))
         if self.vw not in (1, 2, 4, 8, 16):
             raise ValueError(f"vector_width {self.vw} is not 1, 2, 4, 8 or 16")
