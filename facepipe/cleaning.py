@@ -41,7 +41,7 @@ import numpy as np
 from .mocap.gaps import fill_gaps
 from .stabilise import interpolate_poses, stable_marker_pose
 
-__all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "gap_counts",
+__all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
            "noise_sigma", "rotation_from_vector"]
 
 
@@ -597,36 +597,11 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         clean = gaussian_filter1d(clean, float(opt.smooth), axis=0, mode="nearest")
 
     # report
-    missing = ~visible
-    gaps, longest, short_fill = gap_counts(missing, opt.short_gap)
-    per = {}
-    for m in range(H):
-        per[names[m]] = {
-            "missing": int(missing[:, m].sum()),
-            "gaps": int(gaps[m]),
-            "longest_gap": int(longest[m]),
-            "interpolated": int(short_fill[m]),
-            "from_prior": int(missing[:, m].sum() - short_fill[m]),
-            "outliers": int(outlier[:, m].sum()),
-            "weight": float(trust[m]),
-            "residual_rms": float(np.sqrt(3 * ms[m])),
-        }
+    per, total = sample_counts(~visible, outlier.sum(axis=0), int(empty.sum()), opt.short_gap, names, trust,
+                               np.sqrt(3 * ms))
     report = {
         "markers": per,
-        "total": {
-            "frames": int(T),
-            "markers": int(H),
-            "missing": int(missing.sum()),
-            "missing_fraction": float(missing.mean()) if T else 0.0,
-            "gaps": int(gaps.sum()),
-            "longest_gap": int(longest.max()) if H else 0,
-            "longest_gap_marker": names[int(np.argmax(longest))] if H and longest.max() > 0 else None,
-            "filled": int(missing.sum() + outlier.sum()),
-            "interpolated": int(short_fill.sum()),
-            "from_prior": int(missing.sum() - short_fill.sum()),
-            "outliers": int(outlier.sum()),
-            "frames_interpolated": int(empty.sum()),
-        },
+        "total": total,
         "noise": {
             "sigma": float(sigma),
             "off_span_rms_median": float(np.median(np.sqrt(3 * tau2))) if H else 0.0,
@@ -641,10 +616,16 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     return CleanResult(clean, R, t, C, report, outlier)
 
 
-def gap_counts(missing: np.ndarray, short_gap: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per marker of a (T, H) mask of missing samples: the number of gaps (runs), the longest, and
-    the samples in gaps of at most ``short_gap`` frames (those reported as interpolated)."""
-    H = missing.shape[1]
+def sample_counts(missing: np.ndarray, outliers: np.ndarray, frames_interpolated: int, short_gap: int, names,
+                  weight: np.ndarray, residual_rms: np.ndarray) -> tuple[dict, dict]:
+    """The cleaning report's per-marker and total counts.
+
+    missing : (T, H) mask of missing samples; outliers : (H,) samples dropped per marker;
+    frames_interpolated : frames whose pose was interpolated; short_gap : gaps up to this many
+    frames count as interpolated, longer ones as filled from the prior; weight, residual_rms :
+    (H,) each marker's weight in the fit and residual scale.
+    """
+    T, H = missing.shape
     col, start, stop = _runs(missing)
     run_len = stop - start
     gaps = np.bincount(col, minlength=H)
@@ -652,4 +633,24 @@ def gap_counts(missing: np.ndarray, short_gap: int) -> tuple[np.ndarray, np.ndar
     np.maximum.at(longest, col, run_len)
     short_fill = np.zeros(H, dtype=np.int64)
     np.add.at(short_fill, col, np.where(run_len <= short_gap, run_len, 0))
-    return gaps, longest, short_fill
+    n_missing = missing.sum(axis=0)
+    per = {names[m]: {"missing": int(n_missing[m]), "gaps": int(gaps[m]), "longest_gap": int(longest[m]),
+                      "interpolated": int(short_fill[m]), "from_prior": int(n_missing[m] - short_fill[m]),
+                      "outliers": int(outliers[m]), "weight": float(weight[m]),
+                      "residual_rms": float(residual_rms[m])}
+           for m in range(H)}
+    total = {
+        "frames": int(T),
+        "markers": int(H),
+        "missing": int(n_missing.sum()),
+        "missing_fraction": float(missing.mean()) if T else 0.0,
+        "gaps": int(gaps.sum()),
+        "longest_gap": int(longest.max()) if H else 0,
+        "longest_gap_marker": names[int(np.argmax(longest))] if H and longest.max() > 0 else None,
+        "filled": int(n_missing.sum() + outliers.sum()),
+        "interpolated": int(short_fill.sum()),
+        "from_prior": int(n_missing.sum() - short_fill.sum()),
+        "outliers": int(outliers.sum()),
+        "frames_interpolated": int(frames_interpolated),
+    }
+    return per, total

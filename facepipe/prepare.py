@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cleaning import CleanOptions, clean_take, gap_counts
+from .cleaning import CleanOptions, clean_take, sample_counts
 from .errors import InputError
 from .mocap.gaps import fill_gaps
 from .mocap.markers import known_unit_ratios
@@ -392,28 +392,19 @@ def merged_clean_report(results, world, names, options: CleanOptions, fix_pose: 
     of the rows the cores cover, in order (visibility only). Counts cover the cores once; per-marker
     weights and scales are means over the frames; the noise is each window's (median, range)."""
     visible = np.isfinite(world).all(axis=-1)
-    missing = ~visible
-    T, H = missing.shape
-    gaps, longest, short_fill = gap_counts(missing, options.short_gap)
-    outliers = np.zeros(H, dtype=np.int64)
+    outliers = np.zeros(len(names), dtype=np.int64)
     frames = np.array([b - a for a, b, _ in results], dtype=np.float64)
     share = frames / frames.sum()
     per_window = [r.report for _, _, r in results]
     for a, b, r in results:
         outliers += r.outliers[a:b].sum(axis=0)
-    per = {}
-    for m, name in enumerate(names):
-        per[name] = {
-            "missing": int(missing[:, m].sum()),
-            "gaps": int(gaps[m]),
-            "longest_gap": int(longest[m]),
-            "interpolated": int(short_fill[m]),
-            "from_prior": int(missing[:, m].sum() - short_fill[m]),
-            "outliers": int(outliers[m]),
-            "weight": float(sum(w * rep["markers"][name]["weight"] for w, rep in zip(share, per_window))),
-            "residual_rms": float(sum(w * rep["markers"][name]["residual_rms"] for w, rep in zip(share, per_window))),
-        }
+
+    def frame_mean(key):  # a per-marker figure, averaged over the windows' frames
+        return np.array([sum(w * rep["markers"][name][key] for w, rep in zip(share, per_window)) for name in names])
+
     empty = visible.sum(axis=1) < (1 if fix_pose else 3)
+    per, total = sample_counts(~visible, outliers, int(empty.sum()), options.short_gap, names,
+                               frame_mean("weight"), frame_mean("residual_rms"))
     sigmas = [rep["noise"]["sigma"] for rep in per_window]
     noise = dict(per_window[0]["noise"])
     noise.update(
@@ -427,20 +418,7 @@ def merged_clean_report(results, world, names, options: CleanOptions, fix_pose: 
         notes += [n for n in rep.get("notes", []) if n not in notes]
     return {
         "markers": per,
-        "total": {
-            "frames": int(T),
-            "markers": int(H),
-            "missing": int(missing.sum()),
-            "missing_fraction": float(missing.mean()) if T else 0.0,
-            "gaps": int(gaps.sum()),
-            "longest_gap": int(longest.max()) if H else 0,
-            "longest_gap_marker": names[int(np.argmax(longest))] if H and longest.max() > 0 else None,
-            "filled": int(missing.sum() + outliers.sum()),
-            "interpolated": int(short_fill.sum()),
-            "from_prior": int(missing.sum() - short_fill.sum()),
-            "outliers": int(outliers.sum()),
-            "frames_interpolated": int(empty.sum()),
-        },
+        "total": total,
         "noise": noise,
         "smooth_frames": float(options.smooth or 0.0),
         "notes": notes,
