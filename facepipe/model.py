@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
 
 from .atomic import atomic_path
 from .errors import InputError
@@ -75,13 +76,17 @@ class Model:
 
     def detail_model(self, dtype=np.float64) -> DetailModel:
         weights = edge_weight_matrix(self.edge_index, self.edge_weight, len(self.edges)).astype(dtype)
-        gate = None
-        if "novelty_solve" in self.arrays and self.meta.get("novelty_tau", 0) > 0:
-            gate = NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype),
-                               self.novelty_examples.astype(dtype), self.novelty_solve.astype(dtype),
-                               float(self.meta["novelty_tau"]), weights)
         return DetailModel(self.method, self.basis_features.astype(dtype), self.rbf_weights.astype(dtype),
-                           self.rbf_const.astype(dtype), weights if self.method == "wpsd" else None, gate)
+                           self.rbf_const.astype(dtype), weights if self.method == "wpsd" else None,
+                           self.novelty_gate(weights, dtype))
+
+    def novelty_gate(self, alpha: sp.spmatrix, dtype=np.float64) -> NoveltyGate | None:
+        """The model's novelty gate with the site-to-vertex weights ``alpha`` (the model's own α,
+        or another: the OpenCL engine takes per-site factors with the identity); None without one."""
+        if "novelty_solve" not in self.arrays or not self.meta.get("novelty_tau", 0) > 0:
+            return None
+        return NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype), self.novelty_examples.astype(dtype),
+                           self.novelty_solve.astype(dtype), float(self.meta["novelty_tau"]), alpha)
 
     def mesh(self) -> Mesh:
         """The rest mesh with its original polygons and UVs (for export)."""

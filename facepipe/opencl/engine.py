@@ -116,28 +116,25 @@ def compact_edges(edge_index: np.ndarray, edge_weight: np.ndarray):
             (weight != 0).sum(axis=1).astype(np.int32))
 
 
-def _site_gate(gate, model):
-    """The gate with α replaced by the identity, so ``confidence`` gives per-site factors (Q, F).
+def _site_gate(model):
+    """The model's novelty gate with α replaced by the identity, so ``confidence`` gives per-site
+    factors (Q, F), or None.
 
     The gate's confidence is α · s(f) (per-site factors s spread over the vertices by the WPSD
-    weights); the kernel does the α-sum over the same compacted edge lists. Checked here on
-    a few strain vectors, so a gate that stops factoring this way fails loudly, not silently.
+    weights); the kernel does the α-sum over the same compacted edge lists. Checked here on a few
+    strain vectors and an even sample of vertices, so a gate that stops factoring this way fails
+    loudly, not silently.
     """
-    import copy
-    import dataclasses
-
-    from ..psd import edge_weight_matrix
+    from ..psd import edge_weight_matrix, spread_sample
 
     F = int(model.edges.shape[0])
-    identity = sp.identity(F, format="csr")
-    if dataclasses.is_dataclass(gate):
-        site_gate = dataclasses.replace(gate, alpha=identity)
-    else:
-        site_gate = copy.copy(gate)
-        site_gate.alpha = identity
-    alpha = edge_weight_matrix(model.edge_index, model.edge_weight, F)
+    site_gate = model.novelty_gate(sp.identity(F, format="csr"))
+    if site_gate is None:
+        return None
+    rows = spread_sample(model.n_vertices, 4096)
+    alpha = edge_weight_matrix(model.edge_index[rows], model.edge_weight[rows], F)
     probe = np.random.default_rng(0).normal(scale=0.05, size=(3, F)) + model.basis_features[-1].astype(np.float64)
-    expected = gate.confidence(probe)
+    expected = model.novelty_gate(alpha).confidence(probe)
     got = np.asarray(alpha @ site_gate.confidence(probe).T).T
     if not np.allclose(got, expected, rtol=1e-6, atol=1e-9):
         raise RuntimeError("the model's novelty gate is not α · (per-site factors): update facepipe/opencl")
@@ -232,9 +229,7 @@ class OpenCLEvaluator:
         # over per-site factors s: the host computes s per frame, the kernel the α-weighted sum
         self.gate = None
         if method != "none" and float(model.meta.get("novelty_tau", 0) or 0) > 0:
-            gate = getattr(model.detail_model(np.float64), "gate", None)
-            if gate is not None:
-                self.gate = _site_gate(gate, model)
+            self.gate = _site_gate(model)
         P = self.basis.shape[0] if method != "none" else 1
         F = max(1, int(self.edges.shape[0]))
         K = int(model.edge_index.shape[1]) if model.edge_index.ndim == 2 and model.edge_index.shape[1] else 1
