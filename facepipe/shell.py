@@ -224,15 +224,15 @@ def _mkl_pardiso():
         import glob
         import sys
 
-        import pypardiso  # noqa: F401 - raises ImportError where not installed
-
-        # where the mkl wheel puts it; else pypardiso's search (a recursive glob of the prefix)
+        # where the mkl wheel puts it; else pypardiso's search. (Importing pypardiso is avoided
+        # where the wheel's library is found: its import runs ctypes' find_library, which forks
+        # ldconfig and a C compiler from this process, at this point gigabytes large.)
         found = sorted(glob.glob(f"{sys.prefix}/lib/libmkl_rt.so*"))
         found += sorted(glob.glob(f"{sys.prefix}/Library/bin/mkl_rt*.dll"))
         if found:
             name = found[0]
         else:
-            from pypardiso.pardiso_wrapper import PyPardisoSolver
+            from pypardiso.pardiso_wrapper import PyPardisoSolver  # ImportError where not installed
 
             name = PyPardisoSolver().libmkl._name
         lib = ctypes.CDLL(name)  # our own handle: its argtypes are ours
