@@ -271,7 +271,8 @@ def prepare_take_windows(take: Take, model, options: PrepareOptions | None = Non
         enough = np.isfinite(take.positions).all(axis=-1).sum(axis=1) >= (3 if opt.stabilise else 1)
         if not all(enough[lo:hi].any() for _, _, lo, hi in spans):
             spans = [(0, T, 0, T)]
-            notes.append(f"a stretch of {window} or more frames without markers: the take was cleaned whole")
+            notes.append(f"a stretch of {window} or more frames without enough markers to fit the head: "
+                         "the take was cleaned whole")
     else:
         spans = [(0, T, 0, T)]
 
