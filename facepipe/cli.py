@@ -217,33 +217,6 @@ def bake(ctx, source, output, quiet, verbose):
 # ----------------------------------------------------------------------------- replay
 
 
-class _background:
-    """``fn(*args)`` on a thread from now on; :meth:`result` waits and returns it (or raises its error)."""
-
-    def __init__(self, fn, *args):
-        import threading
-
-        self._value = self._error = None
-
-        def run():
-            try:
-                self._value = fn(*args)
-            except BaseException as exc:  # noqa: BLE001 - handed to the caller by result()
-                self._error = exc
-
-        self._thread = threading.Thread(target=run, daemon=True)
-        self._thread.start()
-
-    def wait(self) -> None:
-        self._thread.join()
-
-    def result(self):
-        self.wait()
-        if self._error is not None:
-            raise self._error
-        return self._value
-
-
 def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Reporter):
     """The replay evaluator: OpenCL when asked for, or (auto) when a device works; else NumPy."""
     from .replay import NumpyEvaluator
@@ -305,6 +278,8 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV; it is converted to the
     rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section).
     """
+    from concurrent.futures import ThreadPoolExecutor, wait
+
     from .cleaning import CleanOptions
     from .mocap import parse_frame_slice, read_take
     from .model import load_model
@@ -320,7 +295,9 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     units = model.meta.get("units")
     # the device is set up (B and the tables uploaded, kernels built: seconds at 530k vertices)
     # while the take is read and cleaned
-    setup = _background(_make_evaluator, model, backend, device, chunk, rep)
+    setup = ThreadPoolExecutor(1)
+    evaluator_future = setup.submit(_make_evaluator, model, backend, device, chunk, rep)
+    setup.shutdown(wait=False)
     try:
         # absent markers are filled through the prior when cleaning; without it they are an error
         read = dict(units=units, take_units=take_units, subject=subject, absent="error" if no_clean else "missing",
@@ -333,9 +310,9 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         # a long take is cleaned window by window, each while the previous one is on the device
         prepared = prepare_take_windows(take_data, model, options)
     except BaseException:
-        setup.wait()  # the take's error is the one to report; the setup's outcome no longer matters
+        wait([evaluator_future])  # the take's error is the one to report; the setup's outcome no longer matters
         raise
-    evaluator = setup.result()
+    evaluator = evaluator_future.result()
     take_data = take_data if options.frames is None else take_data.select(options.frames)
 
     def take_report():  # complete once every window is cleaned

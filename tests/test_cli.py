@@ -77,7 +77,7 @@ def test_frames_option(pipeline, tmp_path):
     assert part.shape[0] == 4 and np.allclose(part, full[5:9], atol=1e-5)
 
 
-def test_bad_inputs_exit_2_with_message(pipeline, tmp_path, capsys):
+def test_bad_inputs_exit_2_with_message(pipeline, tmp_path, capsys, monkeypatch):
     d = pipeline
     assert run("fit", tmp_path / "missing.toml") == 2
     assert "config file not found" in capsys.readouterr().err
@@ -108,6 +108,15 @@ def test_bad_inputs_exit_2_with_message(pipeline, tmp_path, capsys):
     assert run("replay", tmp_path / "cut.csv", "-m", d / "model.npz", "-o", tmp_path / "o3") == 2
     assert "line 6" in capsys.readouterr().err
     assert not (tmp_path / "o3" / "positions.npy").exists()
+    # the device is set up while the take is read: the take's error is the one reported
+    from facepipe.opencl import device as cl_device
+
+    monkeypatch.setattr(cl_device, "list_devices", lambda: [])
+    assert run("replay", tmp_path / "cut.csv", "-m", d / "model.npz", "-o", tmp_path / "o4", "--backend",
+               "opencl") == 2
+    err = capsys.readouterr().err
+    assert "line 6" in err and "OpenCL" not in err
+    assert not (tmp_path / "o4" / "positions.npy").exists()
 
 
 def test_help_everywhere():

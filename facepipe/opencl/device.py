@@ -113,13 +113,18 @@ def select_device(spec: str | None = None):
 
 def open_device(spec: str | None = None):
     """(context, device) for ``spec``, one context per device per process."""
-    cl = _cl()
     device = select_device(spec)
+    return device_context(device), device
+
+
+def device_context(device):
+    """The process's one context on ``device`` (a pyopencl.Device)."""
+    cl = _cl()
     with _lock:
         key = device.int_ptr
         if key not in _contexts:
             _contexts[key] = cl.Context([device])
-        return _contexts[key], device
+        return _contexts[key]
 
 
 def opencl_available(spec: str | None = None) -> bool:

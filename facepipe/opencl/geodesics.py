@@ -56,10 +56,10 @@ class DeviceGeodesics:
     def __init__(self, graph: sp.csr_matrix, sources: np.ndarray, device, ring: int, delta: float):
         import pyopencl as cl
 
-        from .device import open_device
+        from .device import device_context
 
         self.device = device
-        context, _ = open_device(f"{_index_of(device)}")
+        context = device_context(device)
         self._queue = cl.CommandQueue(context, device)
         program = build_program(context, {"RING": ring}, "geodesics.cl")
         n = graph.shape[0]
@@ -111,16 +111,6 @@ class DeviceGeodesics:
         for buf in self._buffers + self._scratch:
             buf.release()
         self._buffers, self._scratch, self._event = [], [], None
-
-
-def _index_of(device) -> str:
-    """The ``P:D`` spec of a device, as :func:`~facepipe.opencl.device.open_device` takes it."""
-    from .device import list_devices
-
-    for p, d, dev in list_devices():
-        if dev.int_ptr == device.int_ptr:
-            return f"{p}:{d}"
-    raise LookupError("the device is gone")
 
 
 def start(graph: sp.csr_matrix, sources: np.ndarray) -> DeviceGeodesics | None:
