@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from facepipe.evaluate import frame_errors, parse_vertex_range
-from facepipe.fit import fit_rig
-from facepipe.model import model_from_fit
-from facepipe.replay import NumpyEvaluator
-from facepipe.rig import load_rig
+from facepipe.pipeline.evaluate import frame_errors, parse_vertex_range
+from facepipe.pipeline.fit import fit_rig
+from facepipe.io.model_file import model_from_fit
+from facepipe.pipeline.replay import NumpyEvaluator
+from facepipe.pipeline.rig import load_rig
 
 ROOT = Path(__file__).resolve().parents[1]
 

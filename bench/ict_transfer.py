@@ -70,7 +70,7 @@ def face_rms(positions: np.ndarray, truth: np.ndarray, vertices) -> float:
 
 def replay_case(name, work, model_path, X, displacement, vertices, frames, times):
     """Replay the truth-rule take of face X (markers where the model has its handles); errors."""
-    from facepipe.model import load_model
+    from facepipe.io.model_file import load_model
 
     model = load_model(model_path)
     hv = model.handle_vertices.astype(np.int64)
@@ -91,7 +91,7 @@ def remesh(vertices, faces, factor: float):
     """pymeshlab isotropic explicit remeshing to ``factor`` × the mean edge length."""
     import pymeshlab
 
-    from facepipe.mesh import unique_edges
+    from facepipe.core.mesh import unique_edges
 
     e = unique_edges(faces)
     mean_edge = float(np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1).mean())
@@ -113,11 +113,11 @@ def main(argv=None) -> int:
     if not (KIT / "neutral.obj").is_file():
         print(f"the ICT kit is not at {KIT}", file=sys.stderr)
         return 2
-    from facepipe.mesh import Mesh, load_mesh, save_obj
-    from facepipe.model import load_model
-    from facepipe.rbfmorph import farthest_point_subset
-    from facepipe.transfer import project_points
-    from facepipe.frames import vertex_normals
+    from facepipe.core.mesh import Mesh, load_mesh, save_obj
+    from facepipe.io.model_file import load_model
+    from facepipe.core.rbf_morph import farthest_point_subset
+    from facepipe.pipeline.transfer import project_points
+    from facepipe.core.tangent_frames import vertex_normals
     from scipy.spatial import cKDTree
 
     work = Path(args.work)
@@ -214,8 +214,8 @@ def main(argv=None) -> int:
 def side_by_side(path: Path, meshes: dict, finals: dict, source) -> None:
     """The most expressive frame, each face in its own column: the final surface, and below it the
     detail layer's size (|final − large scale|) on one colour scale."""
-    from facepipe.preview import _figure, pick_frames, view_direction
-    from facepipe.render import frame_camera, render
+    from facepipe.cli.preview import _figure, pick_frames, view_direction
+    from facepipe.cli.render import frame_camera, render
 
     hv = source.handle_vertices.astype(np.int64)
     frame = int(pick_frames(finals["source"][0][:, hv].astype(np.float64), source.rest[hv].astype(np.float64))[0])

@@ -29,9 +29,9 @@ FACE = slice(0, 9409)
 
 
 def load_or_bake(path: Path):
-    from facepipe.fit import fit_rig
-    from facepipe.model import load_model, model_arrays, save_model
-    from facepipe.rig import load_rig
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.io.model_file import load_model, model_arrays, save_model
+    from facepipe.pipeline.rig import load_rig
 
     if not path.is_file():
         print(f"baking {path} from configs/ict.toml ...", file=sys.stderr)
@@ -43,8 +43,8 @@ def load_or_bake(path: Path):
 
 def replay_errors(take, model, truth, evaluator, **options):
     """Per-frame face RMS (final and large-scale) of a take replayed with PrepareOptions(**options)."""
-    from facepipe.cleaning import CleanOptions
-    from facepipe.prepare import PrepareOptions, prepare_take
+    from facepipe.mocap.cleaning import CleanOptions
+    from facepipe.mocap.prepare import PrepareOptions, prepare_take
 
     smooth = options.pop("smooth", 0.0)
     head, R, t, report = prepare_take(take, model, PrepareOptions(clean_options=CleanOptions(smooth=smooth),
@@ -60,7 +60,7 @@ def replay_errors(take, model, truth, evaluator, **options):
 def legacy_errors(take, model, truth, evaluator):
     """The pipeline before issue #4: stable-marker stabilisation (with the prior) + PCHIP filling."""
     from facepipe.mocap import fill_gaps
-    from facepipe.stabilise import stabilise
+    from facepipe.core.rigid import stabilise
 
     rest = model.rest[model.handle_vertices].astype(np.float64)
     head, R, t = stabilise(take.positions, rest, model.stable.astype(bool),
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         print(f"the ICT kit is not at {KIT}", file=sys.stderr)
         return 1
     from facepipe.mocap import Take, read_take
-    from facepipe.replay import NumpyEvaluator
+    from facepipe.pipeline.replay import NumpyEvaluator
 
     model = load_or_bake(Path(args.model))
     names = model.marker_names

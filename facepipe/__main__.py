@@ -1,4 +1,4 @@
-from .cli import main
+from facepipe.cli.commands import main
 
 if __name__ == "__main__":  # (a spawned child imports this module under another name)
     main()

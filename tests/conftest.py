@@ -20,7 +20,7 @@ def ict_or_skip() -> Path:
 
 def run_cli(*args) -> int:
     """Run the command line with ``args`` (made strings); its exit code."""
-    from facepipe.cli import main
+    from facepipe.cli.commands import main
 
     with pytest.raises(SystemExit) as exc:
         main([str(a) for a in args])

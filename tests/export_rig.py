@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from facepipe.model import model_arrays, model_from_fit, save_model
-from facepipe.replay import replay
+from facepipe.io.model_file import model_arrays, model_from_fit, save_model
+from facepipe.pipeline.replay import replay
 
 N_VERTICES = 2500
 N_FRAMES = 6
@@ -46,9 +46,9 @@ def build(root: Path) -> ExportRig:
         d = json.loads(done.read_text())
         return ExportRig(root, {k: Path(v) for k, v in d["models"].items()},
                          {k: Path(v) for k, v in d["replays"].items()}, Path(d["truth"]))
-    from facepipe.fit import fit_rig
-    from facepipe.rig import load_rig
-    from facepipe.sample import write_sample_rig
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.pipeline.rig import load_rig
+    from facepipe.sample_rig import write_sample_rig
 
     write_sample_rig(root / "rig", n_vertices=N_VERTICES, n_frames=N_FRAMES)
     rig = load_rig(root / "rig" / "sample.toml")
@@ -71,7 +71,7 @@ def build(root: Path) -> ExportRig:
         if name == "psd":
             meta["novelty_tau"] = 0.0
         save_model(path, arrays, meta)
-        from facepipe.model import load_model
+        from facepipe.io.model_file import load_model
 
         model = load_model(path)
         head = head_truth[:, model.handle_vertices]

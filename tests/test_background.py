@@ -4,7 +4,7 @@ failure of the child falls back to computing here (raising this process's own er
 import numpy as np
 import pytest
 
-from facepipe.background import BackgroundCall
+from facepipe.pipeline.background import BackgroundCall
 
 
 def scaled(a, k):

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facepipe.caches import write_mdd, write_pc2, write_usd
+from facepipe.export.caches import write_mdd, write_pc2, write_usd
 from facepipe.errors import InputError
-from facepipe.model import load_model
-from facepipe.replaydir import frame_rate, is_uniform, time_codes
+from facepipe.io.model_file import load_model
+from facepipe.io.replay_folder import frame_rate, is_uniform, time_codes
 from tests.test_export import rig_mesh, sequence
 from tests.conftest import run_cli as run
 

@@ -16,11 +16,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facepipe.cleaning import (CleanOptions, clean_take, find_jumps, fit_pose_expression, noise_sigma,
-                                rotation_from_vector)
+from facepipe.mocap.cleaning import (CleanOptions, clean_take, find_jumps, fit_pose_expression, noise_sigma, rotation_from_vector)
 from facepipe.errors import InputError
 from facepipe.mocap import Take
-from facepipe.prepare import PrepareOptions, prepare_take, summary_lines
+from facepipe.mocap.prepare import PrepareOptions, prepare_take, summary_lines
 
 H, K, T = 30, 5, 80
 
@@ -295,9 +294,9 @@ def ict_model():
     from tests.conftest import ROOT, ict_or_skip
 
     ict_or_skip()
-    from facepipe.fit import fit_rig
-    from facepipe.model import model_from_fit
-    from facepipe.rig import load_rig
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.io.model_file import model_from_fit
+    from facepipe.pipeline.rig import load_rig
 
     rig = load_rig(ROOT / "configs" / "ict.toml")
     model = model_from_fit(fit_rig(rig), rig)
@@ -305,7 +304,7 @@ def ict_model():
 
 
 def _replay(take, model, **options):
-    from facepipe.replay import NumpyEvaluator
+    from facepipe.pipeline.replay import NumpyEvaluator
 
     head, R, t, report = prepare_take(take, model, PrepareOptions(**options))
     out = NumpyEvaluator(model).evaluate(head)
@@ -354,9 +353,9 @@ def test_ict_take_replays_the_same_from_every_format(ict_model, tmp_path):
 
 @pytest.mark.ict
 def test_ict_replay_command_line(ict_model, tmp_path, capsys):
-    from facepipe.cli import main
+    from facepipe.cli.commands import main
     from facepipe.mocap import read_take, write_take
-    from facepipe.model import save_model
+    from facepipe.io.model_file import save_model
     from tests.conftest import ICT
 
     model_path = tmp_path / "model.npz"
@@ -411,7 +410,7 @@ def long_take(rest, basis, n=900, noise=0.01, seed=2):
 
 
 def test_long_takes_are_cleaned_window_by_window_as_well_as_whole():
-    from facepipe.prepare import clean_margin, prepare_take_windows
+    from facepipe.mocap.prepare import clean_margin, prepare_take_windows
 
     model, rest, basis, _, names = make_rig()
     world, head = long_take(rest, basis)

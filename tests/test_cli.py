@@ -49,7 +49,7 @@ def test_export_obj_sequence(pipeline):
     assert run("export", d / "out", "--format", "obj", "-o", d / "obj", "-q") == 0
     files = sorted((d / "obj").glob("frame_*.obj"))
     assert len(files) == BOUNDS["frames"] and files[0].name == "frame_0001.obj"
-    from facepipe.mesh import load_mesh
+    from facepipe.core.mesh import load_mesh
 
     first = load_mesh(files[0])
     pos = np.load(d / "out" / "positions.npy")
@@ -120,14 +120,14 @@ def test_bad_inputs_exit_2_with_message(pipeline, tmp_path, capsys, monkeypatch)
 
 
 def test_help_everywhere():
-    for cmd in ([], ["fit"], ["bake"], ["replay"], ["export"], ["eval"], ["sample"], ["bench"]):
+    for cmd in ([], ["fit"], ["bake"], ["replay"], ["export"], ["eval"], ["sample"], ["transfer"], ["preview"]):
         assert run(*cmd, "--help") == 0
 
 
 def test_examples_from_a_captured_sequence(pipeline, tmp_path):
     """[examples] sequence: frames of a take with truth serve as example poses (with meshes or alone)."""
-    from facepipe.fit import fit_rig
-    from facepipe.rig import load_rig
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.pipeline.rig import load_rig
 
     rig_dir = pipeline / "rig"
     cfg = rig_dir / "seq.toml"
@@ -144,9 +144,9 @@ def test_examples_from_a_captured_sequence(pipeline, tmp_path):
 
 def test_greedy_scored_on_a_vertex_sample(pipeline):
     """[psd] greedy_vertices: the basis is chosen on a spread sample, then fitted on every vertex."""
-    from facepipe.fit import fit_rig
-    from facepipe.psd import fit_details
-    from facepipe.rig import load_rig
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.core.psd import fit_details
+    from facepipe.pipeline.rig import load_rig
 
     rig = load_rig(pipeline / "rig" / "sample.toml")
     rig.config.psd.greedy_vertices = 0
@@ -172,9 +172,9 @@ def test_geodesics_from_a_second_process_give_the_same_fit(pipeline, monkeypatch
     one joins in after the shell solve: the same fit as computing them here."""
     import time
 
-    from facepipe import fit as fit_module
-    from facepipe import strain
-    from facepipe.rig import load_rig
+    from facepipe.pipeline import fit as fit_module
+    from facepipe.core import strain
+    from facepipe.pipeline.rig import load_rig
 
     here = fit_module.fit_rig(load_rig(pipeline / "rig" / "sample.toml"))
     monkeypatch.setattr(strain, "GEODESICS_IN_A_PROCESS", 0)
@@ -211,7 +211,7 @@ def test_examples_read_by_a_second_process_are_the_same(pipeline, tmp_path, monk
     """Large example sets are read by a child process: the same poses and digest, the same errors."""
     import shutil
 
-    from facepipe import rig as rig_module
+    from facepipe.pipeline import rig as rig_module
     from facepipe.errors import InputError
 
     here = rig_module.load_rig(pipeline / "rig" / "sample.toml")

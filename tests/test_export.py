@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import facepipe.export as export
+import facepipe.export.common as export
 from facepipe.errors import InputError
-from facepipe.export import frame_paths, write_obj_sequence
-from facepipe.mesh import Mesh, load_mesh
+from facepipe.export.common import frame_paths, write_obj_sequence
+from facepipe.core.mesh import Mesh, load_mesh
 
 SHARED = Path(__file__).parents[1] / ".." / "shared"
 ICT = SHARED / "data" / "ict"
@@ -132,7 +132,7 @@ def test_interrupted_export_leaves_only_complete_files(tmp_path, monkeypatch):
 
 
 def test_failure_while_writing_the_file_leaves_no_partial_file(tmp_path, monkeypatch):
-    import facepipe.atomic as atomic
+    import facepipe.io.atomic as atomic
 
     mesh = rig_mesh()
     dest = tmp_path / "obj"

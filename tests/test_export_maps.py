@@ -15,13 +15,13 @@ import OpenEXR
 import pytest
 import scipy.ndimage
 
-import facepipe.maps as maps
+import facepipe.export.exr_maps as maps
 from facepipe.errors import InputError
-from facepipe.frames import local_frames, to_local
-from facepipe.layers import uv_tangent_frames
-from facepipe.model import load_model, save_model
-from facepipe.replay import NumpyEvaluator
-from facepipe.uvmaps import corner_uv_samples, uv_to_texel
+from facepipe.core.tangent_frames import local_frames, to_local
+from facepipe.pipeline.detail_layers import uv_tangent_frames
+from facepipe.io.model_file import load_model, save_model
+from facepipe.pipeline.replay import NumpyEvaluator
+from facepipe.export.uv_raster import corner_uv_samples, uv_to_texel
 from tests.conftest import ROOT, ict_or_skip
 from tests.conftest import run_cli as run
 
@@ -63,7 +63,7 @@ def relative_errors(got, want, floor=1e-6):
 
 
 def test_detail_layer_is_final_minus_large_in_every_space(rig):
-    from facepipe.layers import DetailLayer
+    from facepipe.pipeline.detail_layers import DetailLayer
 
     model = load_model(rig.models["wpsd"])
     replay_dir = rig.replays["wpsd"]
@@ -88,8 +88,8 @@ def test_maps_at_2048_give_back_every_vertex_sample(rig, tmp_path):
     maps, at every sample, to half-float rounding; plain rasterisation misses by several times more."""
     from dataclasses import replace
 
-    from facepipe.layers import DetailLayer
-    from facepipe.uvmaps import mesh_raster
+    from facepipe.pipeline.detail_layers import DetailLayer
+    from facepipe.export.uv_raster import mesh_raster
 
     model = load_model(rig.models["wpsd"])
     mesh = model.mesh()
@@ -202,7 +202,7 @@ def test_no_overwrite_resume_and_interruption(rig, tmp_path, monkeypatch):
 
     monkeypatch.setattr(maps, "write_exr", failing)
     with pytest.raises(KeyboardInterrupt):
-        from facepipe.exporters import export_replay
+        from facepipe.export.dispatch import export_replay
 
         export_replay(r, "exr", dest, resolution=(64, 64))
     assert sorted(p.name for p in dest.iterdir()) == ["frame_0001.exr", "frame_0002.exr"]
@@ -305,7 +305,7 @@ def test_model_without_uvs_is_refused_with_exit_2(rig, tmp_path, capsys):
 
 
 def test_udim_layouts_name_the_tile(tmp_path):
-    from facepipe.uvmaps import TiledRaster, uv_raster
+    from facepipe.export.uv_raster import TiledRaster, uv_raster
 
     uv = np.array([[[0.1, 0.1], [0.9, 0.1], [0.5, 0.9]]])
     tiles = TiledRaster({1001: uv_raster(uv, np.array([[0, 1, 2]]), 3, 16, 16),
@@ -319,7 +319,7 @@ def test_udim_layouts_name_the_tile(tmp_path):
 
 
 def test_non_finite_displacement_names_the_frame(tmp_path):
-    from facepipe.uvmaps import TiledRaster, uv_raster
+    from facepipe.export.uv_raster import TiledRaster, uv_raster
 
     tiles = TiledRaster({1001: uv_raster(np.array([[[0.1, 0.1], [0.9, 0.1], [0.5, 0.9]]]),
                                          np.array([[0, 1, 2]]), 3, 8, 8)})
@@ -342,7 +342,7 @@ def unresolvable_samples(uv, width, height):
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    from facepipe.uvmaps import bilinear_footprint
+    from facepipe.export.uv_raster import bilinear_footprint
 
     index, weight = bilinear_footprint(uv, width, height)
     n = len(uv)
@@ -369,12 +369,12 @@ def test_ict_maps_give_back_every_vertex_sample_the_layout_resolves(tmp_path):
     the texels can tell apart (the nostrils' insides), found from the layout alone; the export
     reports them."""
     kit = ict_or_skip()
-    from facepipe.exporters import export_replay
-    from facepipe.fit import fit_rig
-    from facepipe.model import model_from_fit
-    from facepipe.replay import replay
-    from facepipe.rig import load_rig
-    from facepipe.uvmaps import mesh_raster
+    from facepipe.export.dispatch import export_replay
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.io.model_file import model_from_fit
+    from facepipe.pipeline.replay import replay
+    from facepipe.pipeline.rig import load_rig
+    from facepipe.export.uv_raster import mesh_raster
 
     rig = load_rig(ROOT / "configs" / "ict.toml")
     model = model_from_fit(rig=rig, fit=fit_rig(rig))

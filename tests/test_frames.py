@@ -1,7 +1,7 @@
 import numpy as np
 
-from facepipe.frames import frame_neighbors, local_frames, to_local, to_world, vertex_normals
-from facepipe.shell import large_scale_positions, shell_basis
+from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, to_world, vertex_normals
+from facepipe.core.shell import large_scale_positions, shell_basis
 from tests.conftest import grid
 
 

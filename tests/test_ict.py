@@ -7,11 +7,11 @@ over the face area [0, 9409): WPSD at P = 12 ≤ 0.70× and PSD ≤ 0.80× the l
 import numpy as np
 import pytest
 
-from facepipe.evaluate import frame_errors
-from facepipe.fit import fit_rig
-from facepipe.model import model_from_fit
-from facepipe.replay import NumpyEvaluator
-from facepipe.rig import load_rig
+from facepipe.pipeline.evaluate import frame_errors
+from facepipe.pipeline.fit import fit_rig
+from facepipe.io.model_file import model_from_fit
+from facepipe.pipeline.replay import NumpyEvaluator
+from facepipe.pipeline.rig import load_rig
 from tests.conftest import ROOT, ict_or_skip
 
 pytestmark = pytest.mark.ict

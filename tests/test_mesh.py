@@ -1,4 +1,4 @@
-"""Mesh reading/writing and the topology and input checks of facepipe.mesh."""
+"""Mesh reading/writing and the topology and input checks of facepipe.core.mesh."""
 
 from __future__ import annotations
 
@@ -8,20 +8,7 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.mesh import (
-    Mesh,
-    _format_rows,
-    check_components,
-    check_marker_vertices,
-    check_mesh,
-    check_pose,
-    format_obj_faces,
-    load_mesh,
-    load_vertices,
-    save_obj,
-    triangulate,
-    unique_edges,
-)
+from facepipe.core.mesh import (Mesh, _format_rows, check_components, check_marker_vertices, check_mesh, check_pose, format_obj_faces, load_mesh, load_vertices, save_obj, triangulate, unique_edges)
 
 SHARED = Path(__file__).parents[1] / ".." / "shared"
 ICT = SHARED / "data" / "ict"
@@ -262,7 +249,7 @@ def test_strong_expression_passes():
 
 def test_large_pose_checked_on_an_edge_sample_with_the_same_verdicts():
     """Past 400k edges a sample passes clearly good poses; anything else gets the exact check."""
-    from facepipe import mesh as mesh_module
+    from facepipe.core import mesh as mesh_module
 
     m = bumpy_grid(400)  # 160k vertices, ~479k edges
     assert m.edges.shape[0] > 2 * mesh_module._CHECK_EDGES
@@ -655,7 +642,7 @@ TRICKY_OBJS = {
 
 @pytest.mark.parametrize("name", sorted(TRICKY_OBJS))
 def test_fast_obj_reader_matches_a_line_by_line_reference(tmp_path, name):
-    from facepipe.mesh import _fast_obj, _parse_obj_lists
+    from facepipe.core.mesh import _fast_obj, _parse_obj_lists
 
     text = TRICKY_OBJS[name]
     p = write(tmp_path, f"{name}.obj", text.encode())
@@ -680,7 +667,7 @@ def test_fast_obj_reader_matches_a_line_by_line_reference(tmp_path, name):
 
 
 def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
-    from facepipe.mesh import _fast_obj, _parse_obj_lists
+    from facepipe.core.mesh import _fast_obj, _parse_obj_lists
 
     rng = np.random.default_rng(11)
     V = rng.normal(size=(3000, 3)) * 10.0 ** rng.integers(-4, 4, size=(3000, 3))
@@ -721,7 +708,7 @@ def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
     "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\ng caf\u00e9\u00a0x\nf 1 2 3\n",  # non-ASCII space in a name
 ])
 def test_unusual_obj_files_are_read_by_the_list_reader(tmp_path, text):
-    from facepipe.mesh import _parse_obj_lists
+    from facepipe.core.mesh import _parse_obj_lists
 
     p = write(tmp_path, "odd.obj", text.encode())
     m = load_mesh(p)

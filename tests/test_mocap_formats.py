@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from facepipe.errors import InputError
-from facepipe.mocap import FORMATS, Take, match_markers, normalise_units, read_take, registry, unit_factor, write_take
+from facepipe.mocap import (FORMATS, Take, match_markers, normalise_units, read_take, registry, unit_factor, write_take)
 from tests.conftest import mutate_bytes
 
 NAMES = ["M001", "M002", "M003", "S01", "S02"]

@@ -1,7 +1,7 @@
 import numpy as np
 
-from facepipe.compare import global_blend_weights, local_blend_operator, local_blend_positions
-from facepipe.psd import edge_distances, edge_weight_matrix, fit_details, novelty_gate
+from facepipe.pipeline.baselines import global_blend_weights, local_blend_operator, local_blend_positions
+from facepipe.core.psd import edge_distances, edge_weight_matrix, fit_details, novelty_gate
 
 
 def _graph(F=30, seed=0):

@@ -6,8 +6,8 @@ import os
 import numpy as np
 import pytest
 
-from facepipe import npystream
-from facepipe.npystream import BLOCK, NpyWriter, npy_header
+from facepipe.io import npy_stream as npystream
+from facepipe.io.npy_stream import BLOCK, NpyWriter, npy_header
 
 
 def _rows(shape, seed=0):

@@ -11,12 +11,12 @@ import pytest
 
 from facepipe import opencl
 from facepipe.errors import InputError
-from facepipe.fit import fit_rig
-from facepipe.frames import vertex_normals
-from facepipe.model import model_from_fit
-from facepipe.replay import NumpyEvaluator, NpyWriter, stream_chunks
-from facepipe.rig import load_rig
-from facepipe.sample import write_sample_rig
+from facepipe.pipeline.fit import fit_rig
+from facepipe.core.tangent_frames import vertex_normals
+from facepipe.io.model_file import model_from_fit
+from facepipe.pipeline.replay import NumpyEvaluator, NpyWriter, stream_chunks
+from facepipe.pipeline.rig import load_rig
+from facepipe.sample_rig import write_sample_rig
 from tests.conftest import ROOT, ict_or_skip
 from tests.conftest import run_cli as run
 
@@ -157,7 +157,7 @@ def test_stream_chunks_drives_numpy_and_opencl_alike(sample, tmp_path):
 def test_replay_in_windows_equals_replay_whole(sample, tmp_path):
     """A take handed over window by window (cleaned while the previous window is evaluated) gives the
     same files as the whole take at once; an error in a later window leaves no positions file."""
-    from facepipe.replay import replay, replay_windows
+    from facepipe.pipeline.replay import replay, replay_windows
 
     _, rig, fit, head, _ = sample
     model = model_from_fit(fit, rig, "wpsd")
@@ -193,7 +193,7 @@ def test_replay_in_windows_equals_replay_whole(sample, tmp_path):
 def test_prefetched_keeps_order_raises_in_place_and_stops():
     import threading
 
-    from facepipe.replay import prefetched
+    from facepipe.pipeline.replay import prefetched
 
     assert list(prefetched(iter(range(5)))) == [0, 1, 2, 3, 4]
 
@@ -259,7 +259,7 @@ def test_cli_replay_cleans_a_long_take_window_by_window(baked, monkeypatch):
     """replay cleans a take longer than a window window by window (here 8 frames, 4 of context) and
     says so in replay.json; the result stays that of the whole take up to the windows' own noise
     estimates (this take has no noise)."""
-    from facepipe import prepare
+    from facepipe.mocap import prepare
 
     d = baked
     assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", d / "w1", "--backend", "numpy",
@@ -318,11 +318,16 @@ def test_ict_matches_numpy_reference():
 
 
 def test_bench_end_to_end_on_a_small_rig(tmp_path):
-    """`facepipe bench` at a small size: every section is measured and written (no times asserted)."""
+    """`python -m bench.paper_scale` at a small size: every section is measured and written (no times asserted)."""
+    from click.testing import CliRunner
+
+    from bench.paper_scale import main as bench_main
+
     _device_or_skip()
     out = tmp_path / "results.json"
-    assert run("bench", "-o", out, "--vertices", 2500, "--frames", 8, "--repeats", 1, "--bake-repeats", 3,
-               "--work", tmp_path / "work", "-q") == 0
+    result = CliRunner().invoke(bench_main, ["-o", str(out), "--vertices", "2500", "--frames", "8", "--repeats", "1",
+                                             "--bake-repeats", "3", "--work", str(tmp_path / "work"), "-q"])
+    assert result.exit_code == 0, result.output
     res = json.loads(out.read_text())
     runs = res["bake"]["runs_seconds"]
     assert len(runs) == 3 and round(res["bake"]["seconds"], 2) == sorted(runs)[1]  # the median run

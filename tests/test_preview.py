@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.preview import pick_frames, plot_fit_curves
-from facepipe.render import Camera, frame_camera, rasterize, render
+from facepipe.cli.preview import pick_frames, plot_fit_curves
+from facepipe.cli.render import Camera, frame_camera, rasterize, render
 from tests.conftest import run_cli as run
 
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -106,9 +106,9 @@ def test_preview_with_truth_and_strip(rig, tmp_path, capsys):
 
 def test_preview_errors_match_the_truth(rig):
     """The heat maps' figures are the vertex distances between the replay and the truth."""
-    from facepipe.model import load_model
-    from facepipe.preview import render_preview
-    from facepipe.replaydir import ReplayDir
+    from facepipe.io.model_file import load_model
+    from facepipe.cli.preview import render_preview
+    from facepipe.io.replay_folder import ReplayDir
 
     r = ReplayDir(rig.replays["psd"])
     s = render_preview(r, load_model(rig.models["psd"]), rig.root / "psd.png", truth_path=rig.truth,
@@ -148,8 +148,8 @@ def test_fit_command_writes_its_plot(rig, tmp_path):
 
 
 def test_export_bench_figures(tmp_path):
-    from facepipe.bench_export import run_export_bench
-    from facepipe.mesh import save_obj
+    from bench.export_speed import run_export_bench
+    from facepipe.core.mesh import save_obj
     from tests.test_export import rig_mesh
 
     save_obj(tmp_path / "m.obj", rig_mesh())

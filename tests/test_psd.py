@@ -1,8 +1,7 @@
 import numpy as np
 import scipy.sparse as sp
 
-from facepipe.psd import (edge_weight_matrix, fit_details, greedy_basis, psd_distances, solve_rbf,
-                          wpsd_distances, wpsd_edge_weights)
+from facepipe.core.psd import (edge_weight_matrix, fit_details, greedy_basis, psd_distances, solve_rbf, wpsd_distances, wpsd_edge_weights)
 
 
 def _random_problem(E=7, F=12, V=30, seed=0):
@@ -129,7 +128,7 @@ def test_greedy_stops_at_tolerance():
 
 
 def test_pinv_solve_matches_the_pseudo_inverse():
-    from facepipe.psd import pinv_solve
+    from facepipe.core.psd import pinv_solve
 
     rng = np.random.default_rng(4)
     n, P = 400, 6

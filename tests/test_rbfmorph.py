@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.rbfmorph import boundary_vertices, farthest_point_subset, multiquadric_basis, phantom_points
+from facepipe.core.rbf_morph import (boundary_vertices, farthest_point_subset, multiquadric_basis, phantom_points)
 from tests.conftest import grid
 
 

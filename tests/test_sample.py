@@ -1,4 +1,4 @@
-"""Tests of the synthetic sample rig (facepipe.sample): files, geometry, wrinkles, take."""
+"""Tests of the synthetic sample rig (facepipe.sample_rig): files, geometry, wrinkles, take."""
 
 import csv
 import tomllib
@@ -10,9 +10,9 @@ import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from facepipe import sample
+from facepipe import sample_rig as sample
 from facepipe.errors import InputError
-from facepipe.mesh import load_mesh
+from facepipe.core.mesh import load_mesh
 
 N = 3000
 FRAMES = 12

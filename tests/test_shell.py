@@ -3,8 +3,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from facepipe.shell import (CholeskyFactor, constrained_split, constrained_system, cotmatrix, large_scale_positions,
-                            massmatrix, shell_basis, shell_operator)
+from facepipe.core.shell import (CholeskyFactor, constrained_split, constrained_system, cotmatrix, large_scale_positions, massmatrix, shell_basis, shell_operator)
 from tests.conftest import grid
 
 
@@ -123,7 +122,7 @@ def test_solver_backends_agree_with_cholmod(sheet, backend):
 
 
 def test_cholesky_factor_falls_back_when_a_backend_is_missing(sheet, monkeypatch):
-    import facepipe.shell as shell
+    import facepipe.core.shell as shell
 
     def missing(*args):
         raise ImportError("not here")

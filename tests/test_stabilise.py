@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facepipe.stabilise import interpolate_poses, rigid_fit, robust_rigid_fit, similarity_fit
+from facepipe.core.rigid import interpolate_poses, rigid_fit, robust_rigid_fit, similarity_fit
 
 
 def _motion(seed, degrees=20.0):

@@ -1,4 +1,4 @@
-"""Detail transfer onto other faces (facepipe.transfer, `facepipe transfer`).
+"""Detail transfer onto other faces (facepipe.pipeline.transfer, `facepipe transfer`).
 
 On the small replayed sample rig (tests/export_rig.py): the same mesh reproduces the source's
 replay; a scaled and rotated copy reproduces it mapped by the similarity, a perturbed copy
@@ -16,13 +16,12 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.evaluate import frame_errors
-from facepipe.mesh import Mesh, load_mesh, save_obj
-from facepipe.model import Model, load_model
-from facepipe.rbfmorph import farthest_point_subset
-from facepipe.replay import NumpyEvaluator
-from facepipe.transfer import (closest_point_on_triangles, correspond, interpolate_alpha, match_points,
-                               transfer_model)
+from facepipe.pipeline.evaluate import frame_errors
+from facepipe.core.mesh import Mesh, load_mesh, save_obj
+from facepipe.io.model_file import Model, load_model
+from facepipe.core.rbf_morph import farthest_point_subset
+from facepipe.pipeline.replay import NumpyEvaluator
+from facepipe.pipeline.transfer import (closest_point_on_triangles, correspond, interpolate_alpha, match_points, transfer_model)
 from tests.conftest import ROOT, ict_or_skip, run_cli
 
 N_POINTS = 40
@@ -91,7 +90,7 @@ def test_interpolate_alpha_rows_sum_to_one_and_keep_k():
 
 
 def test_deform_to_points_moves_the_points_exactly(sheet):
-    from facepipe.transfer import deform_to_points
+    from facepipe.pipeline.transfer import deform_to_points
 
     V, F = sheet
     pts = np.array([0, 11, 60, 108, 119, 45])
@@ -139,7 +138,7 @@ def test_scaled_rotated_copy_follows_the_similarity(source):
 
 def test_perturbed_copy_keeps_its_details(source):
     model, mesh, truth, points, _ = source
-    from facepipe.frames import vertex_normals
+    from facepipe.core.tangent_frames import vertex_normals
 
     X = mesh.vertices
     n = vertex_normals(X, mesh.faces)
@@ -201,7 +200,7 @@ def test_subdivided_target_cli_replay_and_no_uv_export(source, rig, tmp_path):
 def test_other_resolution_of_the_same_face(source, tmp_path):
     """The sample face at another resolution (another grid, its own markers and truth): the
     transferred details still reduce the error."""
-    from facepipe.sample import make_sample_arrays
+    from facepipe.sample_rig import make_sample_arrays
     from scipy.spatial import cKDTree
 
     model, mesh, truth, points, _ = source
@@ -274,7 +273,7 @@ def test_mismatched_point_names(source, rig, tmp_path, capsys):
 def test_swapped_point_is_named(source):
     _, _, _, points, _ = source
     with pytest.raises(InputError, match="P03"):
-        from facepipe.transfer import similarity_align
+        from facepipe.pipeline.transfer import similarity_align
 
         X = np.random.default_rng(0).normal(size=(len(points), 3)) * 5
         Y = X.copy()
@@ -286,7 +285,7 @@ def test_swapped_point_is_named(source):
 
 def test_far_vertices_are_reported(source, rig, tmp_path, capsys):
     model, mesh, _, points, path = source
-    from facepipe.frames import vertex_normals
+    from facepipe.core.tangent_frames import vertex_normals
 
     from scipy.spatial import cKDTree
 
@@ -323,9 +322,9 @@ def test_target_markers_must_name_every_marker(source, rig, tmp_path, capsys):
 def test_ict_face_a(tmp_path):
     """The generic face's model on face_a: details help there about as much as on the source."""
     kit = ict_or_skip()
-    from facepipe.fit import fit_rig
-    from facepipe.model import model_arrays
-    from facepipe.rig import load_rig
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.io.model_file import model_arrays
+    from facepipe.pipeline.rig import load_rig
 
     rig = load_rig(ROOT / "configs" / "ict.toml")
     arrays, meta = model_arrays(fit_rig(rig), rig)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.rig import TuneConfig, load_config, load_rig
-from facepipe.sample import write_sample_rig
-from facepipe.shell import marker_spacing, shell_basis
-from facepipe.tune import tune_rig, tuned_config
+from facepipe.pipeline.rig import TuneConfig, load_config, load_rig
+from facepipe.sample_rig import write_sample_rig
+from facepipe.core.shell import marker_spacing, shell_basis
+from facepipe.pipeline.tune import tune_rig, tuned_config
 from tests.conftest import run_cli
 
 SMALL = dict(k_stretch=[0.0, 0.3, 3.0, 30.0], beta_scale=[0.5, 1.0], smoothing=[0.0, 0.1], max_poses=4, folds=3)
@@ -109,7 +109,7 @@ def test_cli_tune_writes_report_and_bake_carries_the_choice(sample, tmp_path):
     assert fit_report["k_stretch"] == chosen["k_stretch"]
     model = tmp_path / "model.npz"
     assert run_cli("bake", fit, "-o", model, "-q") == 0
-    from facepipe.model import load_model
+    from facepipe.io.model_file import load_model
 
     meta = load_model(model).meta
     assert meta["tuned"]["k_stretch"] == chosen["k_stretch"] and meta["shell"]["k_stretch"] == chosen["k_stretch"]

@@ -7,10 +7,9 @@ import pytest
 import scipy.ndimage
 
 from facepipe.errors import InputError
-from facepipe.layers import uv_tangent_frames
-from facepipe.mesh import Mesh
-from facepipe.uvmaps import (corner_uv_samples, mesh_raster, sample_bilinear, udim_tiles, uv_raster,
-                             uv_to_texel)
+from facepipe.pipeline.detail_layers import uv_tangent_frames
+from facepipe.core.mesh import Mesh
+from facepipe.export.uv_raster import (corner_uv_samples, mesh_raster, sample_bilinear, udim_tiles, uv_raster, uv_to_texel)
 
 
 def texel_uv(width, height):

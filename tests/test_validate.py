@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.validate import expression_groups, holdout_folds
+from facepipe.pipeline.cross_validation import expression_groups, holdout_folds
 
 
 def test_left_and_right_halves_share_a_group():

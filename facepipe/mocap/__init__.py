@@ -8,13 +8,12 @@ the file's first bytes and suffix, matches the file's marker names to the rig's 
 prefixes stripped), converts units to the rig's and checks frame order and values.
 """
 
-from . import c3d, facepipe_csv, motive_csv, trc, vicon_csv  # noqa: F401  (register the formats)
-from .facepipe_csv import read_csv_take, write_take_csv
-from .gaps import fill_gaps
-from .markers import MarkerMatch, match_markers, normalise_units, split_subject, unit_factor
-from .registry import (FORMATS, READERS, WRITERS, Format, available_memory, detect_format, read_take, register,
-                       write_take)
-from .take import Take, parse_frame_slice
+from facepipe.mocap import c3d, facepipe_csv, motive_csv, trc, vicon_csv# noqa: F401  (register the formats)
+from facepipe.mocap.facepipe_csv import read_csv_take, write_take_csv
+from facepipe.mocap.gaps import fill_gaps
+from facepipe.mocap.markers import MarkerMatch, match_markers, normalise_units, split_subject, unit_factor
+from facepipe.mocap.registry import (FORMATS, READERS, WRITERS, Format, available_memory, detect_format, read_take, register, write_take)
+from facepipe.mocap.take import Take, parse_frame_slice
 
 __all__ = [
     "FORMATS",

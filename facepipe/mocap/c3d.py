@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path
-from ..errors import InputError
-from .markers import find_markers, normalise_units
-from .registry import Format, nominal_rate, frames_from_rate, marker_label, register
-from .take import Take
+from facepipe.io.atomic import atomic_path
+from facepipe.errors import InputError
+from facepipe.mocap.markers import find_markers, normalise_units
+from facepipe.mocap.registry import Format, nominal_rate, frames_from_rate, marker_label, register
+from facepipe.mocap.take import Take
 
 _HINT = "export the take from the capture software again (C3D, 3D points)"
 

@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from .markers import find_markers
-from .registry import Format, marker_label, register
-from .take import AXES as _AXES
-from .take import Take, write_marker_rows
+from facepipe.errors import InputError
+from facepipe.mocap.markers import find_markers
+from facepipe.mocap.registry import Format, marker_label, register
+from facepipe.mocap.take import AXES as _AXES
+from facepipe.mocap.take import Take, write_marker_rows
 
 _COLUMN_RE = re.compile(r"^(?P<name>.+)_(?P<axis>[xyzXYZ])$")
 # What a number cell may look like (the per-cell path): plain decimals, exponents,

@@ -1,11 +1,11 @@
 """Gap filling by temporal interpolation alone (per marker, PCHIP): the fallback when the
-rig's prior is not used (``--no-clean``) and a building block of :mod:`facepipe.cleaning`."""
+rig's prior is not used (``--no-clean``) and a building block of :mod:`facepipe.mocap.cleaning`."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
+from facepipe.errors import InputError
 
 
 def fill_gaps(positions, max_gap: int | None = None, *, times=None, marker_names=None, path=None):

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from .markers import MarkerMatch, match_markers, normalise_units, unit_factor
-from .take import Take, check_order, check_values, estimate_fps, parse_frame_slice
+from facepipe.errors import InputError
+from facepipe.mocap.markers import MarkerMatch, match_markers, normalise_units, unit_factor
+from facepipe.mocap.take import Take, check_order, check_values, estimate_fps, parse_frame_slice
 
 #: ``reader(path, marker_names, match) -> Take``: every frame of the file with the rig's
 #: markers in the rig's order, ``match(file_marker_names) -> MarkerMatch`` (NaN columns for

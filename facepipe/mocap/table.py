@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError
-from .facepipe_csv import _BLOCK_BYTES, _NAN_FIELD, _parse_block_fast, _parse_block_slow, _read_bytes
-from .markers import find_markers
-from .take import Take
+from facepipe.errors import InputError
+from facepipe.mocap.facepipe_csv import (_BLOCK_BYTES, _NAN_FIELD, _parse_block_fast, _parse_block_slow, _read_bytes)
+from facepipe.mocap.markers import find_markers
+from facepipe.mocap.take import Take
 
 
 def read_lines(path, binary_hint: str) -> tuple[list[bytes], bool]:

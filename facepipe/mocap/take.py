@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import InputError
+from facepipe.errors import InputError
 
 AXES = ("x", "y", "z")
 
@@ -234,7 +234,7 @@ def write_marker_rows(path, header: str, take: "Take", positions: np.ndarray, ro
     row_format : printf format of a row: frame, [time,] then 3·M coordinates.
     with_times : whether rows carry the take's time after the frame number.
     """
-    from ..atomic import atomic_open
+    from facepipe.io.atomic import atomic_open
 
     pos = np.asarray(positions, dtype=np.float64)
     T, M = pos.shape[:2]

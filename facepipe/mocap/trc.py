@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from .markers import normalise_units
-from .registry import Format, nominal_rate, marker_label, register
-from .table import read_lines, read_marker_table, split_fields
-from .take import Take, write_marker_rows
+from facepipe.errors import InputError
+from facepipe.mocap.markers import normalise_units
+from facepipe.mocap.registry import Format, nominal_rate, marker_label, register
+from facepipe.mocap.table import read_lines, read_marker_table, split_fields
+from facepipe.mocap.take import Take, write_marker_rows
 
 _HINT = "a TRC take starts with PathFileType, then the DataRate ... Units header and its values"
 

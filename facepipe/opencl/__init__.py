@@ -7,8 +7,8 @@ chosen as :mod:`facepipe.opencl.device` describes. pyopencl is imported only whe
 opened, so ``import facepipe.opencl`` is cheap and works without OpenCL.
 """
 
-from .device import HINT, OpenCLUnavailable, device_label, list_devices, opencl_available, select_device
-from .engine import OpenCLEvaluator, compact_edges, locality_order, vertex_face_ring
+from facepipe.opencl.device import (HINT, OpenCLUnavailable, device_label, list_devices, opencl_available, select_device)
+from facepipe.opencl.engine import OpenCLEvaluator, compact_edges, locality_order, vertex_face_ring
 
 __all__ = ["HINT", "OpenCLEvaluator", "OpenCLUnavailable", "compact_edges", "device_label", "list_devices",
            "locality_order", "opencl_available", "select_device", "vertex_face_ring"]

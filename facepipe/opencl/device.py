@@ -20,7 +20,7 @@ import os
 import threading
 from importlib import resources
 
-from ..errors import InputError
+from facepipe.errors import InputError
 
 HINT = "use --backend numpy, or install an OpenCL driver (pip install pocl-binary-distribution)"
 

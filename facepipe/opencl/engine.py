@@ -27,9 +27,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.sparse as sp
 
-from ..psd import psd_distances
-from ..strain import strain_features
-from .device import _cl, build_program, device_label, open_device
+from facepipe.core.psd import psd_distances
+from facepipe.core.strain import strain_features
+from facepipe.opencl.device import _cl, build_program, device_label, open_device
 
 METHOD_CODES = {"none": 0, "psd": 1, "wpsd": 2}
 RV = 4  # vertices per work-item in the B product: 4 rows × 3 coordinates of accumulators
@@ -125,7 +125,7 @@ def _site_gate(model):
     strain vectors and an even sample of vertices, so a gate that stops factoring this way fails
     loudly, not silently.
     """
-    from ..psd import edge_weight_matrix, spread_sample
+    from facepipe.core.psd import edge_weight_matrix, spread_sample
 
     F = int(model.edges.shape[0])
     site_gate = model.novelty_gate(sp.identity(F, format="csr"))
@@ -165,7 +165,7 @@ class OpenCLEvaluator:
 
     Parameters
     ----------
-    model : a loaded :class:`facepipe.model.Model`.
+    model : a loaded :class:`facepipe.io.model_file.Model`.
     device : device spec (see :mod:`facepipe.opencl.device`); None: PYOPENCL_CTX, else the first
         GPU, else PoCL's CPU device.
     chunk : frames per launch (rounded up to the vector width); B is read once per chunk.

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .device import build_program
+from facepipe.opencl.device import build_program
 
 # the ring of buckets grows as longest / shortest edge; past this, a heap is the better queue
 MAX_RING = 1 << 13
@@ -26,7 +26,7 @@ def _cpu_device():
     try:
         import pyopencl as cl
 
-        from .device import list_devices
+        from facepipe.opencl.device import list_devices
 
         cpus = [dev for _, _, dev in list_devices() if dev.type & cl.device_type.CPU and dev.double_fp_config]
     except Exception:  # noqa: BLE001 - no pyopencl, no ICD loader, a broken driver: SciPy instead
@@ -56,7 +56,7 @@ class DeviceGeodesics:
     def __init__(self, graph: sp.csr_matrix, sources: np.ndarray, device, ring: int, delta: float):
         import pyopencl as cl
 
-        from .device import device_context
+        from facepipe.opencl.device import device_context
 
         self.device = device
         context = device_context(device)

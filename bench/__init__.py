@@ -1,0 +1,1 @@
+"""Benchmarks and accuracy tables (run from the repository root: ``python -m bench.paper_scale``)."""

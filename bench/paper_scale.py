@@ -1,0 +1,394 @@
+"""Benchmarks: bake and replay speed on a generated sample rig, against a per-frame solve.
+
+``python -m bench.paper_scale`` (``make bench``) generates the sample rig (``facepipe sample``), bakes it in a
+child process (time and peak memory of the bake alone), then, in this process, replays the
+take's handles with the OpenCL engine (positions kept in memory, and written to positions.npy
+through :func:`facepipe.pipeline.replay.replay`), with the NumPy reference, and with the baseline the
+paper replaced: factor the shell once, back-substitute u_H every frame. All figures come from
+one run on one machine, so the ratios compare like with like; timings are medians of
+``repeats`` runs. Tests never assert times.
+
+Per-stage OpenCL times come from the kernels' profiling events: ``large_scale`` is its own
+kernel; frames and fine scale share one fused kernel, so they are timed by building variants
+of it without one or both stages and taking differences ("output" is the variant with
+neither: reading the large-scale positions, the head motion and the stores). Each stage's
+bytes moved (the data it must read and write at least once, per frame) divided by its time
+is set against a copy rate measured on the same machine.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from bench.timing import median_time
+from facepipe.io.atomic import atomic_path
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _load() -> list[float]:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return []
+
+
+# ----------------------------------------------------------------------------- child processes
+
+# The bake runs in a child so that its peak memory is its own (the bench process holds replay
+# buffers); it is what `facepipe bake CONFIG` does, with the phases timed.
+_BAKE_CHILD = r"""
+import json, resource, sys, time
+t0 = time.perf_counter()
+from facepipe.pipeline.fit import fit_config
+from facepipe.io.model_file import model_arrays, save_model
+rig, fit = fit_config(sys.argv[1])
+t2 = time.perf_counter()
+t1 = t2 - fit.report["seconds"]["total"]
+arrays, meta = model_arrays(fit, rig)
+save_model(sys.argv[2], arrays, meta)
+t3 = time.perf_counter()
+print(json.dumps({"load": t1 - t0, "fit": t2 - t1, "save": t3 - t2, "total": t3 - t0,
+                  "fit_phases": fit.report.get("seconds", {}), "geodesics": fit.report.get("geodesics"),
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                  "helper_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0}))
+"""
+
+
+def _run_child(args: list[str], log) -> str:
+    proc = subprocess.run(args, capture_output=True, text=True)
+    if proc.returncode != 0:
+        log(proc.stdout[-2000:] + proc.stderr[-4000:])
+        raise RuntimeError(f"benchmark step failed: {' '.join(args[:4])} ...")
+    return proc.stdout
+
+
+def _sample(rig_dir: Path, params: dict, log) -> None:
+    """Generate the rig unless the folder already holds one made with the same parameters."""
+    stamp = rig_dir / "bench_params.json"
+    if stamp.is_file() and json.loads(stamp.read_text()) == params and (rig_dir / "sample.toml").is_file():
+        log(f"sample rig: reusing {rig_dir}")
+        return
+    t0 = time.perf_counter()
+    args = [sys.executable, "-m", "facepipe", "sample", str(rig_dir), "--vertices", str(params["vertices"]),
+            "--examples", str(params["examples"]), "--frames", str(params["frames"]), "-q"]
+    if params["markers"]:
+        args += ["--markers", str(params["markers"])]
+    _run_child(args, log)
+    stamp.write_text(json.dumps(params))
+    log(f"sample rig: {params['vertices']} vertices requested ({time.perf_counter() - t0:.1f} s)")
+
+
+# ----------------------------------------------------------------------------- bandwidth
+
+
+def copy_rate_gbs(megabytes: int = 256, repeats: int = 5) -> float:
+    """This machine's memory bandwidth as seen by a large copy: (read + written) bytes / s, GB/s."""
+    a = np.ones(megabytes * 2**20 // 4, dtype=np.float32)
+    b = np.empty_like(a)
+    t = min(median_time(lambda: np.copyto(b, a), 1) for _ in range(repeats))
+    return 2 * a.nbytes / t / 1e9
+
+
+def stage_bytes(V: int, H: int, P: int, K: float, chunk: int, method: str) -> dict:
+    """Bytes each stage must move per frame at least (each array read or written once).
+
+    large_scale: B once per chunk, the large-scale positions written; frames: those positions
+    read, the adjacency once per chunk; fine_scale: per-vertex WPSD edges (K used of them) and
+    RBF weights once per chunk; output: positions read, final positions written (plus the
+    write-allocate read of the destination).
+    """
+    pos = V * 3 * 4
+    return {
+        "large_scale": V * H * 4 / chunk + pos,
+        "frames": pos + V * (4 + 6 * 8 + 4) / chunk,
+        "fine_scale": 0.0 if method == "none" else V * (K * 8 + 4 + P * 12 + 12) / chunk,
+        "output": pos + 2 * pos,
+    }
+
+
+# ----------------------------------------------------------------------------- the bench
+
+
+def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repeats: int = 3, chunk: int = 32,
+              n_markers: int | None = None, n_examples: int = 6, device: str | None = None,
+              numpy_frames: int = 8, baseline_frames: int = 8, bake_repeats: int = 5, log=print) -> dict:
+    """Generate a sample rig, bake it, and time replay (OpenCL, NumPy) and the per-frame solve baseline.
+
+    Parameters
+    ----------
+    work_dir : folder for the rig, the model and replay outputs (the rig is reused when its
+        parameters match).
+    n_vertices, n_markers, n_examples, n_frames : the sample rig (``facepipe sample``).
+    repeats : runs per timing (the median is reported).
+    bake_repeats : bakes timed (the median run is reported); more than ``repeats``, as a bake
+        is one long run that a busy moment of a shared machine can stretch.
+    chunk : frames per OpenCL launch.
+    numpy_frames, baseline_frames : frames for the slow paths (NumPy reference, per-frame solve).
+
+    Returns
+    -------
+    dict of figures (seconds, frames/s, MB, GB/s), JSON-serialisable.
+    """
+    from facepipe.io.model_file import load_model
+    from facepipe.pipeline.replay import NumpyEvaluator, stream_chunks
+
+    work_dir = Path(work_dir)
+    rig_dir = work_dir / "rig"
+    load_start = _load()
+    _sample(rig_dir, {"vertices": n_vertices, "examples": n_examples, "frames": n_frames, "markers": n_markers}, log)
+
+    # ---- bake, in a child, `bake_repeats` times: the run with the median time is reported
+    model_path = work_dir / "model.npz"
+    bake_args = [sys.executable, "-c", _BAKE_CHILD, str(rig_dir / "sample.toml"), str(model_path)]
+    bakes = sorted((json.loads(_run_child(bake_args, log).strip().splitlines()[-1])
+                    for _ in range(max(1, bake_repeats))), key=lambda b: b["total"])
+    bake = bakes[len(bakes) // 2]
+    bake["runs"] = [round(b["total"], 2) for b in bakes]
+    log(f"bake: {bake['total']:.1f} s (load {bake['load']:.1f}, fit {bake['fit']:.1f}, save {bake['save']:.1f}; "
+        f"median of {', '.join(f'{t:.1f}' for t in bake['runs'])} s), peak {bake['peak_rss_mb'] / 1024:.2f} GB "
+        f"(+ {bake['helper_peak_rss_mb'] / 1024:.2f} GB in the largest helper process)")
+    phases = bake["fit_phases"]
+    log("  fit: " + ", ".join(f"{k} {v:.1f}" for k, v in phases.items() if k not in ("total", "load")
+                              and not k.endswith("_sources")) + " s"
+        + (f"; the handles' geodesics ran on the OpenCL CPU device" if bake.get("geodesics") == "opencl" else
+           f"; a second process took {phases['geodesics_child_sources']:.0f} of the handles' geodesics"
+           if bake.get("geodesics") == "process" else ""))
+
+    model = load_model(model_path)
+    V, H = model.n_vertices, int(len(model.handle_vertices))
+    P, F = int(model.basis_features.shape[0]), int(len(model.edges))
+    K_used = float((model.edge_weight > 0).sum(axis=1).mean())
+    truth = np.load(rig_dir / "take_truth.npz")["positions"]
+    head = truth[:, model.handle_vertices].astype(np.float64)
+    del truth
+    T = head.shape[0]
+    R = np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+    t = np.zeros((T, 3))
+    config = {"vertices": V, "triangles": int(len(model.triangles)), "handles": H, "feature_edges": F,
+              "basis_poses": P, "method": model.method, "wpsd_edges_per_vertex": K_used, "frames": T,
+              "repeats": repeats, "bake_repeats": bake_repeats, "chunk": chunk}
+    log(f"model: V = {V}, H = {H}, F = {F}, P = {P} ({model.method}), {K_used:.1f} WPSD edges per vertex")
+
+    results = {"config": config, "bake": {"seconds": bake["total"], "load_seconds": bake["load"],
+                                          "fit_seconds": bake["fit"], "save_seconds": bake["save"],
+                                          "fit_phases": bake["fit_phases"], "geodesics": bake.get("geodesics"),
+                                          "runs_seconds": bake["runs"],
+                                          "peak_rss_mb": bake["peak_rss_mb"],
+                                          "helper_peak_rss_mb": bake["helper_peak_rss_mb"]}}
+    copy_gbs = copy_rate_gbs()
+    results["memory_copy_rate_gbs"] = copy_gbs
+    log(f"memory copy rate: {copy_gbs:.1f} GB/s (read + write)")
+
+    # ---- OpenCL
+    results["replay_opencl"] = _bench_opencl(model, head, R, t, work_dir, repeats, chunk, device, copy_gbs, K_used,
+                                             log)
+
+    # ---- NumPy reference
+    nf = min(numpy_frames, T)
+    ev = NumpyEvaluator(model)
+    ev.evaluate(head[:1])
+    ev.stage_seconds = dict.fromkeys(ev.stage_seconds, 0.0)
+    sink_out = np.empty((nf, V, 3), dtype=np.float32)
+
+    def numpy_all():
+        stream_chunks(ev, head[:nf], lambda s, f, l, n: sink_out.__setitem__(slice(s, s + len(f)), f), R[:nf],
+                      t[:nf], chunk=chunk)
+
+    t_numpy = median_time(numpy_all, repeats)
+    stages = {k: v / repeats / nf * 1e3 for k, v in ev.stage_seconds.items()}
+    stages["output"] = max(0.0, t_numpy / nf * 1e3 - sum(stages.values()))
+    results["replay_numpy"] = {"frames": nf, "frames_per_second": nf / t_numpy, "ms_per_frame": t_numpy / nf * 1e3,
+                               "stage_ms_per_frame": stages}
+    log(f"numpy replay: {nf / t_numpy:.2f} frames/s ({t_numpy / nf * 1e3:.0f} ms/frame)")
+
+    # ---- baseline the paper replaced: factor once, back-substitute every frame
+    results["baseline_sparse_solve"] = _bench_baseline(model, head[:min(baseline_frames, T)], repeats, log)
+    ocl = results["replay_opencl"]
+    base = results["baseline_sparse_solve"]
+    results["ratios"] = {
+        "opencl_in_memory_vs_sparse_solve": ocl["in_memory"]["frames_per_second"] / base["frames_per_second"],
+        "opencl_writing_vs_sparse_solve": ocl["writing_positions"]["frames_per_second"] / base["frames_per_second"],
+        "opencl_in_memory_vs_numpy": ocl["in_memory"]["frames_per_second"]
+        / results["replay_numpy"]["frames_per_second"],
+        "paper_ms_per_frame": 17.0,
+        "opencl_in_memory_ms_per_frame": ocl["in_memory"]["ms_per_frame"],
+    }
+    import pyopencl
+
+    results["machine"] = {"cpu": _cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
+                          "numpy": np.__version__, "pyopencl": pyopencl.VERSION_TEXT,
+                          "load_average_start": load_start, "load_average_end": _load(),
+                          "bench_peak_rss_mb": _peak_rss_mb()}
+    # ---- exports: sizes and MB/s per format, OBJ against trimesh, on the ICT mesh when
+    # ../shared is there, else on this rig's
+    from bench.export_speed import run_export_bench
+
+    results["export"] = run_export_bench(work_dir / "export", mesh_path=rig_dir / "neutral.obj", repeats=repeats,
+                                         log=log)
+    return results
+
+
+def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, device, copy_gbs: float,
+                  K_used: float, log) -> dict:
+    from facepipe.opencl import OpenCLEvaluator
+    from facepipe.pipeline.replay import replay
+
+    T, V = head.shape[0], model.n_vertices
+    t0 = time.perf_counter()
+    ev = OpenCLEvaluator(model, device=device, chunk=chunk)
+    # the destination is touched once before timing: a fresh array costs a page fault per 4 KB
+    # on first write (~8 ms per 530k-vertex frame in this VM), an allocation cost, not replay's
+    out = np.zeros((T, V, 3), dtype=np.float32)
+    out.fill(0.0)
+
+    def keep(s, f, l, n):
+        out[s:s + f.shape[0]] = f
+
+    ev.stream(head[:chunk], keep, R[:chunk], t[:chunk])  # first launch: the kernels are compiled for this shape
+    setup = time.perf_counter() - t0
+    log(f"opencl: {ev.device}; setup {setup:.1f} s")
+
+    ev.stage_seconds = dict.fromkeys(ev.stage_seconds, 0.0)
+    t_mem = median_time(lambda: ev.stream(head, keep, R, t), repeats)
+    device_stages = {k: v / repeats / T * 1e3 for k, v in ev.stage_seconds.items()}
+    log(f"opencl replay, positions kept in memory: {T / t_mem:.1f} frames/s ({t_mem / T * 1e3:.2f} ms/frame)")
+
+    frames = np.arange(T)
+    times = frames / 30.0
+
+    def write():
+        replay(model, head, R, t, frames, times, work_dir / "replay_opencl", evaluator=ev, chunk=chunk)
+
+    t_write = median_time(write, repeats)
+    log(f"opencl replay, writing positions.npy: {T / t_write:.1f} frames/s ({t_write / T * 1e3:.2f} ms/frame)")
+
+    # per stage: kernel variants, device time from profiling events, medians over repeats
+    def kernel_ms(stages: int) -> tuple[float, float]:
+        var = ev if stages == 3 else OpenCLEvaluator(model, device=device, chunk=chunk, _stages=stages)
+        var.stream(head[:chunk], lambda *a: None, R[:chunk], t[:chunk])
+        runs = []
+        for _ in range(repeats):
+            var.stage_seconds = dict.fromkeys(var.stage_seconds, 0.0)
+            var.stream(head, lambda *a: None, R, t)
+            runs.append((var.stage_seconds["large_scale"], var.stage_seconds["frames_fine_scale"]))
+        return (statistics.median(r[0] for r in runs) / T * 1e3, statistics.median(r[1] for r in runs) / T * 1e3)
+
+    large_ms, full_ms = kernel_ms(3)
+    none_ms = kernel_ms(0)[1]
+    frames_ms = kernel_ms(1)[1] - none_ms
+    fine_ms = kernel_ms(2)[1] - none_ms
+    sink_ms = device_stages.get("output", 0.0)
+    stage_ms = {"large_scale": large_ms, "frames": max(frames_ms, 0.0), "fine_scale": max(fine_ms, 0.0),
+                "output": none_ms, "host_copy": sink_ms}
+    P = int(model.basis_features.shape[0])
+    nbytes = stage_bytes(V, int(len(model.handle_vertices)), P, K_used, ev.chunk, model.method)
+    nbytes["host_copy"] = 2 * V * 3 * 4
+    bandwidth = {}
+    for k, ms in stage_ms.items():
+        gbs = nbytes[k] / (ms * 1e-3) / 1e9 if ms > 0 else None
+        bandwidth[k] = {"mb_per_frame": nbytes[k] / 1e6, "gb_per_s": gbs,
+                        "fraction_of_copy_rate": gbs / copy_gbs if gbs else None}
+    # the B product is bound by arithmetic, not memory: 2·H multiply-adds per coordinate and vertex
+    H = int(len(model.handle_vertices))
+    bandwidth["large_scale"]["gflop_per_s"] = V * H * 3 * 2 / (large_ms * 1e-3) / 1e9 if large_ms > 0 else None
+    for k in stage_ms:
+        b = bandwidth[k]
+        extra = f", {b['gflop_per_s']:.0f} GFLOP/s" if b.get("gflop_per_s") else ""
+        log(f"  {k:12s} {stage_ms[k]:6.2f} ms/frame  {b['mb_per_frame']:6.2f} MB/frame  "
+            f"{(b['gb_per_s'] or 0):6.1f} GB/s  ({100 * (b['fraction_of_copy_rate'] or 0):.0f} % of copy rate{extra})")
+    return {"device": ev.device, "setup_seconds": setup, "vector_width": ev.vw,
+            "in_memory": {"frames_per_second": T / t_mem, "ms_per_frame": t_mem / T * 1e3},
+            "writing_positions": {"frames_per_second": T / t_write, "ms_per_frame": t_write / T * 1e3},
+            "stage_ms_per_frame": stage_ms, "fused_kernel_ms_per_frame": full_ms,
+            "stage_bandwidth": bandwidth, "pipeline_device_ms_per_frame": device_stages}
+
+
+def _bench_baseline(model, head, repeats: int, log) -> dict:
+    """Large scale only, the way the paper's baseline does it: u = −A_ff⁻¹ A_fH u_H per frame."""
+    import scipy.sparse as sp
+
+    from facepipe.core.shell import CholeskyFactor, constrained_split, constrained_system, shell_operator
+
+    rest = model.rest.astype(np.float64)
+    hv = model.handle_vertices.astype(np.int64)
+    shell = model.meta.get("shell", {"k_stretch": 0.0, "k_bend": 1.0})
+    V = len(rest)
+    A = shell_operator(rest, model.triangles.astype(np.int64), shell["k_stretch"], shell["k_bend"],
+                       model.meta["marker_spacing"])
+    _, constrained = constrained_split(V, hv, model.anchors)
+    U, R, _ = constrained_system(A, constrained, hv)
+    del A
+    R = sp.csr_matrix(R)  # −A_fH and the identity on the handle rows
+    t0 = time.perf_counter()
+    factor = CholeskyFactor(U, upper=True)  # dense right-hand sides: the whole factor read per frame
+    t_factor = time.perf_counter() - t0
+    u = head - rest[hv]
+    out = np.empty((V, 3))
+
+    def solve_all():
+        for f in range(u.shape[0]):
+            out[:] = factor.solve(np.asarray(R @ u[f]))
+
+    t_solve = median_time(solve_all, repeats)
+    n = u.shape[0]
+    log(f"per-frame sparse solve ({factor.backend}, large scale only): {n / t_solve:.2f} frames/s "
+        f"(factor once: {t_factor:.1f} s)")
+    return {"backend": factor.backend, "frames": n, "factor_seconds": t_factor, "frames_per_second": n / t_solve,
+            "ms_per_frame": t_solve / n * 1e3}
+
+
+def _json_value(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return o.item() if isinstance(o, np.generic) else str(o)
+
+
+@click.command()
+@click.option("-o", "--output", default="bench/results.json", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--vertices", default=20000, show_default=True, help="Vertices of the generated rig.")
+@click.option("--frames", default=64, show_default=True)
+@click.option("--repeats", default=3, show_default=True, help="Timings are medians over this many runs.")
+@click.option("--bake-repeats", default=5, show_default=True, help="Bakes timed (the median is reported).")
+@click.option("--work", default="bench/work", show_default=True, type=click.Path(file_okay=False))
+@click.option("--markers", default=None, type=int, help="Markers driving the shell [default: the sample's 96].")
+@click.option("--examples", default=6, show_default=True, help="Example poses of the generated rig.")
+@click.option("--chunk", default=32, show_default=True, help="Frames per OpenCL launch.")
+@click.option("--device", default=None, help="OpenCL device (as replay --device).")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
+def main(output, vertices, frames, repeats, bake_repeats, work, markers, examples, chunk, device, quiet):
+    """Measure bake and replay speed on a generated rig; write the figures as JSON."""
+    say = (lambda text: None) if quiet else click.echo
+    results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, chunk=chunk,
+                        n_markers=markers, n_examples=examples, device=device, bake_repeats=bake_repeats,
+                        log=say)
+    with atomic_path(Path(output)) as tmp:
+        tmp.write_text(json.dumps(results, indent=2, default=_json_value))
+    say(f"wrote {output}")
+
+
+if __name__ == "__main__":
+    main()

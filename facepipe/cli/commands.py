@@ -1,0 +1,616 @@
+"""The facepipe command line: parse, call the library, report.
+
+Exit status: 0 success, 2 bad input (the message names the file and the fix), 1 internal error.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import click
+import numpy as np
+
+from facepipe.errors import InputError
+
+
+class Reporter:
+    """Printing and progress bars that honour --quiet / --verbose."""
+
+    def __init__(self, quiet: bool = False, verbose: bool = False):
+        self.quiet = quiet
+        self.verbose = verbose
+
+    def say(self, text: str = "") -> None:
+        if not self.quiet:
+            click.echo(text)
+
+    def detail(self, text: str) -> None:
+        if self.verbose and not self.quiet:
+            click.echo(text)
+
+    def bar(self, total: int, unit: str = "frame", desc: str = ""):
+        from tqdm import tqdm
+
+        return tqdm(total=total, unit=unit, desc=desc, disable=self.quiet, dynamic_ncols=True, file=sys.stderr)
+
+
+def _common(f):
+    f = click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors; no progress bars.")(f)
+    f = click.option("--verbose", "-v", is_flag=True, help="Print more detail.")(f)
+    return f
+
+
+def _reporter(ctx: click.Context, quiet: bool, verbose: bool) -> Reporter:
+    parent = ctx.find_object(Reporter)
+    rep = Reporter(quiet or (parent.quiet if parent else False), verbose or (parent.verbose if parent else False))
+    ctx.obj = rep
+    return rep
+
+
+def _write_json(path: Path, data: dict) -> None:
+    from facepipe.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=_json_default))
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@_common
+@click.version_option(package_name="facepipe")
+@click.pass_context
+def cli(ctx, quiet, verbose):
+    """Facial motion capture to high-resolution, wrinkled face animation.
+
+    Typical use: facepipe fit rig.toml; facepipe bake rig.toml -o model.npz;
+    facepipe replay take.csv -m model.npz -o out; facepipe export out --format obj -o frames.
+    """
+    ctx.obj = Reporter(quiet, verbose)
+
+
+# ----------------------------------------------------------------------------- fit / bake
+
+
+def _run_fit(config, rep: Reporter, tune: bool = False):
+    from facepipe.pipeline.fit import fit_config
+
+    t0 = time.perf_counter()
+    tuning = {}
+
+    def prepare(rig, geodesics):
+        rep.say(f"rig: {rig.mesh.n_vertices} vertices, {len(rig.handles)} handles, {len(rig.anchors)} anchors, "
+                f"{len(rig.example_names)} example poses")
+        if tune:
+            tuning["report"] = _tune(rig, rep, geodesics)
+
+    def progress(method, n, curve):
+        rep.detail(f"  {method}: {n:2d} poses  mean RMS {curve['mean_rms']:.4f}  max {curve['max_rms']:.4f}")
+
+    rig, fit = fit_config(config, progress=progress, prepare=prepare)
+    if tuning:
+        fit.report["tune"] = tuning["report"]
+    fit.report["seconds"]["total"] = time.perf_counter() - t0
+    return rig, fit
+
+
+def _tune(rig, rep: Reporter, geodesics=None) -> dict:
+    """Cross-validate the [tune] candidates and switch the rig's config to the chosen values."""
+    from facepipe.pipeline.tune import tune_rig, tuned_config
+
+    bars = {}
+
+    def step(stage, done, total):
+        if stage not in bars:
+            bars[stage] = rep.bar(total, unit="fit" if stage == "details" else "shell", desc=f"tune {stage}")
+        bars[stage].update(1)
+        if done == total:
+            bars[stage].close()
+
+    report = tune_rig(rig, progress=step, geodesics=geodesics)
+    rig.config = tuned_config(rig.config, report)
+    units = rig.config.units
+    c, d = report["chosen"], report["default"]
+    rep.say(f"tuned in {report['seconds']['total']:.1f} s: k_stretch {c['k_stretch']:g}, β ×{c['beta_scale']:g}, "
+            f"λ {c['smoothing']:g}, τ {c['novelty_tau']:g}, P {c['poses']}: held-out RMS {c['cv_rms']:.4f} {units} (defaults "
+            f"{d['cv_rms']:.4f}, large scale only {c['large_cv_rms']:.4f})")
+    if report["harm"]:
+        what = "details turned off ([psd] method = none)" if report["fallback"] else \
+            "kept, as [tune] fallback = false"
+        rep.say(f"warning: the validated error with details is not below the large-scale-only error: the details "
+                f"would do harm on unseen expressions; {what}")
+    return report
+
+
+def _print_fit_summary(rep: Reporter, fit, units: str) -> None:
+    r = fit.report
+    rep.say(f"feature graph: F = {r['feature_edges']} edges; marker spacing {r['marker_spacing']:.3f} {units}; "
+            f"WPSD β = {r['beta']:.3f}/{units}, {r['edges_per_vertex_mean']:.1f} edges per vertex")
+    rep.say(f"large-scale only: training RMS mean {r['large_scale_rms']['mean']:.4f} {units}")
+    for method, curve in r["curves"].items():
+        pts = "  ".join(f"P={c['poses']}:{c['mean_rms']:.4f}" for c in curve
+                        if c["poses"] in (0, 1, 2, 3, 6, 12) or c is curve[-1])
+        rep.say(f"{method.upper():5s} training RMS by basis size: {pts}")
+    rep.say(f"basis ({r['method']}): {', '.join(r['basis'])}")
+    if "holdout" in r:
+        h = r["holdout"]["summary"]
+        rep.say(f"held-out examples ({h['folds']} folds): large-scale RMS {h['large_rms_mean']:.4f}, final "
+                f"{h['final_rms_mean']:.4f} {units}; worst change {100 * h['worst_harm']:+.1f} %, "
+                f"{h['examples_made_worse_over_2pct']} made worse by more than 2 %")
+
+
+@cli.command()
+@click.argument("config", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default="fit.npz", show_default=True, type=click.Path(dir_okay=False),
+              help="Fit file to write; a .json report is written beside it.")
+@click.option("--holdout", default=0, show_default=True,
+              help="Also cross-validate: refit leaving about K examples out at a time (left/right halves of an "
+                   "expression together) and report the error on them, large-scale vs final.")
+@click.option("--tune", is_flag=True,
+              help="Choose k_stretch, the WPSD β, the RBF regularisation and the basis size by validation on the "
+                   "examples (candidates in the config's [tune] table); writes FIT.tune.json and FIT.tune.png.")
+@_common
+@click.pass_context
+def fit(ctx, config, output, holdout, tune, quiet, verbose):
+    """Extract the examples' details and select the pose basis greedily."""
+    from facepipe.io.model_file import save_fit
+
+    rep = _reporter(ctx, quiet, verbose)
+    rig, result = _run_fit(config, rep, tune=tune)
+    if holdout:
+        from facepipe.pipeline.cross_validation import holdout_errors
+
+        with rep.bar(0, unit="fold", desc="holdout") as bar:
+            def step(i, n):
+                bar.total = n
+                bar.update(1)
+
+            result.report["holdout"] = holdout_errors(rig, holdout, progress=step)
+    save_fit(output, result, rig)
+    report_path = Path(output).with_suffix(".json")
+    _write_json(report_path, result.report)
+    from facepipe.cli.preview import plot_fit_curves
+
+    plot_path = plot_fit_curves(result.report, Path(output).with_suffix(".png"), units=rig.config.units)
+    if tune:
+        from facepipe.cli.preview import plot_tuning
+
+        _write_json(Path(output).with_suffix(".tune.json"), result.report["tune"])
+        plot_tuning(result.report["tune"], Path(output).with_suffix(".tune.png"), units=rig.config.units)
+    _print_fit_summary(rep, result, rig.config.units)
+    rep.say(f"wrote {output}, {report_path} and {plot_path} ({result.report['seconds']['total']:.1f} s)")
+
+
+@cli.command()
+@click.argument("source", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default="model.npz", show_default=True, type=click.Path(dir_okay=False))
+@_common
+@click.pass_context
+def bake(ctx, source, output, quiet, verbose):
+    """Write the model replay needs (float32, one file) from a CONFIG.toml or a FIT.npz."""
+    from facepipe.io.model_file import fit_to_model, model_arrays, save_model
+
+    rep = _reporter(ctx, quiet, verbose)
+    t0 = time.perf_counter()
+    if source.endswith(".npz"):
+        meta = fit_to_model(source, output)
+    else:
+        rig, result = _run_fit(source, rep)
+        arrays, meta = model_arrays(result, rig)
+        save_model(output, arrays, meta)
+        _print_fit_summary(rep, result, rig.config.units)
+    size = Path(output).stat().st_size / 1e6
+    rep.say(f"wrote {output}: method {meta['method']}, {len(meta['basis']) - 1} basis poses, "
+            f"{size:.1f} MB ({time.perf_counter() - t0:.1f} s)")
+
+
+# ----------------------------------------------------------------------------- replay
+
+
+def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Reporter):
+    """The replay evaluator: OpenCL when asked for, or (auto) when a device works; else NumPy."""
+    from facepipe.pipeline.replay import NumpyEvaluator
+
+    if backend == "numpy":
+        return NumpyEvaluator(model)
+    from facepipe.opencl import OpenCLEvaluator, OpenCLUnavailable
+
+    try:
+        evaluator = OpenCLEvaluator(model, device=device, chunk=chunk)
+    except OpenCLUnavailable as exc:
+        if backend == "opencl":
+            raise
+        rep.say(f"note: {str(exc).splitlines()[0]}; replaying with the NumPy backend")
+        return NumpyEvaluator(model)
+    except InputError:
+        raise
+    except Exception as exc:  # a driver that lists a device but cannot build or run the kernels
+        if backend == "opencl":
+            raise
+        rep.say(f"note: OpenCL failed ({exc.__class__.__name__}: {exc}); replaying with the NumPy backend")
+        return NumpyEvaluator(model)
+    rep.say(f"OpenCL device: {evaluator.device}")
+    return evaluator
+
+
+@cli.command()
+@click.argument("take", type=click.Path(dir_okay=False))
+@click.option("-m", "--model", "model_path", required=True, type=click.Path(dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(file_okay=False), help="Output folder.")
+@click.option("--backend", type=click.Choice(["auto", "opencl", "numpy"]), default="auto", show_default=True,
+              help="opencl: the OpenCL kernels (GPU, else PoCL's CPU driver, installed with facepipe); numpy: the "
+                   "float64 reference; auto: opencl when a device works, else numpy.")
+@click.option("--device", default=None, help="OpenCL device: P:D, gpu, cpu or part of its name [default: "
+              "PYOPENCL_CTX, else the first GPU, else the CPU].")
+@click.option("--frames", "frames_text", default=None, help="Replay only rows A:B of the take.")
+@click.option("--chunk", default=32, show_default=True, help="Frames evaluated together.")
+@click.option("--head-motion", type=click.Choice(["keep", "remove"]), default="keep", show_default=True,
+              help="Re-apply the head's rigid motion to the output, or leave the face in rig space.")
+@click.option("--save-large-scale", is_flag=True, help="Also write large_scale.npy (the shell alone).")
+@click.option("--neutral-frame", type=int, default=None,
+              help="Frame number of the take where the face is neutral: aligns the take to the rig by a similarity "
+                   "and removes each marker's offset from the rig's rest pose.")
+@click.option("--neutral-take", type=click.Path(dir_okay=False), default=None,
+              help="A separate take of the neutral face (any supported format), used like --neutral-frame.")
+@click.option("--take-units", default=None, help="Units of the take (mm, cm, m, in), overriding what the file says.")
+@click.option("--subject", default=None, help="Use this subject's markers when the take holds several.")
+@click.option("--no-stabilise", is_flag=True, help="Do not remove head motion: the take is already in head space.")
+@click.option("--no-clean", is_flag=True,
+              help="No prior-based cleaning (noise, outliers, long gaps): gaps are only interpolated (PCHIP).")
+@click.option("--smooth", type=float, default=0.0, show_default=True,
+              help="Temporal smoothing of the cleaned markers: Gaussian sigma in frames (0 = off).")
+@_common
+@click.pass_context
+def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, neutral_frame,
+           neutral_take, take_units, subject, no_stabilise, no_clean, smooth, quiet, verbose):
+    """Replay a mocap TAKE onto the full-resolution face: OUTPUT/positions.npy and replay.json.
+
+    TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV; it is converted to the
+    rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section).
+    """
+    from concurrent.futures import ThreadPoolExecutor, wait
+
+    from facepipe.mocap.cleaning import CleanOptions
+    from facepipe.mocap import parse_frame_slice, read_take
+    from facepipe.io.model_file import load_model
+    from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows, summary_lines
+    from facepipe.pipeline.replay import replay_windows
+
+    rep = _reporter(ctx, quiet, verbose)
+    if chunk < 1:
+        raise InputError("--chunk must be at least 1")
+    if smooth < 0:
+        raise InputError("--smooth must be 0 (off) or a positive number of frames")
+    model = load_model(model_path)
+    units = model.meta.get("units")
+    # the device is set up (B and the tables uploaded, kernels built: seconds at 530k vertices)
+    # while the take is read and cleaned
+    setup = ThreadPoolExecutor(1)
+    evaluator_future = setup.submit(_make_evaluator, model, backend, device, chunk, rep)
+    setup.shutdown(wait=False)
+    try:
+        # absent markers are filled through the prior when cleaning; without it they are an error
+        read = dict(units=units, take_units=take_units, subject=subject, absent="error" if no_clean else "missing",
+                    allow_empty_frames=True)
+        take_data = read_take(take, model.marker_names, **read)
+        neutral = read_take(neutral_take, model.marker_names, **read) if neutral_take else None
+        options = PrepareOptions(neutral_frame=neutral_frame, neutral_take=neutral, stabilise=not no_stabilise,
+                                 clean=not no_clean, frames=parse_frame_slice(frames_text) if frames_text else None,
+                                 clean_options=CleanOptions(smooth=smooth))
+        # a long take is cleaned window by window, each while the previous one is on the device
+        prepared = prepare_take_windows(take_data, model, options)
+    except BaseException:
+        wait([evaluator_future])  # the take's error is the one to report; the setup's outcome no longer matters
+        raise
+    evaluator = evaluator_future.result()
+    take_data = take_data if options.frames is None else take_data.select(options.frames)
+
+    def take_report():  # complete once every window is cleaned
+        gap_report = prepared.report
+        return {"take": str(take), "mocap": gap_report, "markers": gap_report["markers"],
+                "extra_markers": take_data.extra_markers}
+
+    with rep.bar(prepared.n_frames, desc="replay") as bar:
+        result = replay_windows(model, prepared.windows(), take_data.frames, take_data.times, Path(output),
+                                chunk=chunk, evaluator=evaluator, head_motion=head_motion, progress=bar.update,
+                                extra_report=take_report, save_large=save_large_scale)
+    gap_report = prepared.report
+    r = result.report
+    rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
+            f"at {r['frames_per_second']:.1f} frames/s")
+    for line in summary_lines(gap_report):
+        rep.say(line)
+    rep.say(f"head motion up to {r['head_rotation_deg_max']:.1f}° / {r['head_translation_max']:.2f}")
+    rep.say(f"wrote {result.positions_path} and {Path(output) / 'replay.json'}")
+
+
+# ----------------------------------------------------------------------------- export / eval
+
+
+def _replay_info(outdir: Path) -> dict:
+    path = outdir / "replay.json"
+    if not path.is_file():
+        raise InputError("no replay.json here", path=outdir, hint="give the folder written by 'facepipe replay'")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"replay.json is not valid JSON: {exc}", path=path) from None
+
+
+def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
+    path = outdir / name
+    if not path.is_file():
+        raise InputError(f"no {name} here", path=outdir, hint="run 'facepipe replay' first")
+    try:
+        return np.load(path, mmap_mode="r")
+    except Exception as exc:
+        raise InputError(f"cannot read {name}: {exc}", path=path) from None
+
+
+@cli.command()
+@click.argument("outdir", type=click.Path(file_okay=False))
+@click.option("--format", "fmt", type=click.Choice(["obj", "exr", "wrinkle", "usd", "mdd", "pc2"]), default="obj",
+              show_default=True, help="obj: OBJ sequence; exr: displacement maps per frame; wrinkle: wrinkle-map set "
+              "(PSD); usd: .usdc with time-sampled points; mdd, pc2: point caches.")
+@click.option("-o", "--dest", required=True, type=click.Path(),
+              help="Folder (obj, exr, wrinkle) or file (usd: .usdc/.usd/.usda, mdd: .mdd, pc2: .pc2).")
+@click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
+@click.option("--layer", type=click.Choice(["final", "large"]), default="final", show_default=True,
+              help="Geometry formats: the final surface, or the large-scale one (needs replay --save-large-scale).")
+@click.option("--resolution", default="2048", show_default=True, help="Maps: N or WxH texels per UDIM tile.")
+@click.option("--padding", default=8, show_default=True, help="Maps: texels of edge padding around UV islands.")
+@click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float].")
+@click.option("--vector/--scalar", "vector", default=True, help="Maps: R,G,B vector, or Y along the normal. "
+              "[default: vector]")
+@click.option("--space", type=click.Choice(["local", "tangent", "object"]), default="local", show_default=True,
+              help="exr vector maps: the model's local frames (t, b, n), UV-aligned tangent frames (what renderers' "
+              "tangent-space vector displacement expects), or object-space vectors.")
+@click.option("--start", default=1, show_default=True, help="Sequences: number of the first file.")
+@click.option("--up-axis", type=click.Choice(["Y", "Z"]), default="Y", show_default=True, help="USD stage up axis.")
+@click.option("--force", is_flag=True, help="Overwrite existing files.")
+@click.option("--resume", is_flag=True, help="Keep files already written and write only the missing ones.")
+@_common
+@click.pass_context
+def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half, vector, space, start, up_axis, force,
+           resume, quiet, verbose):
+    """Export a replay (OUTDIR) for other tools: OBJ sequence, EXR displacement or wrinkle maps, USD, MDD, PC2."""
+    from facepipe.export.dispatch import export_replay, parse_resolution
+
+    rep = _reporter(ctx, quiet, verbose)
+    if padding < 0:
+        raise InputError("--padding must be 0 or more texels")
+    r = export_replay(outdir, fmt, dest, model_path=model_path, layer=layer, resolution=parse_resolution(resolution),
+                      padding=padding, half=half, mode="vector" if vector else "scalar", space=space, start=start,
+                      up_axis=up_axis, force=force, resume=resume,
+                      make_bar=lambda n, d, u="frame": rep.bar(n, unit=u, desc=d))
+    extra = ", existing file kept (--resume)" if r.get("kept_existing") else ""
+    rep.say(f"wrote {r['files']} {fmt.upper()} file{'s' if r['files'] != 1 else ''} to {r['dest']}: "
+            f"{r['bytes'] / 1e6:.1f} MB in {r['seconds']:.1f} s ({r['megabytes_per_second'] or 0:.1f} MB/s){extra}")
+    for note in r.get("notes", []):
+        rep.say(f"note: {note}")
+    rep.detail(json.dumps(r, default=_json_default))
+
+
+@cli.command()
+@click.argument("outdir", type=click.Path(file_okay=False))
+@click.option("-o", "--output", default="preview.png", show_default=True, type=click.Path(dir_okay=False),
+              help="Image to write (.png, .jpg, .pdf, .svg).")
+@click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
+@click.option("--truth", default=None, type=click.Path(dir_okay=False),
+              help="Truth .npz: adds the truth and heat maps of the vertex error of both layers.")
+@click.option("--frame", "frames", multiple=True, type=int,
+              help="Take frame number to show (repeatable) [default: the most expressive frame].")
+@click.option("--strip", default=0, show_default=True, help="Show this many evenly spaced frames, one row each.")
+@click.option("--size", default=420, show_default=True, help="Width of one panel in pixels.")
+@click.option("--force", is_flag=True, help="Overwrite an existing image.")
+@_common
+@click.pass_context
+def preview(ctx, outdir, output, model_path, truth, frames, strip, size, force, quiet, verbose):
+    """Render shaded frames of a replay (large scale vs final, error heat maps against --truth) to an image."""
+    from facepipe.cli.preview import render_preview
+    from facepipe.io.replay_folder import ReplayDir
+
+    rep = _reporter(ctx, quiet, verbose)
+    if not 32 <= size <= 4096:
+        raise InputError(f"--size {size} is outside 32..4096 pixels")
+    if strip < 0 or strip > 64:
+        raise InputError(f"--strip {strip} is outside 0..64 frames")
+    replay_dir = ReplayDir(outdir)
+    t0 = time.perf_counter()
+    s = render_preview(replay_dir, replay_dir.load_model(model_path), output, truth_path=truth,
+                       frame_numbers=list(frames), strip=strip, size=size, force=force)
+    for k, f in enumerate(s["frames"]):
+        errs = (f"; RMS vs truth: final {s['rms']['final'][k]:.4g}, large scale {s['rms']['large'][k]:.4g}"
+                if "rms" in s else "")
+        rep.say(f"frame {f}{errs}")
+    rep.say(f"wrote {output} ({time.perf_counter() - t0:.1f} s)")
+
+
+@cli.command(name="eval")
+@click.argument("outdir", type=click.Path(file_okay=False))
+@click.option("--truth", required=True, type=click.Path(dir_okay=False), help="Truth .npz with 'positions'.")
+@click.option("--vertices", "vertex_range", default=None, help="Vertex range A:B (default: all).")
+@click.option("--large-scale", is_flag=True, help="Also evaluate large_scale.npy if the replay wrote it.")
+@click.option("--compare", "compare_config", default=None, type=click.Path(dir_okay=False),
+              help="CONFIG.toml: also fit it and compare baselines (shell, RBF morph, global and local blend "
+                   "shapes, PSD and WPSD by basis size) on this replay's handles; writes compare.json/.png.")
+@click.option("--tune", is_flag=True, help="With --compare: fit the config with 'fit --tune' first.")
+@_common
+@click.pass_context
+def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, quiet, verbose):
+    """Per-frame RMS and max vertex error of a replay against ground truth."""
+    from facepipe.pipeline.evaluate import frame_errors, match_frames, parse_vertex_range, summarize
+
+    rep = _reporter(ctx, quiet, verbose)
+    outdir = Path(outdir)
+    info = _replay_info(outdir)
+    positions = _load_positions(outdir)
+    try:
+        data = np.load(truth, mmap_mode="r")
+        truth_pos = data["positions"]
+        truth_frames = data["frame"] if "frame" in data else np.arange(truth_pos.shape[0])
+    except FileNotFoundError:
+        raise InputError("truth file not found", path=truth) from None
+    except Exception as exc:
+        raise InputError(f"cannot read the truth: {exc}", path=truth) from None
+    if truth_pos.shape[1:] != positions.shape[1:]:
+        raise InputError(f"truth has shape {truth_pos.shape}, the replay {positions.shape}", path=truth)
+    index = match_frames(np.asarray(info["frame_numbers"]), np.asarray(truth_frames), truth)
+    truth_sel = np.asarray(truth_pos)[index] if len(index) < 4096 else truth_pos[index]
+    vertices = parse_vertex_range(vertex_range, positions.shape[1])
+    result = {"vertices": [vertices.start, vertices.stop], "truth": str(truth)}
+    sources = [("final", "positions.npy")]
+    if large_scale:
+        sources.append(("large_scale", "large_scale.npy"))
+    for label, name in sources:
+        pos = _load_positions(outdir, name)
+        rms, mx = frame_errors(pos, truth_sel, vertices)
+        result[label] = dict(summarize(rms, mx), per_frame_rms=rms.tolist(), per_frame_max=mx.tolist())
+        if verbose:
+            for f, a, b in zip(info["frame_numbers"], rms, mx):
+                rep.detail(f"  frame {f:6d}  rms {a:.5f}  max {b:.5f}")
+    _write_json(outdir / "eval.json", result)
+    if compare_config:
+        _compare(rep, outdir, compare_config, np.asarray(truth_sel), vertices, tune)
+    for label, _ in sources:
+        s = result[label]
+        rep.say(f"{label}: {s['frames']} frames, vertices {vertices.start}:{vertices.stop}: RMS mean "
+                f"{s['rms_mean']:.5f}, p95 {s['rms_p95']:.5f}, max frame {s['rms_max']:.5f}; "
+                f"largest vertex error {s['max_error']:.5f}")
+    rep.say(f"wrote {outdir / 'eval.json'}")
+
+
+def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertices: slice, tune: bool = False) -> None:
+    from facepipe.pipeline.baselines import compare_methods, plot_comparison
+
+    path = outdir / "handles.npz"
+    if not path.is_file():
+        raise InputError("no handles.npz here", path=outdir, hint="re-run 'facepipe replay' with this version")
+    handles = np.load(path)
+    rig, fit = _run_fit(config, rep, tune=tune)
+    if handles["head"].shape[1] != len(rig.handles):
+        raise InputError(f"the replay has {handles['head'].shape[1]} handles, the config's rig {len(rig.handles)}",
+                         path=config, hint="compare with the config the replayed model was baked from")
+    rep.say("comparing methods on the replay's handles:")
+    result = compare_methods(fit, rig, handles["head"].astype(np.float64), handles["rotation"].astype(np.float64),
+                             handles["translation"].astype(np.float64), truth, vertices, log=rep.say)
+    _write_json(outdir / "compare.json", result)
+    plot_comparison(result, outdir / "compare.png", title=f"{Path(config).stem}: error against basis size")
+    rep.say(f"{'method':26s} {'P':>3s} {'mean RMS':>9s} {'p95':>9s} {'frames/s':>9s}")
+    for r in result["rows"]:
+        p = "" if r["poses"] is None else str(r["poses"])
+        rep.say(f"{r['method']:26s} {p:>3s} {r['rms_mean']:9.5f} {r['rms_p95']:9.5f} {r['frames_per_second']:9.1f}")
+    rep.say(f"wrote {outdir / 'compare.json'} and {outdir / 'compare.png'}")
+
+
+# ----------------------------------------------------------------------------- transfer
+
+
+@cli.command()
+@click.argument("model_path", metavar="MODEL", type=click.Path(dir_okay=False))
+@click.option("--target", required=True, type=click.Path(dir_okay=False), help="The other face's rest mesh (OBJ, PLY).")
+@click.option("--source-points", required=True, type=click.Path(dir_okay=False),
+              help="CSV name,vertex: marked points on the model's mesh (about 40, spread over the face).")
+@click.option("--target-points", required=True, type=click.Path(dir_okay=False),
+              help="CSV name,vertex: the same named points on the target.")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="Model to write; a .json summary is written beside it.")
+@click.option("--target-markers", default=None, type=click.Path(dir_okay=False),
+              help="markers.csv of the target (name,vertex[,role]) [default: each marker mapped to the nearest "
+                   "target vertex through the correspondence].")
+@click.option("--deform", type=click.Choice(["auto", "shell", "rbf"]), default="auto", show_default=True,
+              help="How the source is fitted to the target's points: thin shell, RBF volume morph, or auto (the "
+                   "shell when every part of the source holds a point).")
+@click.option("--max-distance", type=float, default=None,
+              help="Target vertices farther than this from the fitted source are an error [default: half the "
+                   "points' spacing].")
+@click.option("--allow-far", is_flag=True, help="Map vertices beyond --max-distance anyway (to the nearest source).")
+@click.option("--scale-details/--no-scale-details", default=True, show_default=True,
+              help="Scale the details by the size ratio of the faces (from the points' similarity).")
+@_common
+@click.pass_context
+def transfer(ctx, model_path, target, source_points, target_points, output, target_markers, deform, max_distance,
+             allow_far, scale_details, quiet, verbose):
+    """Transfer a MODEL's learned details onto another face: an ordinary model of the target."""
+    from facepipe.pipeline.transfer import transfer_files
+
+    rep = _reporter(ctx, quiet, verbose)
+    if max_distance is not None and max_distance <= 0:
+        raise InputError("--max-distance must be a positive length")
+    s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
+                       max_distance=max_distance, allow_far=allow_far, scale_details=scale_details)
+    d = s["projection_distance"]
+    rep.say(f"{s['points']} points; similarity scale {s['similarity']['scale']:.4f}, rotation "
+            f"{s['similarity']['rotation_deg']:.1f}°; fitted by the {s['deformation']}")
+    rep.say(f"mapped {s['vertices_mapped']} target vertices onto {s['source_vertices']} source vertices: distance "
+            f"median {d['median']:.3g}, p99 {d['p99']:.3g}, max {d['max']:.3g}; {s['far_vertices']} beyond "
+            f"{s['far_limit']:.3g}; {s['normal_mismatches']} without a source triangle facing their way")
+    m = s["markers"]
+    rep.say(f"markers: {m.get('given', m.get('mapped'))} {'given' if 'given' in m else 'mapped'}; anchors "
+            f"{s['anchors']['target']}; method {s['method']}, details scaled by {s['detail_scale']:.4f}")
+    for note in s["notes"]:
+        rep.say(f"note: {note}")
+    rep.say(f"wrote {output} and {Path(output).with_suffix('.json')} ({s['seconds_total']:.1f} s)")
+
+
+# ----------------------------------------------------------------------------- sample
+
+
+@cli.command()
+@click.argument("directory", type=click.Path(file_okay=False))
+@click.option("--vertices", default=20000, show_default=True, help="Approximate vertex count (up to 600k).")
+@click.option("--examples", default=8, show_default=True, help="Example poses (6-12).")
+@click.option("--frames", default=120, show_default=True, help="Frames of the take.")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--markers", default=None, type=int, help="Markers driving the shell, 6 stable ones included "
+              "[default: 96]; 89 is the paper's configuration.")
+@_common
+@click.pass_context
+def sample(ctx, directory, vertices, examples, frames, seed, markers, quiet, verbose):
+    """Write a self-contained synthetic rig: mesh, markers, anchors, examples, a take with truth, a config."""
+    from facepipe.sample_rig import write_sample_rig
+
+    rep = _reporter(ctx, quiet, verbose)
+    if not 100 <= vertices <= 2_000_000:
+        raise InputError(f"--vertices {vertices} is outside 100..2000000")
+    info = write_sample_rig(directory, n_vertices=vertices, n_examples=examples, n_frames=frames, seed=seed,
+                            n_markers=markers)
+    rep.say(f"wrote sample rig to {directory}: " + ", ".join(f"{k} {v}" for k, v in info.items()
+                                                             if isinstance(v, (int, float))))
+
+
+def main(argv=None) -> None:
+    """Console entry point: maps InputError to exit status 2, anything unexpected to 1."""
+    try:
+        status = cli.main(args=argv, standalone_mode=False)
+    except InputError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(2)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(2)
+    except KeyboardInterrupt:
+        click.echo("interrupted: complete output files are kept, partial ones removed", err=True)
+        sys.exit(130)
+    except Exception:
+        click.echo("internal error (please report it with the text below):", err=True)
+        traceback.print_exc()
+        sys.exit(1)
+    sys.exit(status if isinstance(status, int) else 0)
+
+
+if __name__ == "__main__":
+    main()

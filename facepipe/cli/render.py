@@ -1,0 +1,211 @@
+"""A small software renderer for previews: orthographic z-buffer, per-pixel Lambert shading.
+
+No display and no OpenGL: triangles are rasterised with NumPy in one vectorised pass
+(every triangle's bounding box of pixel centres is enumerated, the nearest surface wins
+per pixel), so a 600k-vertex mesh renders in seconds at preview sizes. Normals are
+interpolated per pixel from the vertex normals, which shows wrinkles at the mesh's
+resolution rather than the triangles' facets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facepipe.core.tangent_frames import vertex_normals
+
+
+@dataclass
+class Camera:
+    """An orthographic camera.
+
+    Attributes
+    ----------
+    rotation : (3, 3) rows are the camera's right, up and backward axes in world space
+        (camera coordinates = rotation @ world; +z points to the viewer).
+    center : (2,) camera-plane point at the image centre.
+    scale : pixels per length unit.
+    width, height : image size in pixels.
+    """
+
+    rotation: np.ndarray
+    center: np.ndarray
+    scale: float
+    width: int
+    height: int
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (…, 2) (x right, y down; pixel centres at integers) and depth (…)
+        (larger = nearer the viewer) of world points (…, 3)."""
+        c = np.asarray(points, dtype=np.float64) @ self.rotation.T
+        x = (c[..., 0] - self.center[0]) * self.scale + 0.5 * self.width - 0.5
+        y = -(c[..., 1] - self.center[1]) * self.scale + 0.5 * self.height - 0.5
+        return np.stack([x, y], axis=-1), c[..., 2]
+
+
+def frame_camera(points: np.ndarray, forward: np.ndarray, width: int = 512, up=(0.0, 1.0, 0.0),
+                 margin: float = 0.04) -> Camera:
+    """A camera looking at ``points`` against ``forward`` (the direction the face looks),
+    framing their extent with a margin; the height follows from the extent's aspect.
+
+    Parameters
+    ----------
+    points : (V, 3) the geometry to frame (e.g. the rest mesh).
+    forward : (3,) direction from the subject towards the camera.
+    width : image width in pixels.
+    up : (3,) world direction that should point up in the image (projected).
+    """
+    back = np.asarray(forward, dtype=np.float64)
+    back = back / np.linalg.norm(back)
+    up = np.asarray(up, dtype=np.float64)
+    up = up - (up @ back) * back
+    if np.linalg.norm(up) < 1e-6:  # looking along the up axis: any perpendicular will do
+        up = np.cross(back, [1.0, 0.0, 0.0]) if abs(back[0]) < 0.9 else np.cross(back, [0.0, 1.0, 0.0])
+    up = up / np.linalg.norm(up)
+    right = np.cross(up, back)
+    R = np.stack([right, up, back])
+    c = np.asarray(points, dtype=np.float64) @ R.T
+    lo, hi = c[:, :2].min(axis=0), c[:, :2].max(axis=0)
+    extent = np.maximum(hi - lo, 1e-12) * (1 + 2 * margin)
+    scale = width / extent[0]
+    height = max(1, int(round(extent[1] * scale)))
+    return Camera(R, 0.5 * (lo + hi), float(scale), int(width), height)
+
+
+def triangle_pixels(p: np.ndarray, ok: np.ndarray, x0: np.ndarray, x1: np.ndarray, y0: np.ndarray,
+                    y1: np.ndarray, chunk: int, tolerance: float = 1e-9):
+    """The integer pixel centres inside triangles, with their barycentric coordinates.
+
+    Every pixel of each triangle's bounding box is a candidate; candidates are enumerated in
+    one flat array (chunks of about ``chunk``), and as barycentric coordinates are affine in
+    the pixel position (b1 = a·x + b·y + c, the same for b2) they are computed for all at once.
+
+    Parameters
+    ----------
+    p : (T, 3, 2) float, corner positions (x, y) in pixels.
+    ok : (T,) bool, triangles to scan (not degenerate).
+    x0, x1, y0, y1 : (T,) int64, each triangle's bounding box, inclusive, clipped to the image.
+    chunk : candidates per chunk (bounded memory).
+    tolerance : how far below zero a barycentric coordinate may be on an edge.
+
+    Yields
+    ------
+    t, row, col : (K,) int64, the triangle and pixel of each covered pixel.
+    b0, b1, b2 : (K,) float64, its barycentric coordinates.
+    """
+    e1 = p[:, 1] - p[:, 0]
+    e2 = p[:, 2] - p[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    bw = np.maximum(x1 - x0 + 1, 0)
+    counts = np.where(ok, bw * np.maximum(y1 - y0 + 1, 0), 0)
+    inv = 1.0 / np.where(ok, det, 1.0)
+    c1 = np.stack([e2[:, 1] * inv, -e2[:, 0] * inv], axis=1)
+    c2 = np.stack([-e1[:, 1] * inv, e1[:, 0] * inv], axis=1)
+    k1 = np.c_[c1, -(c1 * p[:, 0]).sum(axis=1)]
+    k2 = np.c_[c2, -(c2 * p[:, 0]).sum(axis=1)]
+    bounds = np.searchsorted(np.cumsum(counts), np.arange(0, counts.sum() + chunk, chunk), side="left")
+    starts = np.unique(np.r_[0, bounds, p.shape[0]])
+    for a, b in zip(starts[:-1], starts[1:]):
+        n = counts[a:b]
+        if n.sum() == 0:
+            continue
+        t = np.repeat(np.arange(a, b), n)
+        row, col = np.divmod(np.arange(t.shape[0]) - np.repeat(np.cumsum(n) - n, n), np.repeat(bw[a:b], n))
+        col += np.repeat(x0[a:b], n)
+        row += np.repeat(y0[a:b], n)
+        b1 = k1[t, 0] * col + k1[t, 1] * row + k1[t, 2]
+        b2 = k2[t, 0] * col + k2[t, 1] * row + k2[t, 2]
+        b0 = 1.0 - b1 - b2
+        inside = (b0 >= -tolerance) & (b1 >= -tolerance) & (b2 >= -tolerance)
+        yield t[inside], row[inside], col[inside], b0[inside], b1[inside], b2[inside]
+
+
+def rasterize(pixels: np.ndarray, depth: np.ndarray, faces: np.ndarray, width: int, height: int,
+              chunk: int = 1 << 22) -> tuple[np.ndarray, np.ndarray]:
+    """Visible triangle and barycentric coordinates per pixel (a z-buffer).
+
+    Parameters
+    ----------
+    pixels : (V, 2) pixel coordinates (x, y; centres at integers); depth : (V,) larger = nearer.
+    faces : (T, 3) triangles.
+
+    Returns
+    -------
+    face : (height, width) int64, the visible triangle (−1 for background).
+    bary : (height, width, 3) float64 barycentric coordinates in it.
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    p = pixels[faces]  # (T, 3, 2)
+    z = depth[faces]  # (T, 3)
+    e1 = p[:, 1] - p[:, 0]
+    e2 = p[:, 2] - p[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = np.abs(det) > 1e-12
+    x0 = np.clip(np.ceil(p[..., 0].min(axis=1)), 0, width).astype(np.int64)
+    x1 = np.clip(np.floor(p[..., 0].max(axis=1)), -1, width - 1).astype(np.int64)
+    y0 = np.clip(np.ceil(p[..., 1].min(axis=1)), 0, height).astype(np.int64)
+    y1 = np.clip(np.floor(p[..., 1].max(axis=1)), -1, height - 1).astype(np.int64)
+
+    n_pix = width * height
+    zbuf = np.full(n_pix, -np.inf)
+    face = np.full(n_pix, -1, dtype=np.int64)
+    bary = np.zeros((n_pix, 3))
+    for t, row, col, b0, b1, b2 in triangle_pixels(p, ok, x0, x1, y0, y1, chunk):
+        pix = row * width + col
+        zc = b0 * z[t, 0] + b1 * z[t, 1] + b2 * z[t, 2]
+        # nearest candidate per pixel: sort by (pixel, depth), keep each pixel's last
+        order = np.lexsort((zc, pix))
+        pix, zc = pix[order], zc[order]
+        last = np.r_[pix[1:] != pix[:-1], True]
+        sel = order[last]
+        pix, zc = pix[last], zc[last]
+        nearer = zc > zbuf[pix]
+        pix, sel = pix[nearer], sel[nearer]
+        zbuf[pix] = zc[nearer]
+        face[pix] = t[sel]
+        bary[pix] = np.stack([b0[sel], b1[sel], b2[sel]], axis=1)
+    return face.reshape(height, width), bary.reshape(height, width, 3)
+
+
+def render(vertices: np.ndarray, faces: np.ndarray, camera: Camera, colors: np.ndarray | None = None,
+           background=(1.0, 1.0, 1.0), light=(-0.35, 0.45, 1.0), ambient: float = 0.18) -> np.ndarray:
+    """Shade a mesh: two-sided Lambert with per-pixel normals, optional per-vertex colours.
+
+    Parameters
+    ----------
+    vertices : (V, 3); faces : (T, 3).
+    camera : from :func:`frame_camera`.
+    colors : (V, 3) RGB in [0, 1] per vertex (interpolated), or None for light grey.
+    light : (3,) light direction in camera coordinates (towards the light; +z = the viewer).
+    ambient : the unlit fraction.
+
+    Returns
+    -------
+    (height, width, 3) float RGB image in [0, 1].
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    pix, depth = camera.project(vertices)
+    face, bary = rasterize(pix, depth, faces, camera.width, camera.height)
+    img = np.empty((camera.height, camera.width, 3))
+    img[:] = background
+    hit = face >= 0
+    if not hit.any():
+        return img
+    f = face[hit]
+    b = bary[hit]
+    corners = faces[f]  # (n, 3)
+    normals = vertex_normals(vertices, faces) @ camera.rotation.T
+    n = np.einsum("nk,nkc->nc", b, normals[corners])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    light = np.asarray(light, dtype=np.float64)
+    light = light / np.linalg.norm(light)
+    lambert = np.abs(n @ light)  # two-sided: the inside of lips and eyelids is lit too
+    shade = ambient + (1 - ambient) * lambert
+    if colors is None:
+        base = np.full((f.shape[0], 3), 0.82)
+    else:
+        base = np.einsum("nk,nkc->nc", b, np.asarray(colors, dtype=np.float64)[corners])
+    img[hit] = np.clip(base * shade[:, None], 0.0, 1.0)
+    return img

@@ -1,0 +1,1 @@
+"""Files: meshes, configs, model and fit files, replay folders, EXR images, atomic writes."""

@@ -1,0 +1,252 @@
+"""The fit file and the baked model file: write, read, validate, version.
+
+A model is one ``.npz`` (float32 for the large arrays) with everything replay and export
+need: rest mesh and its polygons/UVs, handles, B, feature graph, WPSD edge weights, RBF
+weights. It carries a format version and the digest of the config and input files it was
+made from.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from facepipe.io.atomic import atomic_path
+from facepipe.errors import InputError
+from facepipe.core.mesh import Mesh
+from facepipe.core.psd import DetailModel, NoveltyGate, edge_weight_matrix
+
+FORMAT_VERSION = 1
+MODEL_KIND = "facepipe-model"
+FIT_KIND = "facepipe-fit"
+
+# name -> dtype written; every array replay or export reads
+_MODEL_ARRAYS = {
+    "rest": np.float32,
+    "triangles": np.int32,
+    "polygon_offsets": np.int64,
+    "polygon_vertices": np.int32,
+    "handle_vertices": np.int32,
+    "stable": np.bool_,
+    "anchors": np.int32,
+    "B": np.float32,
+    "edges": np.int32,
+    "rest_lengths": np.float32,
+    "frame_neighbors": np.int32,
+    "basis_features": np.float32,
+    "rbf_weights": np.float32,
+    "rbf_const": np.float32,
+    "edge_index": np.int32,
+    "edge_weight": np.float32,
+    "example_handles": np.float32,
+}
+_OPTIONAL = {"uvs": np.float32, "polygon_uvs": np.int32, "novelty_index": np.int32, "novelty_weight": np.float32,
+             "novelty_examples": np.float32, "novelty_solve": np.float32}
+
+
+@dataclass
+class Model:
+    """A baked model, as read from disk (arrays as stored) plus its metadata."""
+
+    arrays: dict
+    meta: dict
+    path: str = ""
+
+    def __getattr__(self, name):
+        arrays = self.__dict__.get("arrays", {})
+        if name in arrays:
+            return arrays[name]
+        raise AttributeError(name)
+
+    @property
+    def method(self) -> str:
+        return self.meta["method"]
+
+    @property
+    def marker_names(self) -> list[str]:
+        return list(self.meta["marker_names"])
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.arrays["rest"].shape[0])
+
+    def detail_model(self, dtype=np.float64) -> DetailModel:
+        weights = edge_weight_matrix(self.edge_index, self.edge_weight, len(self.edges)).astype(dtype)
+        return DetailModel(self.method, self.basis_features.astype(dtype), self.rbf_weights.astype(dtype),
+                           self.rbf_const.astype(dtype), weights if self.method == "wpsd" else None,
+                           self.novelty_gate(weights, dtype))
+
+    def novelty_gate(self, alpha: sp.spmatrix, dtype=np.float64) -> NoveltyGate | None:
+        """The model's novelty gate with the site-to-vertex weights ``alpha`` (the model's own α,
+        or another: the OpenCL engine takes per-site factors with the identity); None without one."""
+        if "novelty_solve" not in self.arrays or not self.meta.get("novelty_tau", 0) > 0:
+            return None
+        return NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype), self.novelty_examples.astype(dtype),
+                           self.novelty_solve.astype(dtype), float(self.meta["novelty_tau"]), alpha)
+
+    def mesh(self) -> Mesh:
+        """The rest mesh with its original polygons and UVs (for export)."""
+        return Mesh(
+            vertices=self.rest.astype(np.float64),
+            polygon_offsets=self.polygon_offsets.astype(np.int64),
+            polygon_vertices=self.polygon_vertices.astype(np.int64),
+            uvs=None if "uvs" not in self.arrays else self.uvs.astype(np.float64),
+            polygon_uvs=None if "polygon_uvs" not in self.arrays else self.polygon_uvs.astype(np.int64),
+            path=self.path,
+        )
+
+
+def model_arrays(fit, rig) -> tuple[dict, dict]:
+    """Arrays and metadata of a model from a FitResult and its Rig."""
+    geo = fit.geometry
+    mesh = rig.mesh
+    arrays = {
+        "rest": geo.rest,
+        "triangles": geo.faces,
+        "polygon_offsets": mesh.polygon_offsets,
+        "polygon_vertices": mesh.polygon_vertices,
+        "handle_vertices": geo.handles,
+        "stable": rig.markers.stable,
+        "anchors": rig.anchors,
+        "B": geo.B,
+        "edges": geo.edges,
+        "rest_lengths": geo.rest_lengths,
+        "frame_neighbors": geo.neighbors,
+        "basis_features": fit.model.basis_features,
+        "rbf_weights": fit.model.weights,
+        "rbf_const": fit.model.const,
+        "edge_index": fit.edge_index,
+        "edge_weight": fit.edge_weight,
+        # head-space handle positions of the rest pose and every example: the rig's prior over
+        # marker configurations (gap filling, blend-shape baselines)
+        "example_handles": np.concatenate([geo.rest[None, geo.handles], rig.example_positions[:, geo.handles]]),
+    }
+    gate = fit.model.gate
+    if gate is not None:
+        arrays.update(novelty_index=gate.index, novelty_weight=gate.sqrt_weight, novelty_examples=gate.examples,
+                      novelty_solve=gate.solve)
+    if mesh.uvs is not None:
+        arrays["uvs"] = mesh.uvs
+        arrays["polygon_uvs"] = mesh.polygon_uvs
+    meta = {
+        "kind": MODEL_KIND,
+        "format_version": FORMAT_VERSION,
+        "method": fit.model.method,
+        "marker_names": rig.markers.handle_names,
+        "units": rig.config.units,
+        "config": str(rig.config.path),
+        "config_digest": rig.digest,
+        "basis": [fit.example_names[i] for i in fit.basis],
+        "example_names": list(fit.example_names),
+        "beta": fit.beta,
+        "novelty_tau": 0.0 if gate is None else gate.tau,
+        "marker_spacing": geo.spacing,
+        "shell": {"k_stretch": rig.config.shell.k_stretch, "k_bend": rig.config.shell.k_bend,
+                  "method": rig.config.shell.method, "rbf_lambda": rig.config.shell.rbf_lambda,
+                  "phantoms": rig.config.shell.phantoms},
+        "smoothing": rig.config.psd.smoothing,
+    }
+    if "tune" in fit.report:  # the values `fit --tune` chose, with their validated error
+        meta["tuned"] = dict(fit.report["tune"]["chosen"], fallback=fit.report["tune"]["fallback"])
+    return arrays, meta
+
+
+def save_model(path, arrays: dict, meta: dict) -> None:
+    """Write a model .npz atomically, casting arrays to their stored dtypes."""
+    out = {}
+    for name, dtype in {**_MODEL_ARRAYS, **_OPTIONAL}.items():
+        if name in arrays and arrays[name] is not None:
+            out[name] = np.ascontiguousarray(arrays[name], dtype=dtype)
+    out["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **out)
+
+
+def load_model(path) -> Model:
+    """Read and validate a model file; InputError for anything but a complete, current model."""
+    meta, data = _read_npz(path, MODEL_KIND)
+    missing = [k for k in _MODEL_ARRAYS if k not in data]
+    if missing:
+        raise InputError(f"model file lacks {missing}", path=path, hint="bake it again with this facepipe version")
+    arrays = {k: data[k] for k in list(_MODEL_ARRAYS) + list(_OPTIONAL) if k in data}
+    V = arrays["rest"].shape[0]
+    H = arrays["handle_vertices"].shape[0]
+    checks = [
+        (arrays["B"].shape == (V, H), f"B has shape {arrays['B'].shape}, expected ({V}, {H})"),
+        (len(meta.get("marker_names", [])) == H, "marker names do not match the handles"),
+        (arrays["rbf_weights"].shape[0] == V, "RBF weights do not match the vertex count"),
+        (arrays["edge_index"].shape[0] == V, "edge weights do not match the vertex count"),
+        (arrays["basis_features"].shape[1] == arrays["edges"].shape[0], "basis features do not match the graph"),
+        (meta.get("method") in ("psd", "wpsd", "none"), f"unknown method {meta.get('method')!r}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise InputError(f"corrupt model: {message}", path=path, hint="bake the model again")
+    return Model(arrays, meta, str(path))
+
+
+def _read_npz(path, kind: str) -> tuple[dict, dict]:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found", path=path)
+    try:
+        data = dict(np.load(path, allow_pickle=False))
+        meta = json.loads(bytes(data.pop("meta")).decode())
+    except Exception as exc:  # zip, pickle and JSON errors all mean: not our file, or truncated
+        raise InputError(f"not a readable facepipe file ({exc.__class__.__name__}: {exc})", path=path) from None
+    if meta.get("kind") != kind:
+        raise InputError(f"this is a {meta.get('kind', 'unknown')} file, expected a {kind} file", path=path)
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise InputError(f"format version {meta.get('format_version')} is not {FORMAT_VERSION}", path=path,
+                         hint="re-run fit/bake with this facepipe version")
+    return meta, data
+
+
+def save_fit(path, fit, rig) -> None:
+    """Write the fit file: the model's arrays plus per-example features, details and the report."""
+    arrays, meta = model_arrays(fit, rig)
+    extra = {
+        "example_features": fit.features.astype(np.float32),
+        "example_details": fit.details.astype(np.float32),
+        "basis_index": np.asarray(fit.basis, dtype=np.int32),
+    }
+    meta = dict(meta, kind=FIT_KIND, report=fit.report)
+    out = {k: np.ascontiguousarray(v) for k, v in arrays.items() if v is not None}
+    out.update(extra)
+    out["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **out)
+
+
+def load_fit(path) -> tuple[dict, dict]:
+    """Arrays and metadata of a fit file (for bake)."""
+    meta, data = _read_npz(path, FIT_KIND)
+    return data, meta
+
+
+def fit_to_model(path_in, path_out) -> dict:
+    """Bake a fit file into a model file; returns the model metadata."""
+    data, meta = load_fit(path_in)
+    meta = {k: v for k, v in meta.items() if k != "report"}
+    meta["kind"] = MODEL_KIND
+    save_model(path_out, data, meta)
+    return meta
+
+
+
+def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = None) -> Model:
+    """An in-memory Model from a FitResult, optionally of another method or a smaller basis."""
+    arrays, meta = model_arrays(fit, rig)
+    if method is not None or n_poses is not None:
+        method = method or fit.method
+        detail = fit.detail_model(method, n_poses)
+        arrays.update(basis_features=detail.basis_features, rbf_weights=detail.weights, rbf_const=detail.const)
+        basis = [0] if method == "none" else fit.bases[method][: None if n_poses is None else n_poses + 1]
+        meta = dict(meta, method=method, basis=[fit.example_names[i] for i in basis])
+    return Model(arrays, meta, "(in memory)")

@@ -1,0 +1,224 @@
+"""A replay output folder as exporters read it: positions, frame times, handles, model.
+
+``facepipe replay`` writes ``positions.npy`` (T × V × 3 float32), ``replay.json`` (frame
+numbers, times, the model's path), ``handles.npz`` (the clean head-space handles and the
+head motion) and optionally ``large_scale.npy``. From the handles any layer of the model can
+be evaluated again (the large-scale shell, the details in local frames) without replaying
+the take. Every read is validated: a missing or inconsistent file is an InputError naming it.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from facepipe.errors import InputError
+
+# a frame rate is "uniform" when every frame interval is within this fraction of the median
+_UNIFORM_TOLERANCE = 0.01
+
+
+class ReplayDir:
+    """The outputs of one ``facepipe replay`` run.
+
+    Parameters
+    ----------
+    path : the replay's output folder.
+
+    Example
+    -------
+    >>> r = ReplayDir("out")                        # doctest: +SKIP
+    >>> r.positions.shape, r.fps                    # doctest: +SKIP
+    ((120, 11248, 3), 30.0)
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise InputError("no such replay folder", path=self.path,
+                             hint="give the folder written by 'facepipe replay ... -o FOLDER'")
+
+    @cached_property
+    def info(self) -> dict:
+        """replay.json as a dict."""
+        path = self.path / "replay.json"
+        if not path.is_file():
+            raise InputError("no replay.json here", path=self.path, hint="give the folder written by 'facepipe replay'")
+        try:
+            info = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise InputError(f"replay.json is not valid JSON: {exc}", path=path) from None
+        for key in ("frame_numbers", "times"):
+            if not isinstance(info.get(key), list):
+                raise InputError(f"replay.json has no '{key}' list", path=path,
+                                 hint="replay the take again with this facepipe version")
+        if len(info["frame_numbers"]) != len(info["times"]):
+            raise InputError("replay.json has different numbers of frame numbers and times", path=path)
+        return info
+
+    @property
+    def frame_numbers(self) -> np.ndarray:
+        """(T,) int64 frame numbers of the take."""
+        return np.asarray(self.info["frame_numbers"], dtype=np.int64)
+
+    @property
+    def times(self) -> np.ndarray:
+        """(T,) float64 seconds."""
+        return np.asarray(self.info["times"], dtype=np.float64)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.info["frame_numbers"])
+
+    def _array(self, name: str, required: bool = True, hint: str = "run 'facepipe replay' again"):
+        path = self.path / name
+        if not path.is_file():
+            if not required:
+                return None
+            raise InputError(f"no {name} here", path=self.path, hint=hint)
+        try:
+            arr = np.load(path, mmap_mode="r")
+        except Exception as exc:  # truncated header, not an npy file
+            raise InputError(f"cannot read {name}: {exc}", path=path, hint=hint) from None
+        if arr.ndim != 3 or arr.shape[2] != 3 or arr.shape[0] != self.n_frames:
+            raise InputError(f"{name} has shape {arr.shape}, expected ({self.n_frames}, vertices, 3) for the "
+                             f"{self.n_frames} frames of replay.json", path=path, hint=hint)
+        return arr
+
+    @cached_property
+    def positions(self) -> np.ndarray:
+        """(T, V, 3) float32 memmap of the final positions (the take's space)."""
+        return self._array("positions.npy")
+
+    @cached_property
+    def large_scale(self) -> np.ndarray | None:
+        """(T, V, 3) float32 memmap of the large-scale positions, or None when not saved."""
+        return self._array("large_scale.npy", required=False)
+
+    def layer(self, name: str) -> np.ndarray:
+        """Positions of a layer: "final" (positions.npy) or "large" (large_scale.npy)."""
+        if name == "final":
+            return self.positions
+        if name == "large":
+            large = self.large_scale
+            if large is None:
+                raise InputError("this replay has no large_scale.npy", path=self.path,
+                                 hint="replay the take with --save-large-scale to export the large-scale layer")
+            return large
+        raise ValueError(f"unknown layer {name!r}")
+
+    @cached_property
+    def handles(self) -> dict:
+        """handles.npz: ``head`` (T, H, 3), ``rotation`` (T, 3, 3), ``translation`` (T, 3), ``head_motion``."""
+        path = self.path / "handles.npz"
+        hint = "replay the take again with this facepipe version (it writes handles.npz)"
+        if not path.is_file():
+            raise InputError("no handles.npz here: the model layers cannot be evaluated again", path=self.path,
+                             hint=hint)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                out = {k: data[k] for k in data.files}
+        except Exception as exc:
+            raise InputError(f"cannot read handles.npz: {exc}", path=path, hint=hint) from None
+        T = self.n_frames
+        for key, tail in (("head", None), ("rotation", (3, 3)), ("translation", (3,))):
+            a = out.get(key)
+            if a is None or a.shape[0] != T or (tail is not None and a.shape[1:] != tail):
+                raise InputError(f"handles.npz: '{key}' is missing or does not have {T} frames", path=path, hint=hint)
+        if not np.isfinite(out["head"]).all():
+            t = int(np.flatnonzero(~np.isfinite(out["head"]).all(axis=(1, 2)))[0])
+            raise InputError(f"handles.npz: frame {int(self.frame_numbers[t])} has non-finite handles", path=path)
+        out["head_motion"] = str(out.get("head_motion", "keep"))
+        return out
+
+    def model_path(self, override=None) -> Path:
+        """The model to use: ``override`` or the one replay.json names."""
+        if override:
+            return Path(override)
+        name = self.info.get("model")
+        if not name:
+            raise InputError("replay.json does not name its model", path=self.path / "replay.json",
+                             hint="pass the model with -m MODEL.npz")
+        return Path(name)
+
+    def load_model(self, override=None):
+        """The model of this replay, checked against the positions' vertex count."""
+        from facepipe.io.model_file import load_model
+
+        path = self.model_path(override)
+        if not path.is_file():
+            raise InputError("the model this replay names is not there", path=path,
+                             hint="pass the model used for the replay with -m MODEL.npz")
+        model = load_model(path)
+        V = self.positions.shape[1]
+        if model.n_vertices != V:
+            raise InputError(f"the model has {model.n_vertices} vertices, the replay's positions {V}", path=path,
+                             hint="pass the model used for this replay with -m MODEL.npz")
+        return model
+
+    @property
+    def fps(self) -> float:
+        """Frames per second of the take (from the replay's frame times)."""
+        return frame_rate(self.times)
+
+
+def frame_rate(times: np.ndarray, default: float = 30.0) -> float:
+    """Frame rate from frame times: 1 / median interval (``default`` for fewer than two frames).
+
+    Parameters
+    ----------
+    times : (T,) seconds, increasing.
+
+    Returns
+    -------
+    float frames per second.
+
+    Raises
+    ------
+    InputError
+        Times that do not increase.
+
+    Example
+    -------
+    >>> frame_rate(np.arange(5) / 30.0)
+    30.0
+    """
+    times = np.asarray(times, dtype=np.float64)
+    if times.shape[0] < 2:
+        return float(default)
+    dt = np.diff(times)
+    if not (dt > 0).all():
+        i = int(np.flatnonzero(~(dt > 0))[0])
+        raise InputError(f"frame times do not increase at frame index {i + 1} ({times[i]} → {times[i + 1]} s)",
+                         hint="replay a take whose time column increases")
+    fps = 1.0 / float(np.median(dt))
+    # takes are recorded at whole (or NTSC) rates; snap what rounding in the CSV blurred
+    for nominal in (round(fps), round(fps * 1.001) / 1.001):
+        if nominal > 0 and abs(fps - nominal) < 1e-4 * nominal:
+            return float(nominal)
+    return fps
+
+
+def is_uniform(times: np.ndarray) -> bool:
+    """True when every frame interval is within 1 % of the median (no dropped frames)."""
+    times = np.asarray(times, dtype=np.float64)
+    if times.shape[0] < 3:
+        return True
+    dt = np.diff(times)
+    return bool(np.abs(dt - np.median(dt)).max() <= _UNIFORM_TOLERANCE * np.median(dt))
+
+
+def time_codes(times: np.ndarray, fps: float) -> np.ndarray:
+    """Time codes (frames at ``fps``) of frame times: ``times × fps``, snapped to integers
+    when within 1/100 of a frame (CSV times are rounded; the frames are whole).
+
+    Returns
+    -------
+    (T,) float64.
+    """
+    tc = np.asarray(times, dtype=np.float64) * fps
+    near = np.abs(tc - np.round(tc)) < 1e-2
+    return np.where(near, np.round(tc), tc)

@@ -1,0 +1,1 @@
+"""The pipeline's stages over a rig: fit, tune, cross-validation, replay, transfer, evaluation."""

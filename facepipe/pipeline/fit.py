@@ -1,0 +1,315 @@
+"""Fitting: large-scale basis, feature graph, details of the examples, greedy PSD/WPSD basis.
+
+Everything here is arrays in, arrays out; the rig loader and the CLI do the I/O.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from facepipe.errors import InputError
+from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
+from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details, greedy_basis, novelty_gate, rms_per_pose, spread_sample, wpsd_edge_weights)
+from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
+from facepipe.pipeline.rig import Rig, load_rig
+from facepipe.core.shell import large_scale_positions, marker_spacing, shell_basis
+from facepipe.core.strain import (Geodesics, auto_feature_graph, edge_graph, edge_lengths, graph_from_pairs, strain_features)
+
+
+@dataclass
+class Geometry:
+    """Rest-pose quantities shared by fitting and replay.
+
+    rest : (V, 3); faces : (T, 3); handles : (H,) vertex indices; B : (V, H) large-scale basis;
+    edges : (F, 2) handle-index pairs; rest_lengths : (F,); neighbors : (V,) frame neighbours;
+    spacing : mean marker spacing (length units).
+    """
+
+    rest: np.ndarray
+    faces: np.ndarray
+    handles: np.ndarray
+    B: np.ndarray
+    edges: np.ndarray
+    rest_lengths: np.ndarray
+    neighbors: np.ndarray
+    spacing: float
+    incidence: sp.csr_matrix = field(repr=False, default=None)
+
+    def __post_init__(self):
+        if self.incidence is None:
+            self.incidence = vertex_face_matrix(self.faces, self.rest.shape[0])
+
+    def large_scale(self, poses: np.ndarray) -> np.ndarray:
+        """Large-scale positions (E, V, 3) of poses (E, V, 3) from their handle vertices."""
+        return large_scale_positions(self.rest, self.B, poses[:, self.handles] - self.rest[self.handles])
+
+    def frames(self, positions: np.ndarray) -> np.ndarray:
+        return local_frames(positions, self.faces, self.neighbors, self.incidence)
+
+    def features(self, handle_positions: np.ndarray) -> np.ndarray:
+        return strain_features(handle_positions, self.edges, self.rest_lengths)
+
+    def details(self, poses: np.ndarray, chunk: int = 16) -> np.ndarray:
+        """Details d = Rᵀ (pose − large-scale) in the large-scale mesh's local frames: (E, V, 3)."""
+        out = np.empty_like(poses, dtype=np.float64)
+        for s in range(0, poses.shape[0], chunk):
+            large = self.large_scale(poses[s:s + chunk])
+            out[s:s + chunk] = to_local(self.frames(large), poses[s:s + chunk] - large)
+        return out
+
+
+def large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray, shell,
+                      spacing: float | None = None) -> np.ndarray:
+    """The large-scale basis B (V, H) of a mesh: the thin shell or the RBF volume morph.
+
+    Parameters
+    ----------
+    rest : (V, 3); faces : (T, 3); handles : (H,) and anchors : (A,) vertex indices.
+    shell : a :class:`~facepipe.pipeline.rig.ShellConfig` (or anything with its attributes: method,
+        k_stretch, k_bend, rbf_lambda, phantoms).
+    spacing : marker spacing h (length units); default: mean nearest-handle distance.
+    """
+    if spacing is None:
+        spacing = marker_spacing(rest, handles)
+    if getattr(shell, "method", "shell") == "rbf":
+        phantoms = phantom_points(rest, faces, anchors, handles, shell.phantoms or None)
+        return multiquadric_basis(rest, handles, phantoms, shell.rbf_lambda)
+    return shell_basis(rest, faces, handles, anchors, k_stretch=shell.k_stretch, k_bend=shell.k_bend,
+                       spacing=spacing)
+
+
+def feature_graph(rig: Rig, mesh_graph: sp.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The rig's feature edges (F, 2) (handle-index pairs) and their rest lengths (F,).
+
+    ``mesh_graph``: the mesh's :func:`~facepipe.core.strain.edge_graph`, if at hand."""
+    cfg = rig.config
+    rest, handles = rig.mesh.vertices, rig.handles
+    if cfg.graph == "auto":
+        edges = auto_feature_graph(rest, rig.mesh.faces, handles, graph=mesh_graph)
+    else:
+        edges = graph_from_pairs(read_graph_csv(cfg.path.parent / cfg.graph), rig.markers.handle_names,
+                                 str(cfg.path.parent / cfg.graph))
+    if len(edges) == 0:
+        raise InputError("the feature graph has no edges", path=cfg.path, hint="check the markers or give a graph CSV")
+    rest_lengths = edge_lengths(rest[handles], edges)
+    short = np.flatnonzero(rest_lengths < 1e-9 * max(marker_spacing(rest, handles), 1e-300))
+    if len(short):
+        a, b = edges[short[0]]
+        names = rig.markers.handle_names
+        raise InputError(f"feature edge {names[a]}–{names[b]} has zero rest length", path=cfg.markers)
+    return edges, rest_lengths
+
+
+def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | None = None,
+                   graph: tuple[np.ndarray, np.ndarray] | None = None) -> Geometry:
+    """Large-scale basis and feature graph of a rig (``graph``: from :func:`feature_graph`, if at hand)."""
+    cfg = rig.config
+    mesh = rig.mesh
+    rest = mesh.vertices
+    faces = mesh.faces
+    handles = rig.handles
+    spacing = marker_spacing(rest, handles)
+    edges, rest_lengths = graph if graph is not None else feature_graph(rig)
+    shell = cfg.shell
+    if k_stretch is not None or k_bend is not None:
+        shell = dataclasses.replace(shell, k_stretch=shell.k_stretch if k_stretch is None else k_stretch,
+                                    k_bend=shell.k_bend if k_bend is None else k_bend)
+    B = large_scale_basis(rest, faces, handles, rig.anchors, shell, spacing)
+    return Geometry(rest, faces, handles, B, edges, rest_lengths, frame_neighbors(faces, len(rest)), spacing)
+
+
+def read_graph_csv(path) -> list[tuple[str, str]]:
+    """Marker-name pairs, one per line (``a,b``; a header ``a,b`` or comments are allowed)."""
+    import csv
+    from pathlib import Path
+
+    if not Path(path).is_file():
+        raise InputError("feature graph file not found", path=path, hint="[features] graph = 'auto' or a CSV")
+    pairs = []
+    with open(path, newline="", encoding="utf-8") as fh:
+        for line_no, row in enumerate(csv.reader(fh), start=1):
+            row = [c.strip() for c in row if c.strip()]
+            if not row or row[0].startswith("#"):
+                continue
+            if len(row) != 2:
+                raise InputError(f"line {line_no}: expected two marker names", path=path)
+            pairs.append((row[0], row[1]))
+    return pairs
+
+
+@dataclass
+class FitResult:
+    geometry: Geometry
+    example_names: list[str]
+    features: np.ndarray  # (E + 1, F), pose 0 = rest
+    details: np.ndarray  # (E + 1, V, 3), pose 0 = rest
+    method: str
+    model: DetailModel
+    basis: list[int]
+    curves: dict  # method -> list of {"poses", "added", "mean_rms", "max_rms"}
+    edge_index: np.ndarray | None
+    edge_weight: np.ndarray | None
+    beta: float
+    report: dict
+    bases: dict = field(default_factory=dict)  # method -> greedy basis (pose indices, rest first)
+    alpha: sp.csr_matrix | None = None
+
+    def detail_model(self, method: str, n_poses: int | None = None) -> DetailModel:
+        """The model of ``method`` with the first ``n_poses`` greedily chosen poses (all by default)."""
+        if method == "none":
+            model = fit_details("psd", self.features, self.details, [0], "interpolate")
+            model.method = "none"
+            return model
+        basis = self.bases[method] if n_poses is None else self.bases[method][: n_poses + 1]
+        cfg = self.config
+        model = fit_details(method, self.features, self.details, basis, cfg.fit, self.alpha, cfg.rcond,
+                            cfg.smoothing)
+        model.gate = self.gate
+        return model
+
+    config: object = None
+    gate: NoveltyGate | None = None
+
+
+def handle_geodesics(mesh, handles: np.ndarray) -> Geodesics:
+    """The Dijkstra runs from the handles over the mesh edges, started (the WPSD weights need them).
+
+    They are the longest single-threaded part of a fit; on a large mesh a second process takes
+    them on at once (:class:`~facepipe.core.strain.Geodesics`)."""
+    return Geodesics(edge_graph(mesh.vertices, mesh.faces), handles)
+
+
+def fit_config(config, progress=None, prepare=None) -> tuple[Rig, "FitResult"]:
+    """:func:`~facepipe.pipeline.rig.load_rig` and :func:`fit_rig`, with the geodesics from the handles
+    started as soon as the rest mesh and markers are read, while the examples are still loading.
+
+    ``prepare(rig, geodesics)``, if given, runs between the two (it may change ``rig.config``;
+    ``geodesics.finish()`` gives the distances, which the fit then reuses). The load time is in
+    ``fit.report["seconds"]["load"]``.
+    """
+    t0 = time.perf_counter()
+    started: list[Geodesics] = []
+    try:
+        rig = load_rig(config, on_mesh=lambda mesh, markers: started.append(
+            handle_geodesics(mesh, markers.handle_vertices)))
+        t_load = time.perf_counter() - t0
+        if prepare is not None:
+            prepare(rig, started[0])
+        fit = fit_rig(rig, progress=progress, geodesics=started[0])
+    finally:
+        for job in started:
+            job.close()
+    fit.report["seconds"]["load"] = t_load
+    return rig, fit
+
+
+def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitResult:
+    """Fit the whole rig: geometry, details of every example, greedy basis for PSD and WPSD.
+
+    The configured method's model is returned; the error curves of both methods are reported
+    (the paper's Fig. 4: error against basis size). ``geodesics``: the Dijkstra runs from
+    ``rig.handles``, if already started (:func:`fit_config`); they are started here otherwise.
+    """
+    cfg = rig.config.psd
+    seconds: dict[str, float] = {}
+    clock = [time.perf_counter()]
+
+    def lap(name):
+        now = time.perf_counter()
+        seconds[name] = seconds.get(name, 0.0) + now - clock[0]
+        clock[0] = now
+
+    t0 = clock[0]
+    rest, faces, handles = rig.mesh.vertices, rig.mesh.faces, rig.handles
+    if geodesics is None:
+        geodesics = handle_geodesics(rig.mesh, handles)
+    elif geodesics.n_vertices != rest.shape[0] or not np.array_equal(geodesics.sources, handles):
+        raise ValueError("the geodesics were started for another mesh or other handles")
+    try:
+        graph = feature_graph(rig, geodesics.graph)
+        beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
+        geo = build_geometry(rig, graph=graph)
+        lap("geometry")
+        poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) \
+            else geo.rest[None]
+        details = geo.details(poses)
+        features = geo.features(poses[:, geo.handles])
+        lap("details")
+        distances = geodesics.finish()  # (H, V)
+    finally:
+        geodesics.close()
+    lap("geodesics_wait")
+    seconds["geodesics_child_sources"] = geodesics.child_sources
+    edge_index, edge_weight = wpsd_edge_weights(distances, geo.edges, geo.rest_lengths, beta, cfg.min_edge_weight,
+                                                cfg.max_edges_per_vertex)
+    handle_distances = np.ascontiguousarray(distances[:, handles])
+    del distances
+    alpha = edge_weight_matrix(edge_index, edge_weight, len(geo.edges))
+    gate = None
+    if cfg.novelty_tau > 0 and len(poses) > 1:
+        gate = novelty_gate(features[1:], edge_distances(handle_distances, geo.edges), alpha,
+                            cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)))
+    large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
+    lap("weights")
+    curves = {}
+    models = {}
+    methods = ["psd", "wpsd"] if len(poses) > 1 else []
+    # The greedy choice scores every training pose at every basis size; the per-vertex systems are
+    # independent, so an evenly spread sample of vertices measures those errors as well as all of
+    # them (at 530k vertices, 32k give each pose's RMS to well under 1 %) for a fraction of the
+    # cost. The chosen basis is then fitted once on every vertex.
+    sample = spread_sample(geo.rest.shape[0], cfg.greedy_vertices)
+    sampled = len(sample) < geo.rest.shape[0]
+    details_s = details[:, sample] if sampled else details
+    alpha_s = alpha[sample] if sampled else alpha
+    for method in methods:
+        model, basis, curve = greedy_basis(method, features, details_s, cfg.fit, cfg.max_poses, cfg.tolerance,
+                                           alpha=alpha_s, rcond=cfg.rcond, smoothing=cfg.smoothing,
+                                           progress=(lambda n, c, m=method: progress(m, n, c)) if progress else None)
+        curves[method] = curve
+        models[method] = (model, basis)
+    lap("greedy")
+    if cfg.method == "none" or not methods:
+        model = fit_details("psd", features, details, [0], "interpolate")
+        model.method = "none"
+        basis = [0]
+    else:
+        model, basis = models[cfg.method]
+        if sampled:
+            model = fit_details(cfg.method, features, details, basis, cfg.fit, alpha, cfg.rcond, cfg.smoothing)
+        model.gate = gate
+    lap("final_fit")
+    seconds["total"] = time.perf_counter() - t0
+    names = ["rest"] + list(rig.example_names)
+    report = {
+        "vertices": int(geo.rest.shape[0]),
+        "triangles": int(geo.faces.shape[0]),
+        "handles": int(len(geo.handles)),
+        "anchors": int(len(rig.anchors)),
+        "feature_edges": int(len(geo.edges)),
+        "marker_spacing": geo.spacing,
+        "examples": len(rig.example_names),
+        "method": cfg.method,
+        "fit": cfg.fit,
+        "beta": beta,
+        "deformer": rig.config.shell.method,
+        "k_stretch": rig.config.shell.k_stretch,
+        "k_bend": rig.config.shell.k_bend,
+        "edges_per_vertex_mean": float((edge_weight > 0).sum(axis=1).mean()),
+        "large_scale_rms": {"mean": float(large_only.mean()) if len(large_only) else 0.0,
+                            "max": float(large_only.max()) if len(large_only) else 0.0},
+        "basis": [names[i] for i in basis],
+        "curves": {m: [dict(c, added=names[c["added"]]) for c in curve] for m, curve in curves.items()},
+        "greedy_vertices": int(len(sample)) if methods else 0,
+        "geodesics": geodesics.where,
+        "seconds": seconds,
+        "digest": rig.digest,
+    }
+    return FitResult(geo, names, features, details, cfg.method, model, basis, curves, edge_index, edge_weight,
+                     beta, report, bases={m: b for m, (_, b) in models.items()}, alpha=alpha, config=cfg, gate=gate)

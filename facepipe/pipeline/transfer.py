@@ -1,0 +1,684 @@
+"""Detail transfer: a model learned on one face, moved onto another face (Bickel et al. 2008, §5.4).
+
+A dense correspondence comes from a few dozen marked points on both faces:
+
+1. a similarity (scale, rotation, translation) maps the source's points onto the target's;
+2. the aligned source is deformed so that its points land exactly on the target's (the
+   linear thin shell with the points as handles, or the RBF volume morph where a part of the
+   source holds no point);
+3. every target vertex is projected onto the closest point of the deformed source whose
+   triangle faces the same way (normal check), which gives it a source triangle and
+   barycentric weights.
+
+The model is then rebuilt on the target's own mesh: the large-scale basis B from the
+target's shell, local frames from the target's topology, the feature graph between the
+target's markers (the same marker pairs, the target's rest lengths), and the per-vertex
+pose-space data interpolated barycentrically: the WPSD edge weights α (renormalised, at most
+as many edges per vertex as on the source) and the details of the basis poses, rotated from
+the source's local frames into the target's and fitted again with the target's α so that the
+target reproduces the interpolated details exactly at the basis poses. Strain is relative
+stretch, so the basis features carry over unchanged; details are lengths and are scaled by
+the similarity's scale.
+
+Everything here is arrays in, arrays out, except :func:`transfer_files` (the CLI's entry).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from facepipe.errors import InputError
+from facepipe.core.tangent_frames import (frame_neighbors, local_frames, to_local, to_world, vertex_face_matrix, vertex_normals)
+from facepipe.core.psd import edge_weight_matrix, fit_details
+
+MIN_POINTS = 4
+# a point farther than this fraction of the points' RMS radius from where the similarity of
+# all the others puts it does not mark the same feature on both faces (a swapped name)
+MISMATCH_FRACTION = 0.3
+# target vertices farther than this fraction of the points' spacing from the deformed source
+# are not explained by the fit: the deformation only controls the surface at that scale
+FAR_FRACTION = 0.5
+# projection: a source triangle faces the target vertex's way when their normals are within 60°
+MIN_NORMAL_COS = 0.5
+
+
+# ----------------------------------------------------------------------------- points
+
+
+def read_points(path, n_vertices: int) -> dict[str, int]:
+    """Correspondence points of a face: a CSV ``name,vertex`` (header and ``#`` comments allowed).
+
+    Returns
+    -------
+    {name: vertex} in the file's order (0-based vertices).
+    """
+    from facepipe.core.mesh import check_marker_vertices
+    from facepipe.pipeline.rig import name_vertex_rows
+
+    names, vertices, lines = [], [], []
+    for line_no, name, vertex, _ in name_vertex_rows(path, "point"):
+        names.append(name)
+        vertices.append(vertex)
+        lines.append(line_no)
+    check_marker_vertices(np.asarray(vertices, dtype=np.int64), n_vertices, names, path, lines=lines)
+    return dict(zip(names, vertices))
+
+
+def match_points(source: dict[str, int], target: dict[str, int], source_path="", target_path=""):
+    """The points both files name, in the source's order.
+
+    Returns
+    -------
+    names : list[str]; source_vertices, target_vertices : (N,) int64.
+
+    Raises
+    ------
+    InputError
+        A name in one file only (a typo would silently drop a point), or fewer than
+        :data:`MIN_POINTS` points.
+    """
+    only_s = [n for n in source if n not in target]
+    only_t = [n for n in target if n not in source]
+    if only_s or only_t:
+        parts = []
+        if only_s:
+            parts.append(f"{len(only_s)} only in {source_path or 'the source points'}: {', '.join(only_s[:8])}")
+        if only_t:
+            parts.append(f"{len(only_t)} only in {target_path or 'the target points'}: {', '.join(only_t[:8])}")
+        raise InputError("the point files name different points (" + "; ".join(parts) + ")", path=target_path,
+                         hint="mark the same named points on both faces (about 40, spread over the face)")
+    names = list(source)
+    if len(names) < MIN_POINTS:
+        raise InputError(f"{len(names)} correspondence points; at least {MIN_POINTS} are needed", path=source_path,
+                         hint="mark about 40 points spread over the face (eye and mouth corners, nose, chin, "
+                              "brows, cheeks, jaw line) on both faces")
+    return (names, np.array([source[n] for n in names], dtype=np.int64),
+            np.array([target[n] for n in names], dtype=np.int64))
+
+
+def similarity_align(source_points: np.ndarray, target_points: np.ndarray, names=None, path=""):
+    """Similarity target ≈ s R source + t of the points, checked for points that do not match.
+
+    Parameters
+    ----------
+    source_points, target_points : (N, 3) positions of the same named points.
+
+    Returns
+    -------
+    s : float; R : (3, 3); t : (3,); residual : (N,) distance of each aligned point from its
+    target (length units of the target).
+
+    Raises
+    ------
+    InputError
+        Degenerate points (all on a line), or a point whose residual exceeds
+        :data:`MISMATCH_FRACTION` of the points' RMS radius — it is named.
+    """
+    from facepipe.core.rigid import similarity_fit
+
+    src = np.asarray(source_points, dtype=np.float64)
+    tgt = np.asarray(target_points, dtype=np.float64)
+    centred = tgt - tgt.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)
+    if sv[1] <= 1e-6 * max(sv[0], 1e-300):
+        raise InputError("the correspondence points lie on a line: no orientation can be found", path=path,
+                         hint="spread the points over the face")
+    s, R, t = similarity_fit(src, tgt)
+    s, R, t = float(s), np.asarray(R), np.asarray(t)
+    residual = np.linalg.norm(s * src @ R.T + t - tgt, axis=1)
+    radius = float(np.sqrt((centred ** 2).sum(axis=1).mean()))
+    bad = np.flatnonzero(residual > MISMATCH_FRACTION * radius)
+    if bad.size:
+        worst = bad[np.argsort(-residual[bad])]
+        label = [f"{names[i] if names else i} ({residual[i]:.3g} off)" for i in worst[:5]]
+        raise InputError(f"{bad.size} point(s) do not match after aligning the faces: {', '.join(label)}; "
+                         f"the points' radius is {radius:.3g}", path=path,
+                         hint="check that each named point marks the same feature on both faces "
+                              "(left and right swapped? a vertex index off?)")
+    return s, R, t, residual
+
+
+# ----------------------------------------------------------------------------- deform and project
+
+
+def deform_to_points(vertices: np.ndarray, faces: np.ndarray, point_vertices: np.ndarray,
+                     targets: np.ndarray, method: str = "auto") -> tuple[np.ndarray, str]:
+    """Deform a mesh so that its point vertices move exactly onto ``targets``.
+
+    Parameters
+    ----------
+    vertices : (V, 3); faces : (T, 3); point_vertices : (N,) int; targets : (N, 3).
+    method : "shell" (biharmonic thin shell over the mesh, the points as handles), "rbf"
+        (RBF volume morph: needs no connectivity) or "auto" (the shell when every connected
+        part of the mesh holds a point, else the morph).
+
+    Returns
+    -------
+    deformed : (V, 3); the method used.
+    """
+    from facepipe.core.rbf_morph import multiquadric_basis
+    from facepipe.core.shell import shell_basis
+
+    vertices = np.asarray(vertices, dtype=np.float64)
+    point_vertices = np.asarray(point_vertices, dtype=np.int64)
+    u_h = np.asarray(targets, dtype=np.float64) - vertices[point_vertices]
+    if method == "auto":
+        method = "shell" if _every_part_has(faces, len(vertices), point_vertices) else "rbf"
+    if method == "shell":
+        B = shell_basis(vertices, faces, point_vertices, None, k_stretch=0.0, k_bend=1.0)
+    elif method == "rbf":
+        B = multiquadric_basis(vertices, point_vertices, np.zeros(0, dtype=np.int64), 0.0)
+    else:
+        raise ValueError(f"unknown deformation {method!r}")
+    deformed = vertices + B @ u_h
+    deformed[point_vertices] = targets  # exactly, whatever the solver's rounding
+    return deformed, method
+
+
+def _every_part_has(faces: np.ndarray, n_vertices: int, vertices: np.ndarray) -> bool:
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, dtype=np.int64)
+    g = sp.coo_matrix((np.ones(2 * len(f)), (np.r_[f[:, 0], f[:, 1]], np.r_[f[:, 1], f[:, 2]])),
+                      shape=(n_vertices, n_vertices))
+    _, labels = connected_components(g, directed=False)
+    return bool(np.isin(np.unique(labels), labels[vertices]).all())
+
+
+def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates of the closest point of triangles (a, b, c) to points p.
+
+    Parameters
+    ----------
+    p, a, b, c : (..., 3) broadcastable.
+
+    Returns
+    -------
+    (..., 3) barycentric weights (≥ 0, sum 1) of the closest point: q = w0 a + w1 b + w2 c.
+    """
+    from trimesh.triangles import closest_point, points_to_barycentric
+
+    p, a, b, c = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (p, a, b, c)))
+    shape = p.shape
+    tri = np.stack([a, b, c], axis=-2).reshape(-1, 3, 3)
+    q = closest_point(tri, p.reshape(-1, 3))
+    with np.errstate(all="ignore"):
+        bary = points_to_barycentric(tri, q)
+    # degenerate (zero-area) triangles give NaN: their centroid stands in, as good as any point
+    bary = np.clip(np.nan_to_num(bary, nan=1.0 / 3.0), 0.0, 1.0)
+    return (bary / bary.sum(axis=-1, keepdims=True)).reshape(shape)
+
+
+def _incident_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(V, K) the faces around every vertex, padded with −1."""
+    inc = vertex_face_matrix(faces, n_vertices).tocsr()
+    counts = np.diff(inc.indptr)
+    out = np.full((n_vertices, max(int(counts.max(initial=0)), 1)), -1, dtype=np.int64)
+    rows = np.repeat(np.arange(n_vertices), counts)
+    cols = np.arange(inc.indices.size) - np.repeat(inc.indptr[:-1], counts)
+    out[rows, cols] = inc.indices
+    return out
+
+
+def project_points(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                   min_cos: float = MIN_NORMAL_COS, neighbours: int = 8, chunk: int = 8192):
+    """Closest points of a triangle mesh to query points, preferring triangles that face their way.
+
+    Candidates are the triangles around the ``neighbours`` nearest mesh vertices and the
+    ``neighbours`` triangles with the nearest centroids; among them the nearest whose normal is
+    within acos(min_cos) of the query's normal wins (the upper lip's underside is not mapped to
+    the lower lip's top), else the nearest of all, flagged.
+
+    Parameters
+    ----------
+    points, normals : (N, 3) query points and their unit normals.
+    vertices : (V, 3); faces : (T, 3) the mesh projected onto.
+
+    Returns
+    -------
+    face : (N,) int64 triangle; bary : (N, 3) barycentric weights; distance : (N,);
+    normal_ok : (N,) bool, whether the chosen triangle faces the query's way.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    around = _incident_faces(faces, len(vertices))
+    kv = min(neighbours, len(vertices))
+    kc = min(neighbours, len(faces))
+    vtree = cKDTree(vertices)
+    ctree = cKDTree(tri.mean(axis=1))
+    N = len(points)
+    face = np.empty(N, dtype=np.int64)
+    bary = np.empty((N, 3))
+    dist = np.empty(N)
+    ok = np.empty(N, dtype=bool)
+    for s in range(0, N, chunk):
+        p = np.asarray(points[s:s + chunk], dtype=np.float64)
+        n = np.asarray(normals[s:s + chunk], dtype=np.float64)
+        _, iv = vtree.query(p, k=kv)
+        _, ic = ctree.query(p, k=kc)
+        iv, ic = iv.reshape(len(p), kv), ic.reshape(len(p), kc)
+        cand = np.concatenate([around[iv].reshape(len(p), -1), ic], axis=1)  # (n, C), −1 = none
+        valid = cand >= 0
+        c = np.where(valid, cand, 0)
+        t = tri[c]  # (n, C, 3, 3)
+        w = closest_point_on_triangles(p[:, None], t[..., 0, :], t[..., 1, :], t[..., 2, :])
+        q = np.einsum("ncj,ncjx->ncx", w, t)
+        d = np.linalg.norm(q - p[:, None], axis=-1)
+        d = np.where(valid, d, np.inf)
+        agree = np.einsum("nx,ncx->nc", n, fn[c]) >= min_cos
+        d_ok = np.where(agree, d, np.inf)
+        best_ok = np.argmin(d_ok, axis=1)
+        found = np.isfinite(d_ok[np.arange(len(p)), best_ok])
+        best = np.where(found, best_ok, np.argmin(d, axis=1))
+        r = np.arange(len(p))
+        face[s:s + chunk] = c[r, best]
+        bary[s:s + chunk] = w[r, best]
+        dist[s:s + chunk] = d[r, best]
+        ok[s:s + chunk] = found
+    return face, bary, dist, ok
+
+
+@dataclass
+class Correspondence:
+    """Target vertices on the source surface, and how the source was brought onto the target.
+
+    Attributes
+    ----------
+    face : (Vt,) int64 source triangle of every target vertex; bary : (Vt, 3) its weights.
+    distance : (Vt,) from the target vertex to the deformed source (target length units).
+    normal_ok : (Vt,) bool: the source triangle faces the target vertex's way.
+    deformed : (Vs, 3) the source after the similarity and the fit to the target's points.
+    scale, rotation, translation : the similarity source → target.
+    point_residual : (N,) the points' distances after the similarity alone.
+    point_spacing : mean nearest-neighbour distance of the target's points.
+    method : the deformation used ("shell" or "rbf").
+    """
+
+    face: np.ndarray
+    bary: np.ndarray
+    distance: np.ndarray
+    normal_ok: np.ndarray
+    deformed: np.ndarray
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    point_residual: np.ndarray
+    point_spacing: float
+    method: str
+    source_faces: np.ndarray = field(repr=False, default=None)
+
+    def matrix(self, n_source: int) -> sp.csr_matrix:
+        """(Vt, Vs) sparse interpolation matrix: target values = W @ source values."""
+        rows = np.repeat(np.arange(len(self.face)), 3)
+        cols = self.source_faces[self.face].ravel()
+        return sp.csr_matrix((self.bary.ravel(), (rows, cols)), shape=(len(self.face), n_source))
+
+
+def correspond(source_vertices: np.ndarray, source_faces: np.ndarray, target_vertices: np.ndarray,
+               target_faces: np.ndarray, source_points: np.ndarray, target_points: np.ndarray,
+               names: list[str] | None = None, deform: str = "auto", path="") -> Correspondence:
+    """Dense correspondence from marked points (see the module docstring).
+
+    Parameters
+    ----------
+    source_vertices : (Vs, 3); source_faces : (Ts, 3); target_vertices : (Vt, 3); target_faces : (Tt, 3).
+    source_points, target_points : (N,) vertex indices of the same named points on each mesh.
+    deform : "auto" | "shell" | "rbf", see :func:`deform_to_points`.
+    """
+    src = np.asarray(source_vertices, dtype=np.float64)
+    tgt = np.asarray(target_vertices, dtype=np.float64)
+    tp = tgt[target_points]
+    s, R, t, residual = similarity_align(src[source_points], tp, names, path)
+    aligned = s * src @ R.T + t
+    deformed, method = deform_to_points(aligned, source_faces, source_points, tp, deform)
+    normals = vertex_normals(tgt, np.asarray(target_faces, dtype=np.int64))
+    face, bary, dist, ok = project_points(tgt, normals, deformed, source_faces)
+    spacing = float(cKDTree(tp).query(tp, k=2)[0][:, 1].mean())
+    return Correspondence(face, bary, dist, ok, deformed, s, R, t, residual, spacing, method,
+                          np.asarray(source_faces, dtype=np.int64))
+
+
+def check_far(corr: Correspondence, max_distance: float | None = None) -> tuple[np.ndarray, float]:
+    """Target vertices left far from the source: (indices, the limit used).
+
+    ``max_distance`` None: :data:`FAR_FRACTION` × the target points' spacing.
+    """
+    limit = FAR_FRACTION * corr.point_spacing if max_distance is None else float(max_distance)
+    return np.flatnonzero(corr.distance > limit), limit
+
+
+def describe_far(far: np.ndarray, corr: Correspondence, target_vertices: np.ndarray, point_names: list[str],
+                 target_point_vertices: np.ndarray, limit: float) -> str:
+    """'N of V target vertices are farther than L from the source: vertex 12 (0.8 from it, near point chin) …'"""
+    tv = np.asarray(target_vertices, dtype=np.float64)
+    worst = far[np.argsort(-corr.distance[far])][:5]
+    _, nearest = cKDTree(tv[target_point_vertices]).query(tv[worst])
+    where = [f"vertex {int(v)} ({corr.distance[v]:.3g} off, nearest point {point_names[int(k)]!r})"
+             for v, k in zip(worst, np.atleast_1d(nearest))]
+    lo, hi = tv[far].min(axis=0), tv[far].max(axis=0)
+    box = ", ".join(f"{a}: {x:.3g}..{y:.3g}" for a, x, y in zip("xyz", lo, hi))
+    return (f"{far.size} of {len(tv)} target vertices are farther than {limit:.3g} from the source surface "
+            f"after the fit to the points; the worst: " + "; ".join(where) + f"; they span {box}")
+
+
+# ----------------------------------------------------------------------------- the model
+
+
+def map_vertices(positions: np.ndarray, target_vertices: np.ndarray, exclude: np.ndarray | None = None,
+                 k: int = 16) -> tuple[np.ndarray, int]:
+    """Nearest target vertex of each position, every one distinct and none in ``exclude``.
+
+    Returns
+    -------
+    (N,) int64 vertex indices; how many had to take a farther vertex than their nearest.
+    """
+    tree = cKDTree(target_vertices)
+    k = min(k, len(target_vertices))
+    dist, idx = tree.query(positions, k=k)
+    dist, idx = dist.reshape(len(positions), k), idx.reshape(len(positions), k)
+    taken = set() if exclude is None else set(int(v) for v in exclude)
+    out = np.empty(len(positions), dtype=np.int64)
+    moved = 0
+    for i in np.argsort(dist[:, 0], kind="stable"):  # the best-placed ones choose first
+        for j in range(k):
+            v = int(idx[i, j])
+            if v not in taken:
+                out[i] = v
+                moved += j > 0
+                taken.add(v)
+                break
+        else:
+            out[i] = -1
+    return out, moved
+
+
+def interpolate_alpha(W: sp.csr_matrix, alpha: sp.csr_matrix, max_edges: int,
+                      chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
+    """WPSD edge weights of the target: barycentric mix of the source's, top ``max_edges``, rows sum 1.
+
+    Parameters
+    ----------
+    W : (Vt, Vs) interpolation matrix (rows sum 1); alpha : (Vs, F) the source's weights.
+
+    Returns
+    -------
+    edge_index : (Vt, K) int32; edge_weight : (Vt, K) float32 (unused slots 0).
+    """
+    V, K = W.shape[0], max_edges
+    index = np.zeros((V, K), dtype=np.int32)
+    weight = np.zeros((V, K), dtype=np.float32)
+    for start in range(0, V, chunk):
+        A = (W[start:start + chunk] @ alpha).tocsr()
+        n = A.shape[0]
+        counts = np.diff(A.indptr)
+        width = max(int(counts.max(initial=0)), 1)
+        rows = np.repeat(np.arange(n), counts)
+        cols = np.arange(A.indices.size) - np.repeat(A.indptr[:-1], counts)
+        dense_w = np.zeros((n, width))
+        dense_i = np.zeros((n, width), dtype=np.int64)
+        dense_w[rows, cols] = A.data
+        dense_i[rows, cols] = A.indices
+        order = np.argsort(-dense_w, axis=1, kind="stable")[:, :K]
+        top_w = np.take_along_axis(dense_w, order, axis=1)
+        total = top_w.sum(axis=1, keepdims=True)
+        k = top_w.shape[1]
+        weight[start:start + n, :k] = top_w / np.where(total > 0, total, 1.0)
+        index[start:start + n, :k] = np.take_along_axis(dense_i, order, axis=1)
+    return index, weight
+
+
+def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarray | None = None,
+                   scale_details: bool = True) -> tuple[dict, dict, dict]:
+    """The source model rebuilt on the target mesh.
+
+    Parameters
+    ----------
+    model : facepipe.io.model_file.Model, the source.
+    target : facepipe.core.mesh.Mesh, the target's rest mesh (polygons and UVs are kept).
+    corr : the correspondence from :func:`correspond`.
+    target_handles : (H,) the target's marker vertices in the model's marker order, or None to
+        map each source marker to the nearest target vertex through the correspondence.
+    scale_details : scale the details by the similarity's scale (faces of different sizes).
+
+    Returns
+    -------
+    arrays, meta : for :func:`facepipe.io.model_file.save_model`; report : dict (markers, anchors, times).
+    """
+    from facepipe.pipeline.fit import large_scale_basis
+    from facepipe.core.shell import marker_spacing
+    from facepipe.core.strain import edge_lengths
+
+    t0 = time.perf_counter()
+    rest_t = np.asarray(target.vertices, dtype=np.float64)
+    faces_t = np.asarray(target.faces, dtype=np.int64)
+    Vt = len(rest_t)
+    faces_s = model.triangles.astype(np.int64)
+    Vs = model.n_vertices
+    handles_s = model.handle_vertices.astype(np.int64)
+    names = model.marker_names
+    report: dict = {}
+
+    # markers and anchors on the target
+    moved = 0
+    if target_handles is None:
+        target_handles, moved = map_vertices(corr.deformed[handles_s], rest_t)
+        if (target_handles < 0).any():
+            raise InputError("the target mesh is too coarse to give every marker a vertex of its own",
+                             path=target.path, hint="give --target-markers, or use a finer target")
+        report["markers"] = {"mapped": len(names), "moved_to_a_farther_vertex": int(moved)}
+    else:
+        report["markers"] = {"given": len(names)}
+    target_handles = np.asarray(target_handles, dtype=np.int64)
+    report["markers"]["offset"] = _stats(np.linalg.norm(rest_t[target_handles] - corr.deformed[handles_s], axis=1))
+    anchors_s = model.anchors.astype(np.int64)
+    if len(anchors_s):
+        near = cKDTree(rest_t).query(corr.deformed[anchors_s])[1]
+        anchors_t = np.setdiff1d(np.unique(near), target_handles)
+    else:
+        anchors_t = np.zeros(0, dtype=np.int64)
+    report["anchors"] = {"source": int(len(anchors_s)), "target": int(len(anchors_t))}
+
+    # large scale: the target's own shell (or morph), with the source's settings
+    shell_meta = dict(model.meta.get("shell", {}))
+    if "k_stretch" in model.meta.get("tuned", {}):  # `fit --tune` chose the shell's stretch
+        shell_meta["k_stretch"] = model.meta["tuned"]["k_stretch"]
+    shell = SimpleNamespace(method=shell_meta.get("method", "shell"), k_stretch=shell_meta.get("k_stretch", 0.0),
+                            k_bend=shell_meta.get("k_bend", 1.0), rbf_lambda=shell_meta.get("rbf_lambda", 0.01),
+                            phantoms=int(shell_meta.get("phantoms", 0)))
+    if shell.method != "rbf":
+        from facepipe.core.mesh import check_components
+
+        check_components(target, np.concatenate([target_handles, anchors_t]), "marker or anchor")
+    spacing = marker_spacing(rest_t, target_handles)
+    t1 = time.perf_counter()
+    B = large_scale_basis(rest_t, faces_t, target_handles, anchors_t, shell, spacing)
+    report["seconds_basis"] = time.perf_counter() - t1
+
+    edges = model.edges.astype(np.int64)
+    rest_lengths = edge_lengths(rest_t[target_handles], edges)
+    short = np.flatnonzero(rest_lengths < 1e-9 * max(spacing, 1e-300))
+    if short.size:
+        a, b = edges[short[0]]
+        raise InputError(f"on the target, feature edge {names[a]}–{names[b]} has zero rest length "
+                         "(both markers on one vertex)", path=target.path, hint="check --target-markers")
+
+    # per-vertex pose-space data, through the correspondence
+    W = corr.matrix(Vs)
+    neighbors_t = frame_neighbors(faces_t, Vt)
+    frames_t = local_frames(rest_t, faces_t, neighbors_t)
+    frames_s = local_frames(corr.deformed, faces_s, model.frame_neighbors.astype(np.int64))
+    K = model.edge_index.shape[1]
+    alpha_s = edge_weight_matrix(model.edge_index, model.edge_weight, len(edges))
+    edge_index, edge_weight = interpolate_alpha(W, alpha_s, K)
+    alpha_t = edge_weight_matrix(edge_index, edge_weight, len(edges))
+    basis_features = model.basis_features.astype(np.float64)
+    P = basis_features.shape[0]
+    detail_scale = corr.scale if scale_details else 1.0
+    if model.method == "none":
+        rbf_weights = np.zeros((Vt,) + model.rbf_weights.shape[1:])
+        rbf_const = np.zeros((Vt, 3))
+    else:
+        source = model.detail_model(np.float64)
+        source.gate = None  # the raw details; the gate is applied on the target as on the source
+        values = source.evaluate(basis_features)  # (P, Vs, 3) in the source's local frames
+        world = to_world(frames_s, values)  # on the source as it lies on the target
+        mapped = np.stack([W @ world[i] for i in range(P)]) * detail_scale
+        local = to_local(frames_t, mapped)
+        fitted = fit_details(model.method, basis_features, local, list(range(P)), "interpolate",
+                             alpha_t if model.method == "wpsd" else None)
+        rbf_weights, rbf_const = fitted.weights, fitted.const
+
+    ex = model.example_handles.astype(np.float64)  # (E + 1, H, 3), rest first
+    R = corr.rotation
+    example_handles = rest_t[target_handles][None] + corr.scale * np.einsum("ij,ehj->ehi", R, ex - ex[:1])
+
+    arrays = {
+        "rest": rest_t,
+        "triangles": faces_t,
+        "polygon_offsets": target.polygon_offsets,
+        "polygon_vertices": target.polygon_vertices,
+        "handle_vertices": target_handles,
+        "stable": model.stable,
+        "anchors": anchors_t,
+        "B": B,
+        "edges": edges,
+        "rest_lengths": rest_lengths,
+        "frame_neighbors": neighbors_t,
+        "basis_features": basis_features,
+        "rbf_weights": rbf_weights,
+        "rbf_const": rbf_const,
+        "edge_index": edge_index,
+        "edge_weight": edge_weight,
+        "example_handles": example_handles,
+    }
+    for key in ("novelty_index", "novelty_weight", "novelty_examples", "novelty_solve"):
+        if key in model.arrays:  # per feature edge, not per vertex: the same on any mesh
+            arrays[key] = model.arrays[key]
+    if target.uvs is not None:
+        arrays["uvs"] = target.uvs
+        arrays["polygon_uvs"] = target.polygon_uvs
+    meta = dict(model.meta)
+    meta.update(
+        config=f"transfer of {model.path} onto {target.path}",
+        marker_spacing=spacing,
+        beta=float(model.meta.get("beta", 0.0)) / corr.scale if model.meta.get("beta") else model.meta.get("beta"),
+    )
+    report["seconds"] = time.perf_counter() - t0
+    return arrays, meta, report
+
+
+def _stats(x: np.ndarray) -> dict:
+    x = np.asarray(x, dtype=np.float64)
+    if x.size == 0:
+        return {}
+    return {"median": float(np.median(x)), "p90": float(np.percentile(x, 90)),
+            "p99": float(np.percentile(x, 99)), "max": float(x.max())}
+
+
+# ----------------------------------------------------------------------------- files
+
+
+def transfer_files(model_path, target_path, source_points_path, target_points_path, output,
+                   target_markers_path=None, deform: str = "auto", max_distance: float | None = None,
+                   allow_far: bool = False, scale_details: bool = True) -> dict:
+    """``facepipe transfer``: read, correspond, transfer, write the model and its JSON summary.
+
+    Returns
+    -------
+    The summary (also written as OUTPUT with the suffix .json).
+    """
+    from facepipe.io.atomic import atomic_path
+    from facepipe.core.mesh import check_mesh, load_mesh
+    from facepipe.io.model_file import load_model, save_model
+    from facepipe.pipeline.rig import load_markers
+
+    t0 = time.perf_counter()
+    model = load_model(model_path)
+    target = load_mesh(target_path)
+    check_mesh(target)
+    src_pts = read_points(source_points_path, model.n_vertices)
+    tgt_pts = read_points(target_points_path, target.n_vertices)
+    names, sp_idx, tp_idx = match_points(src_pts, tgt_pts, source_points_path, target_points_path)
+
+    target_handles = None
+    if target_markers_path is not None:
+        markers = load_markers(Path(target_markers_path), target.n_vertices)
+        lookup = dict(zip(markers.names, markers.vertices.tolist()))
+        missing = [n for n in model.marker_names if n not in lookup]
+        if missing:
+            raise InputError(f"{len(missing)} of the model's markers are not in the file: {', '.join(missing[:8])}",
+                             path=target_markers_path, hint="name every marker of the source model (markers.csv "
+                                                            "format: name,vertex[,role])")
+        target_handles = np.array([lookup[n] for n in model.marker_names], dtype=np.int64)
+
+    corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
+                      target.faces, sp_idx, tp_idx, names, deform, path=target_points_path)
+    far, limit = check_far(corr, max_distance)
+    if far.size and not allow_far:
+        raise InputError(describe_far(far, corr, target.vertices, names, tp_idx, limit), path=target_path,
+                         hint="mark more points where the faces differ (or check them); --max-distance D raises the "
+                              "limit; --allow-far maps those vertices anyway (to the nearest source surface)")
+    arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details)
+
+    digest = hashlib.sha256()
+    for p in (model_path, target_path, source_points_path, target_points_path, target_markers_path):
+        if p is not None:
+            digest.update(Path(p).read_bytes())
+    digest.update(json.dumps([deform, max_distance, scale_details]).encode())
+    meta["config_digest"] = digest.hexdigest()[:16]
+    notes = []
+    if target.uvs is None:
+        notes.append("the target has no UVs: map exports (exr, wrinkle) of its replays will be refused")
+    if far.size:
+        notes.append(f"{far.size} target vertices farther than {limit:.3g} from the source were mapped anyway "
+                     "(--allow-far)")
+    if not 0.75 <= corr.scale <= 1.33:
+        notes.append(f"the target is {corr.scale:.3g}× the size of the source: if its units are not the model's "
+                     f"({model.meta.get('units', '?')}), convert the mesh first — the new model keeps them")
+    bad_normals = int((~corr.normal_ok).sum())
+    if bad_normals:
+        notes.append(f"{bad_normals} target vertices found no source triangle facing their way within the "
+                     "candidates: mapped to the nearest")
+    summary = {
+        "source": str(model_path),
+        "target": str(target_path),
+        "output": str(output),
+        "source_vertices": int(model.n_vertices),
+        "target_vertices": int(target.n_vertices),
+        "vertices_mapped": int(target.n_vertices),
+        "points": len(names),
+        "similarity": {"scale": corr.scale, "rotation_deg": float(np.degrees(np.arccos(np.clip(
+            (np.trace(corr.rotation) - 1) / 2, -1, 1)))), "translation": corr.translation.tolist()},
+        "point_residual_after_similarity": _stats(corr.point_residual),
+        "point_spacing": corr.point_spacing,
+        "deformation": corr.method,
+        "projection_distance": _stats(corr.distance),
+        "far_limit": limit,
+        "far_vertices": int(far.size),
+        "far_examples": [int(v) for v in far[np.argsort(-corr.distance[far])][:20]],
+        "normal_mismatches": bad_normals,
+        "detail_scale": corr.scale if scale_details else 1.0,
+        "method": meta["method"],
+        "uvs": target.uvs is not None,
+        "notes": notes,
+        **report,
+    }
+    meta["transfer"] = {k: summary[k] for k in ("source", "target", "points", "deformation", "far_vertices",
+                                                "detail_scale")}
+    save_model(output, arrays, meta)
+    summary["seconds_total"] = time.perf_counter() - t0
+    with atomic_path(Path(output).with_suffix(".json")) as tmp:
+        tmp.write_text(json.dumps(summary, indent=2))
+    return summary

@@ -1,0 +1,251 @@
+"""Choosing the rig's parameters by validation on its own examples (``fit --tune``).
+
+Two stages, both deterministic and bounded by the candidate grid of the ``[tune]`` table:
+
+1. **Shell stiffness.** The large-scale basis B depends only on the mesh, the markers and
+   k_stretch/k_bend, never on the examples, so every example is unseen by it: the large-scale
+   error of the examples, driven by their own marker positions, validates each k_stretch
+   directly (one factorisation per candidate; the feature graph, distances and frames are
+   shared).
+2. **Details.** With the chosen shell, the WPSD falloff β, the RBF regularisation λ and the
+   basis size P are chosen by cross-validation: whole expressions are left out (left and right
+   halves together, see :mod:`facepipe.pipeline.cross_validation`), the greedy basis is grown on the rest, and
+   the held-out examples are predicted at every basis size, so P costs nothing extra. The
+   per-vertex RBF systems are independent, so the details are fitted and scored on an evenly
+   spread sample of the vertices: the same numbers those vertices get from a full fit, at a
+   cost that does not grow with the mesh's resolution.
+
+The error of a held-out example is the RMS over the chosen vertices of (final − truth). Since
+final = large + R·d with orthonormal frames R, it equals the RMS of the detail residual in the
+local frames, so the large-scale surfaces and frames are computed once per k_stretch.
+
+The defaults of the config are always among the candidates. A candidate is accepted only if no
+held-out example gets worse than with the defaults by more than ``max_regression``; among the
+accepted ones that validate as well as the best (within a standard error) and no worse than the
+defaults, the largest basis wins (see :func:`tune_rig`). So tuning never picks a setting validated
+worse than the defaults. When the validated error with details is not below the large-scale-only
+error the details would do harm: ``fallback`` then turns them off (method ``none``).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+
+import numpy as np
+
+from facepipe.errors import InputError
+from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_sample, wpsd_edge_weights)
+from facepipe.core.shell import shell_basis
+from facepipe.core.strain import edge_graph, geodesic_from
+from facepipe.pipeline.cross_validation import holdout_folds
+
+
+def _with_unique(values, default) -> list[float]:
+    """Candidates, sorted, with the default among them."""
+    return sorted({float(v) for v in values} | {float(default)})
+
+
+def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
+    """Validate the candidates of ``tune`` on the rig's examples; return the report.
+
+    Parameters
+    ----------
+    rig : a loaded :class:`facepipe.pipeline.rig.Rig` with at least 2 examples.
+    tune : :class:`facepipe.pipeline.rig.TuneConfig` candidate ranges (default: the config's ``[tune]`` table).
+    progress : optional callable(stage: str, done: int, total: int).
+    geodesics : the rig's :class:`~facepipe.core.strain.Geodesics` from its handles, if already started.
+
+    Returns
+    -------
+    {"shell": [{"k_stretch", "large_rms"}], "details": [{"k_stretch", "beta_scale", "smoothing",
+    "poses", "cv_rms"}], "large_cv_rms": {k: rms}, "default": {...}, "chosen": {...},
+    "harm": bool, "fallback": bool, "folds": [[names]], "seconds": {...}}
+    """
+    from facepipe.pipeline.evaluate import parse_vertex_range
+    from facepipe.pipeline.fit import build_geometry
+
+    tune = tune or rig.config.tune
+    cfg = rig.config
+    if cfg.shell.method != "shell":
+        raise InputError("fit --tune chooses the thin shell's stiffness; [shell] method is 'rbf'", path=cfg.path,
+                         hint="set [shell] method = 'shell', or fit without --tune")
+    if cfg.psd.method == "none":
+        raise InputError("fit --tune needs a detail method", path=cfg.path, hint="[psd] method = 'wpsd' or 'psd'")
+    names = list(rig.example_names)
+    if len(names) < 3:
+        raise InputError(f"fit --tune needs at least 3 example poses to cross-validate, the rig has {len(names)}",
+                         path=cfg.path)
+    V = rig.mesh.n_vertices
+    vertices = np.arange(V)[parse_vertex_range(tune.vertices, V) if tune.vertices else slice(None)]
+    sample = vertices[spread_sample(len(vertices), tune.sample_vertices)]
+    t0 = time.perf_counter()
+    say = progress or (lambda *a: None)
+
+    # ---- stage 1: shell stiffness, validated by the examples' large-scale error
+    geo = build_geometry(rig)
+    poses = np.concatenate([geo.rest[None], rig.example_positions])
+    features = geo.features(poses[:, geo.handles])
+    default = {"k_stretch": cfg.shell.k_stretch, "beta_scale": _default_beta_scale(cfg.psd, geo.rest_lengths),
+               "smoothing": cfg.psd.smoothing, "novelty_tau": cfg.psd.novelty_tau,
+               "poses": min(cfg.psd.max_poses, len(names))}
+    k_values = _with_unique(tune.k_stretch, default["k_stretch"])
+    geometries = {}
+    shell_errors = {}
+    for i, k in enumerate(k_values):
+        if k == cfg.shell.k_stretch:  # build_geometry factored this one already
+            geometries[k] = geo
+        else:
+            B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
+                            spacing=geo.spacing)
+            geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
+        shell_errors[k] = rms_per_pose(geometries[k].large_scale(poses[1:]), poses[1:], vertices)
+        say("shell", i + 1, len(k_values))
+    t_shell = time.perf_counter() - t0
+    limit = 1.0 + tune.max_regression
+    shell_rows = [{"k_stretch": k, "large_rms": float(e.mean()),
+                   "worst_vs_default": float(np.max(e / shell_errors[default["k_stretch"]])),
+                   "per_example": e.tolist()} for k, e in shell_errors.items()]
+    for r in shell_rows:
+        r["accepted"] = r["worst_vs_default"] <= limit
+    best_k = min((r for r in shell_rows if r["accepted"]), key=lambda r: (r["large_rms"], r["k_stretch"]))["k_stretch"]
+
+    # ---- stage 2: β, λ, τ and P by leaving whole expressions out
+    folds = holdout_folds(names, max(1, int(round(len(names) / max(tune.folds, 2)))))
+    distances = geodesics.finish() if geodesics is not None else \
+        geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
+    site_distance = edge_distances(distances[:, geo.handles], geo.edges)
+    radius = cfg.psd.novelty_radius * float(np.median(geo.rest_lengths))
+    max_poses = min(max(tune.max_poses, default["poses"]), len(names))
+    # β shapes WPSD's per-vertex distances only; PSD has one distance per pose
+    beta_values = _with_unique(tune.beta_scale if cfg.psd.method == "wpsd" else [], default["beta_scale"])
+    smooth_values = _with_unique(tune.smoothing, default["smoothing"])
+    tau_values = _with_unique(tune.novelty_tau, default["novelty_tau"])
+    grid = [(best_k, b, s) for b in beta_values for s in smooth_values]
+    if best_k != default["k_stretch"]:
+        grid.append((default["k_stretch"], default["beta_scale"], default["smoothing"]))
+    alphas = {}
+    for b in beta_values:
+        index, weight = wpsd_edge_weights(distances[:, sample], geo.edges, geo.rest_lengths,
+                                          b / np.median(geo.rest_lengths), cfg.psd.min_edge_weight,
+                                          cfg.psd.max_edges_per_vertex)
+        alphas[b] = edge_weight_matrix(index, weight, len(geo.edges))
+    details = {k: geometries[k].details(poses)[:, sample] for k in {g[0] for g in grid}}
+    # held-out error without details
+    large = {k: rms_per_pose(np.zeros_like(details[k][1:]), details[k][1:]) for k in details}
+    # held-out error of every example per (k, β, λ, τ) and basis size; each example is held out once
+    errors: dict[tuple, np.ndarray] = {}
+    done = 0
+    for fold in folds:
+        held = fold + 1  # pose indices (pose 0 is the rest pose)
+        train = np.concatenate([[0], np.setdiff1d(np.arange(1, len(poses)), held)])
+        P_max = min(max_poses, len(train) - 1)
+        for (k, b, s) in grid:
+            alpha = alphas[b]
+            # the gate depends on the features only, and τ only scales its output: the greedy fit runs
+            # once and every τ is scored on its predictions
+            gate = novelty_gate(features[train[1:]], site_distance, alpha, 1.0, radius)
+            taus = tau_values if (k, b, s) != (default["k_stretch"], default["beta_scale"], default["smoothing"]) \
+                or best_k == default["k_stretch"] else [default["novelty_tau"]]
+            confidence = {t: _confidence(gate, t, features[held])[..., None] for t in taus}
+            for t in taus:
+                errors.setdefault((k, b, s, t), np.full((max_poses + 1, len(names)), np.nan))
+
+            def observe(model, basis, k=k, b=b, s=s, confidence=confidence):
+                raw = model.evaluate(features[held])
+                for t, c in confidence.items():
+                    errors[(k, b, s, t)][len(basis) - 1, fold] = rms_per_pose(raw * c, details[k][held])
+
+            greedy_basis(cfg.psd.method, features[train], details[k][train], cfg.psd.fit, P_max,
+                         alpha=alpha, rcond=cfg.psd.rcond, smoothing=s, observe=observe)
+            done += 1
+            say("details", done, len(folds) * len(grid))
+    t_details = time.perf_counter() - t0 - t_shell
+    default_key = (default["k_stretch"], default["beta_scale"], default["smoothing"], default["novelty_tau"])
+    # a fold whose training set is smaller than P keeps its largest basis for the larger P
+    errors = {key: _fill_forward(e) for key, e in errors.items()}
+    reference = np.minimum(errors[default_key][default["poses"]], large[default["k_stretch"]])
+    rows = []
+    for (k, b, s, t), e in errors.items():
+        for P in range(1, max_poses + 1):
+            rows.append({"k_stretch": k, "beta_scale": b, "smoothing": s, "novelty_tau": t, "poses": P,
+                         "cv_rms": float(e[P].mean()),
+                         "worst_vs_default": float(np.max(e[P] / reference)),
+                         "worst_vs_large": float(np.max(e[P] / large[k])),
+                         "accepted": bool(np.max(e[P] / reference) <= limit)})
+    default_row = next(r for r in rows if (r["k_stretch"], r["beta_scale"], r["smoothing"], r["novelty_tau"],
+                                           r["poses"]) == default_key + (default["poses"],))
+    default_row["accepted"] = True  # the defaults are always a candidate
+    accepted = [r for r in rows if r["accepted"]]
+    best = min(accepted, key=lambda r: (round(r["cv_rms"], 12), r["poses"]))
+    # Held-out expressions are unseen, so the novelty gate keeps their details small and the basis
+    # size barely shows in their error; yet every pose added is one more expression (and its
+    # mixtures) reproduced exactly. So among the candidates that validate as well as the best —
+    # within one standard error of the paired per-example differences — the largest basis wins,
+    # then the stronger gate (smaller τ: a margin for expressions validation has not seen).
+    best_errors = errors[_key(best)][best["poses"]]
+
+    def tied(r):
+        diff = errors[_key(r)][r["poses"]] - best_errors
+        return diff.mean() <= diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else r is best
+
+    chosen = min((r for r in accepted if tied(r) and r["cv_rms"] <= default_row["cv_rms"]),
+                 key=lambda r: (-r["poses"], r["novelty_tau"], round(r["cv_rms"], 12)))
+    chosen = dict(chosen, large_cv_rms=float(large[chosen["k_stretch"]].mean()))
+    harm = chosen["cv_rms"] >= chosen["large_cv_rms"]
+    return {
+        "method": cfg.psd.method,
+        "vertices": tune.vertices or "all",
+        "sample_vertices": int(len(sample)),
+        "examples": names,
+        "folds": [[names[j] for j in f] for f in folds],
+        "max_regression": tune.max_regression,
+        "shell": shell_rows,
+        "details": rows,
+        "large_cv_rms": {str(k): float(v.mean()) for k, v in large.items()},
+        "default": dict(default, cv_rms=default_row["cv_rms"]),
+        "chosen": chosen,
+        "harm": bool(harm),
+        "fallback": bool(harm and tune.fallback),
+        "candidates": {"k_stretch": k_values, "beta_scale": beta_values, "smoothing": smooth_values,
+                       "novelty_tau": tau_values, "max_poses": max_poses},
+        "seconds": {"shell": t_shell, "details": t_details, "total": time.perf_counter() - t0},
+    }
+
+
+def _key(row: dict) -> tuple:
+    return row["k_stretch"], row["beta_scale"], row["smoothing"], row["novelty_tau"]
+
+
+def _confidence(gate, tau: float, features: np.ndarray) -> np.ndarray:
+    """The gate's per-vertex confidence at threshold τ (0: no gate)."""
+    return dataclasses.replace(gate, tau=tau).confidence(features)
+
+
+def _default_beta_scale(psd, rest_lengths) -> float:
+    """The config's β as a multiple of 1/median feature-edge length."""
+    return float(psd.beta * np.median(rest_lengths)) if psd.beta else float(psd.beta_scale)
+
+
+def _fill_forward(values: np.ndarray) -> np.ndarray:
+    """Rows (basis sizes) left NaN take the row above."""
+    out = values.copy()
+    for i in range(1, len(out)):
+        out[i] = np.where(np.isnan(out[i]), out[i - 1], out[i])
+    return out
+
+
+def tuned_config(config, report: dict):
+    """A copy of the rig config with the chosen values (and method ``none`` on fallback)."""
+    chosen = report["chosen"]
+    out = copy.deepcopy(config)
+    out.shell.k_stretch = float(chosen["k_stretch"])
+    out.psd.beta = 0.0
+    out.psd.beta_scale = float(chosen["beta_scale"])
+    out.psd.smoothing = float(chosen["smoothing"])
+    out.psd.max_poses = int(chosen["poses"])
+    out.psd.novelty_tau = float(chosen["novelty_tau"])
+    if report["fallback"]:
+        out.psd.method = "none"
+    return out
