@@ -73,7 +73,7 @@ def run_export_bench(work_dir: Path, mesh_path: Path | None = None, n_frames: in
     from facepipe.export.caches import write_mdd, write_pc2, write_usd
     from facepipe.export.common import write_obj_sequence
     from facepipe.export.exr_maps import write_displacement_maps
-    from facepipe.core.mesh import load_mesh
+    from facepipe.io.mesh_read import load_mesh
     from facepipe.export.uv_raster import mesh_raster
 
     work_dir = Path(work_dir)

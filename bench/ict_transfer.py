@@ -113,7 +113,9 @@ def main(argv=None) -> int:
     if not (KIT / "neutral.obj").is_file():
         print(f"the ICT kit is not at {KIT}", file=sys.stderr)
         return 2
-    from facepipe.core.mesh import Mesh, load_mesh, save_obj
+    from facepipe.core.mesh import Mesh
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.io.mesh_write import save_obj
     from facepipe.io.model_file import load_model
     from facepipe.core.rbf_morph import farthest_point_subset
     from facepipe.pipeline.transfer import project_points

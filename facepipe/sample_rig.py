@@ -40,7 +40,8 @@ from scipy.spatial import cKDTree
 
 from facepipe.io.atomic import atomic_open, atomic_path
 from facepipe.errors import InputError
-from facepipe.core.mesh import Mesh, format_obj_faces, obj_bytes, save_obj
+from facepipe.core.mesh import Mesh
+from facepipe.io.mesh_write import format_obj_faces, obj_bytes, save_obj
 
 # --- the surface: the front of an ellipsoid, in cm (+x subject's left, +y up, +z out) -------
 _A, _B, _C = 8.5, 13.0, 9.5           # semi-axes along x, y, z

@@ -49,7 +49,7 @@ def test_export_obj_sequence(pipeline):
     assert run("export", d / "out", "--format", "obj", "-o", d / "obj", "-q") == 0
     files = sorted((d / "obj").glob("frame_*.obj"))
     assert len(files) == BOUNDS["frames"] and files[0].name == "frame_0001.obj"
-    from facepipe.core.mesh import load_mesh
+    from facepipe.io.mesh_read import load_mesh
 
     first = load_mesh(files[0])
     pos = np.load(d / "out" / "positions.npy")
@@ -173,12 +173,12 @@ def test_geodesics_from_a_second_process_give_the_same_fit(pipeline, monkeypatch
     import time
 
     from facepipe.pipeline import fit as fit_module
-    from facepipe.core import strain
+    from facepipe.pipeline import geodesics
     from facepipe.pipeline.rig import load_rig
 
     here = fit_module.fit_rig(load_rig(pipeline / "rig" / "sample.toml"))
-    monkeypatch.setattr(strain, "GEODESICS_IN_A_PROCESS", 0)
-    monkeypatch.setattr(strain, "GEODESICS_ON_DEVICE", False)  # the second process (the device: test_strain)
+    monkeypatch.setattr(geodesics, "GEODESICS_IN_A_PROCESS", 0)
+    monkeypatch.setattr(geodesics, "GEODESICS_ON_DEVICE", False)  # the second process (the device: test_strain)
     build = fit_module.build_geometry
 
     def slow_build(*args, **kwargs):  # long enough for the child to start and take sources

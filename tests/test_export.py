@@ -10,7 +10,8 @@ import pytest
 import facepipe.export.common as export
 from facepipe.errors import InputError
 from facepipe.export.common import frame_paths, write_obj_sequence
-from facepipe.core.mesh import Mesh, load_mesh
+from facepipe.core.mesh import Mesh
+from facepipe.io.mesh_read import load_mesh
 
 SHARED = Path(__file__).parents[1] / ".." / "shared"
 ICT = SHARED / "data" / "ict"

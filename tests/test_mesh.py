@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.core.mesh import (Mesh, _format_rows, check_components, check_marker_vertices, check_mesh, check_pose, format_obj_faces, load_mesh, load_vertices, save_obj, triangulate, unique_edges)
+from facepipe.core.mesh import (Mesh, check_components, check_marker_vertices, check_mesh, check_pose, triangulate, unique_edges)
+from facepipe.io.mesh_write import _format_rows, format_obj_faces, save_obj
+from facepipe.io.mesh_read import load_mesh, load_vertices
 
 SHARED = Path(__file__).parents[1] / ".." / "shared"
 ICT = SHARED / "data" / "ict"
@@ -642,7 +644,7 @@ TRICKY_OBJS = {
 
 @pytest.mark.parametrize("name", sorted(TRICKY_OBJS))
 def test_fast_obj_reader_matches_a_line_by_line_reference(tmp_path, name):
-    from facepipe.core.mesh import _fast_obj, _parse_obj_lists
+    from facepipe.io.mesh_read import _fast_obj, _parse_obj_lists
 
     text = TRICKY_OBJS[name]
     p = write(tmp_path, f"{name}.obj", text.encode())
@@ -667,7 +669,7 @@ def test_fast_obj_reader_matches_a_line_by_line_reference(tmp_path, name):
 
 
 def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
-    from facepipe.core.mesh import _fast_obj, _parse_obj_lists
+    from facepipe.io.mesh_read import _fast_obj, _parse_obj_lists
 
     rng = np.random.default_rng(11)
     V = rng.normal(size=(3000, 3)) * 10.0 ** rng.integers(-4, 4, size=(3000, 3))
@@ -708,7 +710,7 @@ def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
     "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\ng caf\u00e9\u00a0x\nf 1 2 3\n",  # non-ASCII space in a name
 ])
 def test_unusual_obj_files_are_read_by_the_list_reader(tmp_path, text):
-    from facepipe.core.mesh import _parse_obj_lists
+    from facepipe.io.mesh_read import _parse_obj_lists
 
     p = write(tmp_path, "odd.obj", text.encode())
     m = load_mesh(p)
@@ -716,3 +718,36 @@ def test_unusual_obj_files_are_read_by_the_list_reader(tmp_path, text):
     assert np.array_equal(m.polygon_vertices, ref.polygon_vertices)
     assert np.array_equal(m.vertices, ref.vertices, equal_nan=True)
     assert m.group_names == ref.group_names
+
+
+# ---------------------------------------------------------------------------------------------
+# reading leaves the process as it found it
+
+def test_reading_obj_leaves_garbage_collector_and_warning_filters_alone(tmp_path, monkeypatch):
+    """Neither reader switches the garbage collector off nor changes the warning filters (both are
+    process-wide: another thread would see them changed)."""
+    import gc
+    import warnings
+
+    calls = []
+    monkeypatch.setattr(gc, "disable", lambda: calls.append("gc.disable"))
+    monkeypatch.setattr(warnings, "simplefilter", lambda *a, **k: calls.append("simplefilter"))
+    monkeypatch.setattr(warnings, "catch_warnings", lambda *a, **k: calls.append("catch_warnings"))
+    fast = tmp_path / "fast.obj"
+    fast.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    slow = tmp_path / "slow.obj"  # a continuation line: only the line-by-line reader takes it
+    slow.write_text("v 0 0 \\\n0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    bad = tmp_path / "bad.obj"  # the fast path's numbers parse, but not as plain numbers
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0-\nf 1 2 3\n")
+    assert load_mesh(fast).n_vertices == 3 and load_mesh(slow).n_vertices == 3
+    with pytest.raises(InputError, match="line 3"):
+        load_mesh(bad)
+    assert calls == []
+
+
+@pytest.mark.parametrize("last", ["0-", "0e", "1.5.", "+-2"])
+def test_a_last_coordinate_with_trailing_garbage_is_named(tmp_path, last):
+    p = tmp_path / "m.obj"
+    p.write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 {last}\nf 1 2 3\n")
+    with pytest.raises(InputError, match="line 3"):
+        load_mesh(p)

@@ -149,7 +149,7 @@ def test_fit_command_writes_its_plot(rig, tmp_path):
 
 def test_export_bench_figures(tmp_path):
     from bench.export_speed import run_export_bench
-    from facepipe.core.mesh import save_obj
+    from facepipe.io.mesh_write import save_obj
     from tests.test_export import rig_mesh
 
     save_obj(tmp_path / "m.obj", rig_mesh())

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from facepipe import sample_rig as sample
 from facepipe.errors import InputError
-from facepipe.core.mesh import load_mesh
+from facepipe.io.mesh_read import load_mesh
 
 N = 3000
 FRAMES = 12

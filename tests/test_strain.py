@@ -76,7 +76,8 @@ def test_graph_from_pairs_validates_names():
 def test_geodesics_shared_with_a_second_process_match_scipy():
     from scipy.sparse.csgraph import dijkstra
 
-    from facepipe.core.strain import Geodesics, edge_graph, geodesic_from
+    from facepipe.pipeline.geodesics import Geodesics, geodesic_from
+    from facepipe.core.strain import edge_graph
 
     V, F = grid(150, 140)
     g = edge_graph(V, F)
@@ -105,7 +106,8 @@ def test_geodesics_on_the_device_equal_scipy_to_the_bit():
     on uneven edge lengths (a jittered grid, a sliver-heavy strip) and with unreachable vertices."""
     from scipy.sparse.csgraph import dijkstra
 
-    from facepipe.core.strain import Geodesics, edge_graph
+    from facepipe.pipeline.geodesics import Geodesics
+    from facepipe.core.strain import edge_graph
 
     _cpu_device_or_skip()
     rng = np.random.default_rng(3)
@@ -131,7 +133,8 @@ def test_device_geodesics_decline_what_buckets_cannot_do(monkeypatch):
     from scipy.sparse.csgraph import dijkstra
 
     from facepipe.opencl import geodesics as device_geodesics
-    from facepipe.core.strain import Geodesics, edge_graph
+    from facepipe.pipeline.geodesics import Geodesics
+    from facepipe.core.strain import edge_graph
 
     assert device_geodesics.ring_size(np.array([1.0, 2.0, 3.0])) == (8, 1.0 * (1 - 1e-9))  # 3 / δ + 2 → 8
     assert device_geodesics.ring_size(np.array([1e-6, 1.0])) is None
@@ -163,7 +166,8 @@ def test_geodesics_when_the_child_fails(monkeypatch):
     from scipy.sparse.csgraph import dijkstra
 
     from facepipe.pipeline import background
-    from facepipe.core.strain import Geodesics, edge_graph
+    from facepipe.pipeline.geodesics import Geodesics
+    from facepipe.core.strain import edge_graph
 
     V, F = grid(60, 50)
     g = edge_graph(V, F)
@@ -186,7 +190,8 @@ def test_geodesics_without_room_for_the_shared_rows(monkeypatch):
 
     from scipy.sparse.csgraph import dijkstra
 
-    from facepipe.core.strain import Geodesics, edge_graph
+    from facepipe.pipeline.geodesics import Geodesics
+    from facepipe.core.strain import edge_graph
 
     V, F = grid(40, 30)
     g = edge_graph(V, F)

@@ -17,7 +17,9 @@ import pytest
 
 from facepipe.errors import InputError
 from facepipe.pipeline.evaluate import frame_errors
-from facepipe.core.mesh import Mesh, load_mesh, save_obj
+from facepipe.core.mesh import Mesh
+from facepipe.io.mesh_read import load_mesh
+from facepipe.io.mesh_write import save_obj
 from facepipe.io.model_file import Model, load_model
 from facepipe.core.rbf_morph import farthest_point_subset
 from facepipe.pipeline.replay import NumpyEvaluator

@@ -17,7 +17,8 @@ import numpy as np
 
 from facepipe.io.atomic import atomic_open
 from facepipe.errors import InputError
-from facepipe.core.mesh import Mesh, _format_rows, format_obj_faces, format_obj_header
+from facepipe.core.mesh import Mesh
+from facepipe.io.mesh_write import _format_rows, format_obj_faces, format_obj_header
 
 FRAME_PREFIX = "frame_"
 

@@ -47,8 +47,8 @@ import numpy as np
 import scipy.ndimage
 import scipy.sparse as sp
 
+from facepipe.core.raster import triangle_pixels
 from facepipe.errors import InputError
-from facepipe.cli.render import triangle_pixels
 
 # a texel centre on a shared edge belongs to both triangles; the tolerance (in barycentric
 # units) closes hairline cracks from rounding without growing triangles visibly

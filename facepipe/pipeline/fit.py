@@ -19,7 +19,8 @@ from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_dist
 from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
 from facepipe.pipeline.rig import Rig, load_rig
 from facepipe.core.shell import large_scale_positions, marker_spacing, shell_basis
-from facepipe.core.strain import (Geodesics, auto_feature_graph, edge_graph, edge_lengths, graph_from_pairs, strain_features)
+from facepipe.pipeline.geodesics import Geodesics
+from facepipe.core.strain import (auto_feature_graph, edge_graph, edge_lengths, graph_from_pairs, strain_features)
 
 
 @dataclass
@@ -181,7 +182,7 @@ def handle_geodesics(mesh, handles: np.ndarray) -> Geodesics:
     """The Dijkstra runs from the handles over the mesh edges, started (the WPSD weights need them).
 
     They are the longest single-threaded part of a fit; on a large mesh a second process takes
-    them on at once (:class:`~facepipe.core.strain.Geodesics`)."""
+    them on at once (:class:`~facepipe.pipeline.geodesics.Geodesics`)."""
     return Geodesics(edge_graph(mesh.vertices, mesh.faces), handles)
 
 

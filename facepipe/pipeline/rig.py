@@ -19,7 +19,8 @@ import numpy as np
 
 from facepipe.pipeline.background import BackgroundCall
 from facepipe.errors import InputError
-from facepipe.core.mesh import (Mesh, check_components, check_marker_vertices, check_mesh, check_pose, load_mesh, load_vertices)
+from facepipe.core.mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose
+from facepipe.io.mesh_read import load_mesh, load_vertices
 
 ROLES = ("handle", "stable", "ignore")
 # example files of this many bytes in all are read by a second process (below, the start costs more)

@@ -600,7 +600,8 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     The summary (also written as OUTPUT with the suffix .json).
     """
     from facepipe.io.atomic import atomic_path
-    from facepipe.core.mesh import check_mesh, load_mesh
+    from facepipe.core.mesh import check_mesh
+    from facepipe.io.mesh_read import load_mesh
     from facepipe.io.model_file import load_model, save_model
     from facepipe.pipeline.rig import load_markers
 

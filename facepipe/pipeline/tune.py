@@ -38,7 +38,8 @@ import numpy as np
 from facepipe.errors import InputError
 from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_sample, wpsd_edge_weights)
 from facepipe.core.shell import shell_basis
-from facepipe.core.strain import edge_graph, geodesic_from
+from facepipe.core.strain import edge_graph
+from facepipe.pipeline.geodesics import geodesic_from
 from facepipe.pipeline.cross_validation import holdout_folds
 
 
@@ -55,7 +56,7 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     rig : a loaded :class:`facepipe.pipeline.rig.Rig` with at least 2 examples.
     tune : :class:`facepipe.pipeline.rig.TuneConfig` candidate ranges (default: the config's ``[tune]`` table).
     progress : optional callable(stage: str, done: int, total: int).
-    geodesics : the rig's :class:`~facepipe.core.strain.Geodesics` from its handles, if already started.
+    geodesics : the rig's :class:`~facepipe.pipeline.geodesics.Geodesics` from its handles, if already started.
 
     Returns
     -------
