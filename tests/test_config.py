@@ -64,7 +64,7 @@ def test_wrong_type_is_refused_naming_file_key_value_type_and_fix(sample, tmp_pa
     assert "expected " in message and fix in message, message
 
 
-@pytest.mark.parametrize("table, line, fix", [WRONG_TYPES[i] for i in (0, 3, 4, 7, 11)])
+@pytest.mark.parametrize("table, line, fix", WRONG_TYPES)
 def test_wrong_type_through_the_cli_exits_2_without_output(sample, tmp_path, capsys, table, line, fix):
     cfg = with_value(sample, tmp_path, table, line)
     out = tmp_path / "fit.npz"
