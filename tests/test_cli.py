@@ -60,6 +60,37 @@ def test_export_obj_sequence(pipeline):
     assert run("export", d / "out", "--format", "obj", "-o", d / "obj", "-q", "--force") == 0
 
 
+def test_export_obj_writes_the_rest_mesh_groups(tmp_path):
+    """A rest mesh with OBJ groups: sample → fit → bake → replay → export obj gives every frame
+    the input's `g` lines, on the same polygons."""
+    from facepipe.io.mesh_read import load_mesh
+    from tests.test_model import group_rest_mesh
+
+    rig = tmp_path / "rig"
+    assert run("sample", rig, "--vertices", 2000, "--frames", 3, "-q") == 0
+    group_rest_mesh(rig / "neutral.obj")
+    assert run("fit", rig / "sample.toml", "-o", tmp_path / "fit.npz", "-q") == 0
+    assert run("bake", tmp_path / "fit.npz", "-o", tmp_path / "model.npz", "-q") == 0
+    assert run("replay", rig / "take.csv", "-m", tmp_path / "model.npz", "-o", tmp_path / "out", "-q") == 0
+    assert run("export", tmp_path / "out", "--format", "obj", "-o", tmp_path / "obj", "-q") == 0
+
+    def groups(path):
+        """Each `g` line with the number of `f` lines before it, and every polygon's group."""
+        lines = path.read_text().splitlines()
+        faces = np.cumsum([line.startswith("f ") for line in lines])
+        mesh = load_mesh(path)
+        return ([(int(n), line) for n, line in zip(faces, lines) if line.startswith("g ")],
+                [mesh.group_names[g] for g in mesh.polygon_groups], mesh.polygon_vertices)
+
+    given = groups(rig / "neutral.obj")
+    assert len(given[0]) > 3 and len(set(given[1])) == 4
+    frames = sorted((tmp_path / "obj").glob("frame_*.obj"))
+    assert len(frames) == 3
+    for frame in frames:
+        got = groups(frame)
+        assert got[0] == given[0] and got[1] == given[1] and np.array_equal(got[2], given[2]), frame.name
+
+
 def test_bake_from_config_equals_bake_from_fit(pipeline, tmp_path):
     d = pipeline
     assert run("bake", d / "rig" / "sample.toml", "-o", tmp_path / "m.npz", "-q") == 0

@@ -50,7 +50,7 @@ def transferred(model, target: Mesh, src_points, tgt_points, handles=None, **kw)
     corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
                       target.faces, src_points, tgt_points)
     arrays, meta, _ = transfer_model(model, target, corr, handles, **kw)
-    return Model({k: np.asarray(v) for k, v in arrays.items()}, meta, "(memory)")
+    return Model.from_arrays({k: np.asarray(v) for k, v in arrays.items()}, meta, "(memory)")
 
 
 def evaluate(model, handle_positions):
@@ -330,7 +330,7 @@ def test_ict_face_a(tmp_path):
 
     rig = load_rig(ROOT / "configs" / "ict.toml")
     arrays, meta = model_arrays(fit_rig(rig), rig)
-    model = Model(arrays, meta, "(memory)")
+    model = Model.from_arrays(arrays, meta, "(memory)")
     neutral = rig.mesh.vertices
     face_a = load_mesh(kit / "identities" / "face_a.obj")
     disp = np.load(kit / "train_truth.npz")["positions"][::4].astype(np.float64) - neutral

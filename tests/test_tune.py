@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from facepipe.errors import InputError
-from facepipe.pipeline.rig import TuneConfig, load_config, load_rig
+from facepipe.io.config import TuneConfig, load_config
+from facepipe.pipeline.rig import load_rig
 from facepipe.sample_rig import write_sample_rig
 from facepipe.core.shell import marker_spacing, shell_basis
 from facepipe.pipeline.tune import tune_rig, tuned_config

@@ -1,15 +1,15 @@
 """The fit file and the baked model file: write, read, validate, version.
 
 A model is one ``.npz`` (float32 for the large arrays) with everything replay and export
-need: rest mesh and its polygons/UVs, handles, B, feature graph, WPSD edge weights, RBF
-weights. It carries a format version and the digest of the config and input files it was
-made from.
+need: rest mesh and its polygons/UVs/groups, handles, B, feature graph, WPSD edge weights,
+RBF weights; :class:`Model` lists them. It carries a format version and the digest of the
+config and input files it was made from.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -24,43 +24,104 @@ FORMAT_VERSION = 1
 MODEL_KIND = "facepipe-model"
 FIT_KIND = "facepipe-fit"
 
-# name -> dtype written; every array replay or export reads
-_MODEL_ARRAYS = {
-    "rest": np.float32,
-    "triangles": np.int32,
-    "polygon_offsets": np.int64,
-    "polygon_vertices": np.int32,
-    "handle_vertices": np.int32,
-    "stable": np.bool_,
-    "anchors": np.int32,
-    "B": np.float32,
-    "edges": np.int32,
-    "rest_lengths": np.float32,
-    "frame_neighbors": np.int32,
-    "basis_features": np.float32,
-    "rbf_weights": np.float32,
-    "rbf_const": np.float32,
-    "edge_index": np.int32,
-    "edge_weight": np.float32,
-    "example_handles": np.float32,
-}
-_OPTIONAL = {"uvs": np.float32, "polygon_uvs": np.int32, "novelty_index": np.int32, "novelty_weight": np.float32,
-             "novelty_examples": np.float32, "novelty_solve": np.float32}
+
+def _stored(dtype, optional: bool = False):
+    """A :class:`Model` field kept in the ``.npz`` as ``dtype``; an optional one is None where
+    the file lacks it (older files, or a model without that part)."""
+    return field(default=None, metadata={"dtype": dtype}) if optional else field(metadata={"dtype": dtype})
 
 
-@dataclass
+@dataclass(eq=False)
 class Model:
-    """A baked model, as read from disk (arrays as stored) plus its metadata."""
+    """A baked model: the arrays replay and export read, its metadata and where it came from.
 
-    arrays: dict
-    meta: dict
+    Read by :func:`load_model` (arrays in their stored dtypes) or made by
+    :func:`model_from_fit` (in memory, as computed). The file is a ``.npz`` with one array per
+    field below (the optional ones only where the model has them) and ``meta`` (JSON bytes);
+    each field's ``metadata["dtype"]`` is the dtype it is stored as. Shapes: V vertices, T
+    triangles, N polygons with C corners, H handles, A anchors, F feature edges, P basis poses
+    (the rest pose first), K edge weights per vertex, E example poses.
+
+    Attributes
+    ----------
+    rest : (V, 3) rest positions.
+    triangles : (T, 3) the rest mesh's polygons fan-triangulated (the shell's and frames' mesh).
+    polygon_offsets : (N + 1,) polygon ``k`` is ``polygon_vertices[offsets[k]:offsets[k + 1]]``.
+    polygon_vertices : (C,) vertex of every polygon corner (export writes these polygons).
+    handle_vertices : (H,) the vertex each handle (marker driving the shell) sits on.
+    stable : (H,) the handles used for head motion (role ``stable``).
+    anchors : (A,) vertices fixed to the skull.
+    B : (V, H) large-scale basis: positions = rest + B @ handle displacements.
+    edges : (F, 2) feature graph, pairs of handle indices.
+    rest_lengths : (F,) the feature edges' lengths at rest.
+    frame_neighbors : (V,) the neighbour that fixes each vertex's tangent frame.
+    basis_features : (P, F) strain features of the basis poses.
+    rbf_weights : (V, P, 3) RBF weights of the details, in local frames.
+    rbf_const : (V, 3) constant term of the details.
+    edge_index, edge_weight : (V, K) each vertex's feature edges and WPSD weights α.
+    example_handles : (E + 1, H, 3) head-space handles of the rest pose and every example (the
+        rig's prior over marker configurations).
+    meta : dict, the JSON metadata: ``kind``, ``format_version``, ``method`` (psd | wpsd |
+        none), ``marker_names`` (H), ``units``, ``config``, ``config_digest``, ``basis`` and
+        ``example_names`` (pose names), ``beta``, ``novelty_tau``, ``marker_spacing``, ``shell``
+        (the large-scale settings), ``smoothing``, and ``tuned`` after ``fit --tune``. A plain
+        dict, so a key added by a newer version reads the same.
+    uvs : (U, 2) texture coordinates, or None.
+    polygon_uvs : (C,) UV of every polygon corner, or None.
+    novelty_index, novelty_weight : (F, K) the novelty gate's neighbour edges per site and their
+        √weights, or None without a gate.
+    novelty_examples, novelty_solve : (F, E, K) the examples' local strain per site and its
+        regularised pseudo-inverse, or None without a gate.
+    polygon_groups : (N,) index into ``group_names`` of every polygon's OBJ group (``g``), or None
+        (a rest mesh without groups, or a file written before groups were kept).
+    group_names : list of str, the OBJ group names (``"default"`` before the first ``g``), or None.
+    path : where the model was read from ("(in memory)" for :func:`model_from_fit`).
+    """
+
+    rest: np.ndarray = _stored(np.float32)
+    triangles: np.ndarray = _stored(np.int32)
+    polygon_offsets: np.ndarray = _stored(np.int64)
+    polygon_vertices: np.ndarray = _stored(np.int32)
+    handle_vertices: np.ndarray = _stored(np.int32)
+    stable: np.ndarray = _stored(np.bool_)
+    anchors: np.ndarray = _stored(np.int32)
+    B: np.ndarray = _stored(np.float32)
+    edges: np.ndarray = _stored(np.int32)
+    rest_lengths: np.ndarray = _stored(np.float32)
+    frame_neighbors: np.ndarray = _stored(np.int32)
+    basis_features: np.ndarray = _stored(np.float32)
+    rbf_weights: np.ndarray = _stored(np.float32)
+    rbf_const: np.ndarray = _stored(np.float32)
+    edge_index: np.ndarray = _stored(np.int32)
+    edge_weight: np.ndarray = _stored(np.float32)
+    example_handles: np.ndarray = _stored(np.float32)
+    meta: dict = field(default_factory=dict)
+    uvs: np.ndarray | None = _stored(np.float32, optional=True)
+    polygon_uvs: np.ndarray | None = _stored(np.int32, optional=True)
+    novelty_index: np.ndarray | None = _stored(np.int32, optional=True)
+    novelty_weight: np.ndarray | None = _stored(np.float32, optional=True)
+    novelty_examples: np.ndarray | None = _stored(np.float32, optional=True)
+    novelty_solve: np.ndarray | None = _stored(np.float32, optional=True)
+    polygon_groups: np.ndarray | None = _stored(np.int32, optional=True)
+    group_names: list[str] | None = _stored(np.str_, optional=True)
     path: str = ""
 
-    def __getattr__(self, name):
-        arrays = self.__dict__.get("arrays", {})
-        if name in arrays:
-            return arrays[name]
-        raise AttributeError(name)
+    @classmethod
+    def from_arrays(cls, arrays: dict, meta: dict, path: str = "") -> "Model":
+        """A Model from a dict of its arrays (as :func:`model_arrays` gives them; missing
+        optional ones are None, names that are no field are ignored)."""
+        values = {name: arrays[name] for name in _MODEL_ARRAYS}
+        values.update({name: arrays.get(name) for name in _OPTIONAL})
+        if values["group_names"] is not None:
+            values["group_names"] = [str(name) for name in values["group_names"]]
+        return cls(**values, meta=meta, path=str(path))
+
+    @property
+    def arrays(self) -> dict:
+        """The stored arrays by name (a new dict, without the optional ones the model lacks):
+        what :func:`save_model` writes."""
+        return {name: getattr(self, name) for name in {**_MODEL_ARRAYS, **_OPTIONAL}
+                if getattr(self, name) is not None}
 
     @property
     def method(self) -> str:
@@ -72,7 +133,7 @@ class Model:
 
     @property
     def n_vertices(self) -> int:
-        return int(self.arrays["rest"].shape[0])
+        return int(self.rest.shape[0])
 
     def detail_model(self, dtype=np.float64) -> DetailModel:
         weights = edge_weight_matrix(self.edge_index, self.edge_weight, len(self.edges)).astype(dtype)
@@ -83,21 +144,28 @@ class Model:
     def novelty_gate(self, alpha: sp.spmatrix, dtype=np.float64) -> NoveltyGate | None:
         """The model's novelty gate with the site-to-vertex weights ``alpha`` (the model's own α,
         or another: the OpenCL engine takes per-site factors with the identity); None without one."""
-        if "novelty_solve" not in self.arrays or not self.meta.get("novelty_tau", 0) > 0:
+        if self.novelty_solve is None or not self.meta.get("novelty_tau", 0) > 0:
             return None
         return NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype), self.novelty_examples.astype(dtype),
                            self.novelty_solve.astype(dtype), float(self.meta["novelty_tau"]), alpha)
 
     def mesh(self) -> Mesh:
-        """The rest mesh with its original polygons and UVs (for export)."""
+        """The rest mesh with its original polygons, UVs and groups (for export)."""
         return Mesh(
             vertices=self.rest.astype(np.float64),
             polygon_offsets=self.polygon_offsets.astype(np.int64),
             polygon_vertices=self.polygon_vertices.astype(np.int64),
-            uvs=None if "uvs" not in self.arrays else self.uvs.astype(np.float64),
-            polygon_uvs=None if "polygon_uvs" not in self.arrays else self.polygon_uvs.astype(np.int64),
+            uvs=None if self.uvs is None else self.uvs.astype(np.float64),
+            polygon_uvs=None if self.polygon_uvs is None else self.polygon_uvs.astype(np.int64),
+            polygon_groups=None if self.polygon_groups is None else self.polygon_groups.astype(np.int32),
+            group_names=list(self.group_names or []),
             path=self.path,
         )
+
+
+# name -> dtype written: every array replay or export reads, then those a model may lack
+_MODEL_ARRAYS = {f.name: f.metadata["dtype"] for f in fields(Model) if "dtype" in f.metadata and f.default is MISSING}
+_OPTIONAL = {f.name: f.metadata["dtype"] for f in fields(Model) if "dtype" in f.metadata and f.default is None}
 
 
 def model_arrays(fit, rig) -> tuple[dict, dict]:
@@ -132,6 +200,11 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
     if mesh.uvs is not None:
         arrays["uvs"] = mesh.uvs
         arrays["polygon_uvs"] = mesh.polygon_uvs
+    # the OBJ groups, for the OBJ export to write back (none kept when every polygon is in the
+    # unnamed group "default": such a mesh's model is as before)
+    if mesh.polygon_groups is not None and any(name != "default" for name in mesh.group_names):
+        arrays["polygon_groups"] = mesh.polygon_groups
+        arrays["group_names"] = np.asarray(mesh.group_names, dtype=np.str_)
     meta = {
         "kind": MODEL_KIND,
         "format_version": FORMAT_VERSION,
@@ -183,11 +256,21 @@ def load_model(path) -> Model:
         (arrays["edge_index"].shape[0] == V, "edge weights do not match the vertex count"),
         (arrays["basis_features"].shape[1] == arrays["edges"].shape[0], "basis features do not match the graph"),
         (meta.get("method") in ("psd", "wpsd", "none"), f"unknown method {meta.get('method')!r}"),
+        (("polygon_groups" in arrays) == ("group_names" in arrays), "polygon groups without their names or back"),
     ]
+    if "polygon_groups" in arrays and "group_names" in arrays:
+        groups, n_names = arrays["polygon_groups"], len(arrays["group_names"])
+        n_polygons = arrays["polygon_offsets"].shape[0] - 1
+        checks += [
+            (groups.shape == (n_polygons,), f"polygon groups have shape {groups.shape}, expected ({n_polygons},)"),
+            (arrays["group_names"].dtype.kind == "U", "group names are not text"),
+            (groups.size == 0 or 0 <= groups.min() and groups.max() < n_names,
+             f"polygon groups are not all among the {n_names} group names"),
+        ]
     for ok, message in checks:
         if not ok:
             raise InputError(f"corrupt model: {message}", path=path, hint="bake the model again")
-    return Model(arrays, meta, str(path))
+    return Model.from_arrays(arrays, meta, str(path))
 
 
 def _read_npz(path, kind: str) -> tuple[dict, dict]:
@@ -249,4 +332,4 @@ def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = No
         arrays.update(basis_features=detail.basis_features, rbf_weights=detail.weights, rbf_const=detail.const)
         basis = [0] if method == "none" else fit.bases[method][: None if n_poses is None else n_poses + 1]
         meta = dict(meta, method=method, basis=[fit.example_names[i] for i in basis])
-    return Model(arrays, meta, "(in memory)")
+    return Model.from_arrays(arrays, meta, "(in memory)")

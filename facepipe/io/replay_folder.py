@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from facepipe.errors import InputError
+from facepipe.io.model_file import Model, load_model
 
 # a frame rate is "uniform" when every frame interval is within this fraction of the median
 _UNIFORM_TOLERANCE = 0.01
@@ -144,10 +145,8 @@ class ReplayDir:
                              hint="pass the model with -m MODEL.npz")
         return Path(name)
 
-    def load_model(self, override=None):
+    def load_model(self, override=None) -> Model:
         """The model of this replay, checked against the positions' vertex count."""
-        from facepipe.io.model_file import load_model
-
         path = self.model_path(override)
         if not path.is_file():
             raise InputError("the model this replay names is not there", path=path,

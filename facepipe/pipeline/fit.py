@@ -72,7 +72,7 @@ def large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, 
     Parameters
     ----------
     rest : (V, 3); faces : (T, 3); handles : (H,) and anchors : (A,) vertex indices.
-    shell : a :class:`~facepipe.pipeline.rig.ShellConfig` (or anything with its attributes: method,
+    shell : a :class:`~facepipe.io.config.ShellConfig` (or anything with its attributes: method,
         k_stretch, k_bend, rbf_lambda, phantoms).
     spacing : marker spacing h (length units); default: mean nearest-handle distance.
     """

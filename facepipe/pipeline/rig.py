@@ -1,7 +1,7 @@
-"""The rig: config file (TOML) and the files it names, loaded and validated.
+"""The rig: the files a config names (rest mesh, markers, anchors, examples), loaded and validated.
 
-Paths in the config are relative to the config file. Every problem is an InputError
-naming the file, the line or key, and the fix.
+The config itself is read by :mod:`facepipe.io.config`. Every problem is an InputError naming
+the file, the line or key, and the fix.
 """
 
 from __future__ import annotations
@@ -11,8 +11,7 @@ import glob
 import hashlib
 import json
 import os
-import tomllib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,169 +19,12 @@ import numpy as np
 from facepipe.pipeline.background import BackgroundCall
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose
+from facepipe.io.config import Config, load_config
 from facepipe.io.mesh_read import load_mesh, load_vertices
 
 ROLES = ("handle", "stable", "ignore")
 # example files of this many bytes in all are read by a second process (below, the start costs more)
 EXAMPLES_IN_A_PROCESS = 64 * 2**20
-
-
-@dataclass
-class ShellConfig:
-    method: str = "shell"  # shell (thin shell on the mesh) | rbf (volume morph, no connectivity needed)
-    k_stretch: float = 0.0  # relative to the marker spacing h: effective k_s = k_stretch / h²
-    k_bend: float = 1.0
-    rbf_lambda: float = 0.01  # rbf: Tikhonov λ relative to the marker spacing
-    phantoms: int = 0  # rbf: phantom points held still (from the anchors, else the border); 0 = 2 × handles
-
-
-@dataclass
-class PsdConfig:
-    method: str = "wpsd"
-    fit: str = "interpolate"
-    max_poses: int = 12
-    tolerance: float = 0.0
-    # the greedy choice scores the training poses on this many vertices, evenly spread (0 = all); the
-    # chosen basis is then fitted on every vertex
-    greedy_vertices: int = 32768
-    max_edges_per_vertex: int = 16
-    min_edge_weight: float = 0.025
-    beta: float = 0.0  # WPSD falloff (1/length); 0 = beta_scale / median feature-edge length
-    beta_scale: float = 1.0
-    rcond: float = 1e-6
-    smoothing: float = 0.0
-    novelty_tau: float = 0.15  # details fade where this fraction of local strain is unlike the examples' (0 = off)
-    novelty_radius: float = 1.5  # neighbourhood of the novelty test, × median feature-edge length
-
-
-@dataclass
-class TuneConfig:
-    """Candidate ranges of ``fit --tune`` (the ``[tune]`` table of the config)."""
-
-    k_stretch: list = field(default_factory=lambda: [0.0, 0.03, 0.1, 0.2, 0.3, 1.0, 3.0, 10.0])
-    beta_scale: list = field(default_factory=lambda: [0.5, 1.0, 2.0])
-    smoothing: list = field(default_factory=lambda: [0.0, 0.01, 0.1])
-    novelty_tau: list = field(default_factory=lambda: [0.1, 0.15, 0.2, 0.3])  # the novelty gate (0 = off)
-    max_poses: int = 16  # largest basis tried (at least [psd] max_poses, at most the training examples)
-    folds: int = 5  # cross-validation folds (whole expressions per fold)
-    vertices: str = ""  # vertex range the errors are measured on, e.g. "0:9409" (default: all)
-    sample_vertices: int = 3000  # the details are cross-validated on this many of them, evenly spread
-    fallback: bool = True  # details validated worse than the large scale alone → method "none"
-    # a candidate may not make any held-out example worse than the defaults (model or large scale
-    # alone) by more than this fraction: better on average is not enough
-    max_regression: float = 0.01
-
-
-@dataclass
-class Config:
-    path: Path
-    mesh: Path
-    markers: Path
-    anchors: Path | None = None
-    units: str = "cm"
-    example_meshes: list[str] = field(default_factory=list)
-    sequence: Path | None = None
-    sequence_stride: int = 1
-    graph: str = "auto"
-    shell: ShellConfig = field(default_factory=ShellConfig)
-    psd: PsdConfig = field(default_factory=PsdConfig)
-    tune: TuneConfig = field(default_factory=TuneConfig)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        return json.loads(json.dumps(d, default=str))
-
-
-_KNOWN = {
-    "rig": {"mesh", "markers", "anchors", "units"},
-    "examples": {"meshes", "sequence", "sequence_stride"},
-    "shell": set(ShellConfig.__dataclass_fields__),
-    "features": {"graph"},
-    "psd": set(PsdConfig.__dataclass_fields__),
-    "tune": set(TuneConfig.__dataclass_fields__),
-}
-
-
-def load_config(path: str | Path) -> Config:
-    """Read and validate a config TOML (see DESIGN.md for the keys)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("config file not found", path=path)
-    try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"not valid TOML: {exc}", path=path) from None
-    for section, values in raw.items():
-        if section not in _KNOWN:
-            raise InputError(f"unknown section [{section}]", path=path, hint=f"known: {sorted(_KNOWN)}")
-        if isinstance(values, dict) and section in _KNOWN:
-            unknown = set(values) - _KNOWN[section]
-            if unknown:
-                raise InputError(f"unknown key(s) {sorted(unknown)} in [{section}]", path=path,
-                                 hint=f"known keys: {sorted(_KNOWN[section])}")
-    base = path.parent
-    rig = raw.get("rig", {})
-    for key in ("mesh", "markers"):
-        if not rig.get(key):
-            raise InputError(f"[rig] {key} is required", path=path)
-
-    def rel(p):
-        return None if not p else (base / p)
-
-    examples = raw.get("examples", {})
-    meshes = examples.get("meshes", [])
-    if isinstance(meshes, str):
-        meshes = [meshes]
-    shell = _section(ShellConfig, raw.get("shell", {}), path, "shell")
-    psd = _section(PsdConfig, raw.get("psd", {}), path, "psd")
-    tune = _section(TuneConfig, raw.get("tune", {}), path, "tune")
-    for key in ("k_stretch", "beta_scale", "smoothing", "novelty_tau"):
-        values = getattr(tune, key)
-        if not values or any(not isinstance(v, (int, float)) or v < 0 for v in values):
-            raise InputError(f"[tune] {key} must be a non-empty list of numbers ≥ 0", path=path)
-    if tune.folds < 2 or tune.max_poses < 1 or tune.sample_vertices < 1 or tune.max_regression < 0:
-        raise InputError("[tune] folds must be ≥ 2, max_poses and sample_vertices ≥ 1, max_regression ≥ 0",
-                         path=path)
-    if psd.method not in ("wpsd", "psd", "none"):
-        raise InputError(f"[psd] method = {psd.method!r}", path=path, hint="use wpsd, psd or none")
-    if psd.fit not in ("interpolate", "least-squares"):
-        raise InputError(f"[psd] fit = {psd.fit!r}", path=path, hint="use interpolate or least-squares")
-    if psd.max_poses < 0 or psd.max_edges_per_vertex < 1 or psd.greedy_vertices < 0:
-        raise InputError("[psd] max_poses and greedy_vertices must be ≥ 0, max_edges_per_vertex ≥ 1", path=path)
-    if shell.method not in ("shell", "rbf"):
-        raise InputError(f"[shell] method = {shell.method!r}", path=path, hint="use shell or rbf")
-    if shell.rbf_lambda < 0 or shell.phantoms < 0:
-        raise InputError("[shell] rbf_lambda and phantoms must be ≥ 0", path=path)
-    if shell.k_bend < 0 or shell.k_stretch < 0 or (shell.k_bend == 0 and shell.k_stretch == 0):
-        raise InputError("[shell] k_stretch and k_bend must be ≥ 0 and not both 0", path=path)
-    return Config(
-        path=path,
-        mesh=rel(rig["mesh"]),
-        markers=rel(rig["markers"]),
-        anchors=rel(rig.get("anchors")),
-        units=str(rig.get("units", "cm")),
-        example_meshes=[str(base / m) for m in meshes],
-        sequence=rel(examples.get("sequence")),
-        sequence_stride=int(examples.get("sequence_stride", 1)),
-        graph=str(raw.get("features", {}).get("graph", "auto")),
-        shell=shell,
-        psd=psd,
-        tune=tune,
-    )
-
-
-def _section(cls, values: dict, path: Path, name: str):
-    out = cls()
-    for key, value in values.items():
-        default = getattr(out, key)
-        try:
-            if isinstance(default, (bool, list)) and not isinstance(value, type(default)):
-                raise TypeError  # bool("no") is True, list("ab") splits a string
-            value = type(default)(value)
-        except (TypeError, ValueError):
-            raise InputError(f"[{name}] {key} = {value!r} should be a {type(default).__name__}", path=path) from None
-        setattr(out, key, value)
-    return out
 
 
 @dataclass

@@ -54,7 +54,7 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     Parameters
     ----------
     rig : a loaded :class:`facepipe.pipeline.rig.Rig` with at least 2 examples.
-    tune : :class:`facepipe.pipeline.rig.TuneConfig` candidate ranges (default: the config's ``[tune]`` table).
+    tune : :class:`facepipe.io.config.TuneConfig` candidate ranges (default: the config's ``[tune]`` table).
     progress : optional callable(stage: str, done: int, total: int).
     geodesics : the rig's :class:`~facepipe.pipeline.geodesics.Geodesics` from its handles, if already started.
 

@@ -1,0 +1,322 @@
+"""The rig's config file (TOML): its tables and keys, read and checked strictly.
+
+Paths in the config are relative to the config file. Every value must have its key's type as
+written: a value of another type is refused (InputError, exit status 2) rather than converted,
+since a conversion hides the mistake (``12.7`` read as ``12``, ``"no"`` read as true). An integer
+is accepted where a number is expected, nothing else: a boolean is neither an integer nor a
+number, a float is never an integer, a string never a number or a list. The message names the
+file, the ``[table] key``, the value, the expected type and what to write instead. The keys are
+described in the README ("Config").
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from facepipe.errors import InputError
+
+
+@dataclass
+class ShellConfig:
+    method: str = "shell"  # shell (thin shell on the mesh) | rbf (volume morph, no connectivity needed)
+    k_stretch: float = 0.0  # relative to the marker spacing h: effective k_s = k_stretch / h²
+    k_bend: float = 1.0
+    rbf_lambda: float = 0.01  # rbf: Tikhonov λ relative to the marker spacing
+    phantoms: int = 0  # rbf: phantom points held still (from the anchors, else the border); 0 = 2 × handles
+
+
+@dataclass
+class PsdConfig:
+    method: str = "wpsd"
+    fit: str = "interpolate"
+    max_poses: int = 12
+    tolerance: float = 0.0
+    # the greedy choice scores the training poses on this many vertices, evenly spread (0 = all); the
+    # chosen basis is then fitted on every vertex
+    greedy_vertices: int = 32768
+    max_edges_per_vertex: int = 16
+    min_edge_weight: float = 0.025
+    beta: float = 0.0  # WPSD falloff (1/length); 0 = beta_scale / median feature-edge length
+    beta_scale: float = 1.0
+    rcond: float = 1e-6
+    smoothing: float = 0.0
+    novelty_tau: float = 0.15  # details fade where this fraction of local strain is unlike the examples' (0 = off)
+    novelty_radius: float = 1.5  # neighbourhood of the novelty test, × median feature-edge length
+
+
+@dataclass
+class TuneConfig:
+    """Candidate ranges of ``fit --tune`` (the ``[tune]`` table of the config)."""
+
+    k_stretch: list = field(default_factory=lambda: [0.0, 0.03, 0.1, 0.2, 0.3, 1.0, 3.0, 10.0])
+    beta_scale: list = field(default_factory=lambda: [0.5, 1.0, 2.0])
+    smoothing: list = field(default_factory=lambda: [0.0, 0.01, 0.1])
+    novelty_tau: list = field(default_factory=lambda: [0.1, 0.15, 0.2, 0.3])  # the novelty gate (0 = off)
+    max_poses: int = 16  # largest basis tried (at least [psd] max_poses, at most the training examples)
+    folds: int = 5  # cross-validation folds (whole expressions per fold)
+    vertices: str = ""  # vertex range the errors are measured on, e.g. "0:9409" (default: all)
+    sample_vertices: int = 3000  # the details are cross-validated on this many of them, evenly spread
+    fallback: bool = True  # details validated worse than the large scale alone → method "none"
+    # a candidate may not make any held-out example worse than the defaults (model or large scale
+    # alone) by more than this fraction: better on average is not enough
+    max_regression: float = 0.01
+
+
+@dataclass
+class Config:
+    path: Path
+    mesh: Path
+    markers: Path
+    anchors: Path | None = None
+    units: str = "cm"
+    example_meshes: list[str] = field(default_factory=list)
+    sequence: Path | None = None
+    sequence_stride: int = 1
+    graph: str = "auto"
+    shell: ShellConfig = field(default_factory=ShellConfig)
+    psd: PsdConfig = field(default_factory=PsdConfig)
+    tune: TuneConfig = field(default_factory=TuneConfig)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return json.loads(json.dumps(d, default=str))
+
+
+# The type of every key (``_PATHS``: a string or a list of strings); the tables read into a
+# dataclass take the types of its defaults.
+_PATHS = "paths"
+_TYPES: dict[str, dict[str, object]] = {
+    "rig": {"mesh": str, "markers": str, "anchors": str, "units": str},
+    "examples": {"meshes": _PATHS, "sequence": str, "sequence_stride": int},
+    "shell": {k: type(v) for k, v in asdict(ShellConfig()).items()},
+    "features": {"graph": str},
+    "psd": {k: type(v) for k, v in asdict(PsdConfig()).items()},
+    "tune": {k: type(v) for k, v in asdict(TuneConfig()).items()},
+}
+_KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
+# a default value to show in a hint, for the keys of the tables without a dataclass
+_EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm",
+             "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1, "graph": "auto"}
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a config TOML (the README's "Config" section lists the keys).
+
+    Raises
+    ------
+    InputError
+        A missing or unreadable file, an unknown table or key, a value of the wrong type (never
+        converted: see the module docstring) or out of its range, naming the file and the key.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("config file not found", path=path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML: {exc}", path=path) from None
+    for section, values in raw.items():
+        if section not in _KNOWN:
+            raise InputError(f"unknown section [{section}]", path=path, hint=f"known: {sorted(_KNOWN)}")
+        if not isinstance(values, dict):
+            raise InputError(f"{section} = {_toml(values)} is {_kind(values)}, expected the table [{section}]",
+                             path=path, hint=f"write its keys under a line [{section}]")
+        unknown = set(values) - _KNOWN[section]
+        if unknown:
+            raise InputError(f"unknown key(s) {sorted(unknown)} in [{section}]", path=path,
+                             hint=f"known keys: {sorted(_KNOWN[section])}")
+    base = path.parent
+    rig = _typed_table(raw, "rig", path)
+    for key in ("mesh", "markers"):
+        if not rig.get(key):
+            raise InputError(f"[rig] {key} is required", path=path)
+
+    def rel(p):
+        return None if not p else (base / p)
+
+    examples = _typed_table(raw, "examples", path)
+    meshes = examples.get("meshes", [])
+    if isinstance(meshes, str):
+        meshes = [meshes]
+    if examples.get("sequence_stride", 1) < 1:
+        raise InputError(f"[examples] sequence_stride = {examples['sequence_stride']} must be ≥ 1", path=path)
+    features = _typed_table(raw, "features", path)
+    shell = _section(ShellConfig, raw.get("shell", {}), path, "shell")
+    psd = _section(PsdConfig, raw.get("psd", {}), path, "psd")
+    tune = _section(TuneConfig, raw.get("tune", {}), path, "tune")
+    for key in ("k_stretch", "beta_scale", "smoothing", "novelty_tau"):
+        values = getattr(tune, key)
+        if not values or any(v < 0 for v in values):
+            raise InputError(f"[tune] {key} must be a non-empty list of numbers ≥ 0", path=path)
+    if tune.folds < 2 or tune.max_poses < 1 or tune.sample_vertices < 1 or tune.max_regression < 0:
+        raise InputError("[tune] folds must be ≥ 2, max_poses and sample_vertices ≥ 1, max_regression ≥ 0",
+                         path=path)
+    if psd.method not in ("wpsd", "psd", "none"):
+        raise InputError(f"[psd] method = {psd.method!r}", path=path, hint="use wpsd, psd or none")
+    if psd.fit not in ("interpolate", "least-squares"):
+        raise InputError(f"[psd] fit = {psd.fit!r}", path=path, hint="use interpolate or least-squares")
+    if psd.max_poses < 0 or psd.max_edges_per_vertex < 1 or psd.greedy_vertices < 0:
+        raise InputError("[psd] max_poses and greedy_vertices must be ≥ 0, max_edges_per_vertex ≥ 1", path=path)
+    if shell.method not in ("shell", "rbf"):
+        raise InputError(f"[shell] method = {shell.method!r}", path=path, hint="use shell or rbf")
+    if shell.rbf_lambda < 0 or shell.phantoms < 0:
+        raise InputError("[shell] rbf_lambda and phantoms must be ≥ 0", path=path)
+    if shell.k_bend < 0 or shell.k_stretch < 0 or (shell.k_bend == 0 and shell.k_stretch == 0):
+        raise InputError("[shell] k_stretch and k_bend must be ≥ 0 and not both 0", path=path)
+    return Config(
+        path=path,
+        mesh=rel(rig["mesh"]),
+        markers=rel(rig["markers"]),
+        anchors=rel(rig.get("anchors")),
+        units=rig.get("units", "cm"),
+        example_meshes=[str(base / m) for m in meshes],
+        sequence=rel(examples.get("sequence")),
+        sequence_stride=examples.get("sequence_stride", 1),
+        graph=features.get("graph", "auto"),
+        shell=shell,
+        psd=psd,
+        tune=tune,
+    )
+
+
+def _typed_table(raw: dict, name: str, path: Path) -> dict:
+    """The keys of table ``[name]``, each checked against its type (ints for floats made floats)."""
+    return {key: checked_value(value, _TYPES[name][key], path, name, key, _EXAMPLES.get(key))
+            for key, value in raw.get(name, {}).items()}
+
+
+def _section(cls, values: dict, path: Path, name: str):
+    """The dataclass ``cls`` with the table's values, each checked against its default's type."""
+    out = cls()
+    for key, value in values.items():
+        setattr(out, key, checked_value(value, _TYPES[name][key], path, name, key, getattr(out, key)))
+    return out
+
+
+def checked_value(value, expected, path, section: str, key: str, example=None):
+    """``value`` if its TOML type is ``expected``: an int given for a float is returned as a float.
+
+    Parameters
+    ----------
+    value : as tomllib read it.
+    expected : int, float, bool, str, list (a list of numbers) or "paths" (a string or a list of
+        strings).
+    path, section, key : the config file and where the value is in it, for the message.
+    example : a valid value of the key for the hint (e.g. its default), or None.
+
+    Raises
+    ------
+    InputError
+        naming the file, ``[section] key = value``, the expected type and what to write instead.
+
+    Example
+    -------
+    >>> checked_value(2, float, "rig.toml", "shell", "k_bend")
+    2.0
+    """
+    if _is(value, expected):
+        return float(value) if expected is float else value
+    if expected is list and isinstance(value, list):
+        bad = next(v for v in value if not _is(v, float))
+        got = f"{_toml(value)} holds {_toml(bad)} ({_kind(bad)})"
+    elif expected == _PATHS and isinstance(value, list):
+        bad = next(v for v in value if not isinstance(v, str))
+        got = f"{_toml(value)} holds {_toml(bad)} ({_kind(bad)})"
+    else:
+        got = f"{_toml(value)} is {_kind(value)}"
+    raise InputError(f"[{section}] {key} = {got}, expected {_EXPECTED[expected]}", path=path,
+                     hint=_instead(value, expected, key, example))
+
+
+_EXPECTED = {int: "an integer", float: "a number", bool: "true or false", str: "a string in quotes",
+             list: "a list of numbers", _PATHS: "a string or a list of strings"}
+
+
+def _is(value, expected) -> bool:
+    """Whether ``value`` has the type ``expected`` (bool is neither int nor float; an int is a float)."""
+    if isinstance(value, bool):
+        return expected is bool
+    if expected is float:
+        return isinstance(value, (int, float))
+    if expected is list:
+        return isinstance(value, list) and all(_is(v, float) for v in value)
+    if expected == _PATHS:
+        return isinstance(value, str) or (isinstance(value, list) and all(isinstance(v, str) for v in value))
+    return isinstance(value, expected)
+
+
+def _instead(value, expected, key: str, example) -> str:
+    """What to write instead of ``value``: the same value in the right type where there is one."""
+    fixed = _as(value, expected)
+    if fixed is not None:
+        return f"write {key} = {_toml(fixed)}"
+    if example is not None:
+        return f"write {_EXPECTED[expected]}, e.g. {key} = {_toml(example)}"
+    return f"write {_EXPECTED[expected]}"
+
+
+def _as(value, expected):
+    """``value`` as the type ``expected`` where it plainly is one (``"0.5"`` → 0.5, ``12.0`` → 12,
+    ``"no"`` → false, ``0.5`` → [0.5]); None where a guess would be needed (``12.7`` for an integer)."""
+    if expected is list:
+        items = value if isinstance(value, list) else (value.split(",") if isinstance(value, str) else [value])
+        items = [_as(v, float) if not _is(v, float) else v for v in items]
+        return items if items and all(v is not None for v in items) else None
+    if expected == _PATHS:
+        return None if isinstance(value, (dict, list)) else [_as(value, str)]
+    if expected is str:
+        if isinstance(value, (dict, list)):
+            return None
+        return _toml(value) if not isinstance(value, str) else value
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if expected is bool:
+            return {"true": True, "yes": True, "on": True, "false": False, "no": False, "off": False}.get(text)
+        try:
+            number = float(text)
+        except ValueError:
+            return None
+        value = number
+    if isinstance(value, bool):
+        return None  # true is no number: which one was meant is a guess
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if expected is int:
+        return int(value) if isinstance(value, (int, float)) and float(value).is_integer() else None
+    if expected is float:
+        return value if isinstance(value, (int, float)) else None
+    if expected is bool:
+        return {0: False, 1: True}.get(value) if isinstance(value, (int, float)) else None
+    return None
+
+
+def _toml(value) -> str:
+    """``value`` written as in a TOML file."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else ("inf" if value == math.inf else "-inf" if value == -math.inf
+                                                else repr(value))
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_toml(v)}" for k, v in value.items()) + " }"
+    if isinstance(value, (datetime.date, datetime.time)):
+        return value.isoformat()
+    return str(value)
+
+
+def _kind(value) -> str:
+    """The TOML type of ``value``, with its article."""
+    for kind, name in ((bool, "a boolean"), (int, "an integer"), (float, "a float"), (str, "a string"),
+                       (list, "a list"), (dict, "a table")):
+        if isinstance(value, kind):
+            return name
+    return "a date/time"

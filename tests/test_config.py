@@ -1,0 +1,103 @@
+"""The config file: values of the wrong TOML type are refused (exit status 2), never converted."""
+
+from pathlib import Path
+
+import pytest
+
+from facepipe.errors import InputError
+from facepipe.io.config import load_config
+from facepipe.sample_rig import write_sample_rig
+from tests.conftest import run_cli
+
+# (table, key = value as written, the fix the hint gives)
+WRONG_TYPES = [
+    ("psd", "max_poses = 12.7", "write an integer, e.g. max_poses = 12"),  # a float for an integer
+    ("psd", "max_poses = 12.0", "write max_poses = 12"),
+    ("psd", "greedy_vertices = true", "write an integer"),  # a boolean is no integer
+    ("shell", 'k_bend = "0.5"', "write k_bend = 0.5"),  # a string for a number
+    ("shell", "k_stretch = true", "write a number, e.g. k_stretch = 0.0"),  # a boolean is no number
+    ("shell", "phantoms = 3.5", "write an integer"),
+    ("shell", "method = 3", 'write method = "3"'),  # a number for a string
+    ("tune", 'k_stretch = "0.1, 0.3"', "write k_stretch = [0.1, 0.3]"),  # a string for a list
+    ("tune", "beta_scale = 1.0", "write beta_scale = [1.0]"),  # a number for a list
+    ("tune", 'smoothing = [0.0, "0.1"]', "write smoothing = [0.0, 0.1]"),  # a string in a list of numbers
+    ("tune", "novelty_tau = [true]", "write a list of numbers"),
+    ("tune", 'fallback = "no"', "write fallback = false"),  # bool("no") would be true
+    ("tune", "fallback = 1", "write fallback = true"),
+    ("tune", "folds = 3.0", "write folds = 3"),
+    ("examples", "sequence_stride = 2.5", "write an integer"),
+    ("examples", "meshes = 3", "write meshes = [\"3\"]"),
+    ("rig", "units = 1", 'write units = "1"'),
+    ("features", "graph = false", 'write graph = "false"'),
+]
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory):
+    """A small sample rig: its config is valid, so every error below is the one value's."""
+    return write_sample_rig(tmp_path_factory.mktemp("config_rig"), n_vertices=2000, n_examples=3, n_frames=4)
+
+
+def with_value(sample, tmp_path, table: str, line: str) -> Path:
+    """The sample config with ``line`` added to ``[table]`` (the table added when it has none)."""
+    text = Path(sample["config"]).read_text(encoding="utf-8")
+    text = text.replace(f"[{table}]\n", f"[{table}]\n{line}\n") if f"[{table}]\n" in text \
+        else text + f"\n[{table}]\n{line}\n"
+    key = line.split("=")[0].strip()
+    # the key replaces its line in the sample config, if it has one (TOML forbids a key twice)
+    lines = text.splitlines()
+    first = lines.index(line)
+    lines = [s for i, s in enumerate(lines) if i <= first or s.split("=")[0].strip() != key]
+    cfg = Path(sample["config"]).parent / f"wrong_{tmp_path.name}.toml"
+    cfg.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return cfg
+
+
+@pytest.mark.parametrize("table, line, fix", WRONG_TYPES)
+def test_wrong_type_is_refused_naming_file_key_value_type_and_fix(sample, tmp_path, table, line, fix):
+    cfg = with_value(sample, tmp_path, table, line)
+    key, value = (s.strip() for s in line.split("=", 1))
+    with pytest.raises(InputError) as exc:
+        load_config(cfg)
+    message = str(exc.value)
+    assert str(cfg) in message and f"[{table}] {key} = {value}" in message, message
+    assert "expected " in message and fix in message, message
+
+
+@pytest.mark.parametrize("table, line, fix", WRONG_TYPES)
+def test_wrong_type_through_the_cli_exits_2_without_output(sample, tmp_path, capsys, table, line, fix):
+    cfg = with_value(sample, tmp_path, table, line)
+    out = tmp_path / "fit.npz"
+    assert run_cli("fit", cfg, "-o", out) == 2
+    err = capsys.readouterr().err
+    assert str(cfg) in err and fix in err, err
+    assert not list(tmp_path.iterdir()), "fit wrote something"
+    assert run_cli("bake", cfg, "-o", tmp_path / "model.npz") == 2
+    assert fix in capsys.readouterr().err
+    assert not list(tmp_path.iterdir()), "bake wrote something"
+
+
+def test_right_types_are_read_as_before(sample, tmp_path):
+    """An integer for a number is that number; lists of integers, booleans and strings as written."""
+    cfg = with_value(sample, tmp_path, "shell", "k_bend = 2")
+    text = cfg.read_text(encoding="utf-8") + ("\n[tune]\nk_stretch = [0, 1]\nfallback = false\nmax_regression = 0\n"
+                                              'vertices = "0:10"\n')
+    cfg.write_text(text, encoding="utf-8")
+    config = load_config(cfg)
+    assert config.shell.k_bend == 2.0 and isinstance(config.shell.k_bend, float)
+    assert isinstance(config.tune.max_regression, float)
+    assert config.tune.k_stretch == [0, 1] and config.tune.fallback is False and config.tune.vertices == "0:10"
+    assert config.psd.max_poses == 3 and config.units == "cm"
+
+
+def test_a_table_written_as_a_value_is_refused(sample, tmp_path):
+    cfg = tmp_path / "flat.toml"
+    cfg.write_text('tune = 3\n[rig]\nmesh = "neutral.obj"\nmarkers = "markers.csv"\n', encoding="utf-8")
+    with pytest.raises(InputError, match=r"tune = 3 is an integer, expected the table \[tune\]"):
+        load_config(cfg)
+
+
+def test_sequence_stride_below_one_is_refused(sample, tmp_path):
+    cfg = with_value(sample, tmp_path, "examples", "sequence_stride = 0")
+    with pytest.raises(InputError, match=r"\[examples\] sequence_stride = 0 must be ≥ 1"):
+        load_config(cfg)
