@@ -98,10 +98,21 @@ def _run_fit(config, rep: Reporter, tune: bool = False):
         rep.detail(f"  {method}: {n:2d} poses  mean RMS {curve['mean_rms']:.4f}  max {curve['max_rms']:.4f}")
 
     rig, fit = fit_config(config, progress=progress, prepare=prepare)
+    rep.detail(_solver_line(fit.report["deformer"], fit.report["shell_solver"], fit.report["shell_solver_passed_over"]))
     if tuning:
         fit.report["tune"] = tuning["report"]
     fit.report["seconds"]["total"] = time.perf_counter() - t0
     return rig, fit
+
+
+def _solver_line(deformer: str, solver: str | None, passed_over: dict | None = None) -> str:
+    """Which sparse solver factored the shell, and the ones passed over before it (--verbose)."""
+    if deformer == "rbf":
+        return "large scale: RBF volume morph (dense solve)"
+    if solver is None:
+        return "shell solver: none (every vertex prescribed, nothing to factor)"
+    skipped = "; ".join(f"{name} passed over: {why}" for name, why in (passed_over or {}).items())
+    return f"shell solver: {solver}" + (f" ({skipped})" if skipped else "")
 
 
 def _tune(rig, rep: Reporter, geodesics=None) -> dict:
@@ -204,6 +215,8 @@ def bake(ctx, source, output, quiet, verbose):
     t0 = time.perf_counter()
     if source.endswith(".npz"):
         meta = fit_to_model(source, output)
+        shell = meta.get("shell", {})
+        rep.detail(_solver_line(shell.get("method", "shell"), shell.get("solver", "not recorded (an older fit file)")))
     else:
         rig, result = _run_fit(source, rep)
         arrays, meta = model_arrays(result, rig)

@@ -12,12 +12,34 @@ A = k_s K + k_b K M⁻¹ K with K = -L.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import fnmatch
+import glob
+import importlib.metadata
+import os
+import site
+import sys
+from dataclasses import dataclass, field
+
 import numpy as np
 import scipy.sparse as sp
 
-# cot(θ) is clamped: a near-degenerate triangle (θ → 0) would otherwise put an
-# unbounded weight on one edge and ruin the factorisation's conditioning.
+# A near-degenerate triangle (an angle θ → 0) would put an unbounded weight cot θ on one edge
+# and ruin the factorisation's conditioning, so no angle is taken below MIN_ANGLE, where
+# cot θ = COT_LIMIT. The clamp acts on a triangle's angles, not on its cotangents one by one:
+# a triangle's element matrix Σ_k ½ cot θ_k (e_i − e_j)(e_i − e_j)ᵀ is positive semi-definite
+# exactly when cot θ_0 cot θ_1 + cot θ_1 cot θ_2 + cot θ_2 cot θ_0 ≥ 0 (with a positive sum), and
+# that sum is 1 for any three angles in (0, π) that add up to π. Cotangents clipped one by one
+# break it: a cap triangle with angles (1e-5, 1e-5, π − 2e-5) had cotangents (1e4, 1e4, −1e4)
+# and the element eigenvalues (−5000, 0, 15000), an indefinite K. So the small angles are
+# raised to MIN_ANGLE and the others lowered to keep the sum π: the weights are those of a
+# real triangle (angles, not lengths, set them), its element matrix is positive semi-definite
+# and so is K (in floating point the sum of products, up to 1e8 each, is 1 within ~1e-4: the
+# round-off of π − 2 MIN_ANGLE, nowhere near 0). A triangle without a small angle takes no
+# part: its weights are the plain cotangents, bit for bit (the ICT kit's largest is 22).
 COT_LIMIT = 1e4
+MIN_ANGLE = float(np.arctan(1.0 / COT_LIMIT))
 
 
 def cotmatrix(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
@@ -45,7 +67,7 @@ def cotmatrix(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     corner = [vertices[faces[:, k]] for k in range(3)]
     # |a × b| is twice the triangle's area at every corner: one cross product per triangle
     cross = np.linalg.norm(np.cross(corner[1] - corner[0], corner[2] - corner[0]), axis=1)
-    rows, cols, vals = [], [], []
+    cots, dots = [], []
     for k in range(3):
         # the angle at corner k is opposite the edge (i, j)
         i, j = (k + 1) % 3, (k + 2) % 3
@@ -53,8 +75,19 @@ def cotmatrix(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
         b = corner[j] - corner[k]
         dot = np.einsum("ij,ij->i", a, b)
         scale = np.einsum("ij,ij->i", a, a) + np.einsum("ij,ij->i", b, b)
-        cot = dot / np.maximum(cross, 1e-12 * scale + 1e-300)
-        w = 0.5 * np.clip(cot, -COT_LIMIT, COT_LIMIT)
+        cots.append(dot / np.maximum(cross, 1e-12 * scale + 1e-300))
+        dots.append(dot)
+    cot = np.stack(cots, axis=1)  # (T, 3)
+    # an angle below MIN_ANGLE shows as a cotangent above COT_LIMIT (an angle near π leaves the
+    # other two below it); only those triangles are recomputed
+    small = np.flatnonzero((cot > COT_LIMIT).any(axis=1))
+    if len(small):
+        angles = np.arctan2(cross[small, None], np.stack(dots, axis=1)[small])
+        cot[small] = 1.0 / np.tan(clamped_angles(angles))
+    rows, cols, vals = [], [], []
+    for k in range(3):
+        i, j = (k + 1) % 3, (k + 2) % 3
+        w = 0.5 * cot[:, k]
         rows += [faces[:, i], faces[:, j]]
         cols += [faces[:, j], faces[:, i]]
         vals += [-w, -w]
@@ -64,6 +97,33 @@ def cotmatrix(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     off = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))  # duplicates (an edge's two triangles) summed
     diag = -np.asarray(off.sum(axis=1)).ravel()
     return (off + sp.diags(diag)).tocsr()
+
+
+def clamped_angles(angles: np.ndarray) -> np.ndarray:
+    """A triangle's angles with none below MIN_ANGLE and their sum π (see COT_LIMIT).
+
+    Parameters
+    ----------
+    angles : (T, 3) angles in radians, each in [0, π] (of a near-degenerate triangle their
+        sum may be off π; with coincident corners all three may be 0).
+
+    Returns
+    -------
+    (T, 3) angles in [MIN_ANGLE, π − 2 MIN_ANGLE] adding up to π: each raised to MIN_ANGLE, then
+    the excesses over MIN_ANGLE scaled to share π − 3 MIN_ANGLE. The order of the angles is
+    kept, so the weights stay on the same edges. A triangle with no excess at all (every corner
+    coincident with another) gets the equilateral triangle's angles.
+
+    Example
+    -------
+    >>> a = clamped_angles(np.array([[1e-5, 1e-5, np.pi - 2e-5]]))
+    >>> bool(np.isclose(a.sum(), np.pi)) and bool(np.all(a >= MIN_ANGLE))
+    True
+    """
+    excess = np.maximum(np.asarray(angles, dtype=np.float64), MIN_ANGLE) - MIN_ANGLE
+    total = excess.sum(axis=1, keepdims=True)
+    share = np.divide(excess, total, out=np.full_like(excess, 1.0 / 3.0), where=total > 0)
+    return MIN_ANGLE + share * (np.pi - 3.0 * MIN_ANGLE)
 
 
 def massmatrix(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -160,6 +220,10 @@ class CholeskyFactor:
         A = sp.csr_matrix(A)
         self.n = A.shape[0]
         self._solver = None
+        self.backend: str | None = None
+        # backend -> why it was passed over (not installed, or refused the matrix): the fallback
+        # is reported, never silent
+        self.passed_over: dict[str, str] = {}
         full = None
         for backend in backends:
             try:
@@ -169,12 +233,14 @@ class CholeskyFactor:
                     if full is None:
                         full = A + sp.triu(A, k=1, format="csr").T if upper else A
                     self._solver = _BACKENDS[backend](sp.csr_matrix(full))
-            except (ImportError, OSError, _PardisoError):
-                continue  # not installed here (or refused the matrix): the next one
+            except (ImportError, OSError, _PardisoError) as exc:
+                self.passed_over[backend] = f"{exc.__class__.__name__}: {exc}"
+                continue  # the next one
             self.backend = backend
             break
         if self._solver is None:
-            raise RuntimeError(f"no sparse solver among {backends} could factor the matrix")
+            why = "; ".join(f"{b}: {reason}" for b, reason in self.passed_over.items())
+            raise RuntimeError(f"no sparse solver among {backends} could factor the matrix ({why})")
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         return self._solver.solve(np.asarray(b, dtype=np.float64))
@@ -215,28 +281,54 @@ class _PardisoError(RuntimeError):
     pass
 
 
+# MKL's single dynamic library, by platform: Linux, Windows, macOS (the mkl wheel's names)
+_MKL_RT_PATTERNS = ("libmkl_rt.so*", "mkl_rt*.dll", "libmkl_rt*.dylib")
+
+
+def mkl_runtime_library() -> str | None:
+    """The path of MKL's runtime library ``mkl_rt``, or None where MKL is not installed.
+
+    Looked for, in order: among the files the ``mkl`` distribution installed (its metadata's
+    file list, wherever pip put it: the environment, the user site); in the environment's and
+    the user base's library folders (``lib``, ``Library/bin``: conda, other installers); at
+    the path in ``PYPARDISO_MKL_RT``; by ``ctypes.util.find_library``. The last runs ldconfig
+    and a C compiler in a child process (forked from this one, by then gigabytes large in a
+    bake), so it only comes where nothing else found the library; pypardiso is not imported
+    for the same reason (its import runs that search).
+    """
+    try:
+        files = importlib.metadata.files("mkl") or []
+    except importlib.metadata.PackageNotFoundError:
+        files = []
+    for pattern in _MKL_RT_PATTERNS:
+        found = sorted(str(f.locate()) for f in files if fnmatch.fnmatch(f.name, pattern))
+        found = [path for path in found if os.path.isfile(path)]
+        if found:
+            return os.path.normpath(found[0])
+    for base in filter(None, (sys.prefix, site.USER_BASE)):
+        for folder in ("lib", os.path.join("Library", "bin")):
+            for pattern in _MKL_RT_PATTERNS:
+                found = sorted(glob.glob(os.path.join(base, folder, pattern)))
+                if found:
+                    return found[0]
+    explicit = os.environ.get("PYPARDISO_MKL_RT")
+    if explicit and os.path.isfile(explicit):
+        return explicit
+    return ctypes.util.find_library("mkl_rt")
+
+
 def _mkl_pardiso():
-    """MKL's ``pardiso`` entry point, found the way pypardiso finds ``mkl_rt`` (None: not here)."""
+    """MKL's ``pardiso`` entry point (ImportError where MKL is not installed)."""
     global _PARDISO_FN
     if _PARDISO_FN is None:
-        import ctypes
-
-        import glob
-        import sys
-
-        # where the mkl wheel puts it; else pypardiso's search. (Importing pypardiso is avoided
-        # where the wheel's library is found: its import runs ctypes' find_library, which forks
-        # ldconfig and a C compiler from this process, at this point gigabytes large.)
-        found = sorted(glob.glob(f"{sys.prefix}/lib/libmkl_rt.so*"))
-        found += sorted(glob.glob(f"{sys.prefix}/Library/bin/mkl_rt*.dll"))
-        if found:
-            name = found[0]
-        else:
-            from pypardiso.pardiso_wrapper import PyPardisoSolver  # ImportError where not installed
-
-            name = PyPardisoSolver().libmkl._name
+        name = mkl_runtime_library()
+        if name is None:
+            raise ImportError("MKL's runtime library (mkl_rt) is not installed here")
         lib = ctypes.CDLL(name)  # our own handle: its argtypes are ours
-        fn = lib.pardiso
+        try:
+            fn = lib.pardiso
+        except AttributeError:
+            raise OSError(f"{name} has no pardiso entry point") from None
         fn.restype = None
         fn.argtypes = [ctypes.c_void_p] * 16
         _PARDISO_FN = fn
@@ -261,8 +353,6 @@ class _Pardiso:
     def __init__(self, U: sp.csr_matrix, rhs_rows: np.ndarray | None = None):
         """``U``: the matrix's upper triangle (:func:`_upper_triangle`); ``rhs_rows``: see
         :class:`CholeskyFactor`."""
-        import ctypes
-
         self._fn = _mkl_pardiso()
         U.sort_indices()
         self.n = U.shape[0]
@@ -286,7 +376,6 @@ class _Pardiso:
             iparm[30] = 2  # sparse right-hand sides, non-zero where perm is 1; every solution row computed
             self._perm = np.zeros(self.n, dtype=np.int32)
             self._perm[np.asarray(rhs_rows, dtype=np.int64)] = 1
-        self._ctypes = ctypes
         self._open = True
         try:
             self._call(12, np.zeros(1), np.zeros(1), 1)  # analysis + numerical factorisation
@@ -296,15 +385,14 @@ class _Pardiso:
         self.factor_nonzeros = int(iparm[17])
 
     def _call(self, phase: int, b: np.ndarray, x: np.ndarray, nrhs: int) -> None:
-        c = self._ctypes
-        err = c.c_int32(0)
+        err = ctypes.c_int32(0)
 
         def i32(v):
-            return c.byref(c.c_int32(v))
+            return ctypes.byref(ctypes.c_int32(v))
 
         self._fn(self._pt.ctypes.data, i32(1), i32(1), i32(self.MTYPE), i32(phase), i32(self.n),
                  self._a.ctypes.data, self._ia.ctypes.data, self._ja.ctypes.data, self._perm.ctypes.data,
-                 i32(nrhs), self._iparm.ctypes.data, i32(0), b.ctypes.data, x.ctypes.data, c.byref(err))
+                 i32(nrhs), self._iparm.ctypes.data, i32(0), b.ctypes.data, x.ctypes.data, ctypes.byref(err))
         if err.value != 0:
             raise _PardisoError(f"PARDISO phase {phase} failed with error {err.value}")
 
@@ -345,9 +433,31 @@ def constrained_split(n_vertices: int, handles: np.ndarray, anchors: np.ndarray 
     return np.flatnonzero(~constrained), constrained
 
 
+@dataclass(frozen=True)
+class ShellBasis:
+    """The large-scale basis B and the sparse solver that made it.
+
+    B : (V, H) float64 (see :func:`shell_basis`).
+    solver : the backend that factored the shell ("pardiso", "cholmod" or "superlu"); None
+        where nothing was factored (every vertex prescribed).
+    passed_over : backend -> why it was passed over before ``solver`` (a fallback is recorded).
+    """
+
+    B: np.ndarray
+    solver: str | None
+    passed_over: dict = field(default_factory=dict)
+
+
 def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray | None = None,
                 k_stretch: float = 0.0, k_bend: float = 1.0, spacing: float | None = None,
                 columns: np.ndarray | None = None) -> np.ndarray:
+    """The large-scale basis B alone; see :func:`solve_shell_basis`."""
+    return solve_shell_basis(vertices, faces, handles, anchors, k_stretch, k_bend, spacing, columns).B
+
+
+def solve_shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray,
+                      anchors: np.ndarray | None = None, k_stretch: float = 0.0, k_bend: float = 1.0,
+                      spacing: float | None = None, columns: np.ndarray | None = None) -> ShellBasis:
     """The large-scale basis B: displacements u = B · u_H for handle displacements u_H.
 
     Parameters
@@ -362,8 +472,9 @@ def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, an
 
     Returns
     -------
-    B : (V, H) float64, column-major (or (V, H + len(columns))) — rows of handles are unit rows.
-        Without anchors, every row sums to 1: a rigid translation is reproduced.
+    :class:`ShellBasis` with B : (V, H) float64, column-major (or (V, H + len(columns))) — rows
+        of handles are unit rows. Without anchors, every row sums to 1: a rigid translation is
+        reproduced. And the solver that factored the system.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     handles = np.asarray(handles, dtype=np.int64)
@@ -375,7 +486,7 @@ def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, an
     driven = handles if columns is None else np.concatenate([handles, np.asarray(columns, dtype=np.int64)])
     U, R, rhs_rows = constrained_system(A, constrained, driven)
     if not len(free):
-        return np.ascontiguousarray(R)
+        return ShellBasis(np.ascontiguousarray(R), None)
     factor = CholeskyFactor(U, upper=True, rhs_rows=rhs_rows)
     del U
     B = factor.solve(R)
@@ -386,7 +497,7 @@ def shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, an
     # and the products with B and the model file's float32 copy take either order
     B[constrained] = 0.0
     B[driven, np.arange(len(driven))] = 1.0
-    return B
+    return ShellBasis(B, factor.backend, dict(factor.passed_over))
 
 
 def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarray

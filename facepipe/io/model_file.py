@@ -220,7 +220,7 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         "marker_spacing": geo.spacing,
         "shell": {"k_stretch": rig.config.shell.k_stretch, "k_bend": rig.config.shell.k_bend,
                   "method": rig.config.shell.method, "rbf_lambda": rig.config.shell.rbf_lambda,
-                  "phantoms": rig.config.shell.phantoms},
+                  "phantoms": rig.config.shell.phantoms, "solver": geo.solver},
         "smoothing": rig.config.psd.smoothing,
     }
     if "tune" in fit.report:  # the values `fit --tune` chose, with their validated error

@@ -18,7 +18,7 @@ from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local
 from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details, greedy_basis, novelty_gate, rms_per_pose, spread_sample, wpsd_edge_weights)
 from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
 from facepipe.pipeline.rig import Rig, load_rig
-from facepipe.core.shell import large_scale_positions, marker_spacing, shell_basis
+from facepipe.core.shell import ShellBasis, large_scale_positions, marker_spacing, solve_shell_basis
 from facepipe.pipeline.geodesics import Geodesics
 from facepipe.core.strain import (auto_feature_graph, edge_graph, edge_lengths, graph_from_pairs, strain_features)
 
@@ -29,7 +29,8 @@ class Geometry:
 
     rest : (V, 3); faces : (T, 3); handles : (H,) vertex indices; B : (V, H) large-scale basis;
     edges : (F, 2) handle-index pairs; rest_lengths : (F,); neighbors : (V,) frame neighbours;
-    spacing : mean marker spacing (length units).
+    spacing : mean marker spacing (length units); solver : the sparse solver that factored the
+    shell (None: the RBF morph, a dense solve); solver_passed_over : solvers tried before it, and why.
     """
 
     rest: np.ndarray
@@ -41,6 +42,8 @@ class Geometry:
     neighbors: np.ndarray
     spacing: float
     incidence: sp.csr_matrix = field(repr=False, default=None)
+    solver: str | None = None
+    solver_passed_over: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.incidence is None:
@@ -67,7 +70,14 @@ class Geometry:
 
 def large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray, shell,
                       spacing: float | None = None) -> np.ndarray:
-    """The large-scale basis B (V, H) of a mesh: the thin shell or the RBF volume morph.
+    """The large-scale basis B (V, H) alone; see :func:`solve_large_scale_basis`."""
+    return solve_large_scale_basis(rest, faces, handles, anchors, shell, spacing).B
+
+
+def solve_large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray,
+                            shell, spacing: float | None = None) -> ShellBasis:
+    """The large-scale basis B (V, H) of a mesh, the thin shell or the RBF volume morph, with the
+    sparse solver that factored the shell (None for the RBF morph: a dense solve).
 
     Parameters
     ----------
@@ -80,9 +90,9 @@ def large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, 
         spacing = marker_spacing(rest, handles)
     if getattr(shell, "method", "shell") == "rbf":
         phantoms = phantom_points(rest, faces, anchors, handles, shell.phantoms or None)
-        return multiquadric_basis(rest, handles, phantoms, shell.rbf_lambda)
-    return shell_basis(rest, faces, handles, anchors, k_stretch=shell.k_stretch, k_bend=shell.k_bend,
-                       spacing=spacing)
+        return ShellBasis(multiquadric_basis(rest, handles, phantoms, shell.rbf_lambda), None)
+    return solve_shell_basis(rest, faces, handles, anchors, k_stretch=shell.k_stretch, k_bend=shell.k_bend,
+                             spacing=spacing)
 
 
 def feature_graph(rig: Rig, mesh_graph: sp.csr_matrix | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -121,8 +131,9 @@ def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | Non
     if k_stretch is not None or k_bend is not None:
         shell = dataclasses.replace(shell, k_stretch=shell.k_stretch if k_stretch is None else k_stretch,
                                     k_bend=shell.k_bend if k_bend is None else k_bend)
-    B = large_scale_basis(rest, faces, handles, rig.anchors, shell, spacing)
-    return Geometry(rest, faces, handles, B, edges, rest_lengths, frame_neighbors(faces, len(rest)), spacing)
+    basis = solve_large_scale_basis(rest, faces, handles, rig.anchors, shell, spacing)
+    return Geometry(rest, faces, handles, basis.B, edges, rest_lengths, frame_neighbors(faces, len(rest)), spacing,
+                    solver=basis.solver, solver_passed_over=basis.passed_over)
 
 
 def read_graph_csv(path) -> list[tuple[str, str]]:
@@ -300,6 +311,8 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
         "fit": cfg.fit,
         "beta": beta,
         "deformer": rig.config.shell.method,
+        "shell_solver": geo.solver,
+        "shell_solver_passed_over": geo.solver_passed_over,
         "k_stretch": rig.config.shell.k_stretch,
         "k_bend": rig.config.shell.k_bend,
         "edges_per_vertex_mean": float((edge_weight > 0).sum(axis=1).mean()),

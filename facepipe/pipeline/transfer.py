@@ -456,7 +456,7 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     -------
     arrays, meta : for :func:`facepipe.io.model_file.save_model`; report : dict (markers, anchors, times).
     """
-    from facepipe.pipeline.fit import large_scale_basis
+    from facepipe.pipeline.fit import solve_large_scale_basis
     from facepipe.core.shell import marker_spacing
     from facepipe.core.strain import edge_lengths
 
@@ -503,7 +503,8 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
         check_components(target, np.concatenate([target_handles, anchors_t]), "marker or anchor")
     spacing = marker_spacing(rest_t, target_handles)
     t1 = time.perf_counter()
-    B = large_scale_basis(rest_t, faces_t, target_handles, anchors_t, shell, spacing)
+    basis = solve_large_scale_basis(rest_t, faces_t, target_handles, anchors_t, shell, spacing)
+    B = basis.B
     report["seconds_basis"] = time.perf_counter() - t1
 
     edges = model.edges.astype(np.int64)
@@ -573,6 +574,7 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     meta.update(
         config=f"transfer of {model.path} onto {target.path}",
         marker_spacing=spacing,
+        shell=dict(model.meta.get("shell", {}), solver=basis.solver),  # the target's own factorisation
         beta=float(model.meta.get("beta", 0.0)) / corr.scale if model.meta.get("beta") else model.meta.get("beta"),
     )
     report["seconds"] = time.perf_counter() - t0
