@@ -18,6 +18,18 @@ def ict_or_skip() -> Path:
     return ICT
 
 
+@pytest.fixture(scope="session")
+def ict_rig_fit():
+    """The ICT kit's rig (configs/ict.toml) and its fit with the config's settings, made once per
+    session and shared: tests must not change them (copy what they modify)."""
+    ict_or_skip()
+    from facepipe.pipeline.fit import fit_rig
+    from facepipe.pipeline.rig import load_rig
+
+    rig = load_rig(ROOT / "configs" / "ict.toml")
+    return rig, fit_rig(rig)
+
+
 def run_cli(*args) -> int:
     """Run the command line with ``args`` (made strings); its exit code."""
     from facepipe.cli.commands import main

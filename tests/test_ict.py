@@ -8,22 +8,18 @@ import numpy as np
 import pytest
 
 from facepipe.pipeline.evaluate import frame_errors
-from facepipe.pipeline.fit import fit_rig
 from facepipe.io.model_file import model_from_fit
 from facepipe.pipeline.replay import NumpyEvaluator
-from facepipe.pipeline.rig import load_rig
-from tests.conftest import ROOT, ict_or_skip
+from tests.conftest import ict_or_skip
 
 pytestmark = pytest.mark.ict
 FACE = slice(0, 9409)
 
 
 @pytest.fixture(scope="module")
-def ict_fit():
-    kit = ict_or_skip()
-    rig = load_rig(ROOT / "configs" / "ict.toml")
-    fit = fit_rig(rig)
-    truth = np.load(kit / "train_truth.npz")["positions"].astype(np.float64)
+def ict_fit(ict_rig_fit):
+    rig, fit = ict_rig_fit
+    truth = np.load(ict_or_skip() / "train_truth.npz")["positions"].astype(np.float64)
     return rig, fit, truth
 
 

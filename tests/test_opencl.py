@@ -302,11 +302,9 @@ def test_cli_bad_device_is_input_error(baked, capsys):
 
 
 @pytest.mark.ict
-def test_ict_matches_numpy_reference():
-    ict_or_skip()
+def test_ict_matches_numpy_reference(ict_rig_fit):
     _device_or_skip()
-    rig = load_rig(ROOT / "configs" / "ict.toml")
-    fit = fit_rig(rig)
+    rig, fit = ict_rig_fit
     truth = np.load(ict_or_skip() / "train_truth.npz")["positions"][:48]
     head = truth[:, rig.handles].astype(np.float64)
     diag = float(np.linalg.norm(np.ptp(rig.mesh.vertices, axis=0)))
