@@ -70,7 +70,9 @@ def run_export_bench(work_dir: Path, mesh_path: Path | None = None, n_frames: in
     dict: mesh (name, vertices, polygons, tiles), per format {bytes, seconds, megabytes_per_second,
     ms_per_frame}, the raster set-up time, and ``obj_vs_trimesh`` (trimesh's time / ours).
     """
-    from facepipe.export.caches import write_mdd, write_pc2, write_usd
+    from facepipe.export.mdd import write_mdd
+    from facepipe.export.pc2 import write_pc2
+    from facepipe.export.usd import write_usd
     from facepipe.export.common import write_obj_sequence
     from facepipe.export.exr_maps import write_displacement_maps
     from facepipe.io.mesh_read import load_mesh

@@ -8,7 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facepipe.export.caches import write_mdd, write_pc2, write_usd
+from facepipe.export.mdd import write_mdd
+from facepipe.export.pc2 import write_pc2
+from facepipe.export.usd import write_usd
 from facepipe.errors import InputError
 from facepipe.io.model_file import load_model
 from facepipe.io.replay_folder import frame_rate, is_uniform, time_codes

@@ -15,6 +15,7 @@ import click
 import numpy as np
 
 from facepipe.errors import InputError
+from facepipe.export import registry as export_formats  # names the formats without importing them
 
 
 class Reporter:
@@ -372,11 +373,9 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
 
 @cli.command()
 @click.argument("outdir", type=click.Path(file_okay=False))
-@click.option("--format", "fmt", type=click.Choice(["obj", "exr", "wrinkle", "usd", "mdd", "pc2"]), default="obj",
-              show_default=True, help="obj: OBJ sequence; exr: displacement maps per frame; wrinkle: wrinkle-map set "
-              "(PSD); usd: .usdc with time-sampled points; mdd, pc2: point caches.")
-@click.option("-o", "--dest", required=True, type=click.Path(),
-              help="Folder (obj, exr, wrinkle) or file (usd: .usdc/.usd/.usda, mdd: .mdd, pc2: .pc2).")
+@click.option("--format", "fmt", type=click.Choice(list(export_formats.FORMATS)), default="obj", show_default=True,
+              help=export_formats.format_help())
+@click.option("-o", "--dest", required=True, type=click.Path(), help=export_formats.destination_help())
 @click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
 @click.option("--layer", type=click.Choice(["final", "large"]), default="final", show_default=True,
               help="Geometry formats: the final surface, or the large-scale one (needs replay --save-large-scale).")

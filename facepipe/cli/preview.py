@@ -14,19 +14,25 @@ import os
 from pathlib import Path
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import PowerNorm
+from matplotlib.figure import Figure
 
 from facepipe.io.atomic import atomic_path
 from facepipe.errors import InputError
+from facepipe.cli.render import frame_camera, render
+from facepipe.core.tangent_frames import vertex_normals
 from facepipe.export.common import check_targets
+from facepipe.pipeline.evaluate import match_frames
+from facepipe.pipeline.replay import NumpyEvaluator
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")
 
 
 def _figure(width_in: float, height_in: float, dpi: int = 100):
     # the object-oriented API with an Agg canvas: no pyplot state, no display needed
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     fig = Figure(figsize=(width_in, height_in), dpi=dpi)
     FigureCanvasAgg(fig)
     return fig
@@ -161,8 +167,6 @@ def load_truth(path, frame_numbers: np.ndarray, n_vertices: int) -> tuple[np.nda
     InputError
         Unreadable file, no ``positions``, other vertex count, or replayed frames it lacks.
     """
-    from facepipe.pipeline.evaluate import match_frames
-
     try:
         data = np.load(path, mmap_mode="r")
         positions = data["positions"]
@@ -195,8 +199,6 @@ def pick_frames(head: np.ndarray, rest_handles: np.ndarray, count: int = 1) -> n
 
 def view_direction(model) -> np.ndarray:
     """The direction the face looks in the rest pose: the mean normal at the markers."""
-    from facepipe.core.tangent_frames import vertex_normals
-
     n = vertex_normals(model.rest.astype(np.float64), model.triangles.astype(np.int64))
     d = n[model.handle_vertices].sum(axis=0)
     if np.linalg.norm(d) < 1e-9:
@@ -223,48 +225,11 @@ def render_preview(replay, model, path: str | os.PathLike, *, truth_path=None, f
     -------
     dict with the frames shown and, with a truth, their RMS/max errors per layer.
     """
-    from matplotlib import colormaps
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import PowerNorm
-
-    from facepipe.cli.render import frame_camera, render
-
     path = Path(path)
     check_image_path(path, force)  # before any rendering: a refused preview costs nothing
-    handles = replay.handles
-    head = handles["head"]
     all_frames = replay.frame_numbers
-    if frame_numbers:
-        lookup = {int(f): i for i, f in enumerate(all_frames)}
-        missing = [f for f in frame_numbers if int(f) not in lookup]
-        if missing:
-            raise InputError(f"the replay has no frame {missing[0]} (it has {all_frames[0]}..{all_frames[-1]})",
-                             path=replay.path / "replay.json", hint="give a frame number of the take")
-        index = np.array([lookup[int(f)] for f in frame_numbers])
-    else:
-        rest_handles = model.rest[model.handle_vertices].astype(np.float64)
-        index = pick_frames(head.astype(np.float64), rest_handles, max(1, strip))
-    keep = handles["head_motion"] == "keep"
-    R = handles["rotation"].astype(np.float64)
-    tr = handles["translation"].astype(np.float64)
-
-    def to_head(x, i):  # take space → head space (world = R head + t)
-        x = np.asarray(x, dtype=np.float64)
-        return (x - tr[i]) @ R[i] if keep else x
-
-    final = [to_head(replay.positions[i], i) for i in index]
-    if replay.large_scale is not None:
-        large = [to_head(replay.large_scale[i], i) for i in index]
-    else:
-        from facepipe.pipeline.replay import NumpyEvaluator
-
-        _, lg = NumpyEvaluator(model).evaluate(head[index].astype(np.float64), with_large=True)
-        large = list(lg)
-    truth = None
-    if truth_path is not None:
-        tpos, tindex = load_truth(truth_path, all_frames, model.n_vertices)
-        truth = [to_head(tpos[tindex[i]], i) for i in index]
-
+    index = _shown_frames(replay, replay.handles["head"], model, frame_numbers, strip)
+    final, large, truth = _head_space_surfaces(replay, model, index, truth_path)
     faces = model.triangles.astype(np.int64)
     camera = frame_camera(model.rest.astype(np.float64), view_direction(model), width=size)
     units = model.meta.get("units", "")
@@ -272,30 +237,16 @@ def render_preview(replay, model, path: str | os.PathLike, *, truth_path=None, f
     summary = {"frames": [int(all_frames[i]) for i in index], "panels": columns}
     errors = None
     if truth:
-        e_final = [np.linalg.norm(f - t, axis=1) for f, t in zip(final, truth)]
-        e_large = [np.linalg.norm(g - t, axis=1) for g, t in zip(large, truth)]
-        vmax = float(np.percentile(np.concatenate(e_large + e_final), 99.5)) or 1e-12
-        errors = (e_final, e_large)
-        summary["rms"] = {"final": [float(np.sqrt((e ** 2).mean())) for e in e_final],
-                          "large": [float(np.sqrt((e ** 2).mean())) for e in e_large]}
-        summary["max"] = {"final": [float(e.max()) for e in e_final], "large": [float(e.max()) for e in e_large]}
-        summary["color_max"] = vmax
+        errors = ([np.linalg.norm(f - t, axis=1) for f, t in zip(final, truth)],
+                  [np.linalg.norm(g - t, axis=1) for g, t in zip(large, truth)])
+        summary.update(error_summary(*errors))
         cmap = colormaps["YlOrRd"]
         # one scale for both layers (comparable colours), square-root so the final layer's
         # small errors still show next to the large-scale layer's big ones
-        norm = PowerNorm(0.5, 0.0, vmax)
+        norm = PowerNorm(0.5, 0.0, summary["color_max"])
 
-    rows = len(index)
-    dpi = 100
-    panel_w, panel_h = camera.width / dpi, camera.height / dpi
-    title_h = 0.32
     bar_w = 0.95 if truth else 0.0  # room on the right for the colour bar and its label
-    fig_w = panel_w * len(columns) + bar_w
-    fig_h = (panel_h + title_h) * rows
-    fig = _figure(fig_w, fig_h, dpi)
-    fig.subplots_adjust(left=0.0, right=1 - bar_w / fig_w, top=1 - title_h / fig_h, bottom=0.0, wspace=0.0,
-                        hspace=title_h / panel_h)
-    axes = np.atleast_2d(fig.subplots(rows, len(columns), squeeze=False))
+    fig, axes = _panel_grid(camera, len(index), len(columns), bar_w)
     for r, i in enumerate(index):
         images = [render(large[r], faces, camera), render(final[r], faces, camera)]
         titles = ["large scale", "final"]
@@ -303,8 +254,7 @@ def render_preview(replay, model, path: str | os.PathLike, *, truth_path=None, f
             images.append(render(truth[r], faces, camera))
             titles.append("truth")
             for label, err in (("final", errors[0][r]), ("large", errors[1][r])):
-                colors = cmap(norm(err))[:, :3]
-                images.append(render(truth[r], faces, camera, colors=colors))
+                images.append(render(truth[r], faces, camera, colors=cmap(norm(err))[:, :3]))
                 rms = np.sqrt((err ** 2).mean())
                 titles.append(f"|{label} − truth|: RMS {rms:.3g}, max {err.max():.3g} {units}")
         for c, (img, title) in enumerate(zip(images, titles)):
@@ -313,8 +263,77 @@ def render_preview(replay, model, path: str | os.PathLike, *, truth_path=None, f
             ax.set_axis_off()
             ax.set_title((f"frame {int(all_frames[i])}: " if c == 0 else "") + title, fontsize=8)
     if truth:
+        fig_w = fig.get_figwidth()
         cax = fig.add_axes((1 - bar_w / fig_w + 0.12 / fig_w, 0.08, 0.16 / fig_w, 0.8))
         fig.colorbar(ScalarMappable(norm, cmap), cax=cax, label=f"vertex error ({units})" if units else "vertex error")
     _save(fig, path, force)
     summary["path"] = str(path)
     return summary
+
+
+def _shown_frames(replay, head: np.ndarray, model, frame_numbers, strip: int) -> np.ndarray:
+    """Indices of the replay's frames to show: the given take frame numbers (InputError for one
+    the replay lacks), else ``strip`` evenly spaced ones or the most expressive one (``head``:
+    the replay's head-space handles)."""
+    all_frames = replay.frame_numbers
+    if frame_numbers:
+        lookup = {int(f): i for i, f in enumerate(all_frames)}
+        missing = [f for f in frame_numbers if int(f) not in lookup]
+        if missing:
+            raise InputError(f"the replay has no frame {missing[0]} (it has {all_frames[0]}..{all_frames[-1]})",
+                             path=replay.path / "replay.json", hint="give a frame number of the take")
+        return np.array([lookup[int(f)] for f in frame_numbers])
+    rest_handles = model.rest[model.handle_vertices].astype(np.float64)
+    return pick_frames(head.astype(np.float64), rest_handles, max(1, strip))
+
+
+def to_head_space(x, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Take-space positions (V, 3) of a frame in head space (world = R head + t)."""
+    return (np.asarray(x, dtype=np.float64) - translation) @ rotation
+
+
+def _head_space_surfaces(replay, model, index: np.ndarray, truth_path) -> tuple[list, list, list | None]:
+    """The final and large-scale surfaces, and the truth if given, of the frames ``index`` in head
+    space (the take's head motion taken out where the replay kept it). The large scale is
+    evaluated from the handles when the replay has no large_scale.npy."""
+    handles = replay.handles
+    keep = handles["head_motion"] == "keep"
+    R = handles["rotation"].astype(np.float64)
+    tr = handles["translation"].astype(np.float64)
+
+    def to_head(x, i):
+        return to_head_space(x, R[i], tr[i]) if keep else np.asarray(x, dtype=np.float64)
+
+    final = [to_head(replay.positions[i], i) for i in index]
+    if replay.large_scale is not None:
+        large = [to_head(replay.large_scale[i], i) for i in index]
+    else:
+        _, lg = NumpyEvaluator(model).evaluate(handles["head"][index].astype(np.float64), with_large=True)
+        large = list(lg)
+    truth = None
+    if truth_path is not None:
+        tpos, tindex = load_truth(truth_path, replay.frame_numbers, model.n_vertices)
+        truth = [to_head(tpos[tindex[i]], i) for i in index]
+    return final, large, truth
+
+
+def error_summary(e_final: list[np.ndarray], e_large: list[np.ndarray]) -> dict:
+    """RMS and max of the per-vertex errors of both layers per frame, and the colour scale's top
+    (the 99.5th percentile over both)."""
+    return {"rms": {"final": [float(np.sqrt((e ** 2).mean())) for e in e_final],
+                    "large": [float(np.sqrt((e ** 2).mean())) for e in e_large]},
+            "max": {"final": [float(e.max()) for e in e_final], "large": [float(e.max()) for e in e_large]},
+            "color_max": float(np.percentile(np.concatenate(e_large + e_final), 99.5)) or 1e-12}
+
+
+def _panel_grid(camera, rows: int, columns: int, bar_w: float, dpi: int = 100):
+    """A figure of rows × columns panels of the camera's size, a title above each, and ``bar_w``
+    inches on the right for a colour bar: (figure, (rows, columns) axes)."""
+    panel_w, panel_h = camera.width / dpi, camera.height / dpi
+    title_h = 0.32
+    fig_w = panel_w * columns + bar_w
+    fig_h = (panel_h + title_h) * rows
+    fig = _figure(fig_w, fig_h, dpi)
+    fig.subplots_adjust(left=0.0, right=1 - bar_w / fig_w, top=1 - title_h / fig_h, bottom=0.0, wspace=0.0,
+                        hspace=title_h / panel_h)
+    return fig, np.atleast_2d(fig.subplots(rows, columns, squeeze=False))

@@ -19,6 +19,7 @@ from facepipe.io.atomic import atomic_open
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
 from facepipe.io.mesh_write import _format_rows, format_obj_faces, format_obj_header
+from facepipe.export.registry import ExportOptions
 
 FRAME_PREFIX = "frame_"
 
@@ -138,6 +139,17 @@ def write_obj_sequence(
         if progress is not None:
             progress(1)
     return paths
+
+
+def export_obj(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], dict]:
+    """A replay's layer as an OBJ sequence in ``dest`` (the ``obj`` format's exporter; ``replay``:
+    a :class:`facepipe.io.replay_folder.ReplayDir`)."""
+    positions = replay.layer(options.layer)
+    model = replay.load_model(options.model_path)
+    with options.make_bar(positions.shape[0], "export obj") as bar:
+        paths = write_obj_sequence(model.mesh(), positions, dest, start=options.start, force=options.force,
+                                   resume=options.resume, progress=bar.update)
+    return paths, {"layer": options.layer, "frames": int(positions.shape[0])}
 
 
 def check_flags(force: bool, resume: bool) -> None:

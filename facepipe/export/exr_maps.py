@@ -54,7 +54,9 @@ from facepipe.io.atomic import atomic_open
 from facepipe.errors import InputError
 from facepipe.io.exr import write_exr
 from facepipe.export.common import check_targets, frame_paths, remove_partial_files
-from facepipe.export.uv_raster import TiledRaster
+from facepipe.export.registry import ExportOptions
+from facepipe.export.uv_raster import TiledRaster, mesh_raster
+from facepipe.pipeline.detail_layers import DetailLayer
 
 MODES = ("vector", "scalar")
 
@@ -237,8 +239,6 @@ def wrinkle_coefficients(model, head: np.ndarray) -> np.ndarray:
     -------
     (T, P) float64, P basis poses (the rest pose first).
     """
-    from facepipe.pipeline.detail_layers import DetailLayer
-
     check_wrinkle_model(model)
     layer = DetailLayer(model, "local")
     return layer.details.distances(layer.features(head))
@@ -259,8 +259,6 @@ def gate_deviation(model, head: np.ndarray, coeff: np.ndarray, weights: np.ndarr
     the range of the gated details over the take), ``worst_frame_index``, ``per_frame_max_abs``;
     or {"active": False} for a model without a gate.
     """
-    from facepipe.pipeline.detail_layers import DetailLayer
-
     layer = DetailLayer(model, "local")
     if layer.details.gate is None:
         return {"active": False}
@@ -353,8 +351,7 @@ def write_wrinkle_maps(
     coeff = wrinkle_coefficients(model, head)  # (T, P)
     P = coeff.shape[1]
     stems = wrinkle_file_names(P)
-    tiles = list(raster.tiles)
-    maps = {stem: map_paths(dest_dir, stem, tiles, raster.udim) for stem in stems}
+    maps = {stem: map_paths(dest_dir, stem, list(raster.tiles), raster.udim) for stem in stems}
     csv_path = dest_dir / "coefficients.csv"
     manifest_path = dest_dir / "wrinkle.json"
     flat = [p for per in maps.values() for p in per.values()] + [csv_path, manifest_path]
@@ -371,54 +368,80 @@ def write_wrinkle_maps(
     base_attrs = dict(attributes or {}, **{"facepipe/space": "local", "facepipe/mode": mode})
     for k, (stem, field) in enumerate(zip(stems, fields)):
         role = "constant C" if k == 0 else f"basis map M_{k - 1} ({basis_names[k - 1]})"
-        images = None
-        for tile, path in maps[stem].items():
-            if resume and path.exists():
-                continue
-            if images is None:
-                images = raster(_channels(field, mode))
-            write_exr(path, images[tile], half=half,
-                      attributes=dict(base_attrs, **{"facepipe/map": role, "facepipe/tile": tile}))
+        _write_wrinkle_map(raster, field, maps[stem], mode, half, dict(base_attrs, **{"facepipe/map": role}), resume)
         if progress is not None:
             progress(1)
 
-    columns = ["frame", "time"] + [f"coeff_{i:0{_index_width(P)}d}" for i in range(P)]
+    columns = coefficient_columns(P)
     if not (resume and csv_path.exists()):
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(columns)
-        for t in range(coeff.shape[0]):
-            # repr of a float64 round-trips exactly; engines parse it as float32
-            w.writerow([int(frame_numbers[t]), repr(float(times[t]))] + [repr(float(x)) for x in coeff[t]])
         with atomic_open(csv_path, "w") as fh:
-            fh.write(buf.getvalue())
+            fh.write(format_coefficients(columns, frame_numbers, times, coeff))
     if progress is not None:
         progress(1)
 
-    manifest = {
+    manifest = wrinkle_manifest(maps, stems, basis_names, columns, csv_path.name, raster, mode, half,
+                                (attributes or {}).get("facepipe/units", ""), int(coeff.shape[0]), gate)
+    if not (resume and manifest_path.exists()):
+        with atomic_open(manifest_path, "w") as fh:
+            fh.write(json.dumps(manifest, indent=2))
+    return manifest
+
+
+def _write_wrinkle_map(raster: TiledRaster, field: np.ndarray, paths: dict, mode: str, half: bool, attributes: dict,
+                       resume: bool) -> None:
+    """One wrinkle map (a per-vertex field) into its tiles' files, rasterised only if a file is missing."""
+    images = None
+    for tile, path in paths.items():
+        if resume and path.exists():
+            continue
+        if images is None:
+            images = raster(_channels(field, mode))
+        write_exr(path, images[tile], half=half, attributes=dict(attributes, **{"facepipe/tile": tile}))
+
+
+def coefficient_columns(n_basis: int) -> list[str]:
+    """The header of ``coefficients.csv``: frame, time, coeff_00 … (one per basis pose)."""
+    return ["frame", "time"] + [f"coeff_{i:0{_index_width(n_basis)}d}" for i in range(n_basis)]
+
+
+def format_coefficients(columns: list[str], frame_numbers: np.ndarray, times: np.ndarray, coeff: np.ndarray) -> str:
+    """``coefficients.csv``: the header, then per frame its number, time and (P,) coefficients."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    for t in range(coeff.shape[0]):
+        # repr of a float64 round-trips exactly; engines parse it as float32
+        w.writerow([int(frame_numbers[t]), repr(float(times[t]))] + [repr(float(x)) for x in coeff[t]])
+    return buf.getvalue()
+
+
+def wrinkle_manifest(maps: dict, stems: list[str], basis_names: list[str], columns: list[str], coefficients: str,
+                     raster: TiledRaster, mode: str, half: bool, units: str, frames: int, gate: dict) -> dict:
+    """``wrinkle.json``: how to blend the set (formula, files per tile, coefficients) and what it holds.
+
+    ``maps``: {stem: {tile: path}} of the constant (``stems[0]``) and basis maps.
+    """
+    tiles = list(raster.tiles)
+    return {
         "kind": "facepipe-wrinkle-maps",
         "formula": "map(frame) = C + sum_i coeff_i(frame) * M_i",
         "constant": {str(t): p.name for t, p in maps[stems[0]].items()},
         "basis": [{"index": i, "pose": basis_names[i], "coefficient": columns[2 + i],
-                   "maps": {str(t): p.name for t, p in maps[stems[1 + i]].items()}} for i in range(P)],
-        "coefficients": csv_path.name,
+                   "maps": {str(t): p.name for t, p in maps[stems[1 + i]].items()}} for i in range(len(stems) - 1)],
+        "coefficients": coefficients,
         "coefficient_definition": "coeff_i = |f - f_i|: Euclidean distance of the frame's strain features f "
                                   "(relative length changes of the feature-graph edges) to basis pose i's",
         "mode": mode,
         "channels": "R,G,B = displacement along the local frame's t, b, n" if mode == "vector"
                     else "Y = displacement along the normal n",
         "space": "local frames (t, b, n) of the large-scale surface; see facepipe.core.tangent_frames",
-        "units": (attributes or {}).get("facepipe/units", ""),
+        "units": units,
         "pixel_type": "half" if half else "float",
         "resolution": [raster.tiles[tiles[0]].width, raster.tiles[tiles[0]].height],
         "tiles": tiles,
-        "frames": int(coeff.shape[0]),
+        "frames": frames,
         "gate": gate,
     }
-    if not (resume and manifest_path.exists()):
-        with atomic_open(manifest_path, "w") as fh:
-            fh.write(json.dumps(manifest, indent=2))
-    return manifest
 
 
 def read_coefficients(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -443,3 +466,106 @@ def blend_wrinkle_maps(const: np.ndarray, basis: list[np.ndarray], coeff: np.nda
         out += float(c) * np.asarray(m, dtype=np.float64)
     return out
 
+
+
+# ----------------------------------------------------------------------------- exporters of a replay
+
+
+def export_exr(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], dict]:
+    """A replay's detail layer as per-frame displacement maps in ``dest`` (the ``exr`` format's
+    exporter; ``replay``: a :class:`facepipe.io.replay_folder.ReplayDir`)."""
+    model, mesh = _map_model(replay, options)
+    mode, space = options.mode, options.space
+    # every refusal before the raster, which takes seconds at 2048² and up
+    if mode == "scalar" and space != "local":
+        raise InputError("a scalar map is the displacement along the normal; --space applies to vector maps",
+                         hint="drop --space, or export --vector maps")
+    detail = DetailLayer(model, space, mesh)  # InputError for a model without details
+    handles = replay.handles
+    slots = "uv" if (space == "tangent" and mode == "vector") else "vertex"
+    raster, attrs, info = _map_raster(replay, model, mesh, options, slots)
+    half = True if options.half is None else options.half
+    head = handles["head"]
+    rot = handles["rotation"] if (space == "object" and handles["head_motion"] == "keep") else None
+    frames, times = replay.frame_numbers, replay.times
+    attrs.update({"facepipe/space": space,
+                  "facepipe/channels": ("R,G,B = x,y,z" if space == "object" else "R,G,B = t,b,n")
+                  if mode == "vector" else "Y = n"})
+
+    def values(s, e):
+        return detail(head[s:e], None if rot is None else rot[s:e])
+
+    samples: dict = {}
+    with options.make_bar(replay.n_frames, "export exr") as bar:
+        per_frame = write_displacement_maps(
+            raster, values, replay.n_frames, dest, mode=mode, half=half, start=options.start, attributes=attrs,
+            frame_attributes=lambda t: {"facepipe/frame": int(frames[t]), "facepipe/time": float(times[t])},
+            force=options.force, resume=options.resume, progress=bar.update, report=samples)
+    paths = [p for d in per_frame for p in d.values()]
+    info.update(space=space, frames=replay.n_frames, vertex_samples=samples)
+    if samples.get("over_limit"):
+        info["notes"] = [_sample_note(samples, slots, frames)]
+    info["pixel_type"] = "half" if half else "float"
+    return paths, info
+
+
+def export_wrinkle(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], dict]:
+    """A PSD replay's wrinkle-map set in ``dest`` (the ``wrinkle`` format's exporter)."""
+    model, mesh = _map_model(replay, options)
+    check_wrinkle_model(model)  # InputError for WPSD and none, with the reason
+    handles = replay.handles
+    raster, attrs, info = _map_raster(replay, model, mesh, options, "vertex")
+    half = False if options.half is None else options.half
+    P = model.basis_features.shape[0]
+    with options.make_bar(P + 2, "export wrinkle", "file") as bar:
+        manifest = write_wrinkle_maps(raster, model, handles["head"], replay.frame_numbers, replay.times, dest,
+                                      mode=options.mode, half=half, attributes=attrs, force=options.force,
+                                      resume=options.resume, progress=bar.update)
+    paths = [dest / n for d in [manifest["constant"]] + [b["maps"] for b in manifest["basis"]]
+             for n in d.values()] + [dest / manifest["coefficients"], dest / "wrinkle.json"]
+    info.update(basis_poses=P, frames=replay.n_frames, gate=manifest["gate"])
+    # worth a word when it shows (0.1 % of the detail range); wrinkle.json has the figures
+    if manifest["gate"].get("active") and manifest["gate"]["relative"] >= 1e-3:
+        info["notes"] = [_gate_note(manifest["gate"], replay.frame_numbers)]
+    info["pixel_type"] = "half" if half else "float"
+    return paths, info
+
+
+def _map_model(replay, options: ExportOptions):
+    """The model and rest mesh of a map export; ValueError for an unknown map mode."""
+    model = replay.load_model(options.model_path)
+    mesh = model.mesh()
+    if options.mode not in MODES:
+        raise ValueError(f"unknown map mode {options.mode!r}")
+    return model, mesh
+
+
+def _map_raster(replay, model, mesh, options: ExportOptions, slots: str) -> tuple[TiledRaster, dict, dict]:
+    """The UV raster of a map export (InputError without UVs), the maps' header attributes and
+    the report's map details."""
+    width, height = options.resolution
+    raster = mesh_raster(mesh, width, height, options.padding, slots=slots)
+    attrs = {"facepipe/units": model.meta.get("units", ""), "facepipe/mode": options.mode,
+             "facepipe/model": str(replay.model_path(options.model_path))}
+    info = {"resolution": [width, height], "tiles": list(raster.tiles), "mode": options.mode,
+            "padding": options.padding}
+    return raster, attrs, info
+
+
+def _sample_note(samples: dict, slots: str, frames: np.ndarray) -> str:
+    """What to tell the user when maps miss vertex values (see :func:`sample_report`)."""
+    w = samples["worst"]
+    return (f"{samples['over_limit']} of {samples['samples']} vertex samples of the maps are off by more than "
+            f"{100 * samples['limit']:.0f} % of the detail range (at most {100 * samples['relative']:.2g} %, "
+            f"{'UV' if slots == 'uv' else 'vertex'} {w['slot']} at UV {w['uv'][0]:.4f}, {w['uv'][1]:.4f} "
+            f"in tile {w['tile']}, frame {int(frames[w['frame_index']])}; vertex_samples in --verbose): "
+            f"where the UV layout gives vertices less than a texel each, no map of this size holds every "
+            f"vertex value; a higher --resolution does (and --padding, at island borders)")
+
+
+def _gate_note(gate: dict, frame_numbers: np.ndarray) -> str:
+    """What to tell the user when a wrinkle set leaves out a novelty gate that shows."""
+    return (f"the model's novelty gate is not in the blend: at most {gate['max_abs']:.3g} "
+            f"({100 * gate['relative']:.2g} % of the detail range) from the gated details, at frame "
+            f"{int(frame_numbers[gate['worst_frame_index']])} (see wrinkle.json 'gate'); bake with "
+            f"[psd] novelty_tau = 0 for a blend that reproduces the model exactly")

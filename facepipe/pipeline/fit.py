@@ -6,7 +6,6 @@ Everything here is arrays in, arrays out; the rig loader and the CLI do the I/O.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -66,12 +65,6 @@ class Geometry:
             large = self.large_scale(poses[s:s + chunk])
             out[s:s + chunk] = to_local(self.frames(large), poses[s:s + chunk] - large)
         return out
-
-
-def large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray, shell,
-                      spacing: float | None = None) -> np.ndarray:
-    """The large-scale basis B (V, H) alone; see :func:`solve_large_scale_basis`."""
-    return solve_large_scale_basis(rest, faces, handles, anchors, shell, spacing).B
 
 
 def solve_large_scale_basis(rest: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray,
@@ -269,33 +262,10 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
                             cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)))
     large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
     lap("weights")
-    curves = {}
-    models = {}
     methods = ["psd", "wpsd"] if len(poses) > 1 else []
-    # The greedy choice scores every training pose at every basis size; the per-vertex systems are
-    # independent, so an evenly spread sample of vertices measures those errors as well as all of
-    # them (at 530k vertices, 32k give each pose's RMS to well under 1 %) for a fraction of the
-    # cost. The chosen basis is then fitted once on every vertex.
-    sample = spread_sample(geo.rest.shape[0], cfg.greedy_vertices)
-    sampled = len(sample) < geo.rest.shape[0]
-    details_s = details[:, sample] if sampled else details
-    alpha_s = alpha[sample] if sampled else alpha
-    for method in methods:
-        model, basis, curve = greedy_basis(method, features, details_s, cfg.fit, cfg.max_poses, cfg.tolerance,
-                                           alpha=alpha_s, rcond=cfg.rcond, smoothing=cfg.smoothing,
-                                           progress=(lambda n, c, m=method: progress(m, n, c)) if progress else None)
-        curves[method] = curve
-        models[method] = (model, basis)
+    curves, models, sample = greedy_bases(cfg, methods, features, details, alpha, progress)
     lap("greedy")
-    if cfg.method == "none" or not methods:
-        model = fit_details("psd", features, details, [0], "interpolate")
-        model.method = "none"
-        basis = [0]
-    else:
-        model, basis = models[cfg.method]
-        if sampled:
-            model = fit_details(cfg.method, features, details, basis, cfg.fit, alpha, cfg.rcond, cfg.smoothing)
-        model.gate = gate
+    model, basis = final_detail_model(cfg, models, features, details, alpha, len(sample) < geo.rest.shape[0], gate)
     lap("final_fit")
     seconds["total"] = time.perf_counter() - t0
     names = ["rest"] + list(rig.example_names)
@@ -327,3 +297,47 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
     }
     return FitResult(geo, names, features, details, cfg.method, model, basis, curves, edge_index, edge_weight,
                      beta, report, bases={m: b for m, (_, b) in models.items()}, alpha=alpha, config=cfg, gate=gate)
+
+
+def greedy_bases(cfg, methods: list[str], features: np.ndarray, details: np.ndarray, alpha: sp.csr_matrix,
+                 progress=None) -> tuple[dict, dict, np.ndarray]:
+    """The greedy basis of every method in ``methods``, chosen on an evenly spread vertex sample.
+
+    The greedy choice scores every training pose at every basis size; the per-vertex systems are
+    independent, so an evenly spread sample of vertices measures those errors as well as all of
+    them (at 530k vertices, 32k give each pose's RMS to well under 1 %) for a fraction of the
+    cost. The chosen basis is then fitted once on every vertex (:func:`final_detail_model`).
+
+    Returns
+    -------
+    curves {method: error curve}, models {method: (model on the sample, basis)}, the sample (vertex indices).
+    """
+    n_vertices = details.shape[1]
+    sample = spread_sample(n_vertices, cfg.greedy_vertices)
+    sampled = len(sample) < n_vertices
+    details_s = details[:, sample] if sampled else details
+    alpha_s = alpha[sample] if sampled else alpha
+    curves, models = {}, {}
+    for method in methods:
+        model, basis, curve = greedy_basis(method, features, details_s, cfg.fit, cfg.max_poses, cfg.tolerance,
+                                           alpha=alpha_s, rcond=cfg.rcond, smoothing=cfg.smoothing,
+                                           progress=(lambda n, c, m=method: progress(m, n, c)) if progress else None)
+        curves[method] = curve
+        models[method] = (model, basis)
+    return curves, models, sample
+
+
+def final_detail_model(cfg, models: dict, features: np.ndarray, details: np.ndarray, alpha: sp.csr_matrix,
+                       sampled: bool, gate: NoveltyGate | None) -> tuple[DetailModel, list[int]]:
+    """The configured method's model on every vertex, with its basis: the greedy one refitted on
+    all vertices when it was chosen on a sample; the rest pose alone for method ``none`` (or
+    without examples)."""
+    if cfg.method == "none" or not models:
+        model = fit_details("psd", features, details, [0], "interpolate")
+        model.method = "none"
+        return model, [0]
+    model, basis = models[cfg.method]
+    if sampled:
+        model = fit_details(cfg.method, features, details, basis, cfg.fit, alpha, cfg.rcond, cfg.smoothing)
+    model.gate = gate
+    return model, basis

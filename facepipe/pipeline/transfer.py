@@ -34,11 +34,23 @@ from types import SimpleNamespace
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from trimesh.triangles import closest_point, points_to_barycentric
 
 from facepipe.errors import InputError
 from facepipe.core.tangent_frames import (frame_neighbors, local_frames, to_local, to_world, vertex_face_matrix, vertex_normals)
+from facepipe.core.mesh import check_components, check_marker_vertices, check_mesh
+from facepipe.io.mesh_read import load_mesh
 from facepipe.core.psd import edge_weight_matrix, fit_details
+from facepipe.core.rbf_morph import multiquadric_basis
+from facepipe.core.rigid import similarity_fit
+from facepipe.core.shell import marker_spacing, shell_basis
+from facepipe.core.strain import edge_lengths
+from facepipe.io.atomic import atomic_path
+from facepipe.io.model_file import load_model, save_model
+from facepipe.pipeline.fit import solve_large_scale_basis
+from facepipe.pipeline.rig import load_markers, name_vertex_rows
 
 MIN_POINTS = 4
 # a point farther than this fraction of the points' RMS radius from where the similarity of
@@ -61,9 +73,6 @@ def read_points(path, n_vertices: int) -> dict[str, int]:
     -------
     {name: vertex} in the file's order (0-based vertices).
     """
-    from facepipe.core.mesh import check_marker_vertices
-    from facepipe.pipeline.rig import name_vertex_rows
-
     names, vertices, lines = [], [], []
     for line_no, name, vertex, _ in name_vertex_rows(path, "point"):
         names.append(name)
@@ -123,8 +132,6 @@ def similarity_align(source_points: np.ndarray, target_points: np.ndarray, names
         Degenerate points (all on a line), or a point whose residual exceeds
         :data:`MISMATCH_FRACTION` of the points' RMS radius — it is named.
     """
-    from facepipe.core.rigid import similarity_fit
-
     src = np.asarray(source_points, dtype=np.float64)
     tgt = np.asarray(target_points, dtype=np.float64)
     centred = tgt - tgt.mean(axis=0)
@@ -165,9 +172,6 @@ def deform_to_points(vertices: np.ndarray, faces: np.ndarray, point_vertices: np
     -------
     deformed : (V, 3); the method used.
     """
-    from facepipe.core.rbf_morph import multiquadric_basis
-    from facepipe.core.shell import shell_basis
-
     vertices = np.asarray(vertices, dtype=np.float64)
     point_vertices = np.asarray(point_vertices, dtype=np.int64)
     u_h = np.asarray(targets, dtype=np.float64) - vertices[point_vertices]
@@ -185,7 +189,6 @@ def deform_to_points(vertices: np.ndarray, faces: np.ndarray, point_vertices: np
 
 
 def _every_part_has(faces: np.ndarray, n_vertices: int, vertices: np.ndarray) -> bool:
-    from scipy.sparse.csgraph import connected_components
 
     f = np.asarray(faces, dtype=np.int64)
     g = sp.coo_matrix((np.ones(2 * len(f)), (np.r_[f[:, 0], f[:, 1]], np.r_[f[:, 1], f[:, 2]])),
@@ -205,8 +208,6 @@ def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: n
     -------
     (..., 3) barycentric weights (≥ 0, sum 1) of the closest point: q = w0 a + w1 b + w2 c.
     """
-    from trimesh.triangles import closest_point, points_to_barycentric
-
     p, a, b, c = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (p, a, b, c)))
     shape = p.shape
     tri = np.stack([a, b, c], axis=-2).reshape(-1, 3, 3)
@@ -305,7 +306,6 @@ class Correspondence:
     point_spacing : mean nearest-neighbour distance of the target's points.
     method : the deformation used ("shell" or "rbf").
     """
-
     face: np.ndarray
     bary: np.ndarray
     distance: np.ndarray
@@ -456,94 +456,34 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     -------
     arrays, meta : for :func:`facepipe.io.model_file.save_model`; report : dict (markers, anchors, times).
     """
-    from facepipe.pipeline.fit import solve_large_scale_basis
-    from facepipe.core.shell import marker_spacing
-    from facepipe.core.strain import edge_lengths
-
     t0 = time.perf_counter()
     rest_t = np.asarray(target.vertices, dtype=np.float64)
     faces_t = np.asarray(target.faces, dtype=np.int64)
-    Vt = len(rest_t)
-    faces_s = model.triangles.astype(np.int64)
-    Vs = model.n_vertices
-    handles_s = model.handle_vertices.astype(np.int64)
-    names = model.marker_names
     report: dict = {}
-
-    # markers and anchors on the target
-    moved = 0
-    if target_handles is None:
-        target_handles, moved = map_vertices(corr.deformed[handles_s], rest_t)
-        if (target_handles < 0).any():
-            raise InputError("the target mesh is too coarse to give every marker a vertex of its own",
-                             path=target.path, hint="give --target-markers, or use a finer target")
-        report["markers"] = {"mapped": len(names), "moved_to_a_farther_vertex": int(moved)}
-    else:
-        report["markers"] = {"given": len(names)}
-    target_handles = np.asarray(target_handles, dtype=np.int64)
-    report["markers"]["offset"] = _stats(np.linalg.norm(rest_t[target_handles] - corr.deformed[handles_s], axis=1))
-    anchors_s = model.anchors.astype(np.int64)
-    if len(anchors_s):
-        near = cKDTree(rest_t).query(corr.deformed[anchors_s])[1]
-        anchors_t = np.setdiff1d(np.unique(near), target_handles)
-    else:
-        anchors_t = np.zeros(0, dtype=np.int64)
-    report["anchors"] = {"source": int(len(anchors_s)), "target": int(len(anchors_t))}
+    target_handles, report["markers"] = target_markers(model, target, corr, target_handles)
+    anchors_t = target_anchors(model, rest_t, corr, target_handles)
+    report["anchors"] = {"source": int(len(model.anchors)), "target": int(len(anchors_t))}
 
     # large scale: the target's own shell (or morph), with the source's settings
-    shell_meta = dict(model.meta.get("shell", {}))
-    if "k_stretch" in model.meta.get("tuned", {}):  # `fit --tune` chose the shell's stretch
-        shell_meta["k_stretch"] = model.meta["tuned"]["k_stretch"]
-    shell = SimpleNamespace(method=shell_meta.get("method", "shell"), k_stretch=shell_meta.get("k_stretch", 0.0),
-                            k_bend=shell_meta.get("k_bend", 1.0), rbf_lambda=shell_meta.get("rbf_lambda", 0.01),
-                            phantoms=int(shell_meta.get("phantoms", 0)))
+    shell = source_shell_settings(model.meta)
     if shell.method != "rbf":
-        from facepipe.core.mesh import check_components
-
         check_components(target, np.concatenate([target_handles, anchors_t]), "marker or anchor")
     spacing = marker_spacing(rest_t, target_handles)
     t1 = time.perf_counter()
     basis = solve_large_scale_basis(rest_t, faces_t, target_handles, anchors_t, shell, spacing)
     B = basis.B
     report["seconds_basis"] = time.perf_counter() - t1
-
     edges = model.edges.astype(np.int64)
-    rest_lengths = edge_lengths(rest_t[target_handles], edges)
-    short = np.flatnonzero(rest_lengths < 1e-9 * max(spacing, 1e-300))
-    if short.size:
-        a, b = edges[short[0]]
-        raise InputError(f"on the target, feature edge {names[a]}–{names[b]} has zero rest length "
-                         "(both markers on one vertex)", path=target.path, hint="check --target-markers")
+    rest_lengths = _target_rest_lengths(rest_t[target_handles], edges, spacing, model.marker_names, target.path)
 
     # per-vertex pose-space data, through the correspondence
-    W = corr.matrix(Vs)
-    neighbors_t = frame_neighbors(faces_t, Vt)
-    frames_t = local_frames(rest_t, faces_t, neighbors_t)
-    frames_s = local_frames(corr.deformed, faces_s, model.frame_neighbors.astype(np.int64))
-    K = model.edge_index.shape[1]
+    W = corr.matrix(model.n_vertices)
+    neighbors_t = frame_neighbors(faces_t, len(rest_t))
     alpha_s = edge_weight_matrix(model.edge_index, model.edge_weight, len(edges))
-    edge_index, edge_weight = interpolate_alpha(W, alpha_s, K)
+    edge_index, edge_weight = interpolate_alpha(W, alpha_s, model.edge_index.shape[1])
     alpha_t = edge_weight_matrix(edge_index, edge_weight, len(edges))
-    basis_features = model.basis_features.astype(np.float64)
-    P = basis_features.shape[0]
-    detail_scale = corr.scale if scale_details else 1.0
-    if model.method == "none":
-        rbf_weights = np.zeros((Vt,) + model.rbf_weights.shape[1:])
-        rbf_const = np.zeros((Vt, 3))
-    else:
-        source = model.detail_model(np.float64)
-        source.gate = None  # the raw details; the gate is applied on the target as on the source
-        values = source.evaluate(basis_features)  # (P, Vs, 3) in the source's local frames
-        world = to_world(frames_s, values)  # on the source as it lies on the target
-        mapped = np.stack([W @ world[i] for i in range(P)]) * detail_scale
-        local = to_local(frames_t, mapped)
-        fitted = fit_details(model.method, basis_features, local, list(range(P)), "interpolate",
-                             alpha_t if model.method == "wpsd" else None)
-        rbf_weights, rbf_const = fitted.weights, fitted.const
-
-    ex = model.example_handles.astype(np.float64)  # (E + 1, H, 3), rest first
-    R = corr.rotation
-    example_handles = rest_t[target_handles][None] + corr.scale * np.einsum("ij,ehj->ehi", R, ex - ex[:1])
+    rbf_weights, rbf_const = transferred_details(model, corr, W, local_frames(rest_t, faces_t, neighbors_t), alpha_t,
+                                                 corr.scale if scale_details else 1.0)
 
     arrays = {
         "rest": rest_t,
@@ -557,12 +497,13 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
         "edges": edges,
         "rest_lengths": rest_lengths,
         "frame_neighbors": neighbors_t,
-        "basis_features": basis_features,
+        "basis_features": model.basis_features.astype(np.float64),
         "rbf_weights": rbf_weights,
         "rbf_const": rbf_const,
         "edge_index": edge_index,
         "edge_weight": edge_weight,
-        "example_handles": example_handles,
+        "example_handles": transferred_example_handles(model.example_handles.astype(np.float64),
+                                                       rest_t[target_handles], corr.scale, corr.rotation),
     }
     for key in ("novelty_index", "novelty_weight", "novelty_examples", "novelty_solve"):
         if key in model.arrays:  # per feature edge, not per vertex: the same on any mesh
@@ -579,6 +520,91 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     )
     report["seconds"] = time.perf_counter() - t0
     return arrays, meta, report
+
+
+def target_markers(model, target, corr: Correspondence, target_handles: np.ndarray | None) -> tuple[np.ndarray, dict]:
+    """The target's marker vertices (given, or each source marker mapped to its own nearest target
+    vertex through the correspondence) and the report on them (how they were found, offsets
+    from where the correspondence puts the source's markers)."""
+    rest_t = np.asarray(target.vertices, dtype=np.float64)
+    handles_s = model.handle_vertices.astype(np.int64)
+    if target_handles is None:
+        target_handles, moved = map_vertices(corr.deformed[handles_s], rest_t)
+        if (target_handles < 0).any():
+            raise InputError("the target mesh is too coarse to give every marker a vertex of its own",
+                             path=target.path, hint="give --target-markers, or use a finer target")
+        report = {"mapped": len(model.marker_names), "moved_to_a_farther_vertex": int(moved)}
+    else:
+        report = {"given": len(model.marker_names)}
+    target_handles = np.asarray(target_handles, dtype=np.int64)
+    report["offset"] = _stats(np.linalg.norm(rest_t[target_handles] - corr.deformed[handles_s], axis=1))
+    return target_handles, report
+
+
+def target_anchors(model, rest_t: np.ndarray, corr: Correspondence, target_handles: np.ndarray) -> np.ndarray:
+    """The target vertices nearest the source's anchors as the correspondence places them (markers excluded)."""
+    anchors_s = model.anchors.astype(np.int64)
+    if not len(anchors_s):
+        return np.zeros(0, dtype=np.int64)
+    near = cKDTree(rest_t).query(corr.deformed[anchors_s])[1]
+    return np.setdiff1d(np.unique(near), target_handles)
+
+
+def source_shell_settings(meta: dict) -> SimpleNamespace:
+    """The source model's large-scale settings (method, stiffness, RBF smoothing and phantoms),
+    with the k_stretch that ``fit --tune`` chose if it did, for the target's own basis."""
+    shell_meta = dict(meta.get("shell", {}))
+    if "k_stretch" in meta.get("tuned", {}):  # `fit --tune` chose the shell's stretch
+        shell_meta["k_stretch"] = meta["tuned"]["k_stretch"]
+    return SimpleNamespace(method=shell_meta.get("method", "shell"), k_stretch=shell_meta.get("k_stretch", 0.0),
+                           k_bend=shell_meta.get("k_bend", 1.0), rbf_lambda=shell_meta.get("rbf_lambda", 0.01),
+                           phantoms=int(shell_meta.get("phantoms", 0)))
+
+
+def _target_rest_lengths(handle_positions: np.ndarray, edges: np.ndarray, spacing: float, names: list[str],
+                         path) -> np.ndarray:
+    """The feature edges' rest lengths on the target; InputError for an edge of zero length."""
+    rest_lengths = edge_lengths(handle_positions, edges)
+    short = np.flatnonzero(rest_lengths < 1e-9 * max(spacing, 1e-300))
+    if short.size:
+        a, b = edges[short[0]]
+        raise InputError(f"on the target, feature edge {names[a]}–{names[b]} has zero rest length "
+                         "(both markers on one vertex)", path=path, hint="check --target-markers")
+    return rest_lengths
+
+
+def transferred_details(model, corr: Correspondence, W: sp.csr_matrix, frames_t: np.ndarray, alpha_t: sp.csr_matrix,
+                        detail_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The RBF weights (Vt, P, 3) and constants (Vt, 3) of the target's details.
+
+    The source's raw (ungated) details at its basis poses, rotated from its local frames on the
+    deformed source to world, interpolated onto the target (``W``), scaled, rotated into the
+    target's frames ``frames_t`` and fitted again with the target's α, so the target reproduces
+    them at the basis poses. Zeros for a model without details.
+    """
+    Vt = frames_t.shape[0]
+    if model.method == "none":
+        return np.zeros((Vt,) + model.rbf_weights.shape[1:]), np.zeros((Vt, 3))
+    basis_features = model.basis_features.astype(np.float64)
+    P = basis_features.shape[0]
+    frames_s = local_frames(corr.deformed, model.triangles.astype(np.int64), model.frame_neighbors.astype(np.int64))
+    source = model.detail_model(np.float64)
+    source.gate = None  # the raw details; the gate is applied on the target as on the source
+    values = source.evaluate(basis_features)  # (P, Vs, 3) in the source's local frames
+    world = to_world(frames_s, values)  # on the source as it lies on the target
+    mapped = np.stack([W @ world[i] for i in range(P)]) * detail_scale
+    local = to_local(frames_t, mapped)
+    fitted = fit_details(model.method, basis_features, local, list(range(P)), "interpolate",
+                         alpha_t if model.method == "wpsd" else None)
+    return fitted.weights, fitted.const
+
+
+def transferred_example_handles(example_handles: np.ndarray, target_rest_handles: np.ndarray, scale: float,
+                                rotation: np.ndarray) -> np.ndarray:
+    """The examples' marker positions (E + 1, H, 3; rest first) on the target: their displacements
+    from the source's rest, rotated and scaled by the similarity, added to the target's markers."""
+    return target_rest_handles[None] + scale * np.einsum("ij,ehj->ehi", rotation,
+                                                         example_handles - example_handles[:1])
 
 
 def _stats(x: np.ndarray) -> dict:
@@ -601,12 +627,6 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     -------
     The summary (also written as OUTPUT with the suffix .json).
     """
-    from facepipe.io.atomic import atomic_path
-    from facepipe.core.mesh import check_mesh
-    from facepipe.io.mesh_read import load_mesh
-    from facepipe.io.model_file import load_model, save_model
-    from facepipe.pipeline.rig import load_markers
-
     t0 = time.perf_counter()
     model = load_model(model_path)
     target = load_mesh(target_path)
@@ -614,17 +634,9 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     src_pts = read_points(source_points_path, model.n_vertices)
     tgt_pts = read_points(target_points_path, target.n_vertices)
     names, sp_idx, tp_idx = match_points(src_pts, tgt_pts, source_points_path, target_points_path)
-
     target_handles = None
     if target_markers_path is not None:
-        markers = load_markers(Path(target_markers_path), target.n_vertices)
-        lookup = dict(zip(markers.names, markers.vertices.tolist()))
-        missing = [n for n in model.marker_names if n not in lookup]
-        if missing:
-            raise InputError(f"{len(missing)} of the model's markers are not in the file: {', '.join(missing[:8])}",
-                             path=target_markers_path, hint="name every marker of the source model (markers.csv "
-                                                            "format: name,vertex[,role])")
-        target_handles = np.array([lookup[n] for n in model.marker_names], dtype=np.int64)
+        target_handles = read_target_markers(target_markers_path, model.marker_names, target.n_vertices)
 
     corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
                       target.faces, sp_idx, tp_idx, names, deform, path=target_points_path)
@@ -634,26 +646,9 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
                          hint="mark more points where the faces differ (or check them); --max-distance D raises the "
                               "limit; --allow-far maps those vertices anyway (to the nearest source surface)")
     arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details)
-
-    digest = hashlib.sha256()
-    for p in (model_path, target_path, source_points_path, target_points_path, target_markers_path):
-        if p is not None:
-            digest.update(Path(p).read_bytes())
-    digest.update(json.dumps([deform, max_distance, scale_details]).encode())
-    meta["config_digest"] = digest.hexdigest()[:16]
-    notes = []
-    if target.uvs is None:
-        notes.append("the target has no UVs: map exports (exr, wrinkle) of its replays will be refused")
-    if far.size:
-        notes.append(f"{far.size} target vertices farther than {limit:.3g} from the source were mapped anyway "
-                     "(--allow-far)")
-    if not 0.75 <= corr.scale <= 1.33:
-        notes.append(f"the target is {corr.scale:.3g}× the size of the source: if its units are not the model's "
-                     f"({model.meta.get('units', '?')}), convert the mesh first — the new model keeps them")
-    bad_normals = int((~corr.normal_ok).sum())
-    if bad_normals:
-        notes.append(f"{bad_normals} target vertices found no source triangle facing their way within the "
-                     "candidates: mapped to the nearest")
+    meta["config_digest"] = _inputs_digest(
+        (model_path, target_path, source_points_path, target_points_path, target_markers_path),
+        [deform, max_distance, scale_details])
     summary = {
         "source": str(model_path),
         "target": str(target_path),
@@ -662,20 +657,11 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         "target_vertices": int(target.n_vertices),
         "vertices_mapped": int(target.n_vertices),
         "points": len(names),
-        "similarity": {"scale": corr.scale, "rotation_deg": float(np.degrees(np.arccos(np.clip(
-            (np.trace(corr.rotation) - 1) / 2, -1, 1)))), "translation": corr.translation.tolist()},
-        "point_residual_after_similarity": _stats(corr.point_residual),
-        "point_spacing": corr.point_spacing,
-        "deformation": corr.method,
-        "projection_distance": _stats(corr.distance),
-        "far_limit": limit,
-        "far_vertices": int(far.size),
-        "far_examples": [int(v) for v in far[np.argsort(-corr.distance[far])][:20]],
-        "normal_mismatches": bad_normals,
+        **correspondence_summary(corr, far, limit),
         "detail_scale": corr.scale if scale_details else 1.0,
         "method": meta["method"],
         "uvs": target.uvs is not None,
-        "notes": notes,
+        "notes": transfer_notes(corr, far, limit, target.uvs is not None, model.meta.get("units", "?")),
         **report,
     }
     meta["transfer"] = {k: summary[k] for k in ("source", "target", "points", "deformation", "far_vertices",
@@ -685,3 +671,62 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     with atomic_path(Path(output).with_suffix(".json")) as tmp:
         tmp.write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def read_target_markers(path, marker_names: list[str], n_vertices: int) -> np.ndarray:
+    """The target's vertex of every model marker, in the model's order, from a markers.csv;
+    InputError naming the markers the file lacks."""
+    markers = load_markers(Path(path), n_vertices)
+    lookup = dict(zip(markers.names, markers.vertices.tolist()))
+    missing = [n for n in marker_names if n not in lookup]
+    if missing:
+        raise InputError(f"{len(missing)} of the model's markers are not in the file: {', '.join(missing[:8])}",
+                         path=path, hint="name every marker of the source model (markers.csv "
+                                         "format: name,vertex[,role])")
+    return np.array([lookup[n] for n in marker_names], dtype=np.int64)
+
+
+def _inputs_digest(paths, options: list) -> str:
+    """A short digest of the input files' bytes (those given) and the options."""
+    digest = hashlib.sha256()
+    for p in paths:
+        if p is not None:
+            digest.update(Path(p).read_bytes())
+    digest.update(json.dumps(options).encode())
+    return digest.hexdigest()[:16]
+
+
+def correspondence_summary(corr: Correspondence, far: np.ndarray, limit: float) -> dict:
+    """The summary's account of the correspondence: similarity, point residuals, deformation,
+    projection distances, far vertices and normal mismatches."""
+    return {
+        "similarity": {"scale": corr.scale, "rotation_deg": float(np.degrees(np.arccos(np.clip(
+            (np.trace(corr.rotation) - 1) / 2, -1, 1)))), "translation": corr.translation.tolist()},
+        "point_residual_after_similarity": _stats(corr.point_residual),
+        "point_spacing": corr.point_spacing,
+        "deformation": corr.method,
+        "projection_distance": _stats(corr.distance),
+        "far_limit": limit,
+        "far_vertices": int(far.size),
+        "far_examples": [int(v) for v in far[np.argsort(-corr.distance[far])][:20]],
+        "normal_mismatches": int((~corr.normal_ok).sum()),
+    }
+
+
+def transfer_notes(corr: Correspondence, far: np.ndarray, limit: float, target_has_uvs: bool, units: str) -> list[str]:
+    """What the user should know about a transfer: no UVs on the target, far vertices mapped
+    anyway, a size that suggests other units, vertices without a source triangle facing their way."""
+    notes = []
+    if not target_has_uvs:
+        notes.append("the target has no UVs: map exports (exr, wrinkle) of its replays will be refused")
+    if far.size:
+        notes.append(f"{far.size} target vertices farther than {limit:.3g} from the source were mapped anyway "
+                     "(--allow-far)")
+    if not 0.75 <= corr.scale <= 1.33:
+        notes.append(f"the target is {corr.scale:.3g}× the size of the source: if its units are not the model's "
+                     f"({units}), convert the mesh first — the new model keeps them")
+    bad_normals = int((~corr.normal_ok).sum())
+    if bad_normals:
+        notes.append(f"{bad_normals} target vertices found no source triangle facing their way within the "
+                     "candidates: mapped to the nearest")
+    return notes

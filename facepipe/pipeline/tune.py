@@ -41,6 +41,8 @@ from facepipe.core.shell import shell_basis
 from facepipe.core.strain import edge_graph
 from facepipe.pipeline.geodesics import geodesic_from
 from facepipe.pipeline.cross_validation import holdout_folds
+from facepipe.pipeline.evaluate import parse_vertex_range
+from facepipe.pipeline.fit import build_geometry
 
 
 def _with_unique(values, default) -> list[float]:
@@ -64,135 +66,50 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     "poses", "cv_rms"}], "large_cv_rms": {k: rms}, "default": {...}, "chosen": {...},
     "harm": bool, "fallback": bool, "folds": [[names]], "seconds": {...}}
     """
-    from facepipe.pipeline.evaluate import parse_vertex_range
-    from facepipe.pipeline.fit import build_geometry
-
     tune = tune or rig.config.tune
     cfg = rig.config
-    if cfg.shell.method != "shell":
-        raise InputError("fit --tune chooses the thin shell's stiffness; [shell] method is 'rbf'", path=cfg.path,
-                         hint="set [shell] method = 'shell', or fit without --tune")
-    if cfg.psd.method == "none":
-        raise InputError("fit --tune needs a detail method", path=cfg.path, hint="[psd] method = 'wpsd' or 'psd'")
+    check_tunable(cfg, len(rig.example_names))
     names = list(rig.example_names)
-    if len(names) < 3:
-        raise InputError(f"fit --tune needs at least 3 example poses to cross-validate, the rig has {len(names)}",
-                         path=cfg.path)
-    V = rig.mesh.n_vertices
-    vertices = np.arange(V)[parse_vertex_range(tune.vertices, V) if tune.vertices else slice(None)]
-    sample = vertices[spread_sample(len(vertices), tune.sample_vertices)]
+    vertices, sample = _validation_vertices(tune, rig.mesh.n_vertices)
     t0 = time.perf_counter()
     say = progress or (lambda *a: None)
+    limit = 1.0 + tune.max_regression
 
     # ---- stage 1: shell stiffness, validated by the examples' large-scale error
     geo = build_geometry(rig)
     poses = np.concatenate([geo.rest[None], rig.example_positions])
     features = geo.features(poses[:, geo.handles])
-    default = {"k_stretch": cfg.shell.k_stretch, "beta_scale": _default_beta_scale(cfg.psd, geo.rest_lengths),
-               "smoothing": cfg.psd.smoothing, "novelty_tau": cfg.psd.novelty_tau,
-               "poses": min(cfg.psd.max_poses, len(names))}
+    default = _default_parameters(cfg, geo.rest_lengths, len(names))
     k_values = _with_unique(tune.k_stretch, default["k_stretch"])
-    geometries = {}
-    shell_errors = {}
-    for i, k in enumerate(k_values):
-        if k == cfg.shell.k_stretch:  # build_geometry factored this one already
-            geometries[k] = geo
-        else:
-            B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
-                            spacing=geo.spacing)
-            geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
-        shell_errors[k] = rms_per_pose(geometries[k].large_scale(poses[1:]), poses[1:], vertices)
-        say("shell", i + 1, len(k_values))
+    geometries, shell_errors = _shell_candidates(rig, geo, poses, vertices, k_values, say)
     t_shell = time.perf_counter() - t0
-    limit = 1.0 + tune.max_regression
-    shell_rows = [{"k_stretch": k, "large_rms": float(e.mean()),
-                   "worst_vs_default": float(np.max(e / shell_errors[default["k_stretch"]])),
-                   "per_example": e.tolist()} for k, e in shell_errors.items()]
-    for r in shell_rows:
-        r["accepted"] = r["worst_vs_default"] <= limit
+    shell_rows = shell_table(shell_errors, default["k_stretch"], limit)
     best_k = min((r for r in shell_rows if r["accepted"]), key=lambda r: (r["large_rms"], r["k_stretch"]))["k_stretch"]
 
     # ---- stage 2: β, λ, τ and P by leaving whole expressions out
     folds = holdout_folds(names, max(1, int(round(len(names) / max(tune.folds, 2)))))
     distances = geodesics.finish() if geodesics is not None else \
         geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
-    site_distance = edge_distances(distances[:, geo.handles], geo.edges)
-    radius = cfg.psd.novelty_radius * float(np.median(geo.rest_lengths))
     max_poses = min(max(tune.max_poses, default["poses"]), len(names))
     # β shapes WPSD's per-vertex distances only; PSD has one distance per pose
     beta_values = _with_unique(tune.beta_scale if cfg.psd.method == "wpsd" else [], default["beta_scale"])
     smooth_values = _with_unique(tune.smoothing, default["smoothing"])
     tau_values = _with_unique(tune.novelty_tau, default["novelty_tau"])
-    grid = [(best_k, b, s) for b in beta_values for s in smooth_values]
-    if best_k != default["k_stretch"]:
-        grid.append((default["k_stretch"], default["beta_scale"], default["smoothing"]))
-    alphas = {}
-    for b in beta_values:
-        index, weight = wpsd_edge_weights(distances[:, sample], geo.edges, geo.rest_lengths,
-                                          b / np.median(geo.rest_lengths), cfg.psd.min_edge_weight,
-                                          cfg.psd.max_edges_per_vertex)
-        alphas[b] = edge_weight_matrix(index, weight, len(geo.edges))
+    grid = detail_grid(best_k, default, beta_values, smooth_values)
+    alphas = _sample_edge_weights(distances, geo, sample, beta_values, cfg.psd)
     details = {k: geometries[k].details(poses)[:, sample] for k in {g[0] for g in grid}}
     # held-out error without details
     large = {k: rms_per_pose(np.zeros_like(details[k][1:]), details[k][1:]) for k in details}
-    # held-out error of every example per (k, β, λ, τ) and basis size; each example is held out once
-    errors: dict[tuple, np.ndarray] = {}
-    done = 0
-    for fold in folds:
-        held = fold + 1  # pose indices (pose 0 is the rest pose)
-        train = np.concatenate([[0], np.setdiff1d(np.arange(1, len(poses)), held)])
-        P_max = min(max_poses, len(train) - 1)
-        for (k, b, s) in grid:
-            alpha = alphas[b]
-            # the gate depends on the features only, and τ only scales its output: the greedy fit runs
-            # once and every τ is scored on its predictions
-            gate = novelty_gate(features[train[1:]], site_distance, alpha, 1.0, radius)
-            taus = tau_values if (k, b, s) != (default["k_stretch"], default["beta_scale"], default["smoothing"]) \
-                or best_k == default["k_stretch"] else [default["novelty_tau"]]
-            confidence = {t: _confidence(gate, t, features[held])[..., None] for t in taus}
-            for t in taus:
-                errors.setdefault((k, b, s, t), np.full((max_poses + 1, len(names)), np.nan))
-
-            def observe(model, basis, k=k, b=b, s=s, confidence=confidence):
-                raw = model.evaluate(features[held])
-                for t, c in confidence.items():
-                    errors[(k, b, s, t)][len(basis) - 1, fold] = rms_per_pose(raw * c, details[k][held])
-
-            greedy_basis(cfg.psd.method, features[train], details[k][train], cfg.psd.fit, P_max,
-                         alpha=alpha, rcond=cfg.psd.rcond, smoothing=s, observe=observe)
-            done += 1
-            say("details", done, len(folds) * len(grid))
+    errors = _cross_validate_details(
+        cfg.psd, features, details, alphas, folds, grid, tau_values, default, best_k, max_poses,
+        site_distance=edge_distances(distances[:, geo.handles], geo.edges),
+        radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)), say=say)
     t_details = time.perf_counter() - t0 - t_shell
     default_key = (default["k_stretch"], default["beta_scale"], default["smoothing"], default["novelty_tau"])
     # a fold whose training set is smaller than P keeps its largest basis for the larger P
     errors = {key: _fill_forward(e) for key, e in errors.items()}
-    reference = np.minimum(errors[default_key][default["poses"]], large[default["k_stretch"]])
-    rows = []
-    for (k, b, s, t), e in errors.items():
-        for P in range(1, max_poses + 1):
-            rows.append({"k_stretch": k, "beta_scale": b, "smoothing": s, "novelty_tau": t, "poses": P,
-                         "cv_rms": float(e[P].mean()),
-                         "worst_vs_default": float(np.max(e[P] / reference)),
-                         "worst_vs_large": float(np.max(e[P] / large[k])),
-                         "accepted": bool(np.max(e[P] / reference) <= limit)})
-    default_row = next(r for r in rows if (r["k_stretch"], r["beta_scale"], r["smoothing"], r["novelty_tau"],
-                                           r["poses"]) == default_key + (default["poses"],))
-    default_row["accepted"] = True  # the defaults are always a candidate
-    accepted = [r for r in rows if r["accepted"]]
-    best = min(accepted, key=lambda r: (round(r["cv_rms"], 12), r["poses"]))
-    # Held-out expressions are unseen, so the novelty gate keeps their details small and the basis
-    # size barely shows in their error; yet every pose added is one more expression (and its
-    # mixtures) reproduced exactly. So among the candidates that validate as well as the best —
-    # within one standard error of the paired per-example differences — the largest basis wins,
-    # then the stronger gate (smaller τ: a margin for expressions validation has not seen).
-    best_errors = errors[_key(best)][best["poses"]]
-
-    def tied(r):
-        diff = errors[_key(r)][r["poses"]] - best_errors
-        return diff.mean() <= diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else r is best
-
-    chosen = min((r for r in accepted if tied(r) and r["cv_rms"] <= default_row["cv_rms"]),
-                 key=lambda r: (-r["poses"], r["novelty_tau"], round(r["cv_rms"], 12)))
+    rows, default_row = detail_table(errors, large, default_key, default["poses"], max_poses, limit)
+    chosen = choose_candidate(rows, errors, default_row)
     chosen = dict(chosen, large_cv_rms=float(large[chosen["k_stretch"]].mean()))
     harm = chosen["cv_rms"] >= chosen["large_cv_rms"]
     return {
@@ -213,6 +130,164 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
                        "novelty_tau": tau_values, "max_poses": max_poses},
         "seconds": {"shell": t_shell, "details": t_details, "total": time.perf_counter() - t0},
     }
+
+
+def check_tunable(cfg, n_examples: int) -> None:
+    """InputError unless ``fit --tune`` can validate this rig: a thin shell, a detail method and
+    at least 3 examples."""
+    if cfg.shell.method != "shell":
+        raise InputError("fit --tune chooses the thin shell's stiffness; [shell] method is 'rbf'", path=cfg.path,
+                         hint="set [shell] method = 'shell', or fit without --tune")
+    if cfg.psd.method == "none":
+        raise InputError("fit --tune needs a detail method", path=cfg.path, hint="[psd] method = 'wpsd' or 'psd'")
+    if n_examples < 3:
+        raise InputError(f"fit --tune needs at least 3 example poses to cross-validate, the rig has {n_examples}",
+                         path=cfg.path)
+
+
+def _validation_vertices(tune, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices errors are measured on (``tune.vertices``, else all) and the evenly spread
+    sample of them the details are cross-validated on."""
+    vertices = np.arange(n_vertices)[parse_vertex_range(tune.vertices, n_vertices) if tune.vertices else slice(None)]
+    return vertices, vertices[spread_sample(len(vertices), tune.sample_vertices)]
+
+
+def _default_parameters(cfg, rest_lengths: np.ndarray, n_examples: int) -> dict:
+    """The config's own values of the tuned parameters (always among the candidates)."""
+    return {"k_stretch": cfg.shell.k_stretch, "beta_scale": _default_beta_scale(cfg.psd, rest_lengths),
+            "smoothing": cfg.psd.smoothing, "novelty_tau": cfg.psd.novelty_tau,
+            "poses": min(cfg.psd.max_poses, n_examples)}
+
+
+def _shell_candidates(rig, geo, poses: np.ndarray, vertices: np.ndarray, k_values: list[float],
+                      say) -> tuple[dict, dict]:
+    """The geometry of every k_stretch (one factorisation each; the config's is ``geo``) and the
+    examples' large-scale RMS per example on ``vertices``: ({k: Geometry}, {k: (E,) errors})."""
+    cfg = rig.config
+    geometries = {}
+    shell_errors = {}
+    for i, k in enumerate(k_values):
+        if k == cfg.shell.k_stretch:  # build_geometry factored this one already
+            geometries[k] = geo
+        else:
+            B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
+                            spacing=geo.spacing)
+            geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
+        shell_errors[k] = rms_per_pose(geometries[k].large_scale(poses[1:]), poses[1:], vertices)
+        say("shell", i + 1, len(k_values))
+    return geometries, shell_errors
+
+
+def shell_table(shell_errors: dict, default_k: float, limit: float) -> list[dict]:
+    """A row per k_stretch: mean large-scale RMS, worst ratio to the default's per example, and
+    whether that ratio is within ``limit`` (accepted)."""
+    rows = [{"k_stretch": k, "large_rms": float(e.mean()),
+             "worst_vs_default": float(np.max(e / shell_errors[default_k])),
+             "per_example": e.tolist()} for k, e in shell_errors.items()]
+    for r in rows:
+        r["accepted"] = r["worst_vs_default"] <= limit
+    return rows
+
+
+def detail_grid(best_k: float, default: dict, beta_values: list[float], smooth_values: list[float]) -> list[tuple]:
+    """The (k_stretch, β, λ) candidates of stage 2: every β and λ with the chosen shell, and the
+    defaults with the default shell when the chosen one differs."""
+    grid = [(best_k, b, s) for b in beta_values for s in smooth_values]
+    if best_k != default["k_stretch"]:
+        grid.append((default["k_stretch"], default["beta_scale"], default["smoothing"]))
+    return grid
+
+
+def _sample_edge_weights(distances: np.ndarray, geo, sample: np.ndarray, beta_values: list[float], psd) -> dict:
+    """The WPSD edge weights α of the sampled vertices per β scale: {β: (S, F) sparse}."""
+    alphas = {}
+    for b in beta_values:
+        index, weight = wpsd_edge_weights(distances[:, sample], geo.edges, geo.rest_lengths,
+                                          b / np.median(geo.rest_lengths), psd.min_edge_weight,
+                                          psd.max_edges_per_vertex)
+        alphas[b] = edge_weight_matrix(index, weight, len(geo.edges))
+    return alphas
+
+
+def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: dict, folds: list, grid: list,
+                            tau_values: list[float], default: dict, best_k: float, max_poses: int, *,
+                            site_distance: np.ndarray, radius: float, say) -> dict:
+    """The held-out error of every example per (k, β, λ, τ) and basis size.
+
+    Each fold's examples are left out, the greedy basis grows on the rest and predicts them at
+    every basis size: {(k, β, λ, τ): (max_poses + 1, E) RMS, NaN where a fold's basis stops short}.
+    Each example is held out once.
+    """
+    n_poses = features.shape[0]
+    errors: dict[tuple, np.ndarray] = {}
+    done = 0
+    for fold in folds:
+        held = fold + 1  # pose indices (pose 0 is the rest pose)
+        train = np.concatenate([[0], np.setdiff1d(np.arange(1, n_poses), held)])
+        P_max = min(max_poses, len(train) - 1)
+        for (k, b, s) in grid:
+            alpha = alphas[b]
+            # the gate depends on the features only, and τ only scales its output: the greedy fit runs
+            # once and every τ is scored on its predictions
+            gate = novelty_gate(features[train[1:]], site_distance, alpha, 1.0, radius)
+            taus = tau_values if (k, b, s) != (default["k_stretch"], default["beta_scale"], default["smoothing"]) \
+                or best_k == default["k_stretch"] else [default["novelty_tau"]]
+            confidence = {t: _confidence(gate, t, features[held])[..., None] for t in taus}
+            for t in taus:
+                errors.setdefault((k, b, s, t), np.full((max_poses + 1, n_poses - 1), np.nan))
+
+            def observe(model, basis, k=k, b=b, s=s, confidence=confidence):
+                raw = model.evaluate(features[held])
+                for t, c in confidence.items():
+                    errors[(k, b, s, t)][len(basis) - 1, fold] = rms_per_pose(raw * c, details[k][held])
+
+            greedy_basis(psd.method, features[train], details[k][train], psd.fit, P_max,
+                         alpha=alpha, rcond=psd.rcond, smoothing=s, observe=observe)
+            done += 1
+            say("details", done, len(folds) * len(grid))
+    return errors
+
+
+def detail_table(errors: dict, large: dict, default_key: tuple, default_poses: int, max_poses: int,
+                 limit: float) -> tuple[list[dict], dict]:
+    """A row per (k, β, λ, τ) and basis size: mean held-out RMS, worst ratios per example to the
+    defaults (their model or their large scale alone, whichever is better) and to the large scale,
+    accepted when the first is within ``limit``. Returns the rows and the defaults' row (always
+    accepted)."""
+    reference = np.minimum(errors[default_key][default_poses], large[default_key[0]])
+    rows = []
+    for (k, b, s, t), e in errors.items():
+        for P in range(1, max_poses + 1):
+            rows.append({"k_stretch": k, "beta_scale": b, "smoothing": s, "novelty_tau": t, "poses": P,
+                         "cv_rms": float(e[P].mean()),
+                         "worst_vs_default": float(np.max(e[P] / reference)),
+                         "worst_vs_large": float(np.max(e[P] / large[k])),
+                         "accepted": bool(np.max(e[P] / reference) <= limit)})
+    default_row = next(r for r in rows if _key(r) + (r["poses"],) == default_key + (default_poses,))
+    default_row["accepted"] = True  # the defaults are always a candidate
+    return rows, default_row
+
+
+def choose_candidate(rows: list[dict], errors: dict, default_row: dict) -> dict:
+    """The chosen row among the accepted ones.
+
+    Held-out expressions are unseen, so the novelty gate keeps their details small and the basis
+    size barely shows in their error; yet every pose added is one more expression (and its
+    mixtures) reproduced exactly. So among the candidates that validate as well as the best —
+    within one standard error of the paired per-example differences — and no worse than the
+    defaults, the largest basis wins, then the stronger gate (smaller τ: a margin for expressions
+    validation has not seen).
+    """
+    accepted = [r for r in rows if r["accepted"]]
+    best = min(accepted, key=lambda r: (round(r["cv_rms"], 12), r["poses"]))
+    best_errors = errors[_key(best)][best["poses"]]
+
+    def tied(r):
+        diff = errors[_key(r)][r["poses"]] - best_errors
+        return diff.mean() <= diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else r is best
+
+    return min((r for r in accepted if tied(r) and r["cv_rms"] <= default_row["cv_rms"]),
+               key=lambda r: (-r["poses"], r["novelty_tau"], round(r["cv_rms"], 12)))
 
 
 def _key(row: dict) -> tuple:
