@@ -20,12 +20,13 @@ pseudo-inverse, which averages coincident poses instead of blowing up.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+
+from facepipe.parallel import map_blocks
 
 METHODS = ("wpsd", "psd", "none")
 REST_ROW_WEIGHT = 1e3
@@ -103,7 +104,7 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
         index[start:stop] = top
         weight[start:stop] = a
 
-    _blocks_in_threads(block, range(0, V, chunk))
+    map_blocks(block, range(0, V, chunk))
     return index, weight
 
 
@@ -186,26 +187,10 @@ def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = 1e-6, smoothi
         weights[start:stop] = x[:, :P]
         const[start:stop] = x[:, P]
 
-    _blocks_in_threads(block, range(0, V, chunk))
+    # the blocks write disjoint rows and each vertex sees the same arithmetic on any thread, so
+    # the result is the same bit for bit however many threads share them
+    map_blocks(block, range(0, V, chunk))
     return weights, const
-
-
-def _blocks_in_threads(block, starts) -> None:
-    """Run ``block(start)`` for every start, one thread per core.
-
-    The blocks write disjoint rows, and numpy releases the GIL in its array loops and batched
-    LAPACK, so two cores do twice the work; each vertex sees the same arithmetic as in one
-    thread, so the result is the same bit for bit.
-    """
-    workers = min(len(starts), os.cpu_count() or 1, 8)
-    if workers > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(block, starts))
-    else:
-        for start in starts:
-            block(start)
 
 
 def _solve_block(phi: np.ndarray, rhs: np.ndarray, rcond: float, smoothing: float) -> np.ndarray:
