@@ -48,7 +48,7 @@ class PsdConfig:
     min_edge_weight: float = 0.025
     beta: float = 0.0  # WPSD falloff (1/length); 0 = beta_scale / median feature-edge length
     beta_scale: float = 1.0
-    rcond: float = 1e-6
+    rcond: float = 3e-4  # RBF pseudo-inverse cut-off, relative (psd.DEFAULT_RCOND)
     smoothing: float = 0.0
     novelty_tau: float = 0.15  # details fade where this fraction of local strain is unlike the examples' (0 = off)
     novelty_radius: float = 1.5  # neighbourhood of the novelty test, × median feature-edge length
