@@ -196,7 +196,7 @@ def test_many_blocks_on_threads(tmp_path, monkeypatch):
     write_take_csv(tmp_path / "t.csv", take)
     whole = read_take(tmp_path / "t.csv", NAMES)
     monkeypatch.setattr(mocap, "_BLOCK_BYTES", 500)  # ~6 rows a block
-    monkeypatch.setattr(mocap, "_workers", lambda: 4)
+    monkeypatch.setenv("FACEPIPE_THREADS", "4")
     blocks = read_take(tmp_path / "t.csv", NAMES)
     np.testing.assert_array_equal(blocks.positions, whole.positions)
     np.testing.assert_array_equal(blocks.times, whole.times)

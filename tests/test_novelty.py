@@ -1,7 +1,10 @@
+import logging
+
 import numpy as np
+from scipy.optimize import nnls
 
 from facepipe.pipeline.baselines import global_blend_weights, local_blend_operator, local_blend_positions
-from facepipe.core.psd import edge_distances, edge_weight_matrix, fit_details, novelty_gate
+from facepipe.core.psd import NOVELTY_MAX_ITERATIONS, edge_distances, edge_weight_matrix, fit_details, novelty_gate
 
 
 def _graph(F=30, seed=0):
@@ -81,11 +84,9 @@ def test_local_blend_shapes_reproduce_an_example():
     assert np.allclose(pos[0], rest + offsets[2], atol=1e-4)
 
 
-def test_novelty_is_the_non_negative_least_squares_residual():
-    """ρ equals the residual of an exact NNLS (scipy) at every site, also where examples overlap
-    and where one example barely strains the site (where clipped least squares is far off)."""
-    from scipy.optimize import nnls
-
+def _overlapping_gate():
+    """A gate over overlapping examples and one that barely strains the sites, with queries inside
+    the cone, outside it and in the span but not the cone."""
     F, E = 24, 7
     rng = np.random.default_rng(5)
     base = rng.normal(scale=0.1, size=(3, F))
@@ -94,10 +95,43 @@ def test_novelty_is_the_non_negative_least_squares_residual():
     gate = novelty_gate(ex, _graph(F), alpha, tau=0.2, radius=3.0, max_edges=10)
     queries = np.concatenate([rng.uniform(0, 1, size=(4, E)) @ ex, rng.normal(scale=0.1, size=(4, F)),
                               rng.uniform(-1, 1, size=(4, E)) @ ex])
-    rho = gate.novelty(queries, iterations=400)
+    return gate, queries
+
+
+def test_novelty_is_the_non_negative_least_squares_residual():
+    """ρ equals the residual of an exact NNLS (scipy) at every site, also where examples overlap
+    and where one example barely strains the site (where clipped least squares is far off)."""
+    gate, queries = _overlapping_gate()
+    fit = gate.novelty_fit(queries)
+    assert fit.unconverged == 0 and 0 < fit.iterations < NOVELTY_MAX_ITERATIONS
     x = queries[:, gate.index] * gate.sqrt_weight
     for q in range(len(queries)):
-        for s in range(F):
+        for s in range(x.shape[1]):
             b = x[q, s].astype(np.float64)
             _, r = nnls(gate.examples[s].T.astype(np.float64), b)
-            assert abs(rho[q, s] - r ** 2 / (b @ b + 1e-12)) < 2e-3
+            assert abs(fit.rho[q, s] - r ** 2 / (b @ b + 1e-12)) < 1e-5
+    assert np.array_equal(gate.novelty(queries), fit.rho)
+
+
+def test_novelty_fits_stopped_by_the_cap_are_counted_and_logged(caplog):
+    gate, queries = _overlapping_gate()
+    capped = gate.novelty_fit(queries, tolerance=1e-14, max_iterations=3)
+    assert capped.iterations == 3 and 0 < capped.unconverged <= capped.rho.size
+    with caplog.at_level(logging.WARNING, logger="facepipe.core.psd"):
+        rho = gate.novelty(queries, tolerance=1e-14, max_iterations=3)
+    assert np.array_equal(rho, capped.rho)
+    assert gate.unconverged_fits == capped.unconverged
+    assert f"{capped.unconverged} of {capped.rho.size} site fits stopped after 3 iterations" in caplog.text
+    # converged fits add nothing and say nothing
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="facepipe.core.psd"):
+        gate.novelty(queries)
+    assert gate.unconverged_fits == capped.unconverged and not caplog.text
+
+
+def test_novelty_fit_stops_each_fit_on_its_own():
+    """Where a fit stops does not depend on the other queries in the batch (up to round-off)."""
+    gate, queries = _overlapping_gate()
+    together = gate.novelty_fit(queries).rho
+    alone = np.concatenate([gate.novelty_fit(queries[q:q + 1]).rho for q in range(len(queries))])
+    assert np.allclose(alone, together, rtol=0, atol=1e-12)

@@ -1,7 +1,11 @@
+import inspect
+
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 
-from facepipe.core.psd import (edge_weight_matrix, fit_details, greedy_basis, psd_distances, solve_rbf, wpsd_distances, wpsd_edge_weights)
+from facepipe.core import psd
+from facepipe.core.psd import (batched_inverse, edge_weight_matrix, fit_details, greedy_basis, psd_distances, solve_rbf, wpsd_distances, wpsd_edge_weights)
 
 
 def _random_problem(E=7, F=12, V=30, seed=0):
@@ -35,20 +39,49 @@ def test_wpsd_interpolates_basis_exactly_when_poses_differ_locally():
     assert np.abs(model.evaluate(f) - d).max() < 1e-7
 
 
+def test_psd_kernel_is_the_distance_in_pose_space():
+    f, _ = _random_problem()
+    q = np.random.default_rng(7).normal(scale=0.1, size=(4, f.shape[1]))
+    direct = np.array([[np.sqrt(sum((q[a, e] - f[i, e]) ** 2 for e in range(f.shape[1]))) for i in range(len(f))]
+                       for a in range(len(q))])
+    assert np.allclose(psd_distances(q, f), direct, rtol=1e-13, atol=0)
+    model = fit_details("psd", f, _random_problem()[1], [0, 2, 5], "interpolate")
+    assert np.allclose(model.distances(q), direct[:, [0, 2, 5]], rtol=1e-13, atol=0)
+    assert np.array_equal(np.diag(psd_distances(f, f)), np.zeros(len(f)))
+
+
 def test_wpsd_distance_matches_brute_force():
     f, _ = _random_problem()
     index, weight = _alpha(30, f.shape[1])
     alpha = edge_weight_matrix(index, weight, f.shape[1])
     q = np.random.default_rng(7).normal(scale=0.1, size=(3, f.shape[1]))
-    r = wpsd_distances(q, f, alpha)
+    r = wpsd_distances(q, f, alpha, chunk=7)  # several blocks of vertices
     for a in range(3):
-        for v in (0, 11, 29):
+        for v in range(30):
             for i in range(len(f)):
-                ref = np.sqrt(sum(weight[v, k] * (q[a, index[v, k]] - f[i, index[v, k]]) ** 2 for k in range(5)))
-                assert np.isclose(r[a, v, i], ref, rtol=1e-6)
+                ref = np.sqrt(sum(float(weight[v, k]) * (q[a, index[v, k]] - f[i, index[v, k]]) ** 2 for k in range(5)))
+                assert np.isclose(r[a, v, i], ref, rtol=1e-12, atol=0)
     # PSD is WPSD with every edge weighted 1
     ones = sp.csr_matrix(np.ones((1, f.shape[1])))
-    assert np.allclose(wpsd_distances(q, f, ones)[:, 0], psd_distances(q, f))
+    assert np.allclose(wpsd_distances(q, f, ones)[:, 0], psd_distances(q, f), rtol=1e-13, atol=0)
+
+
+def test_cardinal_functions_interpolate_and_sum_to_one():
+    """With one vertex per basis pose, detail 1 at its pose and 0 at the others, the fitted functions
+    are the cardinal functions: δ at the basis poses and, as constants are reproduced, a
+    partition of unity everywhere (PSD, and WPSD with the same edge weights at every vertex)."""
+    f, _ = _random_problem(E=6)
+    P = len(f)
+    d = np.zeros((P, P, 3))
+    d[np.arange(P), np.arange(P), 0] = 1.0
+    far = np.random.default_rng(3).normal(scale=0.2, size=(9, f.shape[1]))
+    index, weight = _alpha(1, f.shape[1])
+    same = edge_weight_matrix(np.repeat(index, P, 0), np.repeat(weight, P, 0), f.shape[1])
+    for method, alpha in (("psd", None), ("wpsd", same)):
+        model = fit_details(method, f, d, list(range(P)), "interpolate", alpha)
+        assert np.allclose(model.evaluate(f)[..., 0], np.eye(P), rtol=0, atol=1e-9)
+        assert np.allclose(model.evaluate(far)[..., 0].sum(axis=1), 1.0, rtol=0, atol=1e-9)
+        assert np.allclose(model.evaluate(far)[..., 1:], 0.0, rtol=0, atol=1e-12)
 
 
 def test_constant_details_reproduced_everywhere():
@@ -82,11 +115,102 @@ def test_least_squares_recovers_a_true_rbf():
     assert np.allclose(model.const, c, atol=1e-8)
 
 
-def test_solve_rbf_smoothing_keeps_system_solvable():
+def _bordered(phi):
+    """[Φ s·1; s·1ᵀ 0] with s = mean |Φ|, the system solve_rbf solves (s scales the constant)."""
+    R, P = phi.shape
+    s = np.abs(phi).mean()
+    A = np.zeros((R + 1, P + 1))
+    A[:R, :P] = phi
+    A[:R, P] = s
+    A[R, :P] = s
+    return A, s
+
+
+def test_solve_rbf_smoothing_solves_the_shifted_system():
     f, d = _random_problem()
     phi = psd_distances(f, f)
-    w, c = solve_rbf(phi, d, smoothing=0.1)
-    assert np.isfinite(w).all() and np.isfinite(c).all()
+    lam = 0.1
+    w, c = solve_rbf(phi, d, smoothing=lam)
+    A, s = _bordered(phi)
+    A[:len(f), :len(f)] -= lam * s * np.eye(len(f))  # Φ − λ s I
+    rhs = np.concatenate([d.reshape(len(f), -1), np.zeros((1, d.shape[1] * 3))])
+    x = np.linalg.solve(A, rhs).reshape(len(f) + 1, -1, 3)
+    assert np.allclose(w, np.moveaxis(x[:-1], 0, 1), rtol=0, atol=1e-10)
+    assert np.allclose(c, x[-1] * s, rtol=0, atol=1e-10)
+
+
+def test_solve_rbf_matches_lstsq():
+    """Interpolation: the bordered system's solution (numpy's LAPACK least squares of a square,
+    non-singular system). Least squares over more poses than basis poses: the rest row met
+    exactly, the other rows in the least-squares sense — by lstsq on the constraint's null space."""
+    f, d = _random_problem(E=12, V=5)
+    phi = psd_distances(f, f[:7])
+    for rows in (slice(0, 7), slice(None)):
+        p, targets = phi[rows], d[rows]
+        w, c = solve_rbf(p, targets)
+        A, s = _bordered(p)
+        b = np.concatenate([targets.reshape(len(p), -1), np.zeros((1, targets.shape[1] * 3))])
+        if len(p) == p.shape[1]:
+            x = np.linalg.lstsq(A, b, rcond=None)[0]
+        else:
+            N = scipy.linalg.null_space(A[:1])
+            x0 = A[0][:, None] * b[:1] / (A[0] @ A[0])
+            x = x0 + N @ np.linalg.lstsq(A[1:] @ N, b[1:] - A[1:] @ x0, rcond=None)[0]
+            assert np.allclose(A[0] @ x, 0.0, rtol=0, atol=1e-14)  # the rest pose stays still
+        x = x.reshape(p.shape[1] + 1, -1, 3)
+        assert np.allclose(w, np.moveaxis(x[:-1], 0, 1), rtol=0, atol=1e-10)
+        assert np.allclose(c, x[-1] * s, rtol=0, atol=1e-10)
+
+
+def test_rest_pose_is_met_exactly_where_another_pose_looks_like_it():
+    """A pose with the rest pose's strain but other details (a one-sided expression seen from the
+    other cheek) is averaged away, and the rest pose still comes out as exactly zero."""
+    f, d = _random_problem()
+    f[4] = f[0]
+    model = fit_details("psd", f, d, list(range(len(f))), "interpolate")
+    assert np.abs(model.evaluate(f[:1])).max() < 1e-14
+    assert np.abs(model.weights).max() < 1e3
+
+
+def test_cut_off_does_not_move_with_the_rest_row_weight(monkeypatch):
+    """Two poses 1e-5 apart (relative): with rcond = 1e-6 nothing is to be cut. How heavily the
+    rest row is weighted must not decide that (it once scaled σ_max and so the cut-off)."""
+    f, d = _random_problem(E=8)
+    rng = np.random.default_rng(11)
+    f[5] = f[4] + 1e-5 * np.abs(f).max() * rng.normal(size=f.shape[1])
+    results = {}
+    for weight in (1.0, 1e3, 1e6):
+        monkeypatch.setattr(psd, "REST_ROW_WEIGHT", weight)
+        for fit in ("interpolate", "least-squares"):
+            basis = list(range(len(f))) if fit == "interpolate" else [0, 1, 2, 4, 5]
+            model = fit_details("psd", f, d, basis, fit, rcond=1e-6)
+            results.setdefault(fit, []).append(np.concatenate([model.weights.ravel(), model.const.ravel()]))
+    for fit, xs in results.items():
+        scale = np.abs(xs[0]).max()
+        for x in xs[1:]:
+            assert np.abs(x - xs[0]).max() <= 1e-8 * scale, fit
+
+
+def test_no_private_numpy_api():
+    assert "_umath_linalg" not in inspect.getsource(psd)
+
+
+def test_batched_inverse_is_numpys_inverse_and_nan_where_singular():
+    rng = np.random.default_rng(2)
+    A = rng.integers(-2, 3, size=(500, 5, 5)).astype(float)  # small integers: many exactly singular
+    A[::7, 3] = A[::7, 1]
+    inv = batched_inverse(A)
+    singular = 0
+    for a, i in zip(A, inv):  # numpy's inverse of each matrix alone: the same, or raises
+        try:
+            expected = np.linalg.inv(a)
+        except np.linalg.LinAlgError:
+            singular += 1
+            assert np.isnan(i).all()
+        else:
+            assert np.array_equal(i, expected)
+    assert 0 < singular < len(A)
+    assert batched_inverse(A[:0]).shape == (0, 5, 5)
 
 
 def test_edge_weights_normalised_bounded_and_local():
@@ -105,10 +229,22 @@ def test_edge_weights_normalised_bounded_and_local():
     # the heaviest edge of each vertex is the one it is closest to (smallest L − l)
     excess = (dist[edges[:, 0]] + dist[edges[:, 1]] - rest[:, None]).T
     assert (index[:, 0] == excess.argmin(axis=1)).all()
-    # a vertex far from everything still keeps its nearest edges
+    # against the definition, vertex by vertex: the 8 edges of largest α ∝ exp(−β (L − l)),
+    # normalised, those under 5 % dropped unless among the largest 3, normalised again
+    for v in range(V):
+        order = np.argsort(excess[v], kind="stable")[:8]
+        keep = np.exp(-1.0 * excess[v, order])
+        keep /= keep.sum()
+        keep = np.where((keep < 0.05) & (np.arange(8) >= 3), 0.0, keep)
+        assert np.array_equal(index[v], order)
+        assert np.allclose(weight[v], keep / keep.sum(), rtol=1e-6, atol=1e-7)
+    # a vertex far from everything still keeps its nearest edges, with the weights they would have
+    # without the offset (which cancels out in the normalisation)
     far = np.full((M, 1), 1e6) + dist[:, :1]
     i2, w2 = wpsd_edge_weights(far, edges, rest, beta=10.0, min_weight=0.5, max_edges=8, min_keep=3)
-    assert (w2 > 0).sum() >= 3 and np.isfinite(w2).all()
+    i1, w1 = wpsd_edge_weights(dist[:, :1], edges, rest, beta=10.0, min_weight=0.5, max_edges=8, min_keep=3)
+    assert (w2 > 0).sum() >= 3
+    assert np.array_equal(i2[w2 > 0], i1[w1 > 0]) and np.allclose(w2, w1, rtol=1e-5, atol=1e-6)
 
 
 def test_greedy_starts_from_rest_and_reaches_zero_error_with_all_poses():
@@ -125,6 +261,36 @@ def test_greedy_stops_at_tolerance():
     f, d = _random_problem()
     _, basis, curve = greedy_basis("psd", f, d, "interpolate", max_poses=6, tolerance=1.0)
     assert basis == [0] and len(curve) == 1
+
+
+def _brute_force_greedy(f, d, steps):
+    """The greedy rule written out: interpolate the basis by the bordered system, score every
+    pose by its RMS error, add the worst pose not yet in the basis."""
+    basis, curve = [0], []
+    for _ in range(steps + 1):
+        P = len(basis)
+        phi = np.array([[np.linalg.norm(f[i] - f[j]) for j in basis] for i in basis])
+        M = np.block([[phi, np.ones((P, 1))], [np.ones((1, P)), np.zeros((1, 1))]])
+        rhs = np.concatenate([d[basis].reshape(P, -1), np.zeros((1, d.shape[1] * 3))])
+        x = np.linalg.solve(M, rhs)
+        q = np.array([[np.linalg.norm(f[e] - f[j]) for j in basis] for e in range(len(f))])
+        pred = (q @ x[:P] + x[P]).reshape(d.shape)
+        err = np.sqrt(((pred - d) ** 2).sum(-1).mean(-1))
+        curve.append(err.max())
+        open_ = [e for e in range(1, len(f)) if e not in basis]
+        if len(curve) > steps or not open_:
+            break
+        basis.append(open_[int(np.argmax(err[open_]))])
+    return basis, curve
+
+
+def test_greedy_picks_what_brute_force_picks():
+    for seed in range(4):
+        f, d = _random_problem(E=7, V=6, seed=seed)
+        _, basis, curve = greedy_basis("psd", f, d, "interpolate", max_poses=5)
+        ref_basis, ref_curve = _brute_force_greedy(f, d, 5)
+        assert basis == ref_basis
+        assert np.allclose([c["max_rms"] for c in curve], ref_curve, rtol=1e-9, atol=1e-12)
 
 
 def test_pinv_solve_matches_the_pseudo_inverse():

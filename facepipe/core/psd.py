@@ -15,20 +15,31 @@ side condition Σ_i w_{v,i} = 0 makes the interpolation system non-singular for 
 poses. A per-vertex WPSD system is singular where two basis poses have the same strain on
 all of the vertex's edges (a left-side expression seen from the right cheek looks like the
 rest pose); those systems are solved in the least-squares sense by a truncated
-pseudo-inverse, which averages coincident poses instead of blowing up.
+pseudo-inverse, which averages coincident poses instead of blowing up, with the rest pose
+itself always met exactly.
 """
 
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 
+from facepipe.parallel import map_blocks
+
+logger = logging.getLogger(__name__)
+
 METHODS = ("wpsd", "psd", "none")
 REST_ROW_WEIGHT = 1e3
+# Pseudo-inverse cut-off of the RBF systems, relative to the largest singular value of the system
+# left once the rest row is met. It used to be 1e-6 of a system with the rest row weighted 1e3
+# times, whose largest singular value came from that weight: about 3e-4 of the system's own
+# (ICT kit: 2.9e-4 to 4.4e-4 from vertex to vertex). 3e-4 keeps that regularisation of nearly
+# coincident poses, now the same for every vertex whatever the weight.
+DEFAULT_RCOND = 3e-4
 
 
 # ----------------------------------------------------------------------------- weights
@@ -103,7 +114,7 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
         index[start:stop] = top
         weight[start:stop] = a
 
-    _blocks_in_threads(block, range(0, V, chunk))
+    map_blocks(block, range(0, V, chunk))
     return index, weight
 
 
@@ -147,7 +158,7 @@ def wpsd_distances(features: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix
 # ----------------------------------------------------------------------------- solve
 
 
-def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = 1e-6, smoothing: float = 0.0,
+def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = DEFAULT_RCOND, smoothing: float = 0.0,
               chunk: int = 16384) -> tuple[np.ndarray, np.ndarray]:
     """Weights and constant of d = Σ_i w_i φ_i + c, by interpolation or least squares.
 
@@ -160,8 +171,9 @@ def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = 1e-6, smoothi
     phi : (R, P) shared kernel matrix (PSD) or (V, R, P) per vertex (WPSD); R rows are
         training poses, P basis poses.
     targets : (R, V, 3) details to reproduce; row 0 must be the rest pose (details zero), which
-        is weighted so that it is reproduced even where other poses coincide with it.
-    rcond : singular values below ``rcond`` × the largest are cut (coincident poses).
+        is reproduced exactly, even where other poses coincide with it.
+    rcond : singular values below ``rcond`` × the largest are cut (coincident poses), in the
+        system left once the rest row is met (:func:`rest_exact_solve`).
     smoothing : λ ≥ 0, relative to the mean kernel value; with R = P uses Φ − λI (for
         φ = r, which is conditionally negative definite, Φ + λI can become singular).
 
@@ -186,30 +198,14 @@ def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = 1e-6, smoothi
         weights[start:stop] = x[:, :P]
         const[start:stop] = x[:, P]
 
-    _blocks_in_threads(block, range(0, V, chunk))
+    # the blocks write disjoint rows and each vertex sees the same arithmetic on any thread, so
+    # the result is the same bit for bit however many threads share them
+    map_blocks(block, range(0, V, chunk))
     return weights, const
 
 
-def _blocks_in_threads(block, starts) -> None:
-    """Run ``block(start)`` for every start, one thread per core.
-
-    The blocks write disjoint rows, and numpy releases the GIL in its array loops and batched
-    LAPACK, so two cores do twice the work; each vertex sees the same arithmetic as in one
-    thread, so the result is the same bit for bit.
-    """
-    workers = min(len(starts), os.cpu_count() or 1, 8)
-    if workers > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(block, starts))
-    else:
-        for start in starts:
-            block(start)
-
-
 def _solve_block(phi: np.ndarray, rhs: np.ndarray, rcond: float, smoothing: float) -> np.ndarray:
-    """Batched least-squares solve of [Φ s·1; s·1ᵀ 0] [w; c/s] = [D; 0] by truncated pinv."""
+    """Batched least-squares solve of [Φ s·1; s·1ᵀ 0] [w; c/s] = [D; 0], the rest row exactly."""
     n, R, P = phi.shape
     scale = np.abs(phi).mean(axis=(1, 2), keepdims=True)
     scale = np.where(scale > 0, scale, 1.0)
@@ -224,36 +220,94 @@ def _solve_block(phi: np.ndarray, rhs: np.ndarray, rcond: float, smoothing: floa
     b[:, :R] = rhs
     # row 0 is the rest pose, whose details are zero by construction: where coincident poses
     # are averaged, the rest pose must still come out exactly (a still face stays still)
-    A[:, 0] *= REST_ROW_WEIGHT
-    b[:, 0] *= REST_ROW_WEIGHT
-    x = pinv_solve(A, b, rcond)
+    x = rest_exact_solve(A, b, rcond)
     x[:, P] *= scale[:, 0, 0][:, None]
     return x
 
 
-try:  # numpy's batched LAPACK kernels; the public inv raises for the whole batch on one singular matrix
-    from numpy.linalg import _umath_linalg
-except ImportError:  # pragma: no cover - a numpy that moved it: everything takes the SVD
-    _umath_linalg = None
+def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
+    """Least squares of A x = b for a batch (n, R, P), (n, R, k), with row 0 met exactly and the
+    other rows solved by a truncated pseudo-inverse.
+
+    Row 0 is the rest pose. Weighting it heavily in one least-squares system would move the
+    pseudo-inverse's cut-off with the weight (σ_max grows with it); instead the other rows are
+    solved within the constraint, on the system left once row 0 is met (:func:`constrained_svd_solve`),
+    and ``rcond`` is relative to that system's largest singular value, whatever row 0's scale.
+
+    Square systems where no singular value is cut satisfy every row exactly: they are solved by
+    the inverse of A with row 0 weighted by ``REST_ROW_WEIGHT`` (the weight does not change that
+    solution, only its round-off; kept so that the arithmetic is what it always was). The test
+    for them: σ_min of the constrained system ≥ σ_min(A_w) ≥ 1 / ‖A_w⁻¹‖_F and its σ_max ≤
+    ‖A[1:]‖_F, so where ‖A[1:]‖_F ‖A_w⁻¹‖_F < 1 / (2 rcond) nothing would be cut.
+    """
+    n, R, P = A.shape
+    if R != P or n == 0:
+        return constrained_svd_solve(A, b, rcond)
+    weighted = A.copy()
+    weighted[:, 0] *= REST_ROW_WEIGHT
+    weighted_b = b.copy()
+    weighted_b[:, 0] *= REST_ROW_WEIGHT
+    inv, clear = _inverse_where_clear(weighted, np.einsum("nij,nij->n", A[:, 1:], A[:, 1:]), rcond)
+    if clear.all():
+        return inv @ weighted_b
+    x = np.empty((n, P, b.shape[-1]))
+    x[clear] = inv[clear] @ weighted_b[clear]
+    rest = ~clear
+    x[rest] = constrained_svd_solve(A[rest], b[rest], rcond)
+    return x
+
+
+def batched_inverse(A: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of square matrices (n, P, P), NaN where a matrix is exactly singular.
+
+    ``np.linalg.inv`` raises for the whole stack when one matrix is singular. ``slogdet``
+    factors every matrix as ``inv`` does (LAPACK's LU with partial pivoting) and tells the
+    exactly singular ones (a zero pivot: log-determinant −inf); the others are inverted in one
+    call. Each matrix is inverted on its own (LAPACK per matrix), so its inverse is the same bit
+    for bit whichever others share the stack.
+    """
+    inv = np.full(A.shape, np.nan)
+    if A.shape[0] == 0:
+        return inv
+    _, logdet = np.linalg.slogdet(A)
+    regular = np.isfinite(logdet)
+    try:
+        if regular.all():
+            return np.linalg.inv(A)
+        if regular.any():
+            inv[regular] = np.linalg.inv(A[regular])
+    except np.linalg.LinAlgError:  # pragma: no cover - a LAPACK whose LU pivots differ between the two
+        for i in np.flatnonzero(regular):
+            try:
+                inv[i] = np.linalg.inv(A[i])
+            except np.linalg.LinAlgError:
+                pass
+    return inv
+
+
+def _inverse_where_clear(A: np.ndarray, squared_scale: np.ndarray, rcond: float) -> tuple[np.ndarray, np.ndarray]:
+    """Batched inverses of A and where they are safe to use instead of a truncated pseudo-inverse:
+    ``scale · ‖A⁻¹‖_F · rcond < 1/2`` with ``scale² = squared_scale`` (n,), an upper bound of the
+    largest singular value the cut-off is relative to (‖A⁻¹‖_F bounds 1 / σ_min from above)."""
+    inv = batched_inverse(A)
+    with np.errstate(all="ignore"):
+        cond = np.sqrt(squared_scale * np.einsum("nij,nij->n", inv, inv))
+    return inv, cond * rcond < 0.5  # False for NaN (singular)
 
 
 def pinv_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     """``np.linalg.pinv(A, rcond) @ b`` for a batch (n, R, P), (n, R, k), at a fraction of the cost.
 
-    A batched SVD of half a million 8 × 8 systems per greedy step was most of the fit. Where a
-    square A is clearly non-singular, pinv(A) = A⁻¹: ‖A‖_F ‖A⁻¹‖_F bounds the condition
-    number κ₂ = σ_max / σ_min from above, so where it stays below 1 / (2 rcond) no singular
-    value is cut and the LU inverse gives the same solution up to round-off (κ · 1e-16). The
-    rest — singular or nearly so where basis poses coincide for a vertex, the cases the
-    truncated pseudo-inverse is there for — and non-square systems take the SVD as before.
+    A batched SVD of half a million 8 × 8 systems is slow. Where a square A is clearly
+    non-singular, pinv(A) = A⁻¹: ‖A‖_F ‖A⁻¹‖_F bounds the condition number κ₂ = σ_max / σ_min
+    from above, so where it stays below 1 / (2 rcond) no singular value is cut and the LU inverse
+    gives the same solution up to round-off (κ · 1e-16). The rest — singular or nearly so — and
+    non-square systems take the SVD.
     """
     n, R, P = A.shape
-    if R != P or _umath_linalg is None or n == 0:
+    if R != P or n == 0:
         return svd_solve(A, b, rcond)
-    with np.errstate(all="ignore"):
-        inv = _umath_linalg.inv(A, signature="d->d")  # NaN where exactly singular
-        cond = np.sqrt(np.einsum("nij,nij->n", A, A) * np.einsum("nij,nij->n", inv, inv))
-    clear = cond * rcond < 0.5  # False for NaN
+    inv, clear = _inverse_where_clear(A, np.einsum("nij,nij->n", A, A), rcond)
     if clear.all():
         return inv @ b
     x = np.empty((n, P, b.shape[-1]))
@@ -273,6 +327,36 @@ def svd_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     large = s > rcond * s[:, :1]
     s_inv = np.divide(1.0, s, out=np.zeros_like(s), where=large)
     return np.matmul(vt.transpose(0, 2, 1), s_inv[:, :, None] * np.matmul(u.transpose(0, 2, 1), b))
+
+
+def constrained_svd_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
+    """Minimum-norm least squares of rows 1: of A x = b subject to row 0 holding exactly, for a
+    batch (n, R, P), (n, R, k); singular values at most ``rcond`` × the largest of the
+    constrained system are dropped. Row 0 must not be zero.
+
+    A Householder reflection H maps row 0's a₀ onto the first axis (H a₀ = α e₀), so with
+    x = H y the constraint fixes y₀ = b₀ / α and leaves y₁: free: the other rows become
+    (A₁H)[:, 1:] y₁: = b₁ − (A₁H)[:, 0] y₀, solved by :func:`svd_solve`. Scaling row 0 (and b₀)
+    changes neither the constraint nor that system, so it cannot move the cut-off.
+    """
+    n, R, P = A.shape
+    if n == 0:
+        return np.zeros((0, P) + b.shape[2:])
+    a0 = A[:, 0]
+    norm = np.sqrt(np.einsum("np,np->n", a0, a0))
+    if not (norm > 0).all():
+        raise ValueError("the exactly met row is zero")
+    sign = np.where(a0[:, 0] >= 0, 1.0, -1.0)
+    v = a0.copy()
+    v[:, 0] += sign * norm  # same signs added: no cancellation
+    H = np.eye(P) - (2.0 / np.einsum("np,np->n", v, v))[:, None, None] * (v[:, :, None] * v[:, None, :])
+    y0 = b[:, 0] / (-sign * norm)[:, None]  # (n, k)
+    C = np.matmul(A[:, 1:], H)  # (n, R−1, P)
+    if R > 1 and P > 1:
+        rest = svd_solve(C[:, :, 1:], b[:, 1:] - C[:, :, :1] * y0[:, None, :], rcond)
+    else:  # nothing left to fit, or nothing left to fit it with
+        rest = np.zeros((n, P - 1, b.shape[-1]))
+    return np.matmul(H, np.concatenate([y0[:, None], rest], axis=1))
 
 
 # ----------------------------------------------------------------------------- model
@@ -326,7 +410,8 @@ def kernel_matrix(method: str, features: np.ndarray, basis: np.ndarray, alpha: s
 
 
 def fit_details(method: str, features: np.ndarray, details: np.ndarray, basis: list[int], fit: str,
-                alpha: sp.csr_matrix | None = None, rcond: float = 1e-6, smoothing: float = 0.0) -> DetailModel:
+                alpha: sp.csr_matrix | None = None, rcond: float = DEFAULT_RCOND,
+                smoothing: float = 0.0) -> DetailModel:
     """Fit the RBF weights for a chosen basis.
 
     Parameters
@@ -359,7 +444,7 @@ def rms_per_pose(predicted: np.ndarray, target: np.ndarray, vertices: slice | np
 
 
 def greedy_basis(method: str, features: np.ndarray, details: np.ndarray, fit: str, max_poses: int,
-                 tolerance: float = 0.0, alpha: sp.csr_matrix | None = None, rcond: float = 1e-6,
+                 tolerance: float = 0.0, alpha: sp.csr_matrix | None = None, rcond: float = DEFAULT_RCOND,
                  smoothing: float = 0.0, error_vertices: slice | np.ndarray = slice(None),
                  candidates: np.ndarray | None = None, progress=None,
                  observe=None) -> tuple[DetailModel, list[int], list[dict]]:
@@ -423,6 +508,30 @@ def edge_distances(marker_distances: np.ndarray, edges: np.ndarray) -> np.ndarra
     return 0.25 * (D[np.ix_(a, a)] + D[np.ix_(a, b)] + D[np.ix_(b, a)] + D[np.ix_(b, b)])
 
 
+# The non-negative fits of the novelty gate stop where a projected-gradient step moves the
+# coefficients by less than this fraction of the site's strain (on the ICT kit: ρ within 1e-4 of
+# the exact NNLS residual, 80 steps for the median fit, under 900 for all) ...
+NOVELTY_TOLERANCE = 1e-5
+# ... or after this many steps, which are then reported
+NOVELTY_MAX_ITERATIONS = 2000
+
+
+@dataclass(frozen=True)
+class NoveltyFit:
+    """The novelty of a batch of strain vectors and how its non-negative fits went.
+
+    Attributes
+    ----------
+    rho : (Q, F) unexplained fraction per query and site.
+    iterations : steps taken by the slowest fit.
+    unconverged : (query, site) fits stopped by the iteration cap before the tolerance.
+    """
+
+    rho: np.ndarray
+    iterations: int
+    unconverged: int
+
+
 @dataclass
 class NoveltyGate:
     """Fades the details out where the strain is unlike any mixture of the examples'.
@@ -445,6 +554,8 @@ class NoveltyGate:
     solve : (F, E, K) its regularised pseudo-inverse (coefficients = solve @ x).
     tau : fraction of unexplained strain at which confidence is one half (0 disables).
     alpha : (V, F) sparse vertex weights over the sites.
+    unconverged_fits : running count of the (query, site) fits that :meth:`novelty` stopped at
+        the iteration cap, for a caller's report (each such call also logs a warning).
     """
 
     index: np.ndarray
@@ -454,35 +565,82 @@ class NoveltyGate:
     tau: float
     alpha: sp.csr_matrix
     sharpness: float = 6.0  # seen mixtures leave ρ well below τ, unseen expressions well above: a steep step
+    unconverged_fits: int = field(default=0, compare=False)
 
-    def novelty(self, features: np.ndarray, iterations: int = 100) -> np.ndarray:
-        """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) → (Q, F).
+    def novelty(self, features: np.ndarray, tolerance: float = NOVELTY_TOLERANCE,
+                max_iterations: int = NOVELTY_MAX_ITERATIONS) -> np.ndarray:
+        """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) → (Q, F); see :meth:`novelty_fit`.
+
+        Fits stopped by ``max_iterations`` are added to :attr:`unconverged_fits` and logged."""
+        fit = self.novelty_fit(features, tolerance, max_iterations)
+        if fit.unconverged:
+            self.unconverged_fits += fit.unconverged
+            logger.warning("novelty gate: %d of %d site fits stopped after %d iterations, short of the tolerance "
+                           "%g", fit.unconverged, fit.rho.size, max_iterations, tolerance)
+        return fit.rho
+
+    def novelty_fit(self, features: np.ndarray, tolerance: float = NOVELTY_TOLERANCE,
+                    max_iterations: int = NOVELTY_MAX_ITERATIONS) -> NoveltyFit:
+        """ρ per query and site, with the iterations taken and the fits left unconverged.
 
         The non-negative coefficients are found by accelerated projected gradient (FISTA) on
         the E × E normal equations of every site at once, started from the clipped least-squares
         solution. Clipping alone is no cone test: where examples overlap, the unconstrained fit
         takes negative parts that, cut off, leave seen mixtures looking twice as novel.
+
+        A fit stops once a step moves its coefficients (of the examples scaled to unit norm) by
+        at most ``tolerance`` × the norm of its strain, or after ``max_iterations`` steps. A
+        stopped fit is left as it is while the others go on (where it stops does not depend on
+        the other queries in the batch), and sites whose fits have all stopped leave the batch.
         """
         x = features[:, self.index] * self.sqrt_weight  # (Q, F, K)
         energy = np.einsum("qsk,qsk->qs", x, x)
         if self.examples.shape[1] == 0:
-            return np.ones_like(energy)
+            return NoveltyFit(np.ones_like(energy), 0, 0)
         A, gram, step, norm = self._cone
         # sites first, queries last: the iterations are batched matrix products (BLAS)
         xs = np.moveaxis(x, 0, 2)  # (F, K, Q)
         b = np.matmul(A, xs)  # Aᵀx: (F, E, Q)
         solve = self.solve.astype(np.float64)
         coef = np.maximum(np.matmul(solve, xs), 0.0) * norm[..., None]
-        y, t = coef, 1.0
-        for _ in range(iterations):
-            new = np.maximum(y - step * (np.matmul(gram, y) - b), 0.0)
+        # the sites still iterating, and their fits' state
+        live = np.arange(coef.shape[0])
+        c, y, g, bl, st = coef.copy(), coef.copy(), gram, b, step
+        limit = tolerance * np.sqrt(energy).T  # (F, Q)
+        active = np.ones(limit.shape, dtype=bool)
+        t = 1.0
+        iterations = 0
+        while live.size and iterations < max_iterations:
+            new = np.matmul(g, y)
+            new -= bl
+            new *= st
+            np.subtract(y, new, out=new)
+            np.maximum(new, 0.0, out=new)
+            moved = y - new
+            moved = np.sqrt(np.einsum("seq,seq->sq", moved, moved))
             t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
-            y = new + ((t - 1.0) / t_new) * (new - coef)
-            coef, t = new, t_new
+            going = np.broadcast_to(active[:, None], c.shape)
+            # y ← new + m (new − c), c ← new, where the fit is still going
+            momentum = new - c
+            momentum *= (t - 1.0) / t_new
+            momentum += new
+            np.copyto(y, momentum, where=going)
+            np.copyto(c, new, where=going)
+            t = t_new
+            iterations += 1
+            active &= ~(moved <= limit)
+            finished = ~active.any(axis=1)
+            # sites whose fits have all stopped leave the batch, a few at a time (the copies cost)
+            if finished.sum() * 8 >= live.size:
+                coef[live[finished]] = c[finished]
+                keep = ~finished
+                live, c, y, g, bl, st, active, limit = (a[keep] for a in (live, c, y, g, bl, st, active, limit))
+        coef[live] = c
         residual = energy - (2.0 * np.einsum("seq,seq->qs", coef, b)
                              - np.einsum("seq,seq->qs", coef, np.matmul(gram, coef)))
         # a site barely strained at all is treated as seen (its details are near zero anyway)
-        return np.clip(np.maximum(residual, 0.0) / (energy + 1e-12), 0.0, 1.0)
+        rho = np.clip(np.maximum(residual, 0.0) / (energy + 1e-12), 0.0, 1.0)
+        return NoveltyFit(rho, iterations, int(active.sum()))
 
     @cached_property
     def _cone(self):

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from facepipe.parallel import map_blocks
+
 
 def vertex_face_matrix(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """(V, T) incidence matrix: summing face quantities onto vertices is one sparse product."""
@@ -83,18 +85,16 @@ def local_frames(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray,
     """
     vertices = np.asarray(vertices)
     if vertices.ndim == 3 and vertices.shape[0] > 1 and vertices.shape[0] * vertices.shape[1] >= 1_000_000:
-        # a batch of large meshes: one pose at a time in two threads (numpy's loops release the
-        # GIL; one pose's temporaries are small enough to be reused rather than freshly mapped);
-        # every pose gets the same arithmetic as alone, so the frames are the same bit for bit
-        from concurrent.futures import ThreadPoolExecutor
-
+        # a batch of large meshes: one pose at a time on the shared threads (numpy's loops release
+        # the GIL; one pose's temporaries are small enough to be reused rather than freshly
+        # mapped); every pose gets the same arithmetic as alone, so the frames are the same bit
+        # for bit
         out = np.empty(vertices.shape + (3,), dtype=vertices.dtype)
 
         def one(i):
             out[i] = local_frames(vertices[i], faces, neighbors, incidence)
 
-        with ThreadPoolExecutor(2) as pool:
-            list(pool.map(one, range(vertices.shape[0])))
+        map_blocks(one, range(vertices.shape[0]))
         return out
     n = vertex_normals(vertices, faces, incidence)
     e = vertices[..., neighbors, :] - vertices

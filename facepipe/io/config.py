@@ -18,6 +18,7 @@ import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from facepipe.core.psd import DEFAULT_RCOND
 from facepipe.errors import InputError
 
 
@@ -43,7 +44,7 @@ class PsdConfig:
     min_edge_weight: float = 0.025
     beta: float = 0.0  # WPSD falloff (1/length); 0 = beta_scale / median feature-edge length
     beta_scale: float = 1.0
-    rcond: float = 1e-6
+    rcond: float = DEFAULT_RCOND  # RBF pseudo-inverse cut-off, relative to the largest singular value
     smoothing: float = 0.0
     novelty_tau: float = 0.15  # details fade where this fraction of local strain is unlike the examples' (0 = off)
     novelty_radius: float = 1.5  # neighbourhood of the novelty test, × median feature-edge length

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import os
 import re
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from facepipe.mocap.markers import find_markers
 from facepipe.mocap.registry import Format, marker_label, register
 from facepipe.mocap.take import AXES as _AXES
 from facepipe.mocap.take import Take, write_marker_rows
+from facepipe.parallel import map_blocks
 
 _COLUMN_RE = re.compile(r"^(?P<name>.+)_(?P<axis>[xyzXYZ])$")
 # What a number cell may look like (the per-cell path): plain decimals, exponents,
@@ -134,31 +134,14 @@ def read_csv_take(path: Path, marker_names: list[str], match=None) -> Take:
         stamps[a:b] = out[:, :2]
         flat[a:b] = out[:, 2:]
 
-    starts = range(0, n, step)
-    workers = min(len(starts), _workers())
-    if workers <= 1:
-        for a in starts:
-            parse(a)
-    else:
-        pool = ThreadPoolExecutor(workers)
-        try:
-            for _ in pool.map(parse, starts):  # in order: the first bad line is the one reported
-                pass
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+    # in order: the first bad line is the one reported
+    map_blocks(parse, range(0, n, step))
     if inner is not positions:
         positions[:, present] = inner
         positions[:, ~present] = np.nan
     take = _take_from_values(stamps, positions, line_no, marker_names, found.extra, path)
     take.markers = found.report
     return take
-
-
-def _workers() -> int:
-    try:
-        return max(1, min(8, len(os.sched_getaffinity(0))))
-    except AttributeError:  # not on Linux
-        return max(1, min(8, os.cpu_count() or 1))
 
 
 def _read_bytes(path: Path) -> bytes:
