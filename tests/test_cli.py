@@ -279,3 +279,23 @@ def test_bad_inputs_of_the_checking_commands(pipeline, tmp_path, capsys):
     assert run("eval", tmp_path / "r", "--truth", rig / "take_truth.npz", "--compare", rig / "sample.toml") == 2
     assert "no handles.npz" in capsys.readouterr().err
     assert not (tmp_path / "r" / "compare.json").exists()
+
+
+def test_replay_reports_novelty_fits_stopped_by_their_cap(pipeline, tmp_path, monkeypatch):
+    """A gate whose non-negative fits hit their iteration cap says how many in replay.json (0 when
+    all converged), on both backends."""
+    from facepipe.core.psd import NoveltyGate
+
+    converged = json.loads((pipeline / "out" / "replay.json").read_text())
+    assert converged["novelty_fits_at_cap"] == 0
+    novelty = NoveltyGate.novelty
+    monkeypatch.setattr(NoveltyGate, "novelty",
+                        lambda self, f, tolerance=1e-14, max_iterations=2: novelty(self, f, tolerance, max_iterations))
+    for backend in ("numpy", "opencl"):
+        out = tmp_path / backend
+        code = run("replay", pipeline / "rig" / "take.csv", "-m", pipeline / "model.npz", "-o", out, "--backend",
+                   backend, "--frames", "0:8", "-q")
+        if code == 2 and backend == "opencl":
+            continue  # no OpenCL device here
+        assert code == 0
+        assert json.loads((out / "replay.json").read_text())["novelty_fits_at_cap"] > 0, backend

@@ -442,6 +442,11 @@ class OpenCLEvaluator:
                 if error is not None:
                     raise error
 
+    @property
+    def novelty_fits_at_cap(self) -> int | None:
+        """Novelty-gate fits stopped by their iteration cap so far (None without a gate)."""
+        return None if self.gate is None else self.gate.unconverged_fits
+
     def evaluate(self, handle_positions: np.ndarray, with_large: bool = False, rigid=None,
                  with_normals: bool = False):
         """Final positions (C, V, 3) float32 for head-space handle positions (C, H, 3).

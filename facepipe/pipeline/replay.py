@@ -40,6 +40,12 @@ class NumpyEvaluator:
         self.details = model.detail_model(np.float64)
         self.stage_seconds = {"large_scale": 0.0, "frames": 0.0, "fine_scale": 0.0}
 
+    @property
+    def novelty_fits_at_cap(self) -> int | None:
+        """Novelty-gate fits stopped by their iteration cap so far (None without a gate)."""
+        gate = None if self.details is None else self.details.gate
+        return None if gate is None else gate.unconverged_fits
+
     def evaluate(self, handle_positions: np.ndarray, with_large: bool = False):
         """Final positions (C, V, 3) for head-space handle positions (C, H, 3).
 
@@ -231,6 +237,9 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
         "seconds": seconds,
         "frames_per_second": T / seconds if seconds > 0 else None,
         "stage_seconds": dict(evaluator.stage_seconds),
+        # the gate's non-negative fits that stopped at their iteration cap (their confidence is
+        # that of the last iterate); None without a gate
+        "novelty_fits_at_cap": evaluator.novelty_fits_at_cap,
         "model": model.path,
         "config_digest": model.meta.get("config_digest"),
     }
