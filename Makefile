@@ -28,6 +28,10 @@ demo: venv
 test: venv
 	$(BIN)/python -m pytest -q -ra
 
+# the unit tests alone: no ICT kit, no end-to-end pipeline runs (a fraction of `make test`)
+test-fast: venv
+	$(BIN)/python -m pytest -q -m "not ict and not slow"
+
 # the paper's configuration: ~530k vertices, 89 markers on the shell, 6 example poses (a few minutes)
 bench: venv
 	$(BIN)/python -m bench.paper_scale -o bench/results.json --vertices 530000 --markers 89 --examples 6 --frames 128

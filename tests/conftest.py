@@ -99,3 +99,21 @@ def mutate_bytes(draw, data: bytearray, tokens: list[bytes], edits: int, insert:
                 lines.insert(i, lines[j])
             data = bytearray(b"\n".join(lines))
     return bytes(data)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark what `make test-fast` leaves out: tests on the ICT kit (``ict``: they use its fixture or
+    call :func:`ict_or_skip`) and end-to-end runs of the command line over a whole pipeline
+    (``slow``: they use a module's ``pipeline`` fixture or run the benchmark)."""
+    import inspect
+
+    for item in items:
+        fixtures = set(getattr(item, "fixturenames", ()))
+        try:
+            source = inspect.getsource(item.function)
+        except (OSError, TypeError):
+            source = ""
+        if "ict_rig_fit" in fixtures or "ict_or_skip" in source or "ict_fit" in fixtures:
+            item.add_marker(pytest.mark.ict)
+        if "pipeline" in fixtures or "bench" in item.name:
+            item.add_marker(pytest.mark.slow)

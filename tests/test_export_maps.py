@@ -21,7 +21,7 @@ from facepipe.core.tangent_frames import local_frames, to_local
 from facepipe.pipeline.detail_layers import uv_tangent_frames
 from facepipe.io.model_file import load_model, save_model
 from facepipe.pipeline.replay import NumpyEvaluator
-from facepipe.export.uv_raster import corner_uv_samples, uv_to_texel
+from facepipe.export.uv_raster import corner_uv_lookups, uv_to_texel
 from tests.conftest import ROOT, ict_or_skip
 from tests.conftest import run_cli as run
 
@@ -78,7 +78,7 @@ def test_detail_layer_is_final_minus_large_in_every_space(rig):
     # tangent space: an orthonormal change of basis per UV corner of the same vectors
     mesh = model.mesh()
     tan = DetailLayer(model, "tangent", mesh)(h["head"])
-    v, _, _, ui = corner_uv_samples(mesh)
+    v, _, _, ui = corner_uv_lookups(mesh)
     np.testing.assert_allclose(np.linalg.norm(tan[:, ui], axis=2), np.linalg.norm(local[:, v], axis=2), atol=1e-9)
     np.testing.assert_allclose(tan[:, ui, 2], local[:, v, 2], atol=1e-9)  # the n coordinate is shared
 
@@ -97,7 +97,7 @@ def test_maps_at_2048_give_back_every_vertex_sample(rig, tmp_path):
     head = np.load(replay_dir / "handles.npz")["head"]
     pick = [1, 5]  # two frames keep the test quick; the CLI path is exercised below at lower resolutions
     final, large, _, local = reference(model, replay_dir)
-    v, uv, tile, ui = corner_uv_samples(mesh)
+    v, uv, tile, ui = corner_uv_lookups(mesh)
     assert set(tile.tolist()) == {1001}
     frames = uv_tangent_frames(large, mesh.faces, mesh.face_uvs, mesh.uvs)
     want = {"local": local[:, v], "object": (final - large)[:, v],  # head space: no rotation below
@@ -123,7 +123,7 @@ def test_maps_at_2048_give_back_every_vertex_sample(rig, tmp_path):
                                      reference_values[t])
             assert before.max() >= 3 * max(err.max(), 1e-3), (name, t, before.max(), err.max())
         # the export's own report: every sample, measured on the half floats written
-        assert report["samples"] == len(raster.tiles[1001].sample_slots) and report["frames"] == 2
+        assert report["samples"] == len(raster.tiles[1001].lookup_slots) and report["frames"] == 2
         assert report["over_limit"] == 0 and report["relative"] <= 1e-3, report
 
 
@@ -146,7 +146,7 @@ def test_object_and_tangent_maps_against_the_replay(rig, tmp_path):
     model = load_model(rig.models["wpsd"])
     replay_dir = rig.replays["wpsd"]
     mesh = model.mesh()
-    v, uv, _, uv_index = corner_uv_samples(mesh)
+    v, uv, _, uv_index = corner_uv_lookups(mesh)
     # object space: the replay's own final − large, in the take's space (head motion kept)
     pos = np.load(replay_dir / "positions.npy").astype(np.float64)
     large = np.load(replay_dir / "large_scale.npy").astype(np.float64)
@@ -391,7 +391,7 @@ def test_ict_maps_give_back_every_vertex_sample_the_layout_resolves(tmp_path):
            save_large=True)
     model = load_model(model.path)
     mesh = model.mesh()
-    v, uv, tile, ui = corner_uv_samples(mesh)
+    v, uv, tile, ui = corner_uv_lookups(mesh)
     assert set(tile.tolist()) == {1001, 1002}
     unresolvable = np.zeros(len(v), dtype=bool)
     for k in (1001, 1002):

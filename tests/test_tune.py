@@ -24,13 +24,13 @@ def sample(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def sample_report(sample):
+def lookup_report(sample):
     rig = load_rig(sample["config"])
     return rig, tune_rig(rig, TuneConfig(**SMALL))
 
 
-def test_defaults_are_candidates_and_never_beaten(sample_report):
-    rig, report = sample_report
+def test_defaults_are_candidates_and_never_beaten(lookup_report):
+    rig, report = lookup_report
     d, c = report["default"], report["chosen"]
     assert d["k_stretch"] in report["candidates"]["k_stretch"]
     assert c["cv_rms"] <= d["cv_rms"]
@@ -47,9 +47,9 @@ def test_defaults_are_candidates_and_never_beaten(sample_report):
     assert report["seconds"]["total"] > 0 and len(report["folds"]) >= 2
 
 
-def test_sample_rig_lands_in_a_good_region(sample_report):
+def test_sample_rig_lands_in_a_good_region(lookup_report):
     """The chosen stiffness is the best of the shell sweep and the details help on held-out poses."""
-    rig, report = sample_report
+    rig, report = lookup_report
     shell = {r["k_stretch"]: r["large_rms"] for r in report["shell"]}
     assert shell[report["chosen"]["k_stretch"]] == min(shell.values())
     assert report["chosen"]["cv_rms"] < report["chosen"]["large_cv_rms"]

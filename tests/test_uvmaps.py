@@ -9,7 +9,7 @@ import scipy.ndimage
 from facepipe.errors import InputError
 from facepipe.pipeline.detail_layers import uv_tangent_frames
 from facepipe.core.mesh import Mesh
-from facepipe.export.uv_raster import (corner_uv_samples, mesh_raster, sample_bilinear, udim_tiles, uv_raster, uv_to_texel)
+from facepipe.export.uv_raster import (corner_uv_lookups, mesh_raster, bilinear_lookup, udim_tiles, uv_raster, uv_to_texel)
 
 
 def texel_uv(width, height):
@@ -88,10 +88,10 @@ def test_seams_give_each_island_the_vertex_values():
     values = np.c_[mesh.vertices[:, 0], mesh.vertices[:, 1], mesh.vertices[:, 0] * mesh.vertices[:, 1]]
     img = raster(values)
     # vertices on the seam x = ½ appear in both islands; each sample returns the vertex value
-    v, uv, tile, _ = corner_uv_samples(mesh)
+    v, uv, tile, _ = corner_uv_lookups(mesh)
     on_seam = np.isclose(mesh.vertices[v, 0], 0.5)
     assert on_seam.sum() == 2 * 7  # 7 seam vertices, twice each
-    got = sample_bilinear(img, uv)
+    got = bilinear_lookup(img, uv)
     # affine channels: exact, on island borders too (the first padding ring continues the
     # triangles), but for samples on the texture's own border, which clamps half a texel in
     inner = ((uv > 0.5 / 64) & (uv < 1 - 0.5 / 64)).all(axis=1)
@@ -134,7 +134,7 @@ def test_padding_continues_the_nearest_triangle_then_clamps_to_it():
         fimg = fitted(values, fill=np.nan)
         assert np.array_equal(fimg[~moved.reshape(64, 64)], img[~moved.reshape(64, 64)], equal_nan=True)
         if padding == 3:  # footprints within the filled texels: the corners give back their values
-            plain, fit = (np.abs(sample_bilinear(m, uv[0]) - values) for m in (img, fimg))
+            plain, fit = (np.abs(bilinear_lookup(m, uv[0]) - values) for m in (img, fimg))
             assert plain.max() > 1e-3 and fit.max() <= 0.01 * plain.max()
     # a texel 3 texels right of the edge (0.7, 0.3)-(0.5, 0.7) shows the value on that edge
     r = uv_raster(uv, np.array([[0, 1, 2]]), 3, 64, 64, padding=3)
@@ -152,7 +152,7 @@ def test_vertex_samples_are_given_back_on_both_sides_of_a_seam():
     (vertex values) and per UV index (values that differ across the seam)."""
     mesh = grid_mesh(9, islands=True)
     rng = np.random.default_rng(1)
-    v, uv, _, ui = corner_uv_samples(mesh)
+    v, uv, _, ui = corner_uv_lookups(mesh)
     x, y = uv_to_texel(uv, 40, 40)
     # beyond the outermost texel centres a lookup depends on the wrap mode: not fitted
     inner = (x >= 0) & (x <= 39) & (y >= 0) & (y <= 39)
@@ -163,13 +163,13 @@ def test_vertex_samples_are_given_back_on_both_sides_of_a_seam():
         plain = mesh_raster(mesh, 40, 40, padding=2, slots=slots, fit=False).tiles[1001]
         assert np.array_equal(fitted.matrix.toarray(), plain.matrix.toarray())
         span = values[at].max(axis=0) - values[at].min(axis=0)
-        before = np.abs(sample_bilinear(plain(values, dtype=np.float64), uv) - values[at]) / span
-        after = np.abs(sample_bilinear(fitted(values, dtype=np.float64), uv) - values[at]) / span
+        before = np.abs(bilinear_lookup(plain(values, dtype=np.float64), uv) - values[at]) / span
+        after = np.abs(bilinear_lookup(fitted(values, dtype=np.float64), uv) - values[at]) / span
         assert before[inner].max() > 0.05
         assert after[inner].max() <= 0.01 * before[inner].max(), (slots, after[inner].max(), before[inner].max())
         # the raster's own measure agrees with this one
-        errors = fitted.sample_errors(values, fitted(values, dtype=np.float64))
-        assert errors.shape == (len(fitted.sample_slots), 2)
+        errors = fitted.lookup_errors(values, fitted(values, dtype=np.float64))
+        assert errors.shape == (len(fitted.lookup_slots), 2)
         assert errors.max() == pytest.approx((after * span).max(), rel=1e-9)
         # only texels in the samples' footprints move
         moved = np.zeros(40 * 40, dtype=bool)
@@ -180,13 +180,13 @@ def test_vertex_samples_are_given_back_on_both_sides_of_a_seam():
 
 def test_contradicting_samples_get_the_least_squares_compromise():
     # two islands stacked on the same UVs with different values: each corner's lookup can only be
-    # one value, the fit makes it the mean, and sample_errors says how far that is from each
+    # one value, the fit makes it the mean, and lookup_errors says how far that is from each
     uv = np.array([[[0.2, 0.2], [0.8, 0.25], [0.5, 0.8]]] * 2)
     r = uv_raster(uv, np.array([[0, 1, 2], [3, 4, 5]]), 6, 32, 32, padding=4)
-    assert len(r.sample_slots) == 6 and len(r.fit.samples) == 6
+    assert len(r.lookup_slots) == 6 and len(r.fit.samples) == 6
     values = np.array([0.0, 0.0, 0.0, 1.0, 2.0, 3.0])
-    err = r.sample_errors(values, r(values, dtype=np.float64))
-    want = np.abs(values[r.sample_slots] - np.array([0.5, 1.0, 1.5])[r.sample_slots % 3])
+    err = r.lookup_errors(values, r(values, dtype=np.float64))
+    want = np.abs(values[r.lookup_slots] - np.array([0.5, 1.0, 1.5])[r.lookup_slots % 3])
     np.testing.assert_allclose(err, want, rtol=1e-2)
 
 
@@ -213,14 +213,14 @@ def test_udim_tiles_and_their_own_rasters():
     assert tr.udim and list(tr.tiles) == [1001, 1012]
     values = mesh.vertices[:, 1]
     maps = tr(values)
-    v, uv, tile, _ = corner_uv_samples(mesh)
+    v, uv, tile, _ = corner_uv_lookups(mesh)
     assert ((uv >= 0) & (uv <= 1)).all()
     for t, img in maps.items():
         s = tile == t
         # half a texel of the (unit-gradient) field at the tile border, where lookups clamp
-        np.testing.assert_allclose(sample_bilinear(img, uv[s]), values[v[s]], atol=0.5 / 32 + 1e-6)
+        np.testing.assert_allclose(bilinear_lookup(img, uv[s]), values[v[s]], atol=0.5 / 32 + 1e-6)
         inner = s & ((uv > 0.5 / 32) & (uv < 1 - 0.5 / 32)).all(axis=1)
-        np.testing.assert_allclose(sample_bilinear(img, uv[inner]), values[v[inner]], atol=1e-6)
+        np.testing.assert_allclose(bilinear_lookup(img, uv[inner]), values[v[inner]], atol=1e-6)
     bad = mesh.uvs.copy()
     bad[0] = [-0.5, 0.2]
     with pytest.raises(InputError, match="UDIM"):
@@ -241,7 +241,7 @@ def test_sample_bilinear_matches_scipy():
     uv = rng.uniform(0.03, 0.97, size=(50, 2))
     x, y = uv_to_texel(uv, 23, 17)
     ref = np.stack([scipy.ndimage.map_coordinates(img[..., c], [y, x], order=1) for c in range(3)], axis=-1)
-    np.testing.assert_allclose(sample_bilinear(img, uv), ref, atol=1e-12)
+    np.testing.assert_allclose(bilinear_lookup(img, uv), ref, atol=1e-12)
 
 
 def test_degenerate_uv_triangles_are_skipped():

@@ -1,6 +1,9 @@
 """The facepipe command line: parse, call the library, report.
 
 Exit status: 0 success, 2 bad input (the message names the file and the fix), 1 internal error.
+
+Each command imports the library modules it needs when it runs, so that ``facepipe --help`` and
+a mistyped option answer at once, without loading SciPy, PyOpenCL or matplotlib.
 """
 
 from __future__ import annotations
@@ -9,13 +12,16 @@ import json
 import sys
 import time
 import traceback
+from concurrent.futures import ThreadPoolExecutor, wait
 from pathlib import Path
 
 import click
 import numpy as np
+from tqdm import tqdm
 
 from facepipe.errors import InputError
 from facepipe.export import registry as export_formats  # names the formats without importing them
+from facepipe.io.atomic import atomic_path
 
 
 class Reporter:
@@ -34,7 +40,6 @@ class Reporter:
             click.echo(text)
 
     def bar(self, total: int, unit: str = "frame", desc: str = ""):
-        from tqdm import tqdm
 
         return tqdm(total=total, unit=unit, desc=desc, disable=self.quiet, dynamic_ncols=True, file=sys.stderr)
 
@@ -53,7 +58,6 @@ def _reporter(ctx: click.Context, quiet: bool, verbose: bool) -> Reporter:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    from facepipe.io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2, default=_json_default))
@@ -292,7 +296,6 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV; it is converted to the
     rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section).
     """
-    from concurrent.futures import ThreadPoolExecutor, wait
 
     from facepipe.mocap.cleaning import CleanOptions
     from facepipe.mocap import parse_frame_slice, read_take

@@ -21,6 +21,8 @@ from typing import Sequence
 import numpy as np
 
 from facepipe.errors import InputError
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 
 @dataclass
@@ -411,8 +413,6 @@ def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or an
     >>> check_components(m, [0])[0]
     1
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
     where = _where(mesh, path)
     n_v = mesh.n_vertices

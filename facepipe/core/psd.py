@@ -430,7 +430,7 @@ def fit_details(method: str, features: np.ndarray, details: np.ndarray, basis: l
     return DetailModel(method, basis_features, weights, const, alpha)
 
 
-def spread_sample(n: int, count: int) -> np.ndarray:
+def spread_subset(n: int, count: int) -> np.ndarray:
     """``count`` indices evenly spread over ``range(n)`` (all of them when count is 0 or ≥ n)."""
     if count <= 0 or count >= n:
         return np.arange(n)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 
 
@@ -182,7 +183,6 @@ def interpolate_poses(R: np.ndarray, t: np.ndarray, times: np.ndarray | None = N
     ValueError
         No frame has a pose.
     """
-    from scipy.spatial.transform import Rotation, Slerp
 
     R = np.array(R, dtype=np.float64)
     t = np.array(t, dtype=np.float64)

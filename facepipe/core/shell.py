@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
+import scipy.sparse.linalg as spla
 
 # A near-degenerate triangle (an angle θ → 0) would put an unbounded weight cot θ on one edge
 # and ruin the factorisation's conditioning, so no angle is taken below MIN_ANGLE, where
@@ -153,7 +155,6 @@ def massmatrix(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def marker_spacing(vertices: np.ndarray, handles: np.ndarray) -> float:
     """Mean distance from each handle to its nearest other handle (length units)."""
-    from scipy.spatial import cKDTree
 
     points = np.asarray(vertices, dtype=np.float64)[np.asarray(handles)]
     if len(points) < 2:
@@ -254,7 +255,7 @@ class CholeskyFactor:
 
 class _Cholmod:
     def __init__(self, A: sp.csr_matrix):
-        import cholespy
+        import cholespy  # lazily: the fallback where PARDISO is not available
 
         coo = A.tocoo()
         self._solver = cholespy.CholeskySolverD(A.shape[0], coo.row.astype(np.int32), coo.col.astype(np.int32),
@@ -269,7 +270,6 @@ class _Cholmod:
 
 class _SuperLU:
     def __init__(self, A: sp.csr_matrix):
-        import scipy.sparse.linalg as spla
 
         self._solver = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
 

@@ -18,8 +18,8 @@ interpolate differently oriented frames between them. The n channel (and ``scala
 ``tangent`` and ``object`` maps have no such caveat (:mod:`facepipe.pipeline.detail_layers`).
 
 At the vertices' UVs a bilinear lookup gives the vertex values back (the raster fits the
-texels there, :class:`facepipe.export.uv_raster.SampleFit`) wherever the layout has texels enough; the
-export measures it on the pixels it writes, frame by frame (``report``, :func:`sample_report`).
+texels there, :class:`facepipe.export.uv_raster.LookupFit`) wherever the layout has texels enough; the
+export measures it on the pixels it writes, frame by frame (``report``, :func:`lookup_report`).
 
 **Wrinkle maps** (``--format wrinkle``, PSD models): a PSD detail is
 d_v(f) = c_v + Σ_i w_{v,i} φ_i(f) with coefficients φ_i(f) = |f − f_i| shared by every
@@ -106,7 +106,7 @@ def write_displacement_maps(
     chunk : frames evaluated together.
     progress : called with the number of frames done.
     report : a dict to fill with how well the written maps (in their pixel type) give back the
-        vertex values by bilinear lookup at the vertices' UVs (:func:`sample_report`).
+        vertex values by bilinear lookup at the vertices' UVs (:func:`lookup_report`).
 
     Returns
     -------
@@ -128,7 +128,7 @@ def write_displacement_maps(
     dest_dir.mkdir(parents=True, exist_ok=True)
     if resume:
         remove_partial_files(flat)
-    check = _SampleCheck(raster) if report is not None else None
+    check = _LookupCheck(raster) if report is not None else None
     for s in range(0, n_frames, chunk):
         e = min(n_frames, s + chunk)
         todo = [t for t in range(s, e) if not (resume and all(p.exists() for p in paths[t].values()))]
@@ -160,8 +160,8 @@ def write_displacement_maps(
     return paths
 
 
-class _SampleCheck:
-    """Accumulates, over frames, the vertex-sample errors of maps (see :func:`sample_report`)."""
+class _LookupCheck:
+    """Accumulates, over frames, the vertex-sample errors of maps (see :func:`lookup_report`)."""
 
     def __init__(self, raster: TiledRaster):
         self.raster = raster
@@ -174,14 +174,14 @@ class _SampleCheck:
         values = values.reshape(values.shape[0], -1)
         for tile, image in images.items():
             r = self.raster.tiles[tile]
-            e = r.sample_errors(values, image, pixel_type).reshape(r.sample_slots.shape[0], -1)
+            e = r.lookup_errors(values, image, pixel_type).reshape(r.lookup_slots.shape[0], -1)
             if tile not in self.err:
                 self.err[tile], self.where[tile] = e, np.full(e.shape, t)
             else:
                 worse = e > self.err[tile]
                 self.err[tile] = np.where(worse, e, self.err[tile])
                 self.where[tile] = np.where(worse, t, self.where[tile])
-            vs = values[r.sample_slots]
+            vs = values[r.lookup_slots]
             if vs.shape[0]:
                 lo, hi = vs.min(axis=0), vs.max(axis=0)
                 self.lo = lo if self.lo is None else np.minimum(self.lo, lo)
@@ -189,15 +189,15 @@ class _SampleCheck:
         self.frames += 1
 
     def result(self) -> dict:
-        return sample_report(self.raster, self.err, self.where, self.lo, self.hi, self.frames)
+        return lookup_report(self.raster, self.err, self.where, self.lo, self.hi, self.frames)
 
 
-def sample_report(raster: TiledRaster, err: dict, where: dict, lo, hi, frames: int, limit: float = 0.02) -> dict:
+def lookup_report(raster: TiledRaster, err: dict, where: dict, lo, hi, frames: int, limit: float = 0.02) -> dict:
     """How well maps give back the vertex values at the vertices' UVs, over a take.
 
-    Every vertex sample (a distinct vertex/UV pair, :attr:`facepipe.export.uv_raster.UVRaster.sample_slots`)
+    Every vertex lookup (a distinct vertex/UV pair, :attr:`facepipe.export.uv_raster.UVRaster.lookup_slots`)
     is looked up bilinearly in its tile's map and compared with its value; errors are relative
-    to each channel's range over the samples and frames.
+    to each channel's range over the lookups and frames.
 
     Returns
     -------
@@ -214,7 +214,7 @@ def sample_report(raster: TiledRaster, err: dict, where: dict, lo, hi, frames: i
     tile = max(rel, key=lambda k: rel[k].max() if rel[k].size else -1.0)
     k, c = np.unravel_index(int(np.argmax(rel[tile])), rel[tile].shape) if rel[tile].size else (0, 0)
     r = raster.tiles[tile]
-    worst = {"tile": int(tile), "slot": int(r.sample_slots[k]), "uv": [float(x) for x in r.sample_uv[k]],
+    worst = {"tile": int(tile), "slot": int(r.lookup_slots[k]), "uv": [float(x) for x in r.lookup_uv[k]],
              "channel": int(c), "frame_index": int(where[tile][k, c])} if rel[tile].size else None
     return {
         "samples": int(sum(e.shape[0] for e in err.values())), "frames": int(frames),
@@ -553,7 +553,7 @@ def _map_raster(replay, model, mesh, options: ExportOptions, slots: str) -> tupl
 
 
 def _sample_note(samples: dict, slots: str, frames: np.ndarray) -> str:
-    """What to tell the user when maps miss vertex values (see :func:`sample_report`)."""
+    """What to tell the user when maps miss vertex values (see :func:`lookup_report`)."""
     w = samples["worst"]
     return (f"{samples['over_limit']} of {samples['samples']} vertex samples of the maps are off by more than "
             f"{100 * samples['limit']:.0f} % of the detail range (at most {100 * samples['relative']:.2g} %, "

@@ -28,14 +28,14 @@ Conventions
   (eyelid and lip rims) those texels lie in different triangles of the vertex's fan, or across
   an island border, and the piecewise-linear field bends at the texel scale, so plain
   rasterisation misses the vertex value by a sizeable fraction of the field's range. The
-  raster therefore also fits its texels to the vertices (:class:`SampleFit`): the texels of
-  the 2 × 2 footprints of every vertex sample (a distinct (slot, UV) pair: each UV corner of a
+  raster therefore also fits its texels to the vertices (:class:`LookupFit`): the texels of
+  the 2 × 2 footprints of every vertex lookup (a distinct (slot, UV) pair: each UV corner of a
   seam vertex is its own sample) take the smallest change from their rasterised values that
   makes the bilinear lookups return the vertex values — a damped least-squares problem whose
   matrix depends only on the layout and the resolution, factorised once; each map is then one
   sparse product plus one sparse solve. Samples whose footprints overlap are fitted together;
   contradictory ones (islands closer than a texel with different values) get the
-  least-squares compromise, which :meth:`UVRaster.sample_errors` measures. The fit is linear
+  least-squares compromise, which :meth:`UVRaster.lookup_errors` measures. The fit is linear
   in the values, so layered wrinkle maps stay exact blends.
 """
 
@@ -49,6 +49,7 @@ import scipy.sparse as sp
 
 from facepipe.core.raster import triangle_pixels
 from facepipe.errors import InputError
+import scipy.sparse.linalg as spla
 
 # a texel centre on a shared edge belongs to both triangles; the tolerance (in barycentric
 # units) closes hairline cracks from rounding without growing triangles visibly
@@ -63,16 +64,16 @@ _FIT_DAMPING = 1e-3
 
 
 @dataclass
-class SampleFit:
-    """Texel corrections that make bilinear lookups at the vertex samples return their values.
+class LookupFit:
+    """Texel corrections that make bilinear lookups at the vertex lookups return their values.
 
-    With A the rasterisation (texels from slot values), B the bilinear weights of the samples
+    With A the rasterisation (texels from slot values), B the bilinear weights of the lookups
     on the texels of their footprints and E the selection of each sample's slot, the misfit of
     plain rasterisation is r = R v with R = E − B A. The correction δ of the footprint texels is
 
         δ = argmin |B δ − r|² + μ |δ|² = (BᵀB + μ I)⁻¹ Bᵀ r,
 
-    the smallest change that fits the samples (a texel outside every footprint keeps its
+    the smallest change that fits the lookups (a texel outside every footprint keeps its
     rasterised value). BᵀB + μ I couples only texels within one texel of each other (≤ 9 per
     row) and depends only on the layout: it is factorised once (sparse LU).
 
@@ -81,7 +82,7 @@ class SampleFit:
     rows : (F,) int64, the rows of :attr:`UVRaster.matrix` (filled texels) that the fit moves.
     weights : (n, F) csr_matrix, B: bilinear weights of the fitted samples on those texels.
     residual : (n, S) csr_matrix, R: sample value minus plain bilinear lookup, per slot value.
-    samples : (n,) int64, the fitted samples' indices into :attr:`UVRaster.sample_slots`.
+    samples : (n,) int64, the fitted lookups' indices into :attr:`UVRaster.lookup_slots`.
     damping : μ.
     """
 
@@ -119,9 +120,9 @@ class UVRaster:
     filled : (height, width) bool, covered texels plus the edge padding.
     triangle : (height, width) int64, the triangle whose values a filled texel shows
         (−1 where empty): for diagnostics and overlap checks.
-    sample_slots, sample_uv : (n,) int64 and (n, 2) float64, the vertex samples: every
+    lookup_slots, lookup_uv : (n,) int64 and (n, 2) float64, the vertex lookups: every
         distinct (slot, UV) pair of the triangles' corners within the tile.
-    fit : :class:`SampleFit` that corrects the texels around the samples (None: plain
+    fit : :class:`LookupFit` that corrects the texels around the lookups (None: plain
         rasterisation, ``matrix`` alone).
     """
 
@@ -132,9 +133,9 @@ class UVRaster:
     covered: np.ndarray
     filled: np.ndarray
     triangle: np.ndarray
-    sample_slots: np.ndarray | None = None
-    sample_uv: np.ndarray | None = None
-    fit: SampleFit | None = None
+    lookup_slots: np.ndarray | None = None
+    lookup_uv: np.ndarray | None = None
+    fit: LookupFit | None = None
 
     @property
     def n_slots(self) -> int:
@@ -169,15 +170,15 @@ class UVRaster:
         out[self.texels] = mapped
         return out.reshape((self.height, self.width) + values.shape[1:])
 
-    def sample_errors(self, values: np.ndarray, image: np.ndarray, pixel_type=None) -> np.ndarray:
-        """|bilinear lookup of ``image`` at the vertex samples − their values|: (n,) or (n, C).
+    def lookup_errors(self, values: np.ndarray, image: np.ndarray, pixel_type=None) -> np.ndarray:
+        """|bilinear lookup of ``image`` at the vertex lookups − their values|: (n,) or (n, C).
 
         ``values`` (S[, C]) are what ``image`` (this raster's map of them) shows; a sample outside
         the tile's filled texels compares with the fill value. ``pixel_type`` (e.g. np.float16)
         rounds the texels looked up as a file of that type stores them.
         """
-        want = np.asarray(values, dtype=np.float64)[self.sample_slots]
-        got = sample_bilinear(image, self.sample_uv, pixel_type).reshape(want.shape)
+        want = np.asarray(values, dtype=np.float64)[self.lookup_slots]
+        got = bilinear_lookup(image, self.lookup_uv, pixel_type).reshape(want.shape)
         return np.abs(got - want)
 
 
@@ -244,8 +245,8 @@ def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, wid
     n_slots : number of value slots (columns of the matrix).
     width, height : image size in texels.
     padding : texels of edge padding around every island (0 for none).
-    fit : fit the texels around the vertex samples so that bilinear lookups there return the
-        vertex values (:class:`SampleFit`); False for plain rasterisation. A sample whose
+    fit : fit the texels around the vertex lookups so that bilinear lookups there return the
+        vertex values (:class:`LookupFit`); False for plain rasterisation. A sample whose
         footprint reaches an empty texel (an island border without padding), or that lies
         beyond the outermost texel centres (within half a texel of the tile's edge, where a
         lookup depends on the wrap mode), is not fitted.
@@ -315,15 +316,15 @@ def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, wid
     matrix = sp.csr_matrix((bary.ravel(), corner_slots[tri].ravel(), np.arange(0, 3 * n + 1, 3)), shape=(n, n_slots))
     filled = np.zeros(height * width, dtype=bool)
     filled[texel] = True
-    sample_slots, sample_uv = _vertex_samples(corner_uv, corner_slots)
+    lookup_slots, lookup_uv = _vertex_lookups(corner_uv, corner_slots)
     raster = UVRaster(width, height, matrix, texel, covered, filled.reshape(height, width),
-                      owner.reshape(height, width), sample_slots, sample_uv)
+                      owner.reshape(height, width), lookup_slots, lookup_uv)
     if fit:
-        raster.fit = _fit_samples(raster)
+        raster.fit = _fit_lookups(raster)
     return raster
 
 
-def _vertex_samples(corner_uv: np.ndarray, corner_slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _vertex_lookups(corner_uv: np.ndarray, corner_slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distinct (slot, UV) pairs of the corners with a finite UV in the tile ([0, 1]²)."""
     uv = corner_uv.reshape(-1, 2)
     slot = corner_slots.reshape(-1)
@@ -334,12 +335,11 @@ def _vertex_samples(corner_uv: np.ndarray, corner_slots: np.ndarray) -> tuple[np
     return keys[:, 0].astype(np.int64), keys[:, 1:]
 
 
-def _fit_samples(raster: UVRaster, damping: float = _FIT_DAMPING) -> SampleFit:
-    """The :class:`SampleFit` of a plain raster (see there for the least-squares problem)."""
-    import scipy.sparse.linalg as spla
+def _fit_lookups(raster: UVRaster, damping: float = _FIT_DAMPING) -> LookupFit:
+    """The :class:`LookupFit` of a plain raster (see there for the least-squares problem)."""
 
     W, H = raster.width, raster.height
-    index, weight = bilinear_footprint(raster.sample_uv, W, H)  # (n, 4) each
+    index, weight = bilinear_footprint(raster.lookup_uv, W, H)  # (n, 4) each
     row_of = np.full(H * W, -1, dtype=np.int64)
     row_of[raster.texels] = np.arange(raster.texels.shape[0])
     rows = row_of[index]
@@ -347,7 +347,7 @@ def _fit_samples(raster: UVRaster, damping: float = _FIT_DAMPING) -> SampleFit:
     ok = (~used | (rows >= 0)).all(axis=1)  # footprints within the filled texels
     # beyond the outermost texel centres a lookup depends on the renderer's wrap mode (clamp,
     # periodic, the next UDIM tile): such samples are not fitted
-    x, y = uv_to_texel(raster.sample_uv, W, H)
+    x, y = uv_to_texel(raster.lookup_uv, W, H)
     ok &= (x >= 0.0) & (x <= W - 1.0) & (y >= 0.0) & (y <= H - 1.0)
     samples = np.flatnonzero(ok)
     rows, weight, used = rows[ok], weight[ok], used[ok]
@@ -356,7 +356,7 @@ def _fit_samples(raster: UVRaster, damping: float = _FIT_DAMPING) -> SampleFit:
     unknown, col = np.unique(rows[used], return_inverse=True)
     B = sp.csr_matrix((weight[used], col, np.r_[0, np.cumsum(used.sum(axis=1))]), shape=(n, unknown.shape[0]))
     B.sum_duplicates()  # clamped footprints at the image border repeat a texel
-    E = sp.csr_matrix((np.ones(n), raster.sample_slots[samples], np.arange(n + 1)), shape=(n, S))
+    E = sp.csr_matrix((np.ones(n), raster.lookup_slots[samples], np.arange(n + 1)), shape=(n, S))
     R = (E - B @ raster.matrix[unknown]).tocsr()
     # plain rasterisation reproduces a sample exactly where its footprint lies in one
     # triangle's plane: rounding there leaves entries at the 1e-16 level
@@ -365,7 +365,7 @@ def _fit_samples(raster: UVRaster, damping: float = _FIT_DAMPING) -> SampleFit:
     normal = (B.T @ B + damping * sp.identity(unknown.shape[0], format="csr")).tocsc()
     factor = spla.splu(normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                        options={"SymmetricMode": True}) if unknown.shape[0] else None
-    return SampleFit(unknown, B, R, samples, damping, factor)
+    return LookupFit(unknown, B, R, samples, damping, factor)
 
 
 def _barycentric(p: np.ndarray, q: np.ndarray, e1: np.ndarray, e2: np.ndarray, det: np.ndarray) -> np.ndarray:
@@ -403,7 +403,7 @@ def _closest_point_barycentric(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def sample_bilinear(image: np.ndarray, uv: np.ndarray, pixel_type=None) -> np.ndarray:
+def bilinear_lookup(image: np.ndarray, uv: np.ndarray, pixel_type=None) -> np.ndarray:
     """Bilinear lookup of a map at UVs (one tile), clamped at the image border.
 
     Parameters
@@ -516,7 +516,7 @@ def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "v
     return TiledRaster(out)
 
 
-def corner_uv_samples(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def corner_uv_lookups(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every distinct (vertex, UV) pair of a mesh: where a vertex's value sits in the maps.
 
     Returns

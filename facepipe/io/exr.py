@@ -33,7 +33,7 @@ def write_exr(path: str | os.PathLike, image: np.ndarray, half: bool = True, att
     -------
     >>> write_exr("disp.exr", np.zeros((256, 256, 3)))  # doctest: +SKIP
     """
-    import OpenEXR
+    import OpenEXR  # lazily: only map exports need it (start-up)
 
     image = np.asarray(image)
     dtype = np.float16 if half else np.float32
@@ -60,7 +60,7 @@ def read_exr(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     image : (H, W) for a ``Y`` file, (H, W, 3) for ``R, G, B``; in the stored pixel type.
     header : dict of the header attributes.
     """
-    import OpenEXR
+    import OpenEXR  # lazily: only map exports need it (start-up)
 
     f = OpenEXR.File(str(path), separate_channels=True)
     ch = f.channels()

@@ -620,7 +620,7 @@ def _fast_indices(raw: np.ndarray, count_before: np.ndarray, count_total: int) -
 
 
 def _load_with_trimesh(path: Path) -> Mesh:
-    import trimesh
+    import trimesh  # lazily: only formats other than OBJ need it (start-up)
 
     if path.stat().st_size == 0:
         raise InputError("the file is empty", path=path, hint="re-export the mesh")

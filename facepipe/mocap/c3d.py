@@ -40,7 +40,7 @@ def _labels(point: dict) -> list[str]:
 
 def _load(path: str) -> dict:
     """Everything this module needs from a C3D file, as plain arrays (runs in the child)."""
-    import ezc3d
+    import ezc3d  # lazily: only C3D takes need it (start-up)
 
     c = ezc3d.c3d(path, extract_forceplat_data=False)
     point = c["parameters"]["POINT"]
@@ -208,7 +208,7 @@ def write_c3d_take(path, take: Take, units: str | None = None, subject: str | No
     subject : str, optional
         Prefix marker labels with ``subject:``.
     """
-    import ezc3d
+    import ezc3d  # lazily: only C3D takes need it (start-up)
 
     frames = np.asarray(take.frames, dtype=np.int64)
     if frames.size > 1 and not (np.diff(frames) == 1).all():

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from facepipe.errors import InputError
+from facepipe.io.atomic import atomic_open
 
 AXES = ("x", "y", "z")
 
@@ -234,7 +235,6 @@ def write_marker_rows(path, header: str, take: "Take", positions: np.ndarray, ro
     row_format : printf format of a row: frame, [time,] then 3·M coordinates.
     with_times : whether rows carry the take's time after the frame number.
     """
-    from facepipe.io.atomic import atomic_open
 
     pos = np.asarray(positions, dtype=np.float64)
     T, M = pos.shape[:2]

@@ -38,7 +38,7 @@ class OpenCLUnavailable(InputError):
 
 def _cl():
     try:
-        import pyopencl as cl
+        import pyopencl as cl  # lazily: facepipe runs without an OpenCL driver
     except Exception as exc:  # ImportError, or a broken ICD loader
         raise OpenCLUnavailable(f"OpenCL is not available: pyopencl cannot be imported ({exc})") from None
     return cl

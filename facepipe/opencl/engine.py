@@ -30,6 +30,8 @@ import scipy.sparse as sp
 from facepipe.core.psd import psd_distances
 from facepipe.core.strain import strain_features
 from facepipe.opencl.device import _cl, build_program, device_label, open_device
+from scipy.sparse.csgraph import reverse_cuthill_mckee
+from facepipe.core.psd import edge_weight_matrix, spread_subset
 
 METHOD_CODES = {"none": 0, "psd": 1, "wpsd": 2}
 RV = 4  # vertices per work-item in the B product: 4 rows × 3 coordinates of accumulators
@@ -87,7 +89,6 @@ def locality_order(faces: np.ndarray, n_vertices: int, mode="auto") -> np.ndarra
         if perm.shape != (n_vertices,) or not np.array_equal(np.sort(perm), np.arange(n_vertices)):
             raise ValueError("reorder: not a permutation of the vertices")
         return perm
-    from scipy.sparse.csgraph import reverse_cuthill_mckee
 
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     i = faces.ravel()
@@ -125,13 +126,12 @@ def _site_gate(model):
     strain vectors and an even sample of vertices, so a gate that stops factoring this way fails
     loudly, not silently.
     """
-    from facepipe.core.psd import edge_weight_matrix, spread_sample
 
     F = int(model.edges.shape[0])
     site_gate = model.novelty_gate(sp.identity(F, format="csr"))
     if site_gate is None:
         return None
-    rows = spread_sample(model.n_vertices, 4096)
+    rows = spread_subset(model.n_vertices, 4096)
     alpha = edge_weight_matrix(model.edge_index[rows], model.edge_weight[rows], F)
     probe = np.random.default_rng(0).normal(scale=0.05, size=(3, F)) + model.basis_features[-1].astype(np.float64)
     expected = model.novelty_gate(alpha).confidence(probe)

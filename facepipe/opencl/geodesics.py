@@ -16,6 +16,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from facepipe.opencl.device import build_program
+from facepipe.opencl.device import list_devices
+from facepipe.opencl.device import device_context
 
 # the ring of buckets grows as longest / shortest edge; past this, a heap is the better queue
 MAX_RING = 1 << 13
@@ -24,9 +26,8 @@ MAX_RING = 1 << 13
 def _cpu_device():
     """A CPU OpenCL device with double precision (PoCL's first), or None."""
     try:
-        import pyopencl as cl
+        import pyopencl as cl  # lazily: facepipe runs without an OpenCL driver
 
-        from facepipe.opencl.device import list_devices
 
         cpus = [dev for _, _, dev in list_devices() if dev.type & cl.device_type.CPU and dev.double_fp_config]
     except Exception:  # noqa: BLE001 - no pyopencl, no ICD loader, a broken driver: SciPy instead
@@ -54,9 +55,8 @@ class DeviceGeodesics:
     device from construction on; :meth:`finish` waits and returns them."""
 
     def __init__(self, graph: sp.csr_matrix, sources: np.ndarray, device, ring: int, delta: float):
-        import pyopencl as cl
+        import pyopencl as cl  # lazily: facepipe runs without an OpenCL driver
 
-        from facepipe.opencl.device import device_context
 
         self.device = device
         context = device_context(device)
@@ -89,7 +89,7 @@ class DeviceGeodesics:
 
     def finish(self) -> np.ndarray:
         if self._result is None:
-            import pyopencl as cl
+            import pyopencl as cl  # lazily: facepipe runs without an OpenCL driver
 
             self._event.wait()
             # make the host array current (for a CPU device it already is: the map is free)

@@ -20,6 +20,10 @@ import numpy as np
 from scipy.optimize import nnls
 
 from facepipe.pipeline.evaluate import frame_errors
+from facepipe.io.model_file import model_from_fit
+from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
+from facepipe.pipeline.replay import NumpyEvaluator
+from facepipe.io.atomic import atomic_path
 
 
 def global_blend_weights(prior: np.ndarray, handles: np.ndarray, sum_weight: float = 1e3) -> np.ndarray:
@@ -90,9 +94,6 @@ def compare_methods(fit, rig, head: np.ndarray, R: np.ndarray, t: np.ndarray, tr
     {"rows": [{"method", "poses", "rms_mean", "rms_p95", "rms_max", "frames_per_second"}],
      "curves": {"psd": [...], "wpsd": [...]}} (curves: rows by basis size)
     """
-    from facepipe.io.model_file import model_from_fit
-    from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
-    from facepipe.pipeline.replay import NumpyEvaluator
 
     geo = fit.geometry
     T = head.shape[0]
@@ -145,12 +146,11 @@ def compare_methods(fit, rig, head: np.ndarray, R: np.ndarray, t: np.ndarray, tr
 
 def plot_comparison(result: dict, path, title: str = "") -> None:
     """The paper's Fig. 4: error against basis size for PSD/WPSD, baselines as lines (PNG)."""
-    import matplotlib
+    import matplotlib  # lazily: only `eval --compare` plots (seconds of start-up)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from facepipe.io.atomic import atomic_path
 
     fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
     for method, rows in result["curves"].items():

@@ -13,6 +13,9 @@ import re
 import numpy as np
 
 from facepipe.errors import InputError
+from facepipe.pipeline.fit import fit_rig
+from facepipe.io.model_file import model_from_fit
+from facepipe.pipeline.replay import NumpyEvaluator
 
 _SIDE = re.compile(r"(_[LR]|_left|_right|Left|Right)$")
 
@@ -49,9 +52,6 @@ def holdout_errors(rig, k: int, vertices: slice = slice(None), progress=None) ->
     {"folds": [[names]], "examples": {name: {"large_rms", "final_rms", "harm"}}, "summary": {...}}
     where harm = final / large − 1 (positive: the details made that example worse).
     """
-    from facepipe.pipeline.fit import fit_rig
-    from facepipe.io.model_file import model_from_fit
-    from facepipe.pipeline.replay import NumpyEvaluator
 
     names = list(rig.example_names)
     folds = holdout_folds(names, k)

@@ -27,6 +27,8 @@ import scipy.sparse as sp
 
 from facepipe.errors import InputError
 from facepipe.core.strain import strain_features
+from facepipe.core.tangent_frames import vertex_normals
+from facepipe.pipeline.replay import NumpyEvaluator
 
 SPACES = ("local", "tangent", "object")
 
@@ -89,7 +91,6 @@ class DetailLayer:
         if self.space == "local":
             return self.details.evaluate(self.features(head))
         if self._evaluator is None:
-            from facepipe.pipeline.replay import NumpyEvaluator
 
             self._evaluator = NumpyEvaluator(self.model)
         final, large = self._evaluator.evaluate(head, with_large=True)
@@ -131,7 +132,6 @@ def uv_tangent_frames(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndar
     (C, U, 3, 3) with [..., :, 0] = t, [..., :, 1] = b, [..., :, 2] = n (matrix columns, like
     :func:`facepipe.core.tangent_frames.local_frames`); components of a vector d are ``frames^T d``.
     """
-    from facepipe.core.tangent_frames import vertex_normals
 
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)

@@ -14,12 +14,14 @@ import scipy.sparse as sp
 
 from facepipe.errors import InputError
 from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
-from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details, greedy_basis, novelty_gate, rms_per_pose, spread_sample, wpsd_edge_weights)
+from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
 from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
 from facepipe.pipeline.rig import Rig, load_rig
 from facepipe.core.shell import ShellBasis, large_scale_positions, marker_spacing, solve_shell_basis
 from facepipe.pipeline.geodesics import Geodesics
 from facepipe.core.strain import (auto_feature_graph, edge_graph, edge_lengths, graph_from_pairs, strain_features)
+import csv
+from pathlib import Path
 
 
 @dataclass
@@ -131,8 +133,6 @@ def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | Non
 
 def read_graph_csv(path) -> list[tuple[str, str]]:
     """Marker-name pairs, one per line (``a,b``; a header ``a,b`` or comments are allowed)."""
-    import csv
-    from pathlib import Path
 
     if not Path(path).is_file():
         raise InputError("feature graph file not found", path=path, hint="[features] graph = 'auto' or a CSV")
@@ -313,7 +313,7 @@ def greedy_bases(cfg, methods: list[str], features: np.ndarray, details: np.ndar
     curves {method: error curve}, models {method: (model on the sample, basis)}, the sample (vertex indices).
     """
     n_vertices = details.shape[1]
-    sample = spread_sample(n_vertices, cfg.greedy_vertices)
+    sample = spread_subset(n_vertices, cfg.greedy_vertices)
     sampled = len(sample) < n_vertices
     details_s = details[:, sample] if sampled else details
     alpha_s = alpha[sample] if sampled else alpha

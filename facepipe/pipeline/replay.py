@@ -18,6 +18,9 @@ from facepipe.core.tangent_frames import local_frames, to_world, vertex_face_mat
 from facepipe.io.model_file import Model
 from facepipe.io.npy_stream import NpyWriter
 from facepipe.core.strain import strain_features
+import queue
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 
 class NumpyEvaluator:
@@ -71,8 +74,6 @@ class NumpyEvaluator:
 def prefetched(items):
     """The items of an iterable, each next one computed on a thread while the caller works on the
     current one (an error is raised where that item would have come)."""
-    import queue
-    import threading
 
     box: queue.Queue = queue.Queue(maxsize=1)
     done = object()
@@ -125,7 +126,6 @@ def stream_chunks(evaluator, head: np.ndarray, sink, R: np.ndarray | None = None
     if hasattr(evaluator, "stream"):
         evaluator.stream(head, sink, R, t, with_large=with_large)
         return
-    from concurrent.futures import ThreadPoolExecutor
 
     T = head.shape[0]
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="facepipe-sink") as pool:

@@ -36,7 +36,7 @@ import time
 import numpy as np
 
 from facepipe.errors import InputError
-from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_sample, wpsd_edge_weights)
+from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
 from facepipe.core.shell import shell_basis
 from facepipe.core.strain import edge_graph
 from facepipe.pipeline.geodesics import geodesic_from
@@ -149,7 +149,7 @@ def _validation_vertices(tune, n_vertices: int) -> tuple[np.ndarray, np.ndarray]
     """The vertices errors are measured on (``tune.vertices``, else all) and the evenly spread
     sample of them the details are cross-validated on."""
     vertices = np.arange(n_vertices)[parse_vertex_range(tune.vertices, n_vertices) if tune.vertices else slice(None)]
-    return vertices, vertices[spread_sample(len(vertices), tune.sample_vertices)]
+    return vertices, vertices[spread_subset(len(vertices), tune.sample_vertices)]
 
 
 def _default_parameters(cfg, rest_lengths: np.ndarray, n_examples: int) -> dict:
