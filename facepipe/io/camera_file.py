@@ -65,9 +65,9 @@ def _read_json(path: Path):
 def _read_filestorage(path: Path):
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise InputError(f"OpenCV cannot read this calibration ({str(exc).strip().splitlines()[-1]})", path=path,
-                         hint=_HINT) from None
+    except (cv2.error, SystemError) as exc:  # (OpenCV's parser errors can surface as SystemError)
+        reason = str(exc.__cause__ or exc).strip().splitlines() or ["parse error"]
+        raise InputError(f"OpenCV cannot read this calibration ({reason[-1]})", path=path, hint=_HINT) from None
     try:
         if not fs.isOpened():
             raise InputError("OpenCV cannot read this calibration", path=path, hint=_HINT)
