@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from facepipe.errors import InputError
-from facepipe.mocap.registry import FORMATS, Format, detect_format, register
+from facepipe.mocap.registry import Format, detect_format, register
 from facepipe.mocap.take import estimate_fps
 
 __all__ = ["LandmarkTake", "TWO_D_FORMATS", "check_in_image", "is_landmark_take", "read_landmark_take",
@@ -357,14 +357,7 @@ def _sniff_uv(head: bytes) -> bool:
         all(c.endswith(b"_u") or c.endswith(b"_v") for c in coords)
 
 
-def _register_first(fmt: Format) -> None:
-    """Register ahead of the 3D formats: a plain 2D CSV also starts with ``frame,time,``, and the
-    registry tries formats in order."""
-    register(fmt)
-    others = {k: v for k, v in FORMATS.items() if k != fmt.name}
-    FORMATS.clear()
-    FORMATS.update({fmt.name: fmt, **others})
-
-
-_register_first(Format("openface-csv", (".csv",), _not_3d, _no_writer, _sniff_openface))
-_register_first(Format("uv-csv", (".csv",), _not_3d, _no_writer, _sniff_uv))
+# after the 3D formats (a file no format recognises is still read, and refused, as a facepipe CSV);
+# the facepipe CSV's sniff leaves frame,time,NAME_u,NAME_v,… headers to the u/v format
+register(Format("openface-csv", (".csv",), _not_3d, _no_writer, _sniff_openface))
+register(Format("uv-csv", (".csv",), _not_3d, _no_writer, _sniff_uv))

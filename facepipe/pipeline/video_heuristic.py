@@ -103,6 +103,6 @@ def heuristic_lift(take: LandmarkTake, camera: Camera, rig: LiftRig, opt) -> Lif
     fit_px = np.linalg.norm(project(camera.matrix, neutral_cam) - pts, axis=-1)
     report = _report(take, camera, R, t, np.zeros((T, K)), fit_px, visible, use,
                      outlier_rows=(rows, np.zeros_like(vis)), filled=filled, fitted=fitted, sigma=sigma,
-                     shrink=np.ones(L), method="heuristic", names=take.names)
+                     shrink=np.ones(L), method="heuristic", names=take.names, decay=opt.decay)
     report["held_jumps"] = held
     return LiftResult(head, R, t, np.zeros((T, K)), rig.rest + disp, cam_fit, report, use)

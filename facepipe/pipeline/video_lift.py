@@ -362,7 +362,8 @@ def lift_take(take: LandmarkTake, camera: Camera, rig: LiftRig, options: LiftOpt
 
     fit_px = np.linalg.norm(project(camera.matrix, cam_fit) - pts, axis=-1)
     report = _report(take, camera, R, t, C, fit_px, visible, use, outlier_rows=(rows, outlier), filled=filled,
-                     fitted=fitted, sigma=sigma, shrink=shrink, method="model", names=take.names)
+                     fitted=fitted, sigma=sigma, shrink=shrink, method="model", names=take.names,
+                     decay=opt.decay)
     return LiftResult(head, R, t, C, landmarks, cam_fit, report, use)
 
 
@@ -381,7 +382,7 @@ def _pose_summary(R: np.ndarray, t: np.ndarray) -> dict:
 
 
 def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, fitted, sigma, shrink, method,
-            names) -> dict:
+            names, decay: float = LiftOptions.decay) -> dict:
     T, L = visible.shape
     rows, outlier = outlier_rows
     out_count = np.zeros(L, dtype=np.int64)
@@ -419,7 +420,7 @@ def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, 
         "expression_weights_max": C.max(axis=0).round(4).tolist() if C.size else [],
         "notes": ([f"{int(missing.sum())} frame(s) without a tracked face ({len(lost)} gap(s), longest "
                    f"{max((b - a for a, b in lost), default=0)}): head pose interpolated, expression faded toward "
-                   f"neutral over {LiftOptions.decay:g} s"] if missing.any() else []),
+                   f"neutral over {decay:g} s"] if missing.any() else []),
     }
 
 
