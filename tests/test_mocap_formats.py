@@ -280,7 +280,7 @@ def test_every_marker_missing_in_a_frame(tmp_path):
 
 
 def test_registry_lists_every_format():
-    assert set(FORMATS) == {"facepipe-csv", "c3d", "trc", "vicon-csv", "motive-csv"}
+    assert set(FORMATS) == {"facepipe-csv", "c3d", "trc", "vicon-csv", "motive-csv", "openface-csv", "uv-csv"}
     for fmt in FORMATS.values():
         assert callable(fmt.reader) and callable(fmt.writer)
 

@@ -287,14 +287,25 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
               help="No prior-based cleaning (noise, outliers, long gaps): gaps are only interpolated (PCHIP).")
 @click.option("--smooth", type=float, default=0.0, show_default=True,
               help="Temporal smoothing of the cleaned markers: Gaussian sigma in frames (0 = off).")
+@click.option("--camera", "camera_path", default=None, type=click.Path(dir_okay=False),
+              help="2D takes: the camera's calibration (OpenCV FileStorage .yml/.xml, or .json).")
+@click.option("--landmarks", "landmarks_path", default=None, type=click.Path(dir_okay=False),
+              help="2D takes: name,vertex CSV from the tracker's point names to rig vertices.")
+@click.option("--lift", type=click.Choice(["model", "heuristic"]), default="model", show_default=True,
+              help="2D takes: pose and expression through the rig's examples, or Fidaleo et al.'s heuristic.")
+@click.option("--min-confidence", type=float, default=0.5, show_default=True,
+              help="2D takes (OpenFace): rows below this tracking confidence are missing frames.")
 @_common
 @click.pass_context
 def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, neutral_frame,
-           neutral_take, take_units, subject, no_stabilise, no_clean, smooth, quiet, verbose):
+           neutral_take, take_units, subject, no_stabilise, no_clean, smooth, camera_path, landmarks_path, lift,
+           min_confidence, quiet, verbose):
     """Replay a mocap TAKE onto the full-resolution face: OUTPUT/positions.npy and replay.json.
 
     TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV; it is converted to the
-    rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section).
+    rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section). A 2D
+    landmark take (OpenFace CSV, or frame,time,NAME_u,NAME_v,…) needs --camera and --landmarks and is
+    lifted to 3D through the rig's examples (see the README's Video takes section).
     """
 
     from facepipe.mocap.cleaning import CleanOptions
@@ -306,6 +317,15 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     rep = _reporter(ctx, quiet, verbose)
     if chunk < 1:
         raise InputError("--chunk must be at least 1")
+    from facepipe.mocap.landmarks2d import is_landmark_take
+
+    if camera_path or landmarks_path or is_landmark_take(take):
+        from facepipe.cli.video import replay_video
+
+        return replay_video(rep, take, model_path, output, camera_path=camera_path, landmarks_path=landmarks_path,
+                            lift=lift, frames_text=frames_text, head_motion=head_motion, chunk=chunk,
+                            save_large=save_large_scale, min_confidence=min_confidence,
+                            make_evaluator=lambda model: _make_evaluator(model, backend, device, chunk, rep))
     if smooth < 0:
         raise InputError("--smooth must be 0 (off) or a positive number of frames")
     model = load_model(model_path)

@@ -9,6 +9,7 @@ prefixes stripped), converts units to the rig's and checks frame order and value
 """
 
 from facepipe.mocap import c3d, facepipe_csv, motive_csv, trc, vicon_csv# noqa: F401  (register the formats)
+from facepipe.mocap import landmarks2d  # noqa: F401  (2D landmark takes; after the 3D formats, tried before them)
 from facepipe.mocap.facepipe_csv import read_csv_take, write_take_csv
 from facepipe.mocap.gaps import fill_gaps
 from facepipe.mocap.markers import MarkerMatch, match_markers, normalise_units, split_subject, unit_factor

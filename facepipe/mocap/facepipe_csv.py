@@ -399,7 +399,9 @@ def _write(path, take: Take, units=None, **options) -> None:
 
 def _sniff(head: bytes) -> bool:
     first = head.split(b"\n", 1)[0].lower().replace(b'"', b"")
-    return first.startswith(b"frame,") and b",time" in first
+    coords = [c.strip() for c in first.strip().split(b",")[2:]]
+    uv = bool(coords) and all(c.endswith((b"_u", b"_v")) for c in coords)  # a 2D take (mocap/landmarks2d.py)
+    return first.startswith(b"frame,") and b",time" in first and not uv
 
 
 register(Format("facepipe-csv", (".csv", ".txt"), read_csv_take, _write, _sniff))
