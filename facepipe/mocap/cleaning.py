@@ -712,7 +712,8 @@ def _relaxed_refit(frames: _UsableFrames, W, R, t, C, robust_scale, sparsity: fl
     prior would bias every active weight by κ standard deviations)."""
     R, t, C, _ = frames.fit(W, R, t, C, robust_scale=robust_scale, active=C > 0)
     var = 1.0 / np.maximum(np.einsum("nh,khc->nk", W, frames.basis**2), 1e-300)
-    return R, t, C * np.maximum(0.0, 1.0 - sparsity**2 * var / np.maximum(C**2, 1e-300))
+    with np.errstate(over="ignore"):  # a weight the markers say nothing about: var / c² is inf, the weight 0
+        return R, t, C * np.maximum(0.0, 1.0 - sparsity**2 * var / np.maximum(C**2, 1e-300))
 
 
 def _jumps_in_rows(residual: np.ndarray, visible: np.ndarray, rows: np.ndarray, T: int, floor: float,
