@@ -438,16 +438,75 @@ def test_long_takes_are_cleaned_window_by_window_as_well_as_whole():
     np.testing.assert_array_equal(part, win[350:620])
     np.testing.assert_array_equal(Rp, Rv[350:620])
 
-    # windows are cleaned as they are asked for; the report comes with the last
+    # windows are cleaned as they are asked for; the report covers the selection at any time
     prepared = prepare_take_windows(take, model, PrepareOptions(frames=slice(150, 450)), window=200)
     assert prepared.n_windows == 3 and prepared.n_frames == 300
     windows = prepared.windows()
     first = next(windows)
-    assert prepared.report is None and len(first[0]) == 50
+    assert len(first[0]) == 50 and prepared.report()["total"]["frames"] == 600
     rest_ = list(windows)
-    assert [len(w[0]) for w in rest_] == [200, 50] and prepared.report["total"]["frames"] == 600
+    assert [len(w[0]) for w in rest_] == [200, 50] and prepared.report()["total"]["frames"] == 600
     np.testing.assert_array_equal(np.concatenate([first[0]] + [w[0] for w in rest_]), win[150:450])
 
+
+@pytest.mark.parametrize("options", [{}, {"clean": False}, {"neutral_frame": 0}], ids=["clean", "no-clean", "neutral"])
+@pytest.mark.parametrize("window", [200, 10 ** 6], ids=["windows", "whole"])
+def test_a_prepared_takes_report_is_the_same_before_during_and_after_its_windows(options, window):
+    """PreparedTake.report() is the whole selection's report whenever it is asked for: before any
+    window is taken, between windows, after the last (and the windows are the same either way)."""
+    from facepipe.mocap.prepare import prepare_take_windows
+
+    model, rest, basis, _, names = make_rig()
+    world, _ = long_take(rest, basis)
+    take = take_of(world, names)
+    take.markers = {"absent": []}
+    selection = PrepareOptions(frames=slice(150, 650), **options)
+    after = prepare_take_windows(take, model, selection, window=window)
+    parts = list(after.windows())
+    report_after = json.dumps(after.report())
+
+    early = prepare_take_windows(take, model, selection, window=window)
+    report_before = json.dumps(early.report())
+    windows = early.windows()
+    first = next(windows)
+    report_between = json.dumps(early.report())
+    parts_early = [first] + list(windows)
+    assert report_before == report_between == report_after == json.dumps(early.report())
+    assert after.n_windows == (1 if window > 1000 or options.get("clean") is False else 4)
+    for a, b in zip(parts, parts_early, strict=True):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+
+
+
+@pytest.mark.filterwarnings("error")
+def test_preparing_a_take_raises_no_warning_and_leaves_the_warning_filters_alone(monkeypatch):
+    """A marker never seen, frames without markers, a neutral take that misses a marker: no warning
+    from numpy, and no change to the process's warning filters on the way (they are process-wide:
+    replay cleans on a second thread while the first may be warning)."""
+    import warnings
+
+    model, rest, basis, _, names = make_rig()
+    world, _ = long_take(rest, basis)
+    world[300:310] = np.nan  # frames without any marker
+    still = np.repeat(rest[None], 5, 0)
+    still[1:, 5] = np.nan  # a marker the neutral take shows once
+    absent = world.copy()
+    absent[:, 3] = np.nan  # a marker never seen (filled through the prior)
+    take_absent = take_of(absent, names)
+    take_absent.markers = {"absent": [names[3]]}
+
+    def changes_filters(*args, **kwargs):
+        raise AssertionError("a library call changed the warning filters")
+
+    for take, options in ((take_absent, PrepareOptions()), (take_absent, PrepareOptions(stabilise=False)),
+                          (take_of(world, names), PrepareOptions(neutral_take=take_of(still, names))),
+                          (take_of(world, names), PrepareOptions(clean=False))):
+        with monkeypatch.context() as patch:  # (pytest itself sets filters around the test)
+            for name in ("catch_warnings", "simplefilter", "filterwarnings", "resetwarnings"):
+                patch.setattr(warnings, name, changes_filters)
+            head, *_ = prepare_take(take, model, options, window=200)
+        assert np.isfinite(head).all()
 
 def test_a_long_stretch_without_markers_is_cleaned_whole():
     model, rest, basis, _, names = make_rig()

@@ -352,8 +352,8 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     evaluator = evaluator_future.result()
     take_data = take_data if options.frames is None else take_data.select(options.frames)
 
-    def take_report():  # complete once every window is cleaned
-        gap_report = prepared.report
+    def take_report():  # asked for once every window is cleaned (each is cleaned once)
+        gap_report = prepared.report()
         return {"take": str(take), "mocap": gap_report, "markers": gap_report["markers"],
                 "extra_markers": take_data.extra_markers}
 
@@ -361,7 +361,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         result = replay_windows(model, prepared.windows(), take_data.frames, take_data.times, Path(output),
                                 chunk=chunk, evaluator=evaluator, head_motion=head_motion, progress=bar.update,
                                 extra_report=take_report, save_large=save_large_scale)
-    gap_report = prepared.report
+    gap_report = prepared.report()
     r = result.report
     rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
             f"at {r['frames_per_second']:.1f} frames/s")

@@ -6,11 +6,8 @@ out of the markers before and put back on the output after.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
-
 
 
 def _weighted_cross_covariance(source, target, weights):
@@ -152,12 +149,13 @@ def robust_rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray
     if scale is None:
         scale = 1e-6 * (1.0 + float(np.abs(np.where(ok[..., None], source, 0.0)).max(initial=0.0)))
     w = base.copy()
+    empty = ~(base > 0).any(axis=-1, keepdims=True)
     for _ in range(max(1, iterations)):
         R, t = rigid_fit(source, tgt, w)
         r = np.linalg.norm(np.einsum("...ij,...nj->...ni", R, source) + t[..., None, :] - tgt, axis=-1)
-        with warnings.catch_warnings():  # frames without points have no median: NaN, handled below
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(np.where(base > 0, r, np.nan), axis=-1, keepdims=True)
+        # the frame's median residual over its points; a frame without points gets 0 (so c is the
+        # floor, and numpy has no empty slice to warn about)
+        med = np.nanmedian(np.where(base > 0, r, np.where(empty, 0.0, np.nan)), axis=-1, keepdims=True)
         c = 2.5 * np.maximum(np.nan_to_num(1.4826 * med), scale)
         w = base / (1.0 + (r / c) ** 2)
     R, t = rigid_fit(source, tgt, w)

@@ -33,7 +33,6 @@ Everything is arrays in, arrays and a JSON-serialisable report out.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -169,7 +168,7 @@ def fit_pose_expression(world: np.ndarray, weights: np.ndarray, reference: np.nd
     -------
     R : (T, 3, 3); t : (T, 3); coeffs : (T, K); w : (T, H) the weights used last.
     """
-    T, H, _ = world.shape
+    T = world.shape[0]
     K = basis.shape[0]
     R = np.array(R, dtype=np.float64)
     t = np.array(t, dtype=np.float64)
@@ -177,96 +176,165 @@ def fit_pose_expression(world: np.ndarray, weights: np.ndarray, reference: np.nd
     l1 = np.zeros((T, K)) if l1 is None else np.asarray(l1, dtype=np.float64)
     x = np.where(np.isfinite(world), world, 0.0)
     w_all = np.asarray(weights, dtype=np.float64).copy()
-    D = basis.transpose(1, 2, 0)  # (H, 3, K)
-    Dflat = D.reshape(H * 3, K)
-    DtD = np.einsum("hak,hal->hkl", D, D).reshape(H, K * K)  # per marker D_mᵀ D_m
+    out_w = w_all.copy()
+    expression = _ExpressionBasis.of(reference, basis)
+    for a in range(0, T, chunk):  # frames in chunks: the normal equations are (chunk, 6 + K, 6 + K)
+        b = min(T, a + chunk)
+        allowed = np.ones((b - a, K), dtype=bool) if active is None else np.asarray(active[a:b], dtype=bool)
+        R[a:b], t[a:b], C[a:b], out_w[a:b] = _fit_frames(
+            x[a:b], w_all[a:b], R[a:b], t[a:b], C[a:b], l1[a:b], allowed, expression, iterations, fix_pose,
+            robust_scale)
+    return R, t, C, out_w
+
+
+@dataclass(frozen=True)
+class _ExpressionBasis:
+    """The neutral handles and the examples' displacements, in the layouts the normal equations use."""
+
+    reference: np.ndarray  # (H, 3) r
+    D: np.ndarray  # (H, 3, K) D_km by marker
+    Dflat: np.ndarray  # (3H, K)
+    DtD: np.ndarray  # (H, K²) per marker D_mᵀ D_m
+
+    @classmethod
+    def of(cls, reference: np.ndarray, basis: np.ndarray) -> "_ExpressionBasis":
+        H, K = basis.shape[1], basis.shape[0]
+        D = basis.transpose(1, 2, 0)
+        return cls(reference, D, D.reshape(H * 3, K), np.einsum("hak,hal->hkl", D, D).reshape(H, K * K))
+
+    @property
+    def K(self) -> int:
+        return self.D.shape[2]
+
+    def handles(self, C: np.ndarray) -> np.ndarray:
+        """(n, H, 3) the head-space handles r + Σ_k c_k D_k of weights C (n, K)."""
+        return self.reference + (C @ self.Dflat.T).reshape(len(C), len(self.reference), 3)
+
+
+def _fit_frames(x, w0, R, t, C, l1, allowed, expression: _ExpressionBasis, iterations: int, fix_pose: bool,
+                robust_scale):
+    """Gauss–Newton of :func:`fit_pose_expression` on a chunk of frames: x (n, H, 3) markers (0 where
+    missing), w0 (n, H) their weights, R, t, C the starting pose and weights, l1 (n, K), allowed
+    (n, K) the weights that may be non-zero. Returns R, t, C and the sample weights used last."""
+    K = expression.K
+    n_pose = 0 if fix_pose else 6
+    C = np.where(allowed, C, 0.0)
+    free = allowed.copy()
+    w = w0
+    for _ in range(iterations):
+        y = expression.handles(C)
+        q = np.einsum("nij,nhj->nhi", R, y)
+        r = x - (q + t[:, None, :])
+        if robust_scale is not None:
+            w = _huber_weights(w0, r, robust_scale)
+        A, g = _normal_equations(R, y, q, r, w, expression, fix_pose)
+        if K:
+            g[:, n_pose:] -= l1
+            # weights at zero whose gradient points inward come back into the set
+            free = (free | ((C <= 0) & (g[:, n_pose:] > 0) & allowed)) & ((C > 0) | (g[:, n_pose:] > 0))
+        _regularise(A, n_pose, K, fix_pose)
+        step, free = _solve_active_set(A, g, C, free, n_pose, K)
+        alpha = np.ones(len(C))
+        if K:
+            alpha, C, free = _step_weights(C, step[:, n_pose:], free)
+        if not fix_pose:
+            R = rotation_from_vector(alpha[:, None] * step[:, :3]) @ R
+            t = t + alpha[:, None] * step[:, 3:6]
+    return R, t, C, w
+
+
+def _huber_weights(w0: np.ndarray, r: np.ndarray, robust_scale) -> np.ndarray:
+    """Sample weights w0 reweighted by the residuals r (n, H, 3) in units of each marker's scale.
+
+    Huber weights, with the frame's own robust scale as the floor: a jumping marker pulls less on
+    pose and weights. Huber, not a redescending (Cauchy, Tukey) loss: the problem stays convex,
+    so markers showing an expression the examples lack are not talked away.
+    """
+    u = np.linalg.norm(r, axis=-1) / robust_scale
+    seen = w0 > 0
+    # a frame without a seen marker has no median: 0 stands in for it (c is then the floor)
+    med = np.nanmedian(np.where(seen, u, np.where(seen.any(axis=1, keepdims=True), np.nan, 0.0)), axis=1,
+                       keepdims=True)
+    c = 3.0 * np.maximum(np.nan_to_num(med, nan=1.0), 1.0)
+    return w0 * np.minimum(1.0, c / np.maximum(u, 1e-300))
+
+
+def _normal_equations(R, y, q, r, w, expression: _ExpressionBasis, fix_pose: bool):
+    """A δ = g of the problem linearised at pose R and handles y (q = R y, r the residuals): (n, P, P)
+    and (n, P), P = 6 + K (rotation vector, translation, weights; K without the pose).
+
+    Assembled from sums over markers (J = [-[q]×, I, R D_m] is never formed): BLAS-sized products only.
+    """
+    n, H, _ = y.shape
+    K = expression.K
+    D = expression.D
     n_pose = 0 if fix_pose else 6
     P = n_pose + K
-    out_w = w_all.copy()
     eye3 = np.eye(3)
-    for a in range(0, T, chunk):
-        b = min(T, a + chunk)
-        n = b - a
-        Rc, tc, Cc, xc, w0, l1c = R[a:b], t[a:b], C[a:b], x[a:b], w_all[a:b], l1[a:b]
-        allowed = np.ones((n, K), dtype=bool) if active is None else np.asarray(active[a:b], dtype=bool)
-        Cc = np.where(allowed, Cc, 0.0)
-        free = allowed.copy()
-        w = w0
-        for _ in range(iterations):
-            y = reference + (Cc @ Dflat.T).reshape(n, H, 3)
-            q = np.einsum("nij,nhj->nhi", Rc, y)
-            r = xc - (q + tc[:, None, :])
-            if robust_scale is not None:
-                # Huber weights on the residual in units of the marker's scale, with the frame's
-                # own robust scale as the floor: a jumping marker pulls less on pose and weights.
-                # Huber, not a redescending (Cauchy, Tukey) loss: the problem stays convex, so
-                # markers showing an expression the examples lack are not talked away
-                u = np.linalg.norm(r, axis=-1) / robust_scale
-                seen = w0 > 0
-                med = np.nanmedian(np.where(seen, u, np.nan), axis=1, keepdims=True)
-                c = 3.0 * np.maximum(np.nan_to_num(med, nan=1.0), 1.0)
-                w = w0 * np.minimum(1.0, c / np.maximum(u, 1e-300))
-            # normal equations A δ = g of the linearised problem, assembled from sums over
-            # markers (J = [-[q]×, I, R D_m] is never formed): BLAS-sized products only
-            A = np.zeros((n, P, P))
-            g = np.zeros((n, P))
-            wr = w[..., None] * r
-            if not fix_pose:
-                wq = w[..., None] * q
-                sw = w.sum(axis=1)
-                qq = np.einsum("nhi,nhj->nij", wq, q)
-                A[:, 0:3, 0:3] = np.trace(qq, axis1=1, axis2=2)[:, None, None] * eye3 - qq
-                A[:, 0:3, 3:6] = _skew(wq.sum(axis=1))
-                A[:, 3:6, 0:3] = -A[:, 0:3, 3:6]
-                A[:, 3:6, 3:6] = sw[:, None, None] * eye3
-                g[:, 0:3] = np.cross(q, wr).sum(axis=1)
-                g[:, 3:6] = wr.sum(axis=1)
-            if K:
-                A[:, n_pose:, n_pose:] = (w @ DtD).reshape(n, K, K)
-                g[:, n_pose:] = np.einsum("nha,hak->nk", np.einsum("nji,nhj->nhi", Rc, wr), D, optimize=True)
-                if not fix_pose:
-                    wy = (w[..., None] * y).transpose(0, 2, 1)  # (n, 3, H)
-                    M = (wy @ D.reshape(H, 3 * K)).reshape(n, 3, 3, K)  # Σ w y_j D_lk
-                    cross = np.stack([M[:, 1, 2] - M[:, 2, 1], M[:, 2, 0] - M[:, 0, 2], M[:, 0, 1] - M[:, 1, 0]],
-                                     axis=1)  # Σ w [y]× D_m
-                    A[:, 0:3, 6:] = Rc @ cross
-                    A[:, 3:6, 6:] = Rc @ (w @ D.reshape(H, 3 * K)).reshape(n, 3, K)
-                    A[:, 6:, 0:6] = A[:, 0:6, 6:].transpose(0, 2, 1)
-            if K:
-                g[:, n_pose:] -= l1c
-                # weights at zero whose gradient points inward come back into the set
-                free |= (Cc <= 0) & (g[:, n_pose:] > 0) & allowed
-                free &= (Cc > 0) | (g[:, n_pose:] > 0)
-                diag = np.einsum("npp->np", A)[:, n_pose:]
-                A[:, n_pose:, n_pose:] += np.eye(K) * (1e-9 * diag.max(axis=1, initial=0.0) + 1e-300)[:, None, None]
-            if not fix_pose:
-                # a frame without 3 visible markers has no pose: keep the system solvable
-                A[:, :6, :6] += np.eye(6) * 1e-12 * (1.0 + np.abs(A[:, :6, :6]).max(axis=(1, 2)))[:, None, None]
-            for _ in range(K + 1):
-                step = _solve_active(A, g, free, n_pose)
-                if not K:
-                    break
-                # a weight at zero that the step would make negative leaves the set; solve again
-                out = free & (Cc <= 0) & (step[:, n_pose:] < 0)
-                if not out.any():
-                    break
-                free &= ~out
-            alpha = np.ones(n)
-            if K:
-                dc = step[:, n_pose:]
-                neg = free & (Cc > 0) & (Cc + dc < 0)
-                # stop at the first weight reaching zero
-                ratio = np.where(neg, Cc / np.where(neg, Cc - (Cc + dc), 1.0), np.inf)
-                alpha = np.minimum(1.0, ratio.min(axis=1, initial=np.inf))
-                Cc = np.maximum(Cc + alpha[:, None] * dc, 0.0)
-                hit = neg & (np.abs(Cc) <= 1e-12 + 0 * Cc)
-                Cc[hit] = 0.0
-                free &= ~hit
-            if not fix_pose:
-                Rc = rotation_from_vector(alpha[:, None] * step[:, :3]) @ Rc
-                tc = tc + alpha[:, None] * step[:, 3:6]
-        R[a:b], t[a:b], C[a:b], out_w[a:b] = Rc, tc, Cc, w
-    return R, t, C, out_w
+    A = np.zeros((n, P, P))
+    g = np.zeros((n, P))
+    wr = w[..., None] * r
+    if not fix_pose:
+        wq = w[..., None] * q
+        sw = w.sum(axis=1)
+        qq = np.einsum("nhi,nhj->nij", wq, q)
+        A[:, 0:3, 0:3] = np.trace(qq, axis1=1, axis2=2)[:, None, None] * eye3 - qq
+        A[:, 0:3, 3:6] = _skew(wq.sum(axis=1))
+        A[:, 3:6, 0:3] = -A[:, 0:3, 3:6]
+        A[:, 3:6, 3:6] = sw[:, None, None] * eye3
+        g[:, 0:3] = np.cross(q, wr).sum(axis=1)
+        g[:, 3:6] = wr.sum(axis=1)
+    if K:
+        A[:, n_pose:, n_pose:] = (w @ expression.DtD).reshape(n, K, K)
+        g[:, n_pose:] = np.einsum("nha,hak->nk", np.einsum("nji,nhj->nhi", R, wr), D, optimize=True)
+        if not fix_pose:
+            wy = (w[..., None] * y).transpose(0, 2, 1)  # (n, 3, H)
+            M = (wy @ D.reshape(H, 3 * K)).reshape(n, 3, 3, K)  # Σ w y_j D_lk
+            cross = np.stack([M[:, 1, 2] - M[:, 2, 1], M[:, 2, 0] - M[:, 0, 2], M[:, 0, 1] - M[:, 1, 0]],
+                             axis=1)  # Σ w [y]× D_m
+            A[:, 0:3, 6:] = R @ cross
+            A[:, 3:6, 6:] = R @ (w @ D.reshape(H, 3 * K)).reshape(n, 3, K)
+            A[:, 6:, 0:6] = A[:, 0:6, 6:].transpose(0, 2, 1)
+    return A, g
+
+
+def _regularise(A: np.ndarray, n_pose: int, K: int, fix_pose: bool) -> None:
+    """Keep every frame's A solvable, in place: a tiny ridge on the weights, and on the pose of a
+    frame without 3 visible markers (which has none)."""
+    if K:
+        diag = np.einsum("npp->np", A)[:, n_pose:]
+        A[:, n_pose:, n_pose:] += np.eye(K) * (1e-9 * diag.max(axis=1, initial=0.0) + 1e-300)[:, None, None]
+    if not fix_pose:
+        A[:, :6, :6] += np.eye(6) * 1e-12 * (1.0 + np.abs(A[:, :6, :6]).max(axis=(1, 2)))[:, None, None]
+
+
+def _solve_active_set(A: np.ndarray, g: np.ndarray, C: np.ndarray, free: np.ndarray, n_pose: int, K: int):
+    """The step δ of A δ = g with the weights outside ``free`` held; a weight at zero that the step
+    would make negative leaves the set and the system is solved again. Returns δ and the set."""
+    for _ in range(K + 1):
+        step = _solve_active(A, g, free, n_pose)
+        if not K:
+            break
+        out = free & (C <= 0) & (step[:, n_pose:] < 0)
+        if not out.any():
+            break
+        free = free & ~out
+    return step, free
+
+
+def _step_weights(C: np.ndarray, dc: np.ndarray, free: np.ndarray):
+    """Take the step dc on the weights C, stopping each frame at its first weight to reach zero.
+
+    Returns the step's share alpha per frame (the pose takes the same), the new weights and the
+    free set without the weights that reached zero.
+    """
+    neg = free & (C > 0) & (C + dc < 0)
+    ratio = np.where(neg, C / np.where(neg, C - (C + dc), 1.0), np.inf)
+    alpha = np.minimum(1.0, ratio.min(axis=1, initial=np.inf))
+    C = np.maximum(C + alpha[:, None] * dc, 0.0)
+    hit = neg & (np.abs(C) <= 1e-12 + 0 * C)
+    C[hit] = 0.0
+    return alpha, C, free & ~hit
 
 
 def _solve_active(A: np.ndarray, g: np.ndarray, free: np.ndarray, n_pose: int) -> np.ndarray:
@@ -351,58 +419,81 @@ def find_jumps(residual: np.ndarray, known: np.ndarray, floor: float, factor: fl
     step = residual[1:] - residual[:-1]  # (T-1, H, 3): step into frame t+1
     ok = known[1:] & known[:-1]
     size = np.where(ok, np.linalg.norm(np.nan_to_num(step), axis=-1), np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        # per-coordinate scale: the median length of a 3D Gaussian step is 1.538 σ
-        scale = np.nan_to_num(np.nanmedian(size, axis=0) / 1.538)
-    thr = np.maximum(floor, factor * scale)  # (H,)
-    big = ok & (np.nan_to_num(size) > thr)
-    # one-frame spikes: the sample against the mean of its neighbours (a better signal-to-noise
-    # than either step), and the neighbours agree with each other
+    # per-coordinate scale: the median length of a 3D Gaussian step is 1.538 σ
+    scale = _nanmedian_or_zero(size, axis=0) / 1.538
+    big = ok & (np.nan_to_num(size) > np.maximum(floor, factor * scale))  # (T-1, H) big steps
+    out[1:-1] |= _spikes(residual, known, floor, factor)
+    for m in np.flatnonzero(big.any(axis=0)):
+        _mark_cut_off_stretches(out[:, m], big[:, m], ok[:, m], size[:, m], known[:, m])
+    for m in np.flatnonzero(big.sum(axis=0) >= 2):
+        _mark_jumps_and_returns(out[:, m], big[:, m], ok[:, m], size[:, m], step[:, m], max_run)
+    return out
+
+
+def _nanmedian_or_zero(x: np.ndarray, axis: int) -> np.ndarray:
+    """np.nanmedian along ``axis``, 0 for a slice without a number (where numpy would warn and give NaN)."""
+    empty = np.isnan(x).all(axis=axis, keepdims=True)
+    return np.nanmedian(np.where(empty, 0.0, x), axis=axis)
+
+
+def _nanmean_or_zero(x: np.ndarray, axis: int) -> np.ndarray:
+    """np.nanmean along ``axis``, 0 for a slice without a number (where numpy would warn and give NaN)."""
+    empty = np.isnan(x).all(axis=axis, keepdims=True)
+    return np.nanmean(np.where(empty, 0.0, x), axis=axis)
+
+
+def _spikes(residual: np.ndarray, known: np.ndarray, floor: float, factor: float) -> np.ndarray:
+    """(T-2, H) one-frame spikes at frames 1..T-2: the sample against the mean of its neighbours (a
+    better signal-to-noise than either step), far beyond the marker's typical deviation (and
+    ``floor``), with the neighbours agreeing with each other."""
     mid = residual[1:-1] - 0.5 * (residual[:-2] + residual[2:])
     ok3 = known[1:-1] & known[:-2] & known[2:]
     dev = np.where(ok3, np.linalg.norm(np.nan_to_num(mid), axis=-1), np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        dev_scale = np.nan_to_num(np.nanmedian(dev, axis=0) / 1.538)
+    dev_scale = _nanmedian_or_zero(dev, axis=0) / 1.538
     across = np.linalg.norm(np.nan_to_num(residual[2:] - residual[:-2]), axis=-1)
     dev = np.nan_to_num(dev)
-    spike = ok3 & (dev > np.maximum(floor, factor * dev_scale)) & (across < 0.5 * dev)
-    out[1:-1] |= spike
-    # a short stretch cut off by the take's ends or a gap, across one big calm step
-    edge = 2
-    for m in np.flatnonzero(big.any(axis=0)):
-        for a in np.flatnonzero(big[:, m]):
-            calm = all(not ok[k, m] or size[k, m] < 0.25 * size[a, m] for k in (a - 1, a + 1) if 0 <= k < T - 1)
-            if not calm:
-                continue
-            before = a + 1 - _run_start(known[:, m], a)  # known frames up to a
-            after = _run_stop(known[:, m], a + 1) - (a + 1)
-            if before <= edge < after:
-                out[a + 1 - before:a + 1, m] = True
-            elif after <= edge < before:
-                out[a + 1:a + 1 + after, m] = True
-    for m in np.flatnonzero(big.sum(axis=0) >= 2):
-        ups = np.flatnonzero(big[:, m])
-        used = np.zeros(ups.size, dtype=bool)
-        for i, a in enumerate(ups):
-            if used[i]:
-                continue
-            for j in range(i + 1, ups.size):
-                b = ups[j]
-                if b - a > max_run:
-                    break
-                sa, sb = step[a, m], step[b, m]
-                na, nb = np.linalg.norm(sa), np.linalg.norm(sb)
-                # a discontinuity, not a fast but continuous motion (a blink the examples lack):
-                # the steps just before and after each jump are small
-                around = [k for k in (a - 1, a + 1, b - 1, b + 1) if 0 <= k < T - 1 and k not in (a, b)]
-                calm = all(not ok[k, m] or size[k, m] < 0.25 * min(na, nb) for k in around)
-                if calm and np.linalg.norm(sa + sb) < 0.5 * max(na, nb):
-                    out[a + 1:b + 1, m] = True  # frames a+1 .. b moved away
-                    used[i] = used[j] = True
-                    break
-    return out
+    return ok3 & (dev > np.maximum(floor, factor * dev_scale)) & (across < 0.5 * dev)
+
+
+def _mark_cut_off_stretches(out: np.ndarray, big: np.ndarray, ok: np.ndarray, size: np.ndarray,
+                            known: np.ndarray, edge: int = 2) -> None:
+    """One marker: mark in ``out`` (T,) a stretch of at most ``edge`` known frames cut off by the
+    take's ends or a gap across one big calm step (big, ok, size: (T-1,) of its steps)."""
+    for a in np.flatnonzero(big):
+        calm = all(not ok[k] or size[k] < 0.25 * size[a] for k in (a - 1, a + 1) if 0 <= k < len(big))
+        if not calm:
+            continue
+        before = a + 1 - _run_start(known, a)  # known frames up to a
+        after = _run_stop(known, a + 1) - (a + 1)
+        if before <= edge < after:
+            out[a + 1 - before:a + 1] = True
+        elif after <= edge < before:
+            out[a + 1:a + 1 + after] = True
+
+
+def _mark_jumps_and_returns(out: np.ndarray, big: np.ndarray, ok: np.ndarray, size: np.ndarray,
+                            step: np.ndarray, max_run: int) -> None:
+    """One marker: mark in ``out`` (T,) the frames between a big step and one back within
+    ``max_run`` frames that nearly cancels it, both discontinuities (step: (T-1, 3))."""
+    ups = np.flatnonzero(big)
+    used = np.zeros(ups.size, dtype=bool)
+    for i, a in enumerate(ups):
+        if used[i]:
+            continue
+        for j in range(i + 1, ups.size):
+            b = ups[j]
+            if b - a > max_run:
+                break
+            sa, sb = step[a], step[b]
+            na, nb = np.linalg.norm(sa), np.linalg.norm(sb)
+            # a discontinuity, not a fast but continuous motion (a blink the examples lack):
+            # the steps just before and after each jump are small
+            around = [k for k in (a - 1, a + 1, b - 1, b + 1) if 0 <= k < len(big) and k not in (a, b)]
+            calm = all(not ok[k] or size[k] < 0.25 * min(na, nb) for k in around)
+            if calm and np.linalg.norm(sa + sb) < 0.5 * max(na, nb):
+                out[a + 1:b + 1] = True  # frames a+1 .. b moved away
+                used[i] = used[j] = True
+                break
 
 
 def _run_start(known: np.ndarray, t: int) -> int:
@@ -484,128 +575,207 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     usable = n_vis >= (1 if fix_pose else 3)
     if not usable.any():
         raise ValueError("no frame has enough visible markers")
-
-    # starting pose: robust rigid fit of the stable markers, else of all markers
-    if fix_pose:
-        R0 = np.tile(np.eye(3), (T, 1, 1))
-        t0 = np.zeros((T, 3))
-    else:
-        R0, t0 = stable_marker_pose(reference, world, stable, notes, usable,
-                                    fallback="their starting pose comes from all visible markers")
-        R0, t0, _ = interpolate_poses(np.where(usable[:, None, None], R0, np.nan),
-                                      np.where(usable[:, None], t0, np.nan), times)
-
+    R0, t0 = _starting_pose(world, reference, stable, times, usable, fix_pose, notes)
     rows = np.flatnonzero(usable)
-    Wv = visible[rows].astype(np.float64)
-
-    def fit_residual(R_rows, t_rows, C_rows):
-        """(n, H, 3) the usable frames' markers in head space minus the model (missing markers at 0)."""
-        head = np.einsum("nji,nhj->nhi", R_rows, np.where(visible[rows][..., None], world[rows], 0.0)
-                         - t_rows[:, None, :])
-        return head - (reference + np.einsum("nk,khc->nhc", C_rows, basis))
+    frames = _UsableFrames(world[rows], visible[rows], reference, basis, opt.iterations, fix_pose)
 
     # pass 1: unweighted, no sparsity: residuals for the noise and per-marker scales
     sigma_floor = 1e-7 * spacing  # noise-free input: keep the weights finite, the L1 bias negligible
-    R1, t1, C1, _ = fit_pose_expression(world[rows], Wv, reference, basis, R0[rows], t0[rows],
-                                        iterations=opt.iterations, fix_pose=fix_pose, robust_scale=sigma_floor)
-    res1 = np.where(visible[rows][..., None], fit_residual(R1, t1, C1), np.nan)
-    sigma = max(noise_sigma(np.nan_to_num(res1), visible[rows]), sigma_floor)
+    R1, t1, C1, _ = frames.fit(frames.visible.astype(np.float64), R0[rows], t0[rows], robust_scale=sigma_floor)
     # share of the noise the fit absorbs (parameters / equations), the rest stays in the residual
     absorbed = min(0.9, (6 * (not fix_pose) + K) / max(1.0, 3 * float(np.mean(n_vis[rows]))))
     jump = 0.05 * spacing if opt.jump is None else float(opt.jump)
-    r2 = np.sum(res1**2, axis=-1)  # (n, H), NaN where missing
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        # per marker, per coordinate: first robustly (median |r|² / median of χ²(3)), so that a
-        # marker that jumps or slides for a while cannot hide its bad samples by inflating its
-        # own scale; then the mean over the samples that pass, which also counts the markers
-        # that move off the examples' span only now and then
-        ms = np.nan_to_num(np.nanmedian(r2, axis=0) / 2.366)
-        rough = np.sqrt(sigma**2 + np.maximum(0.0, ms - sigma**2 * (1 - absorbed)))
-        bad = (np.sqrt(np.nan_to_num(r2)) > opt.outlier * rough * np.sqrt(3.0)) & (np.sqrt(np.nan_to_num(r2)) > jump)
-        ms = np.nan_to_num(np.nanmean(np.where(bad, np.nan, r2), axis=0) / 3.0)
-    tau2 = np.maximum(0.0, ms - sigma**2 * (1 - absorbed))
-    scale = np.sqrt(sigma**2 + tau2)  # per-coordinate residual scale of each marker
-    trust = sigma**2 / (sigma**2 + tau2)  # relative weight of each marker in the fit
+    noise = _NoiseModel.measure(frames.residual(R1, t1, C1), frames.visible, sigma_floor, absorbed, opt.outlier,
+                                jump)
 
-    # pass 2: weighted by trust, sparse expression, robust to jumping markers
-    W = Wv * (trust / sigma**2)[None, :]
-    l1 = None
+    # pass 2: weighted by trust, sparse expression, robust to jumping markers; then without the
+    # outliers that leaves, and the chosen expressions refitted without the L1 prior's shrinkage
+    W = frames.visible.astype(np.float64) * (noise.trust / noise.sigma**2)[None, :]
+    robust = noise.scale * np.sqrt(3.0)
+    R2, t2, C2 = _sparse_fit(frames, W, R1, t1, C1, robust, opt.sparsity)
+    outlier_rows = _jumps_in_rows(frames.residual(R2, t2, C2), frames.visible, rows, T, jump, opt.outlier,
+                                  max_run=int(round(opt.max_jump * fps)))
+    W_kept = np.where(outlier_rows, 0.0, W)
+    if outlier_rows.any():  # they were only down-weighted
+        R2, t2, C2 = _sparse_fit(frames, W_kept, R2, t2, C2, robust, opt.sparsity)
     if K and opt.sparsity > 0:
-        G = np.einsum("nh,khc->nk", W, basis**2)  # diag of Dᵀ W D per frame
-        l1 = opt.sparsity * np.sqrt(G)
-    R2, t2, C2, Wused = fit_pose_expression(world[rows], W, reference, basis, R1, t1, C1, l1=l1,
-                                            iterations=opt.iterations, fix_pose=fix_pose,
-                                            robust_scale=scale * np.sqrt(3.0))
-    res2 = fit_residual(R2, t2, C2)
-    res_seq = np.full((T, H, 3), np.nan)
-    res_seq[rows] = np.where(visible[rows][..., None], res2, np.nan)
-    known_seq = np.zeros((T, H), dtype=bool)
-    known_seq[rows] = visible[rows]
-    jumps = find_jumps(res_seq, known_seq, jump, opt.outlier, max_run=int(round(opt.max_jump * fps)))
-    outlier_rows = jumps[rows]
-    if outlier_rows.any():
-        # refit without them (they were only down-weighted)
-        W2 = np.where(outlier_rows, 0.0, W)
-        if K and opt.sparsity > 0:
-            l1 = opt.sparsity * np.sqrt(np.einsum("nh,khc->nk", W2, basis**2))
-        R2, t2, C2, _ = fit_pose_expression(world[rows], W2, reference, basis, R2, t2, C2, l1=l1,
-                                            iterations=opt.iterations, fix_pose=fix_pose,
-                                            robust_scale=scale * np.sqrt(3.0))
-        res2 = fit_residual(R2, t2, C2)
+        R2, t2, C2 = _relaxed_refit(frames, W_kept, R2, t2, C2, robust, opt.sparsity)
 
-    if K and opt.sparsity > 0:
-        # the L1 prior chose which expressions are active; refit them without its shrinkage
-        W2 = np.where(outlier_rows, 0.0, W)
-        R2, t2, C2, _ = fit_pose_expression(world[rows], W2, reference, basis, R2, t2, C2,
-                                            iterations=opt.iterations, fix_pose=fix_pose,
-                                            robust_scale=scale * np.sqrt(3.0), active=C2 > 0)
-        # ... and shrink each by the non-negative garrote max(0, 1 - κ² var / c²): a weight of a
-        # few standard deviations (a near-neutral frame) is pulled toward zero, a clear one is
-        # left alone (the L1 prior would bias every active weight by κ standard deviations)
-        var = 1.0 / np.maximum(np.einsum("nh,khc->nk", W2, basis**2), 1e-300)
-        C2 = C2 * np.maximum(0.0, 1.0 - opt.sparsity**2 * var / np.maximum(C2**2, 1e-300))
-        res2 = fit_residual(R2, t2, C2)
-
-    # back to every frame: unusable frames get interpolated pose and weights
-    R = np.full((T, 3, 3), np.nan)
-    t = np.full((T, 3), np.nan)
-    C = np.zeros((T, K))
-    R[rows], t[rows], C[rows] = R2, t2, C2
-    empty = ~usable
-    if empty.any():
-        R, t, _ = interpolate_poses(R, t, times)
-        for k in range(K):
-            C[empty, k] = np.interp(times[empty], times[rows], C2[:, k])
+    R, t, C = _every_frame(R2, t2, C2, usable, times)
     outlier = np.zeros((T, H), dtype=bool)
     outlier[rows] = outlier_rows
     known = visible & ~outlier
     residual = np.full((T, H, 3), np.nan)
-    residual[rows] = np.where(known[rows][..., None], res2, np.nan)
+    residual[rows] = np.where(outlier_rows[..., None], np.nan, frames.residual(R2, t2, C2))
+    clean = _clean_handles(reference + np.einsum("tk,khc->thc", C, basis), residual, known, noise.keep, times,
+                           fps, names, opt)
+    report = _clean_report(visible, outlier, int((~usable).sum()), noise, jump, C, opt, names, notes)
+    return CleanResult(clean, R, t, C, report, outlier)
 
-    keep = tau2 / (tau2 + sigma**2)  # Wiener shrink of the off-span residual, per marker
-    model = reference + np.einsum("tk,khc->thc", C, basis)
-    # residual across gaps: PCHIP, faded with the distance to the nearest known sample
+
+def _starting_pose(world: np.ndarray, reference: np.ndarray, stable: np.ndarray, times: np.ndarray,
+                   usable: np.ndarray, fix_pose: bool, notes: list[str]):
+    """(T, 3, 3), (T, 3) the pose the fit starts from: a robust rigid fit of the stable markers,
+    else of all markers, interpolated over the frames the fit cannot use (identity with a fixed pose)."""
+    T = len(world)
+    if fix_pose:
+        return np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3))
+    R0, t0 = stable_marker_pose(reference, world, stable, notes, usable,
+                                fallback="their starting pose comes from all visible markers")
+    R0, t0, _ = interpolate_poses(np.where(usable[:, None, None], R0, np.nan),
+                                  np.where(usable[:, None], t0, np.nan), times)
+    return R0, t0
+
+
+@dataclass(frozen=True)
+class _UsableFrames:
+    """The frames the fit can use (enough visible markers), and what every fit of them shares."""
+
+    world: np.ndarray  # (n, H, 3), NaN where missing
+    visible: np.ndarray  # (n, H) bool
+    reference: np.ndarray  # (H, 3)
+    basis: np.ndarray  # (K, H, 3)
+    iterations: int
+    fix_pose: bool
+
+    def fit(self, W, R, t, C=None, **options):
+        """:func:`fit_pose_expression` of these frames with sample weights W (n, H)."""
+        return fit_pose_expression(self.world, W, self.reference, self.basis, R, t, C,
+                                   iterations=self.iterations, fix_pose=self.fix_pose, **options)
+
+    def residual(self, R, t, C) -> np.ndarray:
+        """(n, H, 3) the markers in head space minus the model of pose R, t and weights C; NaN where missing."""
+        head = np.einsum("nji,nhj->nhi", R, np.where(self.visible[..., None], self.world, 0.0) - t[:, None, :])
+        return np.where(self.visible[..., None], head - (self.reference + np.einsum("nk,khc->nhc", C, self.basis)),
+                        np.nan)
+
+
+@dataclass(frozen=True)
+class _NoiseModel:
+    """Capture noise σ and each marker's off-span variance τ² (both per coordinate)."""
+
+    sigma: float
+    ms: np.ndarray  # (H,) mean square residual per coordinate of the samples that are not outliers
+    tau2: np.ndarray  # (H,)
+
+    @classmethod
+    def measure(cls, residual: np.ndarray, visible: np.ndarray, sigma_floor: float, absorbed: float,
+                outlier: float, jump: float) -> "_NoiseModel":
+        """From a first fit's residual (n, H, 3; NaN where missing); ``absorbed``: the share of the
+        noise the fit absorbs (parameters / equations); ``outlier``, ``jump``: as in CleanOptions."""
+        sigma = max(noise_sigma(np.nan_to_num(residual), visible), sigma_floor)
+        r2 = np.sum(residual**2, axis=-1)  # (n, H), NaN where missing
+        # per marker, per coordinate: first robustly (median |r|² / median of χ²(3)), so that a
+        # marker that jumps or slides for a while cannot hide its bad samples by inflating its
+        # own scale; then the mean over the samples that pass, which also counts the markers
+        # that move off the examples' span only now and then
+        ms = _nanmedian_or_zero(r2, axis=0) / 2.366
+        rough = np.sqrt(sigma**2 + np.maximum(0.0, ms - sigma**2 * (1 - absorbed)))
+        bad = (np.sqrt(np.nan_to_num(r2)) > outlier * rough * np.sqrt(3.0)) & (np.sqrt(np.nan_to_num(r2)) > jump)
+        ms = _nanmean_or_zero(np.where(bad, np.nan, r2), axis=0) / 3.0
+        return cls(sigma, ms, np.maximum(0.0, ms - sigma**2 * (1 - absorbed)))
+
+    @property
+    def scale(self) -> np.ndarray:
+        """(H,) per-coordinate residual scale of each marker."""
+        return np.sqrt(self.sigma**2 + self.tau2)
+
+    @property
+    def trust(self) -> np.ndarray:
+        """(H,) relative weight of each marker in the fit."""
+        return self.sigma**2 / (self.sigma**2 + self.tau2)
+
+    @property
+    def keep(self) -> np.ndarray:
+        """(H,) share of the off-span residual kept (a Wiener shrink)."""
+        return self.tau2 / (self.tau2 + self.sigma**2)
+
+
+def _l1_weights(W: np.ndarray, basis: np.ndarray, sparsity: float):
+    """(n, K) the L1 prior's weights: ``sparsity`` standard deviations of each expression weight
+    (None without examples or sparsity)."""
+    if not (basis.shape[0] and sparsity > 0):
+        return None
+    return sparsity * np.sqrt(np.einsum("nh,khc->nk", W, basis**2))  # diag of Dᵀ W D per frame
+
+
+def _sparse_fit(frames: _UsableFrames, W, R, t, C, robust_scale, sparsity: float):
+    """Pose and weights with the L1 prior, from R, t, C: robust, markers weighted by W."""
+    R, t, C, _ = frames.fit(W, R, t, C, l1=_l1_weights(W, frames.basis, sparsity), robust_scale=robust_scale)
+    return R, t, C
+
+
+def _relaxed_refit(frames: _UsableFrames, W, R, t, C, robust_scale, sparsity: float):
+    """The L1 prior chose which expressions are active; refit them without its shrinkage, then
+    shrink each by the non-negative garrote max(0, 1 - κ² var / c²): a weight of a few standard
+    deviations (a near-neutral frame) is pulled toward zero, a clear one is left alone (the L1
+    prior would bias every active weight by κ standard deviations)."""
+    R, t, C, _ = frames.fit(W, R, t, C, robust_scale=robust_scale, active=C > 0)
+    var = 1.0 / np.maximum(np.einsum("nh,khc->nk", W, frames.basis**2), 1e-300)
+    with np.errstate(over="ignore"):  # a weight the markers say nothing about: var / c² is inf, the weight 0
+        return R, t, C * np.maximum(0.0, 1.0 - sparsity**2 * var / np.maximum(C**2, 1e-300))
+
+
+def _jumps_in_rows(residual: np.ndarray, visible: np.ndarray, rows: np.ndarray, T: int, floor: float,
+                   factor: float, max_run: int) -> np.ndarray:
+    """(n, H) :func:`find_jumps` of the residual (n, H, 3) of the take's ``rows`` among its T frames
+    (the frames between them unknown)."""
+    H = visible.shape[1]
+    res_seq = np.full((T, H, 3), np.nan)
+    res_seq[rows] = residual
+    known_seq = np.zeros((T, H), dtype=bool)
+    known_seq[rows] = visible
+    return find_jumps(res_seq, known_seq, floor, factor, max_run=max_run)[rows]
+
+
+def _every_frame(R_rows: np.ndarray, t_rows: np.ndarray, C_rows: np.ndarray, usable: np.ndarray,
+                 times: np.ndarray):
+    """Pose and weights of all T frames from those of the usable ones: the others interpolated."""
+    T, K = len(usable), C_rows.shape[1]
+    rows = np.flatnonzero(usable)
+    R = np.full((T, 3, 3), np.nan)
+    t = np.full((T, 3), np.nan)
+    C = np.zeros((T, K))
+    R[rows], t[rows], C[rows] = R_rows, t_rows, C_rows
+    empty = ~usable
+    if empty.any():
+        R, t, _ = interpolate_poses(R, t, times)
+        for k in range(K):
+            C[empty, k] = np.interp(times[empty], times[rows], C_rows[:, k])
+    return R, t, C
+
+
+def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, keep: np.ndarray,
+                   times: np.ndarray, fps: float, names, opt: CleanOptions) -> np.ndarray:
+    """(T, H, 3) the prior's handles ``model`` plus the kept share of each marker's off-span
+    residual (NaN where not known): across gaps by PCHIP, faded with the distance to the nearest
+    known sample; smoothed in time if asked."""
     never = ~known.any(axis=0)
     res_known = np.where(never[None, :, None], 0.0, residual)
     res_filled, _ = fill_gaps(res_known, times=times, marker_names=names)
     fade = np.exp(-_distance_to_visible(known) / max(opt.decay * fps, 1e-9))
     clean = model + keep[None, :, None] * fade[..., None] * res_filled
-    if opt.smooth and opt.smooth > 0 and T > 1:
-        from scipy.ndimage import gaussian_filter1d
+    if opt.smooth and opt.smooth > 0 and len(clean) > 1:
+        from scipy.ndimage import gaussian_filter1d  # lazy: the CLI starts without scipy
 
         clean = gaussian_filter1d(clean, float(opt.smooth), axis=0, mode="nearest")
+    return clean
 
-    # report
-    per, total = sample_counts(~visible, outlier.sum(axis=0), int(empty.sum()), opt.short_gap, names, trust,
-                               np.sqrt(3 * ms))
-    report = {
+
+def _clean_report(visible: np.ndarray, outlier: np.ndarray, frames_interpolated: int, noise: _NoiseModel,
+                  jump: float, C: np.ndarray, opt: CleanOptions, names, notes: list[str]) -> dict:
+    """The report of :func:`clean_take` (see :class:`CleanResult`)."""
+    T, K = C.shape
+    H = visible.shape[1]
+    per, total = sample_counts(~visible, outlier.sum(axis=0), frames_interpolated, opt.short_gap, names,
+                               noise.trust, np.sqrt(3 * noise.ms))
+    return {
         "markers": per,
         "total": total,
         "noise": {
-            "sigma": float(sigma),
-            "off_span_rms_median": float(np.median(np.sqrt(3 * tau2))) if H else 0.0,
-            "residual_kept_median": float(np.median(keep)) if H else 0.0,
+            "sigma": float(noise.sigma),
+            "off_span_rms_median": float(np.median(np.sqrt(3 * noise.tau2))) if H else 0.0,
+            "residual_kept_median": float(np.median(noise.keep)) if H else 0.0,
             "jump_threshold": float(jump),
             "examples": int(K),
             "active_expressions_mean": float((C > 0).sum(axis=1).mean()) if K and T else 0.0,
@@ -613,7 +783,6 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         "smooth_frames": float(opt.smooth or 0.0),
         "notes": notes,
     }
-    return CleanResult(clean, R, t, C, report, outlier)
 
 
 def sample_counts(missing: np.ndarray, outliers: np.ndarray, frames_interpolated: int, short_gap: int, names,

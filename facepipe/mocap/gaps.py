@@ -56,8 +56,6 @@ def fill_gaps(positions, max_gap: int | None = None, *, times=None, marker_names
     >>> float(filled[2, 0, 0]), report["total"]["filled"]
     (2.0, 1)
     """
-    from scipy.interpolate import PchipInterpolator
-
     pos = np.array(positions, dtype=np.float64)  # a copy: the caller's array is left alone
     if pos.ndim != 3 or pos.shape[2] != 3:
         raise ValueError(f"positions must be (T, M, 3), got {pos.shape}")
@@ -67,13 +65,30 @@ def fill_gaps(positions, max_gap: int | None = None, *, times=None, marker_names
         raise ValueError(f"{len(names)} marker names for {M} markers")
     if max_gap is not None and (int(max_gap) != max_gap or max_gap < 1):
         raise ValueError(f"max_gap must be a positive integer or None, got {max_gap!r}")
-    t = np.arange(T, dtype=np.float64) if times is None else np.asarray(times, dtype=np.float64)
-    if t.shape != (T,) or (T > 1 and not (np.diff(t) > 0).all()) or not np.isfinite(t).all():
-        raise ValueError("times must be (T,), finite and strictly increasing")
+    t = _sample_times(times, T)
 
     missing = np.isnan(pos).any(axis=2)  # (T, M)
     pos[missing] = np.nan
-    never = [names[m] for m in np.flatnonzero(missing.all(axis=0))] if T else []
+    _refuse_never_visible(missing, names, path)
+    run_m, run_start, run_stop = _missing_runs(missing)
+    run_len = run_stop - run_start
+    to_fill = _samples_to_fill(missing, run_len, max_gap)
+    for m in np.flatnonzero(to_fill.any(axis=1)):
+        _fill_marker(pos[:, m], t, ~missing[:, m], to_fill[m])  # pos[:, m] is a view: filled in place
+    return pos, _gap_report(missing, to_fill, run_m, run_len, names)
+
+
+def _sample_times(times, T: int) -> np.ndarray:
+    """(T,) sample times: the frame index by default, else checked to be finite and increasing."""
+    t = np.arange(T, dtype=np.float64) if times is None else np.asarray(times, dtype=np.float64)
+    if t.shape != (T,) or (T > 1 and not (np.diff(t) > 0).all()) or not np.isfinite(t).all():
+        raise ValueError("times must be (T,), finite and strictly increasing")
+    return t
+
+
+def _refuse_never_visible(missing: np.ndarray, names: list[str], path) -> None:
+    """An InputError naming every marker missing in all frames of ``missing`` (T, M)."""
+    never = [names[m] for m in np.flatnonzero(missing.all(axis=0))] if len(missing) else []
     if never:
         shown = ", ".join(never[:12]) + (f" and {len(never) - 12} more" if len(never) > 12 else "")
         raise InputError(
@@ -82,35 +97,51 @@ def fill_gaps(positions, max_gap: int | None = None, *, times=None, marker_names
             hint="check the marker's columns in the take, or mark the marker `ignore` in markers.csv",
         )
 
-    # Runs of missing frames, marker by marker: +1/-1 steps of the padded mask.
-    step = np.diff(np.pad(missing.T.astype(np.int8), ((0, 0), (1, 1))), axis=1)  # (M, T+1)
+
+def _missing_runs(missing: np.ndarray):
+    """Runs of missing frames, marker by marker (marker-major order): marker, start, stop arrays."""
+    step = np.diff(np.pad(missing.T.astype(np.int8), ((0, 0), (1, 1))), axis=1)  # +1/-1 steps, (M, T+1)
     run_m, run_start = np.nonzero(step == 1)
     _, run_stop = np.nonzero(step == -1)  # same marker-major order as the starts
-    run_len = run_stop - run_start
-    # Length of the gap each missing sample belongs to, in (marker, frame) order.
-    sample_len = np.repeat(run_len, run_len)
+    return run_m, run_start, run_stop
+
+
+def _samples_to_fill(missing: np.ndarray, run_len: np.ndarray, max_gap: int | None) -> np.ndarray:
+    """(M, T) the missing samples in gaps of at most ``max_gap`` frames (all of them without one)."""
+    T, M = missing.shape
+    sample_len = np.repeat(run_len, run_len)  # the length of each missing sample's gap, (marker, frame) order
     mm, tt = np.nonzero(missing.T)
     fill = np.ones(mm.size, dtype=bool) if max_gap is None else sample_len <= max_gap
-    do = np.zeros((M, T), dtype=bool)
-    do[mm[fill], tt[fill]] = True
+    to_fill = np.zeros((M, T), dtype=bool)
+    to_fill[mm[fill], tt[fill]] = True
+    return to_fill
 
-    for m in np.flatnonzero(do.any(axis=1)):
-        vis = np.flatnonzero(~missing[:, m])
-        rows = np.flatnonzero(do[m])
-        first, last = vis[0], vis[-1]
-        lo, hi = rows[rows < first], rows[rows > last]
-        mid = rows[(rows > first) & (rows < last)]
-        pos[lo, m] = pos[first, m]
-        pos[hi, m] = pos[last, m]
-        if mid.size:
-            pos[mid, m] = PchipInterpolator(t[vis], pos[vis, m], axis=0)(t[mid])
 
+def _fill_marker(track: np.ndarray, t: np.ndarray, visible: np.ndarray, rows_to_fill: np.ndarray) -> None:
+    """Fill one marker's (T, 3) ``track`` in place at ``rows_to_fill``: PCHIP between its visible
+    samples, the first or last visible value before and after them."""
+    from scipy.interpolate import PchipInterpolator  # lazy: the CLI starts without scipy
+
+    vis = np.flatnonzero(visible)
+    rows = np.flatnonzero(rows_to_fill)
+    first, last = vis[0], vis[-1]
+    track[rows[rows < first]] = track[first]
+    track[rows[rows > last]] = track[last]
+    mid = rows[(rows > first) & (rows < last)]
+    if mid.size:
+        track[mid] = PchipInterpolator(t[vis], track[vis], axis=0)(t[mid])
+
+
+def _gap_report(missing: np.ndarray, to_fill: np.ndarray, run_m: np.ndarray, run_len: np.ndarray,
+                names: list[str]) -> dict:
+    """The report of :func:`fill_gaps` (see there)."""
+    T, M = missing.shape
     n_gaps = np.bincount(run_m, minlength=M)
     n_missing = missing.sum(axis=0)
-    n_filled = do.sum(axis=1)
+    n_filled = to_fill.sum(axis=1)
     longest = np.zeros(M, dtype=np.int64)
     np.maximum.at(longest, run_m, run_len)
-    report = {
+    return {
         "markers": {
             names[m]: {
                 "gaps": int(n_gaps[m]),
@@ -132,4 +163,3 @@ def fill_gaps(positions, max_gap: int | None = None, *, times=None, marker_names
             "longest_gap_marker": names[int(np.argmax(longest))] if M and longest.max() > 0 else None,
         },
     }
-    return pos, report

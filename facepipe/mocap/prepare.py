@@ -22,8 +22,8 @@ rig's scale), so ``world = R @ head + t`` puts the output where the take's face 
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -100,9 +100,8 @@ def _neutral_from_take(neutral: Take) -> np.ndarray:
     good = np.isfinite(t).all(axis=1)
     R, t = R[good], t[good]
     back = np.einsum("nji,nhj->nhi", R, pos[rows[good]] - t[:, None, :])  # into the first frame's space
-    with warnings.catch_warnings():  # a marker never visible stays NaN
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmedian(back, axis=0)
+    never = np.isnan(back).all(axis=0)  # a marker never visible stays NaN (0 spares numpy an empty median)
+    return np.where(never, np.nan, np.nanmedian(np.where(never, 0.0, back), axis=0))
 
 
 def _unit_error(scale: float, take: Take, rig_units: str, what: str) -> InputError:
@@ -135,13 +134,16 @@ def prepare_take(take: Take, model, options: PrepareOptions | None = None, windo
     prepared = prepare_take_windows(take, model, options, window)
     parts = list(prepared.windows())
     head, R, t = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    return head, R, t, prepared.report
+    return head, R, t, prepared.report()
 
 
 def prepare_take_windows(take: Take, model, options: PrepareOptions | None = None,
                          window: int | None = None) -> "PreparedTake":
     """Clean head-space handles and head motion of a take, and a report of what was done, as a
     :class:`PreparedTake`: its windows are cleaned as they are asked for.
+
+    Alignment, the checks of the take and the choice of windows happen here (their errors are
+    raised here); cleaning waits for :meth:`PreparedTake.windows`.
 
     A take of more than ``window`` frames (default :data:`CLEAN_WINDOW`; plus the context) is
     cleaned window by window: each window with :func:`clean_margin` frames of context on both
@@ -182,21 +184,83 @@ def prepare_take_windows(take: Take, model, options: PrepareOptions | None = Non
     """
     opt = options or PrepareOptions()
     window = CLEAN_WINDOW if window is None else int(window)
-    names = take.marker_names
-    rest = model.rest[model.handle_vertices].astype(np.float64)
-    H = rest.shape[0]
-    stable = np.asarray(model.stable, dtype=bool)
-    prior = np.asarray(model.example_handles, dtype=np.float64)
-    basis = prior[1:] - prior[0]
-    spacing = float(model.meta.get("marker_spacing") or 1.0)
-    rig_units = model.meta.get("units") or take.units or ""
+    rig = _Rig.of(model, take)
+    if take.positions.shape[1] != len(rig.rest):
+        raise ValueError(f"take has {take.positions.shape[1]} markers, the model {len(rig.rest)}")
     notes: list[str] = []
-    if take.positions.shape[1] != H:
-        raise ValueError(f"take has {take.positions.shape[1]} markers, the model {H}")
+    alignment = _align(take, rig, opt, notes)
+    rows = np.arange(take.n_frames)[opt.frames] if opt.frames is not None else np.arange(take.n_frames)
+    if rows.size == 0:
+        raise InputError(f"the frame range selects none of the take's {take.n_frames} frames", path=take.path,
+                         hint=f"choose rows within 0:{take.n_frames} with --frames A:B")
+    if not np.isfinite(take.positions).all(axis=-1).any():
+        raise InputError("no marker is visible in the selected frames", path=take.path,
+                         hint="choose other frames with --frames")
+    return PreparedTake(take, rig, opt, alignment, _choose_windows(take, rows, opt, window, notes), rows, notes)
 
-    # ---- neutral reference and alignment
-    neutral = None
-    source = "rest pose"
+
+@dataclass(frozen=True)
+class _Rig:
+    """What preparing a take needs of the model."""
+
+    rest: np.ndarray  # (H, 3) rest-pose handles
+    stable: np.ndarray  # (H,) bool
+    basis: np.ndarray  # (K, H, 3) the examples' handle displacements
+    spacing: float  # typical marker spacing
+    units: str
+
+    @classmethod
+    def of(cls, model, take: Take) -> "_Rig":
+        prior = np.asarray(model.example_handles, dtype=np.float64)
+        return cls(rest=model.rest[model.handle_vertices].astype(np.float64),
+                   stable=np.asarray(model.stable, dtype=bool), basis=prior[1:] - prior[0],
+                   spacing=float(model.meta.get("marker_spacing") or 1.0),
+                   units=model.meta.get("units") or take.units or "")
+
+
+@dataclass(frozen=True)
+class _Alignment:
+    """The take's markers to the rig: x_rig = s Q x_take + b from a neutral reference (identity
+    without one), and each marker's offset from its rest position."""
+
+    s: float
+    Q: np.ndarray
+    b: np.ndarray
+    offsets: np.ndarray  # (H, 3)
+    from_neutral: bool
+    report: dict
+
+    def to_rig(self, world: np.ndarray) -> np.ndarray:
+        """(n, H, 3) markers of the take in the rig's space."""
+        return self.s * np.einsum("ij,thj->thi", self.Q, world) + self.b if self.from_neutral else world
+
+    def to_take_space(self, R: np.ndarray, t: np.ndarray, rest: np.ndarray):
+        """Head motion in the take's space: undo the alignment (rigid part, rig scale)."""
+        if not self.from_neutral:
+            return R, t
+        Q, b, s = self.Q, self.b, self.s
+        c = rest.mean(axis=0)
+        Rw = np.einsum("ji,tjk->tik", Q, R)
+        return Rw, np.einsum("ji,tj->ti", Q, np.einsum("tij,j->ti", R, c) + t - b) / s - np.einsum("tij,j->ti", Rw, c)
+
+
+def _align(take: Take, rig: _Rig, opt: PrepareOptions, notes: list[str]) -> _Alignment:
+    """The alignment to the rig from the neutral reference of ``opt`` (the rest pose by default,
+    where only the sizes are checked); refuses a scale that is a unit mismatch."""
+    neutral, source = _neutral_reference(take, opt)
+    if neutral is None:
+        report = {"reference": source}
+        scale = _size_check(take, rig)
+        if scale is not None:
+            report["scale_check"] = scale
+        report["units"] = {"take": take.source_units, "rig": rig.units}
+        H = len(rig.rest)
+        return _Alignment(1.0, np.eye(3), np.zeros(3), np.zeros((H, 3)), False, report)
+    return _align_to_neutral(take, rig, neutral, source, notes)
+
+
+def _neutral_reference(take: Take, opt: PrepareOptions):
+    """(H, 3) the neutral markers of ``opt`` (None: the rest pose is the reference) and what they are."""
     if opt.neutral_frame is not None and opt.neutral_take is not None:
         raise InputError("give either a neutral frame or a neutral take, not both")
     if opt.neutral_frame is not None:
@@ -205,179 +269,209 @@ def prepare_take_windows(take: Take, model, options: PrepareOptions | None = Non
             raise InputError(f"neutral frame {opt.neutral_frame} is not in the take (frames "
                              f"{int(take.frames[0])}..{int(take.frames[-1])})", path=take.path,
                              hint="--neutral-frame takes a frame number of the take's frame column")
-        neutral = take.positions[int(hit[0])]
-        source = f"frame {int(opt.neutral_frame)}"
-    elif opt.neutral_take is not None:
-        neutral = _neutral_from_take(opt.neutral_take)
-        source = f"take {opt.neutral_take.path}"
-    alignment = {"reference": source}
-    s, Q, b = 1.0, np.eye(3), np.zeros(3)
-    offsets = np.zeros((H, 3))
-    if neutral is not None:
-        seen = np.isfinite(neutral).all(axis=1)
-        if seen.sum() < 3:
-            raise InputError(f"the neutral reference ({source}) has fewer than 3 visible markers", path=take.path,
-                             hint="choose a neutral frame where the markers are visible")
-        s, Q, b = _robust_similarity(neutral, rest)
-        if not SCALE_RANGE[0] < s < SCALE_RANGE[1]:
-            raise _unit_error(s, take, rig_units, f"similarity from the neutral {source}")
-        aligned = s * neutral @ Q.T + b
-        offsets[seen] = aligned[seen] - rest[seen]
-        lost = [names[m] for m in np.flatnonzero(~seen)]
-        if lost:
-            notes.append(f"{len(lost)} marker(s) not visible in the neutral reference keep the rig's rest position: "
-                         + ", ".join(lost[:8]) + (" ..." if len(lost) > 8 else ""))
-        off = np.linalg.norm(offsets, axis=1)
-        alignment.update(scale=s, rotation_deg=float(np.degrees(np.arccos(np.clip((np.trace(Q) - 1) / 2, -1, 1)))),
-                         translation=b.tolist(), offsets_rms=float(np.sqrt(np.mean(off[seen] ** 2))),
-                         offsets_max=float(off.max()), offsets_max_marker=names[int(np.argmax(off))])
-    else:
-        # no neutral: the rest pose is the reference; only check that the sizes agree
-        vis = np.isfinite(take.positions).all(axis=-1)
-        rows = np.flatnonzero(vis.sum(axis=1) >= 4)
-        if rows.size:
-            pick = rows[np.linspace(0, rows.size - 1, min(rows.size, 32)).astype(int)]
-            scales = [_robust_similarity(take.positions[r], rest)[0] for r in pick]
-            s_check = float(np.median(scales))
-            alignment["scale_check"] = s_check
-            if not SCALE_RANGE[0] < s_check < SCALE_RANGE[1]:
-                raise _unit_error(s_check, take, rig_units, "similarity of the markers to the rest pose")
-        s = 1.0
-    alignment["units"] = {"take": take.source_units, "rig": rig_units}
+        return take.positions[int(hit[0])], f"frame {int(opt.neutral_frame)}"
+    if opt.neutral_take is not None:
+        return _neutral_from_take(opt.neutral_take), f"take {opt.neutral_take.path}"
+    return None, "rest pose"
 
-    # ---- frames to prepare
-    # the take is cleaned whole (noise and marker scales are measured over all of it, gaps are
-    # bridged from both sides), or a long take window by window with context on both sides; the
-    # windows are fixed by the take's rows, so a --frames part replays exactly as in the whole take
-    rows = np.arange(take.n_frames)[opt.frames] if opt.frames is not None else np.arange(take.n_frames)
-    if rows.size == 0:
-        raise InputError(f"the frame range selects none of the take's {take.n_frames} frames", path=take.path,
-                         hint=f"choose rows within 0:{take.n_frames} with --frames A:B")
+
+def _align_to_neutral(take: Take, rig: _Rig, neutral: np.ndarray, source: str, notes: list[str]) -> _Alignment:
+    """The similarity from the neutral markers to the rest pose, and the markers' offsets from it."""
+    rest, names = rig.rest, take.marker_names
+    seen = np.isfinite(neutral).all(axis=1)
+    if seen.sum() < 3:
+        raise InputError(f"the neutral reference ({source}) has fewer than 3 visible markers", path=take.path,
+                         hint="choose a neutral frame where the markers are visible")
+    s, Q, b = _robust_similarity(neutral, rest)
+    if not SCALE_RANGE[0] < s < SCALE_RANGE[1]:
+        raise _unit_error(s, take, rig.units, f"similarity from the neutral {source}")
+    offsets = np.zeros((len(rest), 3))
+    offsets[seen] = (s * neutral @ Q.T + b)[seen] - rest[seen]
+    lost = [names[m] for m in np.flatnonzero(~seen)]
+    if lost:
+        notes.append(f"{len(lost)} marker(s) not visible in the neutral reference keep the rig's rest position: "
+                     + ", ".join(lost[:8]) + (" ..." if len(lost) > 8 else ""))
+    off = np.linalg.norm(offsets, axis=1)
+    report = {"reference": source, "scale": s,
+              "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(Q) - 1) / 2, -1, 1)))),
+              "translation": b.tolist(), "offsets_rms": float(np.sqrt(np.mean(off[seen] ** 2))),
+              "offsets_max": float(off.max()), "offsets_max_marker": names[int(np.argmax(off))],
+              "units": {"take": take.source_units, "rig": rig.units}}
+    return _Alignment(s, Q, b, offsets, True, report)
+
+
+def _size_check(take: Take, rig: _Rig) -> float | None:
+    """The median scale of similarities from frames of the take to the rest pose (None without a
+    frame of 4 markers); refuses one that is a unit mismatch."""
+    vis = np.isfinite(take.positions).all(axis=-1)
+    rows = np.flatnonzero(vis.sum(axis=1) >= 4)
+    if not rows.size:
+        return None
+    pick = rows[np.linspace(0, rows.size - 1, min(rows.size, 32)).astype(int)]
+    scale = float(np.median([_robust_similarity(take.positions[r], rig.rest)[0] for r in pick]))
+    if not SCALE_RANGE[0] < scale < SCALE_RANGE[1]:
+        raise _unit_error(scale, take, rig.units, "similarity of the markers to the rest pose")
+    return scale
+
+
+class _Window(NamedTuple):
+    """A window of a take: it yields the take's rows [start, stop) (its core), cleaned with the
+    rows [lo, hi) (the core and its context)."""
+
+    start: int
+    stop: int
+    lo: int
+    hi: int
+
+
+def _choose_windows(take: Take, rows: np.ndarray, opt: PrepareOptions, window: int, notes: list[str]) -> list[_Window]:
+    """The windows that cover ``rows``.
+
+    The take is cleaned whole (noise and marker scales are measured over all of it, gaps are
+    bridged from both sides), or a long take window by window with context on both sides; the
+    windows are fixed by the take's rows, so a --frames part replays exactly as in the whole take.
+    """
     T = take.n_frames
-    if not np.isfinite(take.positions).all(axis=-1).any():
-        raise InputError("no marker is visible in the selected frames", path=take.path,
-                         hint="choose other frames with --frames")
-    reference = rest + offsets
-    absent = list(take.markers.get("absent", [])) if take.markers else []
-    times = take.times
-    fps = 1.0 / float(np.median(np.diff(times))) if T > 1 else 30.0
+    fps = 1.0 / float(np.median(np.diff(take.times))) if T > 1 else 30.0
     margin = clean_margin(opt.clean_options, fps)
-    if opt.clean and T > window + 2 * margin:
-        cores = [(a, min(T, a + window)) for a in range(0, T, window)]
-        cores = [(a, b) for a, b in cores if ((rows >= a) & (rows < b)).any()]
-        spans = [(a, b, max(0, a - margin), min(T, b + margin)) for a, b in cores]
-        # a window needs frames with enough markers to fit the head (else its poses come from
-        # neighbouring frames, which only the whole take has): such a take is cleaned whole
-        enough = np.isfinite(take.positions).all(axis=-1).sum(axis=1) >= (3 if opt.stabilise else 1)
-        if not all(enough[lo:hi].any() for _, _, lo, hi in spans):
-            spans = [(0, T, 0, T)]
-            notes.append(f"a stretch of {window} or more frames without enough markers to fit the head: "
-                         "the take was cleaned whole")
-    else:
-        spans = [(0, T, 0, T)]
+    whole = [_Window(0, T, 0, T)]
+    if not (opt.clean and T > window + 2 * margin):
+        return whole
+    cores = [(a, min(T, a + window)) for a in range(0, T, window)]
+    windows = [_Window(a, b, max(0, a - margin), min(T, b + margin)) for a, b in cores
+               if ((rows >= a) & (rows < b)).any()]
+    # a window needs frames with enough markers to fit the head (else its poses come from
+    # neighbouring frames, which only the whole take has): such a take is cleaned whole
+    enough = np.isfinite(take.positions).all(axis=-1).sum(axis=1) >= (3 if opt.stabilise else 1)
+    if not all(enough[w.lo:w.hi].any() for w in windows):
+        notes.append(f"a stretch of {window} or more frames without enough markers to fit the head: "
+                     "the take was cleaned whole")
+        return whole
+    return windows
 
-    def span_world(lo, hi):
-        world = take.positions[lo:hi]
-        return s * np.einsum("ij,thj->thi", Q, world) + b if neutral is not None else world
 
-    def to_take_space(R, t):
-        """Head motion in the take's space: undo the alignment (rigid part, rig scale)."""
-        if neutral is None:
-            return R, t
-        c = rest.mean(axis=0)
-        Rw = np.einsum("ji,tjk->tik", Q, R)
-        return Rw, np.einsum("ji,tj->ti", Q, np.einsum("tij,j->ti", R, c) + t - b) / s - np.einsum("tij,j->ti", Rw, c)
+@dataclass(frozen=True)
+class _WindowSummary:
+    """What the take's report needs of a prepared window."""
 
-    def clean_span(lo, hi):
-        result = clean_take(span_world(lo, hi), reference, basis, stable, times[lo:hi], opt.clean_options,
-                            fix_pose=not opt.stabilise, spacing=spacing, names=names)
-        return result.head - offsets, result.R, result.t, result
-
-    def fill_span(lo, hi):
-        world = span_world(lo, hi)
-        n = hi - lo
-        if opt.stabilise:
-            R, t = stable_marker_pose(reference, world, stable, notes)
-            try:
-                R, t, filled = interpolate_poses(R, t, times[lo:hi])
-            except ValueError:
-                raise InputError("no frame has 3 visible markers: the head's motion cannot be found",
-                                 path=take.path, hint="check the take's markers, or use --no-stabilise") from None
-            if filled.any():
-                notes.append(f"{int(filled.sum())} frame(s) without 3 visible markers: head pose interpolated")
-            head_ref = np.einsum("tji,thj->thi", R, world - t[:, None, :])
-        else:
-            R, t = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
-            head_ref = world.copy()
-        head_ref, gap = fill_gaps(head_ref, times=times[lo:hi], marker_names=names, path=take.path)
-        return head_ref - offsets, R, t, {"markers": gap["markers"], "total": gap["total"]}
-
-    def finish_report(clean_report, angle_max):
-        notes.extend(clean_report.pop("notes", []))
-        markers = clean_report["markers"]
-        for name in absent:
-            markers.setdefault(name, {})["absent"] = True
-        if absent:
-            notes.append(f"{len(absent)} rig marker(s) absent from the take, filled from the others through the "
-                         "rig's prior: " + ", ".join(absent[:8]) + (" ..." if len(absent) > 8 else ""))
-        return {
-            "format": take.format,
-            "alignment": alignment,
-            "head_motion": {"stabilised": bool(opt.stabilise), "rotation_deg_max": angle_max},
-            "cleaning": {"prior": bool(opt.clean and opt.clean_options.prior), "enabled": bool(opt.clean),
-                         **{k: v for k, v in clean_report.items() if k not in ("markers", "total")}},
-            "markers": markers,
-            "total": clean_report["total"],
-            "absent_markers": absent,
-            "extra_markers": list(take.extra_markers),
-            "duplicate_markers": dict(take.markers.get("duplicates", {})) if take.markers else {},
-            "renamed_markers": len(take.markers.get("renamed", {})) if take.markers else 0,
-            "subject": take.markers.get("subject") if take.markers else None,
-            "notes": notes,
-        }
-
-    prepared = PreparedTake(rows, len(spans))
-
-    def windows():
-        angle_max = 0.0
-        results = []
-        for a, b_, lo, hi in spans:
-            head, R, t, info = (clean_span if opt.clean else fill_span)(lo, hi)
-            R, t = to_take_space(R, t)
-            local = rows[(rows >= a) & (rows < b_)] - lo
-            if len(spans) == 1:
-                clean_report = info.report if opt.clean else info
-            else:
-                results.append((a - lo, b_ - lo, info))
-            angles = np.degrees(np.arccos(np.clip((np.trace(R[local], axis1=1, axis2=2) - 1) / 2, -1, 1)))
-            angle_max = max(angle_max, float(angles.max()) if angles.size else 0.0)
-            yield head[local], R[local], t[local]
-        if len(spans) > 1:
-            covered = np.concatenate([take.positions[a:b_] for a, b_, _, _ in spans])
-            clean_report = merged_clean_report(results, covered, names, opt.clean_options, fix_pose=not opt.stabilise)
-        prepared.report = finish_report(clean_report, angle_max)
-
-    prepared._windows = windows
-    return prepared
+    report: dict  # clean_take's report, or (cleaning off) fill_gaps' counts; with the window's notes
+    outliers: np.ndarray | None  # (core frames, H) samples dropped as outliers (cleaning only)
+    rotation_deg_max: float  # the largest head rotation over the rows it yields
 
 
 class PreparedTake:
     """A take prepared window by window (:func:`prepare_take_windows`).
 
     ``rows``: the take's rows it yields (the ``--frames`` selection); :meth:`windows` yields
-    (head, R, t) for consecutive runs of them, cleaned as they are asked for; ``report`` is set
-    once the last is taken.
+    (head, R, t) for consecutive runs of them, cleaned as they are asked for; :meth:`report`
+    is the report of the whole selection at any time (it cleans the windows not yet cleaned,
+    for their counts, so ask for it after the windows to clean each once).
     """
 
-    def __init__(self, rows: np.ndarray, n_windows: int):
+    def __init__(self, take: Take, rig: _Rig, options: PrepareOptions, alignment: _Alignment,
+                 windows: list[_Window], rows: np.ndarray, notes: list[str]):
         self.rows = rows
         self.n_frames = int(len(rows))
-        self.n_windows = n_windows
-        self.report: dict | None = None
-        self._windows = None
+        self.n_windows = len(windows)
+        self._take, self._rig, self._options, self._alignment = take, rig, options, alignment
+        self._window_spans = windows
+        self._notes = list(notes)  # of the alignment and the choice of windows
+        self._summaries: list[_WindowSummary | None] = [None] * len(windows)
 
     def windows(self):
-        return self._windows()
+        """Yield (head (n, H, 3), R (n, 3, 3), t (n, 3)) of each window's rows, cleaned now."""
+        for i, window in enumerate(self._window_spans):
+            head, R, t, self._summaries[i] = self._prepare(window)
+            yield head, R, t
+
+    def report(self) -> dict:
+        """The JSON-serialisable report of the selection (see :func:`prepare_take_windows`)."""
+        for i, window in enumerate(self._window_spans):
+            if self._summaries[i] is None:
+                self._summaries[i] = self._prepare(window)[3]
+        return _take_report(self._take, self._options, self._alignment, self._cleaning_report(),
+                            max([0.0] + [s.rotation_deg_max for s in self._summaries]), self._notes)
+
+    def _prepare(self, window: _Window):
+        """Head, R and t of the window's rows, and its summary."""
+        take, rig, opt = self._take, self._rig, self._options
+        world = self._alignment.to_rig(take.positions[window.lo:window.hi])
+        reference = rig.rest + self._alignment.offsets
+        times = take.times[window.lo:window.hi]
+        if opt.clean:
+            result = clean_take(world, reference, rig.basis, rig.stable, times, opt.clean_options,
+                                fix_pose=not opt.stabilise, spacing=rig.spacing, names=take.marker_names)
+            head, R, t, report = result.head, result.R, result.t, result.report
+            outliers = result.outliers[window.start - window.lo:window.stop - window.lo]
+        else:
+            head, R, t, report = _fill_window(world, reference, rig.stable, times, opt.stabilise, take)
+            outliers = None
+        R, t = self._alignment.to_take_space(R, t, rig.rest)
+        local = self.rows[(self.rows >= window.start) & (self.rows < window.stop)] - window.lo
+        angles = np.degrees(np.arccos(np.clip((np.trace(R[local], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+        summary = _WindowSummary(report, outliers, float(angles.max()) if angles.size else 0.0)
+        return (head - self._alignment.offsets)[local], R[local], t[local], summary
+
+    def _cleaning_report(self) -> dict:
+        """The cleaning part of the report: the one window's, or the windows' merged."""
+        if len(self._window_spans) == 1:
+            return self._summaries[0].report
+        covered = np.concatenate([self._take.positions[w.start:w.stop] for w in self._window_spans])
+        return merged_clean_report([(s.report, s.outliers) for s in self._summaries], covered,
+                                   self._take.marker_names, self._options.clean_options,
+                                   fix_pose=not self._options.stabilise)
+
+
+def _fill_window(world: np.ndarray, reference: np.ndarray, stable: np.ndarray, times: np.ndarray,
+                 stabilise: bool, take: Take):
+    """Cleaning off: head motion from the stable markers (interpolated where too few are seen),
+    gaps filled by PCHIP. Returns head (in rig space, the neutral at ``reference``), R, t and
+    a report of the gaps and notes."""
+    notes: list[str] = []
+    n = len(world)
+    if stabilise:
+        R, t = stable_marker_pose(reference, world, stable, notes)
+        try:
+            R, t, filled = interpolate_poses(R, t, times)
+        except ValueError:
+            raise InputError("no frame has 3 visible markers: the head's motion cannot be found",
+                             path=take.path, hint="check the take's markers, or use --no-stabilise") from None
+        if filled.any():
+            notes.append(f"{int(filled.sum())} frame(s) without 3 visible markers: head pose interpolated")
+        head = np.einsum("tji,thj->thi", R, world - t[:, None, :])
+    else:
+        R, t = np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
+        head = world.copy()
+    head, gap = fill_gaps(head, times=times, marker_names=take.marker_names, path=take.path)
+    return head, R, t, {"markers": gap["markers"], "total": gap["total"], "notes": notes}
+
+
+def _take_report(take: Take, opt: PrepareOptions, alignment: _Alignment, clean_report: dict,
+                 rotation_deg_max: float, notes: list[str]) -> dict:
+    """The report of :func:`prepare_take_windows` from its cleaning report (see there)."""
+    absent = list(take.markers.get("absent", [])) if take.markers else []
+    notes = notes + clean_report.get("notes", [])
+    markers = {name: dict(counts) for name, counts in clean_report["markers"].items()}
+    for name in absent:
+        markers.setdefault(name, {})["absent"] = True
+    if absent:
+        notes.append(f"{len(absent)} rig marker(s) absent from the take, filled from the others through the "
+                     "rig's prior: " + ", ".join(absent[:8]) + (" ..." if len(absent) > 8 else ""))
+    return {
+        "format": take.format,
+        "alignment": alignment.report,
+        "head_motion": {"stabilised": bool(opt.stabilise), "rotation_deg_max": rotation_deg_max},
+        "cleaning": {"prior": bool(opt.clean and opt.clean_options.prior), "enabled": bool(opt.clean),
+                     **{k: v for k, v in clean_report.items() if k not in ("markers", "total", "notes")}},
+        "markers": markers,
+        "total": clean_report["total"],
+        "absent_markers": absent,
+        "extra_markers": list(take.extra_markers),
+        "duplicate_markers": dict(take.markers.get("duplicates", {})) if take.markers else {},
+        "renamed_markers": len(take.markers.get("renamed", {})) if take.markers else 0,
+        "subject": take.markers.get("subject") if take.markers else None,
+        "notes": notes,
+    }
 
 
 def clean_margin(options: CleanOptions, fps: float) -> int:
@@ -387,18 +481,18 @@ def clean_margin(options: CleanOptions, fps: float) -> int:
     return int(np.ceil(2.0 * reach + 4.0 * (options.smooth or 0.0))) + 16
 
 
-def merged_clean_report(results, world, names, options: CleanOptions, fix_pose: bool) -> dict:
-    """One cleaning report for windows cleaned apart: ``results`` holds (core start, core stop,
-    CleanResult) per window (core: the rows it yields, in its span's rows); ``world`` the markers
-    of the rows the cores cover, in order (visibility only). Counts cover the cores once; per-marker
-    weights and scales are means over the frames; the noise is each window's (median, range)."""
+def merged_clean_report(windows, world, names, options: CleanOptions, fix_pose: bool) -> dict:
+    """One cleaning report for windows cleaned apart: ``windows`` holds (clean_take's report, the
+    outliers (n, H) of the rows its core yields) per window; ``world`` the markers of the rows the
+    cores cover, in order (visibility only). Counts cover the cores once; per-marker weights and
+    scales are means over the frames; the noise is each window's (median, range)."""
     visible = np.isfinite(world).all(axis=-1)
     outliers = np.zeros(len(names), dtype=np.int64)
-    frames = np.array([b - a for a, b, _ in results], dtype=np.float64)
+    frames = np.array([len(core_outliers) for _, core_outliers in windows], dtype=np.float64)
     share = frames / frames.sum()
-    per_window = [r.report for _, _, r in results]
-    for a, b, r in results:
-        outliers += r.outliers[a:b].sum(axis=0)
+    per_window = [report for report, _ in windows]
+    for _, core_outliers in windows:
+        outliers += core_outliers.sum(axis=0)
 
     def frame_mean(key):  # a per-marker figure, averaged over the windows' frames
         return np.array([sum(w * rep["markers"][name][key] for w, rep in zip(share, per_window)) for name in names])
@@ -409,7 +503,7 @@ def merged_clean_report(results, world, names, options: CleanOptions, fix_pose: 
     sigmas = [rep["noise"]["sigma"] for rep in per_window]
     noise = dict(per_window[0]["noise"])
     noise.update(
-        sigma=float(np.median(sigmas)), sigma_range=[float(min(sigmas)), float(max(sigmas))], windows=len(results),
+        sigma=float(np.median(sigmas)), sigma_range=[float(min(sigmas)), float(max(sigmas))], windows=len(windows),
         off_span_rms_median=float(np.median([rep["noise"]["off_span_rms_median"] for rep in per_window])),
         residual_kept_median=float(np.median([rep["noise"]["residual_kept_median"] for rep in per_window])),
         active_expressions_mean=float(sum(w * rep["noise"]["active_expressions_mean"]
