@@ -226,23 +226,44 @@ def check_mesh(mesh: Mesh, *, area_tolerance: float = 1e-10, path: str | os.Path
     >>> check_mesh(m)   # a single triangle is fine
     """
     where = _where(mesh, path)
-    problems: list[str] = []
     V = np.asarray(mesh.vertices)
-    n_v = V.shape[0]
     if V.ndim != 2 or V.shape[1] != 3:
         raise InputError(f"vertices have shape {V.shape}, expected (V, 3)", path=where)
     offsets = np.asarray(mesh.polygon_offsets, dtype=np.int64)
     pv = np.asarray(mesh.polygon_vertices, dtype=np.int64)
     sizes = np.diff(offsets)
-    n_poly = sizes.shape[0]
-
     finite = np.isfinite(V).all(axis=1)
-    if not finite.all():
-        bad = np.flatnonzero(~finite)
-        problems.append(
-            f"{len(bad)} vertices have NaN or infinite coordinates: vertex {_first(bad)} "
-            f"(vertex {int(bad[0])} is {V[bad[0]].tolist()})"
-        )
+    problems = _coordinate_problems(V, finite) + _corner_problems(mesh, offsets, pv, sizes, V.shape[0])
+    if (sizes < 3).any() or ((pv < 0) | (pv >= V.shape[0])).any():
+        # the remaining checks index vertices through the polygons: they would fail or mislead
+        _raise_problems(problems, where)
+
+    repeated_poly = _polygons_with_repeats(offsets, pv, sizes)
+    problems += _repeated_corner_problems(repeated_poly, offsets, pv)
+    if sizes.shape[0]:
+        faces, face_poly = triangulate(offsets, pv)
+    else:
+        faces, face_poly = np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
+    if faces.shape[0] and finite.all():
+        problems += _degenerate_triangle_problems(V, faces, face_poly, repeated_poly, offsets, pv, area_tolerance)
+    if faces.shape[0]:
+        problems += _non_manifold_problems(faces, face_poly, V.shape[0])
+        problems += _duplicate_triangle_problems(faces, face_poly, V.shape[0])
+    problems += _unused_vertex_problems(pv, V.shape[0])
+    _raise_problems(problems, where)
+
+
+def _coordinate_problems(V: np.ndarray, finite: np.ndarray) -> list[str]:
+    if finite.all():
+        return []
+    bad = np.flatnonzero(~finite)
+    return [f"{len(bad)} vertices have NaN or infinite coordinates: vertex {_first(bad)} "
+            f"(vertex {int(bad[0])} is {V[bad[0]].tolist()})"]
+
+
+def _corner_problems(mesh: Mesh, offsets: np.ndarray, pv: np.ndarray, sizes: np.ndarray, n_v: int) -> list[str]:
+    """Polygons too small, and corners (vertex or UV) that index nothing."""
+    problems = []
     small = np.flatnonzero(sizes < 3)
     if small.size:
         k = int(small[0])
@@ -264,83 +285,81 @@ def check_mesh(mesh: Mesh, *, area_tolerance: float = 1e-10, path: str | os.Path
             c = int(np.argmax(out_uv))
             k = int(np.searchsorted(offsets, c, side="right") - 1)
             problems.append(f"polygon {k} uses texture coordinate {int(puv[c])}, the mesh has {n_uv}")
-    if small.size or out.any():
-        # the remaining checks index vertices through the polygons: they would fail or mislead
-        _raise_problems(problems, where)
+    return problems
 
-    repeated_poly = _polygons_with_repeats(offsets, pv, sizes)
-    if repeated_poly.any():
-        bad = np.flatnonzero(repeated_poly)
-        k = int(bad[0])
-        problems.append(
-            f"{len(bad)} polygons use a vertex twice: polygon {_first(bad)} (polygon {k} has vertices "
-            f"{pv[offsets[k]:offsets[k + 1]].tolist()}); remove the repeated corner"
-        )
 
-    if n_poly:
-        faces, face_poly = triangulate(offsets, pv)
+def _repeated_corner_problems(repeated_poly: np.ndarray, offsets: np.ndarray, pv: np.ndarray) -> list[str]:
+    if not repeated_poly.any():
+        return []
+    bad = np.flatnonzero(repeated_poly)
+    k = int(bad[0])
+    return [f"{len(bad)} polygons use a vertex twice: polygon {_first(bad)} (polygon {k} has vertices "
+            f"{pv[offsets[k]:offsets[k + 1]].tolist()}); remove the repeated corner"]
+
+
+def _degenerate_triangle_problems(V, faces, face_poly, repeated_poly, offsets, pv, area_tolerance) -> list[str]:
+    """Triangles whose area is below ``area_tolerance`` × the mean squared edge length: their
+    cotangent weights are unbounded."""
+    a, b, c = V[faces[:, 0]], V[faces[:, 1]], V[faces[:, 2]]
+    double_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    mean_e2 = float(np.mean(np.concatenate([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1),
+                                             ((a - c) ** 2).sum(1)])))
+    tiny = (0.5 * double_area <= area_tolerance * mean_e2) & ~repeated_poly[face_poly]
+    if not tiny.any():
+        return []
+    bad_t = np.flatnonzero(tiny)
+    bad_p = np.unique(face_poly[bad_t])
+    t = int(bad_t[0])
+    k = int(face_poly[t])
+    return [f"{len(bad_p)} polygons have a zero-area (degenerate) triangle: polygon {_first(bad_p)} "
+            f"(polygon {k}, vertices {pv[offsets[k]:offsets[k + 1]].tolist()}, triangle "
+            f"{faces[t].tolist()} has area {0.5 * double_area[t]:.3g}, below "
+            f"{area_tolerance:g} x mean squared edge length {mean_e2:.3g}); "
+            "collapse or re-triangulate it"]
+
+
+def _non_manifold_problems(faces: np.ndarray, face_poly: np.ndarray, n_v: int) -> list[str]:
+    e = triangle_edges(faces)
+    key = e[:, 0] * n_v + e[:, 1]
+    skey = np.sort(key)
+    # runs of equal keys in the sorted list: their lengths are the edges' face counts
+    starts = np.flatnonzero(np.r_[True, skey[1:] != skey[:-1]])
+    counts = np.diff(np.r_[starts, skey.shape[0]])
+    over = np.flatnonzero(counts > 2)
+    if not over.size:
+        return []
+    k = int(over[0])
+    i, j = divmod(int(skey[starts[k]]), n_v)
+    using = np.unique(face_poly[np.flatnonzero(key == skey[starts[k]]) % len(faces)])
+    return [f"{len(over)} non-manifold edges: edge ({i}, {j}) is used by {int(counts[k])} triangles "
+            f"(polygons {_first(using)}); an edge may be shared by at most two faces"]
+
+
+def _duplicate_triangle_problems(faces: np.ndarray, face_poly: np.ndarray, n_v: int) -> list[str]:
+    """The same triangle twice (possibly with another winding): it passes the edge test at a border."""
+    tri = np.sort(faces, axis=1)
+    if n_v < 2_000_000:  # one int64 key per triangle: a 1-D sort instead of a 3-key lexsort
+        tkey = (tri[:, 0] * n_v + tri[:, 1]) * n_v + tri[:, 2]
+        order = np.argsort(tkey)
+        same = tkey[order][1:] == tkey[order][:-1]
     else:
-        faces, face_poly = np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
-    if faces.shape[0] and finite.all():
-        a, b, c = V[faces[:, 0]], V[faces[:, 1]], V[faces[:, 2]]
-        double_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-        mean_e2 = float(np.mean(np.concatenate([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1),
-                                                 ((a - c) ** 2).sum(1)])))
-        tiny = (0.5 * double_area <= area_tolerance * mean_e2) & ~repeated_poly[face_poly]
-        if tiny.any():
-            bad_t = np.flatnonzero(tiny)
-            bad_p = np.unique(face_poly[bad_t])
-            t = int(bad_t[0])
-            k = int(face_poly[t])
-            problems.append(
-                f"{len(bad_p)} polygons have a zero-area (degenerate) triangle: polygon {_first(bad_p)} "
-                f"(polygon {k}, vertices {pv[offsets[k]:offsets[k + 1]].tolist()}, triangle "
-                f"{faces[t].tolist()} has area {0.5 * double_area[t]:.3g}, below "
-                f"{area_tolerance:g} x mean squared edge length {mean_e2:.3g}); "
-                "collapse or re-triangulate it"
-            )
+        order = np.lexsort((tri[:, 2], tri[:, 1], tri[:, 0]))
+        same = (tri[order][1:] == tri[order][:-1]).all(axis=1)
+    if not same.any():
+        return []
+    d = int(np.argmax(same))
+    p, q = sorted((int(face_poly[order[d]]), int(face_poly[order[d + 1]])))
+    return [f"{int(same.sum())} duplicated triangles: polygons {p} and {q} both cover triangle "
+            f"{tri[order[d]].tolist()}; delete the duplicate face"]
 
-    if faces.shape[0]:
-        e = triangle_edges(faces)
-        key = e[:, 0] * n_v + e[:, 1]
-        skey = np.sort(key)
-        # runs of equal keys in the sorted list: their lengths are the edges' face counts
-        starts = np.flatnonzero(np.r_[True, skey[1:] != skey[:-1]])
-        counts = np.diff(np.r_[starts, skey.shape[0]])
-        over = np.flatnonzero(counts > 2)
-        if over.size:
-            k = int(over[0])
-            i, j = divmod(int(skey[starts[k]]), n_v)
-            using = np.unique(face_poly[np.flatnonzero(key == skey[starts[k]]) % len(faces)])
-            problems.append(
-                f"{len(over)} non-manifold edges: edge ({i}, {j}) is used by {int(counts[k])} triangles "
-                f"(polygons {_first(using)}); an edge may be shared by at most two faces"
-            )
-        # the same triangle twice (possibly with another winding) passes the edge test at a border
-        tri = np.sort(faces, axis=1)
-        if n_v < 2_000_000:  # one int64 key per triangle: a 1-D sort instead of a 3-key lexsort
-            tkey = (tri[:, 0] * n_v + tri[:, 1]) * n_v + tri[:, 2]
-            order = np.argsort(tkey)
-            same = tkey[order][1:] == tkey[order][:-1]
-        else:
-            order = np.lexsort((tri[:, 2], tri[:, 1], tri[:, 0]))
-            same = (tri[order][1:] == tri[order][:-1]).all(axis=1)
-        if same.any():
-            d = int(np.argmax(same))
-            p, q = sorted((int(face_poly[order[d]]), int(face_poly[order[d + 1]])))
-            problems.append(
-                f"{int(same.sum())} duplicated triangles: polygons {p} and {q} both cover triangle "
-                f"{tri[order[d]].tolist()}; delete the duplicate face"
-            )
 
+def _unused_vertex_problems(pv: np.ndarray, n_v: int) -> list[str]:
     used = np.bincount(pv, minlength=n_v) > 0
-    if not used.all():
-        bad = np.flatnonzero(~used)
-        problems.append(
-            f"{len(bad)} vertices are used by no face: vertex {_first(bad, 10)}; remove them (from the "
-            "rest mesh and every example pose alike) or reference them from faces"
-        )
-    _raise_problems(problems, where)
+    if used.all():
+        return []
+    bad = np.flatnonzero(~used)
+    return [f"{len(bad)} vertices are used by no face: vertex {_first(bad, 10)}; remove them (from the "
+            "rest mesh and every example pose alike) or reference them from faces"]
 
 
 def _polygons_with_repeats(offsets: np.ndarray, pv: np.ndarray, sizes: np.ndarray) -> np.ndarray:
