@@ -84,8 +84,8 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
 
     def block(start):
         stop = min(V, start + chunk)
-        # small blocks keep the (n, F) temporaries in cache (at 530k vertices: 65536-vertex blocks
-        # take 1.5× as long); they are updated in place, the same arithmetic as out-of-place
+        # small blocks keep the (n, F) temporaries in cache (large blocks spill it); they are
+        # updated in place, the same arithmetic as out-of-place
         L = marker_distances[edges[:, 0], start:stop]
         L += marker_distances[edges[:, 1], start:stop]  # (F, n)
         L -= rest_lengths[:, None]

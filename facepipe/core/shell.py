@@ -201,13 +201,12 @@ class CholeskyFactor:
     * ``cholmod``: CHOLMOD through cholespy (ships it in a wheel, any platform);
     * ``superlu``: SciPy's SuperLU.
 
-    Why PARDISO: on the paper-scale rig (528k vertices, 12M non-zeros, 89 right-hand sides)
-    cholespy took ~30 s to factor and ~8 s to solve on two cores: its CHOLMOD build orders
-    with AMD (no METIS) and factors with one thread. PARDISO orders by METIS nested dissection
-    and factors in parallel (96M non-zeros in L): ~3 s analysis, ~2 s factorisation, ~1.3 s
-    for the 89 sparse right-hand sides at once (2.3 s dense), by the same exact Cholesky method
-    (B agrees with CHOLMOD's to ~1e-11, round-off). SuperLU is an LU without symmetry and a
-    poor ordering: minutes at that size. ``solve`` takes one or many right-hand sides.
+    Why PARDISO first: cholespy's CHOLMOD build orders with AMD (no METIS) and factors with one
+    thread; PARDISO orders by METIS nested dissection and factors in parallel, several times
+    faster at the paper's scale (``make bench`` times the bake's phases), by the same exact
+    Cholesky method (B agrees with CHOLMOD's to round-off). SuperLU is an LU without symmetry
+    and a poor ordering, far slower on large meshes. ``solve`` takes one or many right-hand
+    sides.
     """
 
     def __init__(self, A: sp.spmatrix, backends: tuple[str, ...] = ("pardiso", "cholmod", "superlu"),
@@ -216,8 +215,8 @@ class CholeskyFactor:
         is not cut out again). ``rhs_rows``: the rows where the right-hand sides given to
         :meth:`solve` may be non-zero (they must be zero elsewhere); PARDISO then skips the
         forward substitution's work below the other rows (its sparse right-hand sides,
-        iparm[30] = 2: the 89 handle columns of the shell solve touch ~2k of 530k rows, and
-        the solve takes half the time)."""
+        iparm[30] = 2: the handle columns of the shell solve touch a few thousand rows of a
+        large mesh, so most of the substitution is skipped)."""
         A = sp.csr_matrix(A)
         self.n = A.shape[0]
         self._solver = None
@@ -343,7 +342,7 @@ class _Pardiso:
 
     pypardiso's own solver class treats every matrix as unsymmetric (an LU, twice the work),
     refines each solution iteratively (default iparm), and copies and hashes the matrix on
-    each call: 17 s for the 89 right-hand sides. Here: the upper triangle, Cholesky,
+    each call. Here: the upper triangle, Cholesky,
     METIS nested dissection (iparm[1] = 3, the parallel version), the two-level parallel factorisation
     (iparm[23] = 1), no refinement, all right-hand sides in one call, 0-based indices.
     """

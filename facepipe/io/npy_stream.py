@@ -2,11 +2,11 @@
 
 A replay writes ~25 MB per frame at 530k vertices, far more than anything reads back soon.
 Buffered writes pass all of it through the page cache: the copy and the cache's page
-allocation cost as much CPU as the evaluation itself on a two-core machine (up to ~3 s per
-GB where the cache has to grow into memory not used before), and a long take pushes
+allocation can cost as much CPU as the evaluation itself on a machine with few cores
+(most where the cache has to grow into memory not used before), and a long take pushes
 everything else out of the cache. So on Linux the rows go to the disk with ``O_DIRECT``
-through one reused, page-aligned buffer: the disk's speed (1.2 GB/s here) is the limit, and
-the CPU cost is a memcpy. Where direct I/O is not available (other systems, tmpfs, some
+through one reused, page-aligned buffer: the disk's speed is the limit, and the CPU cost is a
+memcpy (``make bench`` measures both ways of writing). Where direct I/O is not available (other systems, tmpfs, some
 network and copy-on-write file systems refuse it), the same bytes are written buffered.
 
 The header is padded to one 4 KiB block (a valid ``.npy`` 1.0 header: numpy pads to any

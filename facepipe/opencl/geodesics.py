@@ -1,8 +1,8 @@
 """Geodesic distances from many sources on an OpenCL CPU device (``geodesics.cl``).
 
-The bake needs Dijkstra from every handle over the whole mesh (the WPSD weights): at 530k
-vertices SciPy's heap Dijkstra takes ~0.12 s per source and holds the GIL. The kernel runs
-the bucket form (see ``geodesics.cl``), bit-identical to it, in about half the CPU time, on
+The bake needs Dijkstra from every handle over the whole mesh (the WPSD weights), and
+SciPy's heap Dijkstra holds the GIL. The kernel runs the bucket form (see ``geodesics.cl``),
+bit-identical to it and cheaper in CPU time (``make bench`` times the bake's phases), on
 the OpenCL CPU driver that ships with facepipe (PoCL); it is queued at once and runs on the
 driver's threads while Python goes on loading and factoring. It is a CPU kernel (one source
 per work-item, a sequential walk), so a CPU device is chosen whatever ``--device`` says for

@@ -27,7 +27,7 @@ class BackgroundCall:
 
     ``fn`` must be a module-level function and ``args`` picklable (arrays are). With
     ``background=False`` nothing is started and :meth:`result` calls ``fn`` here (the same
-    arithmetic), so small problems skip the child's start (~0.5 s of imports on another core).
+    arithmetic), so small problems skip the child's start (its imports cost more than they save).
 
     Attributes after :meth:`result`: ``seconds`` (the call's own time), ``where`` ("process",
     "here" or "here after the process failed").

@@ -38,8 +38,8 @@ def geodesic_from(graph: sp.csr_matrix, sources: np.ndarray, limit: float = np.i
 class Geodesics:
     """Dijkstra from many sources: started on construction, collected by :meth:`finish`.
 
-    SciPy's Dijkstra holds the GIL, so threads would not help; 89 sources on a 530k-vertex
-    mesh are ~11 s on one core. A large problem (``background``: by default from
+    SciPy's Dijkstra holds the GIL, so threads would not help, and from every handle over a
+    large mesh it is one of the bake's longest steps. A large problem (``background``: by default from
     :data:`GEODESICS_IN_A_PROCESS` pairs on two cores or more) is started at once, to run while
     this process does other work:
 
