@@ -41,8 +41,13 @@ def test_phantoms_stay_still_and_regularization_smooths():
 def test_works_without_connectivity_on_several_parts():
     V, F, H = _setup()
     V2 = np.concatenate([V, V[:50] + [0.0, 0.0, 3.0]])  # a second, unconnected part (no faces needed)
-    B = multiquadric_basis(V2, H, np.array([], dtype=np.int64))
-    assert B.shape == (len(V2), len(H)) and np.isfinite(B).all()
+    B = multiquadric_basis(V2, H, np.array([], dtype=np.int64), regularization=0.0)
+    assert B.shape == (len(V2), len(H))
+    # exact at the markers, and an affine motion of the markers moves the unconnected part with them
+    assert np.allclose(B[H], np.eye(len(H)), atol=1e-8)
+    A = np.array([[0.9, 0.1, 0.0], [0.0, 1.1, -0.2], [0.1, 0.0, 1.0]])
+    uH = V2[H] @ (A - np.eye(3)).T + [0.2, -0.1, 0.3]
+    assert np.allclose(B @ uH, V2 @ (A - np.eye(3)).T + [0.2, -0.1, 0.3], atol=1e-7)
 
 
 def test_coincident_centres_are_reported():
