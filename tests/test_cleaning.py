@@ -290,17 +290,11 @@ def test_prepare_fallbacks_are_reported():
 
 
 @pytest.fixture(scope="module")
-def ict_model():
-    from tests.conftest import ROOT, ict_or_skip
-
-    ict_or_skip()
-    from facepipe.pipeline.fit import fit_rig
+def ict_model(ict_rig_fit):
     from facepipe.io.model_file import model_from_fit
-    from facepipe.pipeline.rig import load_rig
 
-    rig = load_rig(ROOT / "configs" / "ict.toml")
-    model = model_from_fit(fit_rig(rig), rig)
-    return model
+    rig, fit = ict_rig_fit
+    return model_from_fit(fit, rig)
 
 
 def _replay(take, model, **options):

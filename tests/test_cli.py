@@ -282,15 +282,20 @@ def test_bad_inputs_of_the_checking_commands(pipeline, tmp_path, capsys):
 
 
 def test_replay_reports_novelty_fits_stopped_by_their_cap(pipeline, tmp_path, monkeypatch):
-    """A gate whose non-negative fits hit their iteration cap says how many in replay.json (0 when
-    all converged), on both backends."""
-    from facepipe.core.psd import NoveltyGate
+    """A gate whose non-negative fits neither converge within their cap nor are finished by the
+    exact solver says how many in replay.json (0 when all converged), on both backends."""
+    from facepipe.core import psd
 
     converged = json.loads((pipeline / "out" / "replay.json").read_text())
     assert converged["novelty_fits_at_cap"] == 0
-    novelty = NoveltyGate.novelty
-    monkeypatch.setattr(NoveltyGate, "novelty",
+    novelty = psd.NoveltyGate.novelty
+    monkeypatch.setattr(psd.NoveltyGate, "novelty",
                         lambda self, f, tolerance=1e-14, max_iterations=2: novelty(self, f, tolerance, max_iterations))
+
+    def exact_solver_gives_up(*args, **kwargs):
+        raise RuntimeError("Maximum number of iterations reached.")
+
+    monkeypatch.setattr(psd, "nnls", exact_solver_gives_up)
     for backend in ("numpy", "opencl"):
         out = tmp_path / backend
         code = run("replay", pipeline / "rig" / "take.csv", "-m", pipeline / "model.npz", "-o", out, "--backend",

@@ -22,7 +22,7 @@ from facepipe.pipeline.detail_layers import uv_tangent_frames
 from facepipe.io.model_file import load_model, save_model
 from facepipe.pipeline.replay import NumpyEvaluator
 from facepipe.export.uv_raster import corner_uv_lookups, uv_to_texel
-from tests.conftest import ROOT, ict_or_skip
+from tests.conftest import ict_or_skip
 from tests.conftest import run_cli as run
 
 
@@ -361,7 +361,7 @@ def unresolvable_samples(uv, width, height):
 
 
 @pytest.mark.ict
-def test_ict_maps_give_back_every_vertex_sample_the_layout_resolves(tmp_path):
+def test_ict_maps_give_back_every_vertex_sample_the_layout_resolves(tmp_path, ict_rig_fit):
     """The ICT kit at 2048² (two UDIM tiles), a fitted model replayed on two expressive frames: in
     every space and in scalar maps, every vertex sample (each UV corner of a seam vertex) is within
     2 % of the range, where plain rasterisation misses rim samples (triangles of a few texels) by
@@ -370,14 +370,12 @@ def test_ict_maps_give_back_every_vertex_sample_the_layout_resolves(tmp_path):
     reports them."""
     kit = ict_or_skip()
     from facepipe.export.dispatch import export_replay
-    from facepipe.pipeline.fit import fit_rig
     from facepipe.io.model_file import model_from_fit
     from facepipe.pipeline.replay import replay
-    from facepipe.pipeline.rig import load_rig
     from facepipe.export.uv_raster import mesh_raster
 
-    rig = load_rig(ROOT / "configs" / "ict.toml")
-    model = model_from_fit(rig=rig, fit=fit_rig(rig))
+    rig, fit = ict_rig_fit
+    model = model_from_fit(rig=rig, fit=fit)
     truth = np.load(kit / "train_truth.npz")
     # pursed lips and closed eyes (rims), and a frame whose details in the nostrils no map of this
     # size can hold in local frames

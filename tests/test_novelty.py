@@ -113,10 +113,31 @@ def test_novelty_is_the_non_negative_least_squares_residual():
     assert np.array_equal(gate.novelty(queries), fit.rho)
 
 
-def test_novelty_fits_stopped_by_the_cap_are_counted_and_logged(caplog):
+def test_fits_stopped_by_the_cap_are_finished_exactly(monkeypatch):
+    """The batched fits the cap stops are finished by an exact NNLS: ρ as if they had converged."""
     gate, queries = _overlapping_gate()
-    capped = gate.novelty_fit(queries, tolerance=1e-14, max_iterations=3)
+    capped = gate.novelty_fit(queries, tolerance=1e-14, max_iterations=3, finish_exactly=False)
     assert capped.iterations == 3 and 0 < capped.unconverged <= capped.rho.size
+    finished = gate.novelty_fit(queries, tolerance=1e-14, max_iterations=3)
+    assert finished.unconverged == 0 and finished.finished_exactly == capped.unconverged
+    x = queries[:, gate.index] * gate.sqrt_weight
+    for q in range(len(queries)):
+        for s in range(x.shape[1]):
+            b = x[q, s].astype(np.float64)
+            _, r = nnls(gate.examples[s].T.astype(np.float64), b)
+            assert abs(finished.rho[q, s] - r ** 2 / (b @ b + 1e-12)) < 1e-9
+
+
+def test_novelty_fits_left_unconverged_are_counted_and_logged(caplog, monkeypatch):
+    from facepipe.core import psd
+
+    gate, queries = _overlapping_gate()
+    capped = gate.novelty_fit(queries, tolerance=1e-14, max_iterations=3, finish_exactly=False)
+
+    def exact_solver_gives_up(*args, **kwargs):
+        raise RuntimeError("Maximum number of iterations reached.")
+
+    monkeypatch.setattr(psd, "nnls", exact_solver_gives_up)
     with caplog.at_level(logging.WARNING, logger="facepipe.core.psd"):
         rho = gate.novelty(queries, tolerance=1e-14, max_iterations=3)
     assert np.array_equal(rho, capped.rho)

@@ -24,7 +24,7 @@ from facepipe.io.model_file import Model, load_model
 from facepipe.core.rbf_morph import farthest_point_subset
 from facepipe.pipeline.replay import NumpyEvaluator
 from facepipe.pipeline.transfer import (closest_point_on_triangles, correspond, interpolate_alpha, match_points, transfer_model)
-from tests.conftest import ROOT, ict_or_skip, run_cli
+from tests.conftest import ict_or_skip, run_cli
 
 N_POINTS = 40
 
@@ -321,15 +321,13 @@ def test_target_markers_must_name_every_marker(source, rig, tmp_path, capsys):
 
 
 @pytest.mark.ict
-def test_ict_face_a(tmp_path):
+def test_ict_face_a(tmp_path, ict_rig_fit):
     """The generic face's model on face_a: details help there about as much as on the source."""
     kit = ict_or_skip()
-    from facepipe.pipeline.fit import fit_rig
     from facepipe.io.model_file import model_arrays
-    from facepipe.pipeline.rig import load_rig
 
-    rig = load_rig(ROOT / "configs" / "ict.toml")
-    arrays, meta = model_arrays(fit_rig(rig), rig)
+    rig, fit = ict_rig_fit
+    arrays, meta = model_arrays(fit, rig)
     model = Model.from_arrays(arrays, meta, "(memory)")
     neutral = rig.mesh.vertices
     face_a = load_mesh(kit / "identities" / "face_a.obj")

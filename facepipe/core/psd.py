@@ -27,6 +27,7 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.optimize import nnls
 
 from facepipe.parallel import map_blocks
 
@@ -523,13 +524,16 @@ class NoveltyFit:
     Attributes
     ----------
     rho : (Q, F) unexplained fraction per query and site.
-    iterations : steps taken by the slowest fit.
-    unconverged : (query, site) fits stopped by the iteration cap before the tolerance.
+    iterations : steps taken by the slowest batched fit.
+    unconverged : (query, site) fits left short of the tolerance: stopped by the batched fits'
+        iteration cap and not finished by the exact solver either.
+    finished_exactly : (query, site) fits that the cap stopped and an exact active-set solve finished.
     """
 
     rho: np.ndarray
     iterations: int
     unconverged: int
+    finished_exactly: int = 0
 
 
 @dataclass
@@ -571,7 +575,7 @@ class NoveltyGate:
                 max_iterations: int = NOVELTY_MAX_ITERATIONS) -> np.ndarray:
         """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) → (Q, F); see :meth:`novelty_fit`.
 
-        Fits stopped by ``max_iterations`` are added to :attr:`unconverged_fits` and logged."""
+        Fits left unconverged are added to :attr:`unconverged_fits` and logged."""
         fit = self.novelty_fit(features, tolerance, max_iterations)
         if fit.unconverged:
             self.unconverged_fits += fit.unconverged
@@ -580,7 +584,7 @@ class NoveltyGate:
         return fit.rho
 
     def novelty_fit(self, features: np.ndarray, tolerance: float = NOVELTY_TOLERANCE,
-                    max_iterations: int = NOVELTY_MAX_ITERATIONS) -> NoveltyFit:
+                    max_iterations: int = NOVELTY_MAX_ITERATIONS, finish_exactly: bool = True) -> NoveltyFit:
         """ρ per query and site, with the iterations taken and the fits left unconverged.
 
         The non-negative coefficients are found by accelerated projected gradient (FISTA) on
@@ -592,6 +596,10 @@ class NoveltyGate:
         at most ``tolerance`` × the norm of its strain, or after ``max_iterations`` steps. A
         stopped fit is left as it is while the others go on (where it stops does not depend on
         the other queries in the batch), and sites whose fits have all stopped leave the batch.
+        FISTA is slow along directions where examples nearly coincide, so the few fits the cap
+        stops are finished (``finish_exactly``) by an active-set NNLS (Lawson–Hanson, SciPy),
+        exact in finitely many steps; only a fit that solver cannot finish either is
+        ``unconverged``.
         """
         x = features[:, self.index] * self.sqrt_weight  # (Q, F, K)
         energy = np.einsum("qsk,qsk->qs", x, x)
@@ -635,12 +643,30 @@ class NoveltyGate:
                 coef[live[finished]] = c[finished]
                 keep = ~finished
                 live, c, y, g, bl, st, active, limit = (a[keep] for a in (live, c, y, g, bl, st, active, limit))
+        finished = 0
+        if finish_exactly and active.any():
+            finished = self._finish_exactly(c, active, live, xs, A)
         coef[live] = c
         residual = energy - (2.0 * np.einsum("seq,seq->qs", coef, b)
                              - np.einsum("seq,seq->qs", coef, np.matmul(gram, coef)))
         # a site barely strained at all is treated as seen (its details are near zero anyway)
         rho = np.clip(np.maximum(residual, 0.0) / (energy + 1e-12), 0.0, 1.0)
-        return NoveltyFit(rho, iterations, int(active.sum()))
+        return NoveltyFit(rho, iterations, int(active.sum()), finished)
+
+    @staticmethod
+    def _finish_exactly(c: np.ndarray, active: np.ndarray, live: np.ndarray, xs: np.ndarray, A: np.ndarray) -> int:
+        """Solve the still ``active`` fits exactly in place (``c``: (S, E, Q) coefficients of the
+        ``live`` sites, in the unit-norm examples' scale); marks them done. Returns how many."""
+        done = 0
+        for s_live, q in np.argwhere(active):
+            s = live[s_live]
+            try:
+                c[s_live, :, q] = nnls(A[s].T, xs[s, :, q])[0]
+            except RuntimeError:  # its own iteration cap: the batched iterate stays, reported
+                continue
+            active[s_live, q] = False
+            done += 1
+        return done
 
     @cached_property
     def _cone(self):
