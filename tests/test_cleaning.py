@@ -20,6 +20,7 @@ from facepipe.mocap.cleaning import (CleanOptions, clean_take, find_jumps, fit_p
 from facepipe.errors import InputError
 from facepipe.mocap import Take
 from facepipe.mocap.prepare import PrepareOptions, prepare_take, summary_lines
+from tests.conftest import run_cli
 
 H, K, T = 30, 5, 80
 
@@ -241,6 +242,31 @@ def test_prepare_with_a_neutral_take():
     assert rep["alignment"]["offsets_max"] == pytest.approx(0.2, abs=0.02)
     with pytest.raises(InputError, match="neutral frame 500 is not in the take"):
         prepare_take(take_of(actor, names), model, PrepareOptions(neutral_frame=500))
+
+
+def test_prepare_with_a_neutral_take_missing_a_marker_in_its_first_frame():
+    # the neutral take's frames are aligned to its first usable frame: a marker missing there
+    # is left out of that fit (it once made the SVD fail on NaN)
+    model, rest, basis, _, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    still = np.repeat(rest[None], 5, 0) + [3.0, 1.0, 0.0]
+    still[0, 4] = np.nan
+    out, *_, rep = prepare_take(take_of(world, names), model, PrepareOptions(neutral_take=take_of(still, names)))
+    np.testing.assert_allclose(out, head, atol=2e-3)
+    assert rep["alignment"]["offsets_max"] < 0.02
+
+
+def test_replay_with_a_neutral_take_missing_a_marker_in_its_first_frame(tmp_path):
+    assert run_cli("sample", tmp_path / "rig", "--vertices", 2000, "--frames", 24, "-q") == 0
+    assert run_cli("bake", tmp_path / "rig" / "sample.toml", "-o", tmp_path / "model.npz", "-q") == 0
+    header, first, *rest = (tmp_path / "rig" / "take.csv").read_text().splitlines()
+    cells = first.split(",")
+    cells[2:5] = ["", "", ""]  # the first marker's x, y, z
+    neutral = tmp_path / "neutral.csv"
+    neutral.write_text("\n".join([header, ",".join(cells), *rest]) + "\n")
+    assert run_cli("replay", tmp_path / "rig" / "take.csv", "-m", tmp_path / "model.npz", "-o", tmp_path / "out",
+                   "--backend", "numpy", "--neutral-take", neutral, "-q") == 0
+    assert np.isfinite(np.load(tmp_path / "out" / "positions.npy")).all()
 
 
 def test_prepare_switches_and_report():

@@ -55,6 +55,35 @@ def test_robust_rigid_fit_ignores_jumping_points():
     assert np.abs(R3 - R).max() > 1e-3
 
 
+def test_robust_rigid_fit_ignores_missing_source_points():
+    # a missing point of the source (a neutral take's first frame) is left out like a missing
+    # target point: a finite pose, the one fitted to the visible points alone
+    rng = np.random.default_rng(5)
+    src = rng.normal(scale=6.0, size=(9, 3))
+    R, t = _motion(6)
+    tgt = np.repeat((src @ R.T + t)[None], 3, axis=0) + rng.normal(scale=0.01, size=(3, 9, 3))
+    tgt[1, 4] += [3.0, 0.0, -2.0]  # a jump, so the reweighting matters
+    tgt[2, 6] = np.nan
+    gappy = src.copy()
+    gappy[2] = np.nan
+    R2, t2, w = robust_rigid_fit(gappy, tgt)
+    vis = np.arange(9) != 2
+    R3, t3, w3 = robust_rigid_fit(src[vis], tgt[:, vis])
+    assert np.isfinite(R2).all() and np.isfinite(t2).all()
+    np.testing.assert_allclose(R2, R3, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(t2, t3, rtol=0, atol=1e-12)
+    assert (w[:, 2] == 0).all()
+    np.testing.assert_allclose(w[:, vis], w3, rtol=0, atol=1e-12)
+    # per frame sources, one missing a point in one frame only
+    per_frame = np.repeat(src[None], 3, axis=0)
+    per_frame[1, 2] = np.nan
+    R4, t4, w4 = robust_rigid_fit(per_frame, tgt)
+    R5, t5, _ = robust_rigid_fit(src[vis], tgt[1:2, vis])
+    np.testing.assert_allclose(R4[1], R5[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(t4[1], t5[0], rtol=0, atol=1e-12)
+    assert w4[1, 2] == 0 and (w4[[0, 2], 2] > 0).all()
+
+
 def test_robust_rigid_fit_needs_three_points():
     src = np.eye(3)
     tgt = np.array([[[1.0, 0, 0], [0, 1, 0], [np.nan] * 3], [[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]])

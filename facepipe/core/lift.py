@@ -130,75 +130,27 @@ def fit_pose_expression_2d(points: np.ndarray, base: np.ndarray, matrix: np.ndar
     prior = np.broadcast_to(np.asarray(prior, dtype=np.float64), (K,))
     target = np.zeros((n, K)) if target is None else np.asarray(target, dtype=np.float64)
     n_pose = 0 if fix_pose else 6
-    P = n_pose + K
-    fx, s, cx = matrix[0]
-    fy = matrix[1, 1]
-
     basis_flat = basis.reshape(K, L * 3)
     basis_cols = basis.transpose(1, 2, 0)[None]  # (1, L, 3, K)
 
-    def residual_of(i, R, t, C):
-        y = rest + (C @ basis_flat).reshape(len(i), L, 3)
-        q = y @ R.transpose(0, 2, 1)
-        X = q + t[:, None, :]
-        return q, X, project(matrix, X) - x[i]
-
-    def cost_of(i, r, C):
-        e2 = (r ** 2).sum(axis=-1)
-        rho = e2 if robust is None else robust ** 2 * np.log1p(e2 / robust ** 2)
-        return (base[i] * rho).sum(axis=1) + (prior * (C - target[i]) ** 2).sum(axis=1)
-
-    every = np.arange(n)
-    q, X, r = residual_of(every, R, t, C)
-    cost = cost_of(every, r, C)
+    q, X, r = _landmark_residual(x, matrix, rest, basis_flat, R, t, C)
+    cost = _fit_cost(base, r, C, prior, target, robust)
     mu = np.full(n, 1e-3)
-    diag = np.arange(P)
-    prior_index = n_pose + np.arange(K)
     # frames still converging: once a frame's step gains less than ``tolerance`` of its cost (or
     # the damping has grown hopeless) it is left alone, so the few slow ones do not cost the rest
-    live = every
+    live = np.arange(n)
     for _ in range(iterations):
         if live.size == 0:
             break
         i = live
-        m = len(i)
         Ri, ti, Ci, qi, Xi, ri = R[i], t[i], C[i], q[i], X[i], r[i]
-        e2 = (ri ** 2).sum(axis=-1)
-        w = base[i] if robust is None else base[i] / (1.0 + e2 / robust ** 2)
-        zi = 1.0 / np.where(np.abs(Xi[..., 2]) > 1e-12, Xi[..., 2], 1e-12)
-        Jp = np.zeros((m, L, 2, 3))  # dπ/dX
-        Jp[..., 0, 0] = fx * zi
-        Jp[..., 0, 1] = s * zi
-        Jp[..., 0, 2] = -(fx * Xi[..., 0] + s * Xi[..., 1]) * zi * zi
-        Jp[..., 1, 1] = fy * zi
-        Jp[..., 1, 2] = -fy * Xi[..., 1] * zi * zi
-        parts = []
-        if not fix_pose:
-            parts += [-Jp @ _skew(qi), Jp]  # d/dδθ (camera = exp(δθ) R y + t), d/dt
-        if K:
-            parts.append(Jp @ (Ri[:, None] @ basis_cols))  # R D_kl
-        J = np.concatenate(parts, axis=-1).reshape(m, 2 * L, P)
-        WJt = (J * np.repeat(w, 2, axis=1)[..., None]).transpose(0, 2, 1)
-        A = WJt @ J
-        g = -(WJt @ ri.reshape(m, 2 * L, 1))[..., 0]
-        if K:
-            A[:, prior_index, prior_index] += prior
-            g[:, n_pose:] -= prior * (Ci - target[i])
-            # bounds: a weight at a bound that the descent direction pushes past is held there
-            held = ((Ci <= 0.0) & (g[:, n_pose:] <= 0.0)) | ((Ci >= upper) & (g[:, n_pose:] >= 0.0))
-        else:
-            held = np.zeros((m, 0), dtype=bool)
-        keep = np.concatenate([np.ones((m, n_pose), bool), ~held], axis=1)
-        dA = A[:, diag, diag]
-        M = np.where(keep[:, :, None] & keep[:, None, :], A, 0.0)
-        M[:, diag, diag] = np.where(keep, dA * (1.0 + mu[i, None]) + 1e-12 * (1.0 + dA.max(axis=1, keepdims=True)),
-                                    1.0)
-        step = np.linalg.solve(M, np.where(keep, g, 0.0)[..., None])[..., 0]
-        Rn = Ri if fix_pose else rotation_from_vector(step[:, :3]) @ Ri
-        tn = ti if fix_pose else ti + step[:, 3:6]
-        Cn = np.clip(Ci + step[:, n_pose:], 0.0, upper)
-        qn, Xn, rn = residual_of(i, Rn, tn, Cn)
-        cost_n = cost_of(i, rn, Cn)
+        J = _residual_jacobian(_projection_jacobian(matrix, Xi), qi, Ri, basis_cols, n_pose)
+        A, g = _normal_equations(J, _robust_weights(base[i], ri, robust), ri, Ci, prior, target[i], n_pose)
+        free = np.concatenate([np.ones((len(i), n_pose), bool), ~_held_at_bounds(Ci, g[:, n_pose:], upper)], axis=1)
+        step = _damped_step(A, g, free, mu[i])
+        Rn, tn, Cn = _stepped(Ri, ti, Ci, step, n_pose, upper)
+        qn, Xn, rn = _landmark_residual(x[i], matrix, rest, basis_flat, Rn, tn, Cn)
+        cost_n = _fit_cost(base[i], rn, Cn, prior, target[i], robust)
         better = (cost_n <= cost[i]) & np.isfinite(cost_n) & (Xn[..., 2] > 0).all(axis=1)
         j = i[better]
         R[j], t[j], C[j], q[j], X[j], r[j] = Rn[better], tn[better], Cn[better], qn[better], Xn[better], rn[better]
@@ -207,9 +159,90 @@ def fit_pose_expression_2d(points: np.ndarray, base: np.ndarray, matrix: np.ndar
         mu[i] = np.where(better, np.maximum(mu[i] / 3.0, 1e-7), np.minimum(mu[i] * 10.0, 1e7))
         done = (better & (gain <= tolerance * (1.0 + cost[i]))) | (mu[i] >= 1e4)
         live = i[~done]
+    return R, t, C, r, _robust_weights(base, r, robust)
+
+
+def _landmark_residual(x, matrix, rest, basis_flat, R, t, C):
+    """The landmarks of weights C (m, K) posed by R, t: rotated q (m, L, 3), in the camera X = q + t,
+    and the pixel residual of their projections against x (m, L, 2)."""
+    y = rest + (C @ basis_flat).reshape(len(C), rest.shape[0], 3)
+    q = y @ R.transpose(0, 2, 1)
+    X = q + t[:, None, :]
+    return q, X, project(matrix, X) - x
+
+
+def _robust_weights(base, r, robust):
+    """(m, L) weights of the residuals r (m, L, 2): base, times the Cauchy factor 1 / (1 + e²/s²)."""
     e2 = (r ** 2).sum(axis=-1)
-    w = base if robust is None else base / (1.0 + e2 / robust ** 2)
-    return R, t, C, r, w
+    return base if robust is None else base / (1.0 + e2 / robust ** 2)
+
+
+def _fit_cost(base, r, C, prior, target, robust):
+    """(m,) the fitted cost: robust landmark terms plus the prior on the weights."""
+    e2 = (r ** 2).sum(axis=-1)
+    rho = e2 if robust is None else robust ** 2 * np.log1p(e2 / robust ** 2)
+    return (base * rho).sum(axis=1) + (prior * (C - target) ** 2).sum(axis=1)
+
+
+def _projection_jacobian(matrix, X):
+    """dπ/dX (m, L, 2, 3) of the pinhole projection at camera points X (m, L, 3)."""
+    fx, s, _ = matrix[0]
+    fy = matrix[1, 1]
+    zi = 1.0 / np.where(np.abs(X[..., 2]) > 1e-12, X[..., 2], 1e-12)
+    Jp = np.zeros(X.shape[:-1] + (2, 3))
+    Jp[..., 0, 0] = fx * zi
+    Jp[..., 0, 1] = s * zi
+    Jp[..., 0, 2] = -(fx * X[..., 0] + s * X[..., 1]) * zi * zi
+    Jp[..., 1, 1] = fy * zi
+    Jp[..., 1, 2] = -fy * X[..., 1] * zi * zi
+    return Jp
+
+
+def _residual_jacobian(Jp, q, R, basis_cols, n_pose):
+    """(m, 2L, n_pose + K) derivatives of the residuals: by the rotation δθ (camera = exp(δθ) R y + t)
+    and t unless the pose is fixed (``n_pose`` 0), then by each weight (R D_kl)."""
+    m, L = q.shape[:2]
+    K = basis_cols.shape[-1]
+    parts = [-Jp @ _skew(q), Jp] if n_pose else []
+    if K:
+        parts.append(Jp @ (R[:, None] @ basis_cols))
+    return np.concatenate(parts, axis=-1).reshape(m, 2 * L, n_pose + K)
+
+
+def _normal_equations(J, w, r, C, prior, target, n_pose):
+    """Gauss–Newton system A δ = g of the weighted residuals, with the prior on the weights."""
+    m, K = C.shape
+    WJt = (J * np.repeat(w, 2, axis=1)[..., None]).transpose(0, 2, 1)
+    A = WJt @ J
+    g = -(WJt @ r.reshape(m, -1, 1))[..., 0]
+    if K:
+        prior_index = n_pose + np.arange(K)
+        A[:, prior_index, prior_index] += prior
+        g[:, n_pose:] -= prior * (C - target)
+    return A, g
+
+
+def _held_at_bounds(C, descent, upper):
+    """(m, K) weights at a bound that the descent direction pushes past: held there this step."""
+    return ((C <= 0.0) & (descent <= 0.0)) | ((C >= upper) & (descent >= 0.0))
+
+
+def _damped_step(A, g, free, mu):
+    """Levenberg–Marquardt step of (A + μ diag A) δ = g over the ``free`` unknowns (the others 0)."""
+    diag = np.arange(A.shape[1])
+    dA = A[:, diag, diag]
+    M = np.where(free[:, :, None] & free[:, None, :], A, 0.0)
+    M[:, diag, diag] = np.where(free, dA * (1.0 + mu[:, None]) + 1e-12 * (1.0 + dA.max(axis=1, keepdims=True)), 1.0)
+    return np.linalg.solve(M, np.where(free, g, 0.0)[..., None])[..., 0]
+
+
+def _stepped(R, t, C, step, n_pose, upper):
+    """Pose and weights after a step: rotation vector and translation first (when fitted), then the
+    weights, clipped into [0, upper]."""
+    if n_pose:
+        R = rotation_from_vector(step[:, :3]) @ R
+        t = t + step[:, 3:6]
+    return R, t, np.clip(C + step[:, n_pose:], 0.0, upper)
 
 
 def intersect_rays_triangles(origins: np.ndarray, directions: np.ndarray, triangles: np.ndarray,

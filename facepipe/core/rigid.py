@@ -37,7 +37,8 @@ def rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray | None
     Parameters
     ----------
     source : (N, 3) or (..., N, 3); target : (..., N, 3); weights : (..., N) ≥ 0 or None
-        (a zero weight ignores a point, e.g. a missing marker).
+        (a zero weight ignores a point, e.g. a missing marker, whose coordinates must still be
+        finite: 0 × NaN is NaN, so zero them).
 
     Returns
     -------
@@ -145,20 +146,22 @@ def robust_rigid_fit(source: np.ndarray, target: np.ndarray, weights: np.ndarray
     source = np.broadcast_to(np.asarray(source, dtype=np.float64), target.shape)
     ok = np.isfinite(target).all(axis=-1) & np.isfinite(source).all(axis=-1)
     base = ok.astype(np.float64) if weights is None else np.where(ok, weights, 0.0)
+    # a missing point's coordinates are zeroed as well as its weight: in the fit's sums 0 × NaN is NaN
+    src = np.where(ok[..., None], source, 0.0)
     tgt = np.where(ok[..., None], target, 0.0)
     if scale is None:
-        scale = 1e-6 * (1.0 + float(np.abs(np.where(ok[..., None], source, 0.0)).max(initial=0.0)))
+        scale = 1e-6 * (1.0 + float(np.abs(src).max(initial=0.0)))
     w = base.copy()
     empty = ~(base > 0).any(axis=-1, keepdims=True)
     for _ in range(max(1, iterations)):
-        R, t = rigid_fit(source, tgt, w)
-        r = np.linalg.norm(np.einsum("...ij,...nj->...ni", R, source) + t[..., None, :] - tgt, axis=-1)
+        R, t = rigid_fit(src, tgt, w)
+        r = np.linalg.norm(np.einsum("...ij,...nj->...ni", R, src) + t[..., None, :] - tgt, axis=-1)
         # the frame's median residual over its points; a frame without points gets 0 (so c is the
         # floor, and numpy has no empty slice to warn about)
         med = np.nanmedian(np.where(base > 0, r, np.where(empty, 0.0, np.nan)), axis=-1, keepdims=True)
         c = 2.5 * np.maximum(np.nan_to_num(1.4826 * med), scale)
         w = base / (1.0 + (r / c) ** 2)
-    R, t = rigid_fit(source, tgt, w)
+    R, t = rigid_fit(src, tgt, w)
     few = (base > 0).sum(axis=-1) < 3
     R[few] = np.nan
     t[few] = np.nan

@@ -64,13 +64,33 @@ def read_csv_take(path: Path, marker_names: list[str], match=None) -> Take:
     InputError
         Naming the line (and column) of the first problem.
     """
-    data = _read_bytes(path)
-    if b"\r" in data:  # Windows (or old Mac) line ends: same line numbers either way
-        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
-    lines = data.split(b"\n")
-    del data
+    lines = _text_lines(_read_bytes(path))
+    h = _header_line(lines, path)
+    columns = _header_columns(lines[h], h + 1, path)
+    frame_col, time_col, file_markers, marker_cols = _parse_header(columns, h + 1, path)
+    found = find_markers(file_markers, marker_names, path, match)
+    present = found.index >= 0
+    # Columns to parse, in output order: frame, time, then x, y, z of each rig marker
+    # in the file (absent ones stay NaN).
+    use = np.concatenate([[frame_col, time_col], marker_cols[found.index[present]].ravel()]).astype(np.int64)
+    rows, line_no = _body_rows(lines, h)
+    del lines
+    _check_field_counts(rows, line_no, len(columns), path)
+    stamps, positions = _parse_rows(rows, line_no, use, columns, present, path)
+    take = _take_from_values(stamps, positions, line_no, marker_names, found.extra, path)
+    take.markers = found.report
+    return take
 
-    # Header: the first non-blank line.
+
+def _text_lines(data: bytes) -> list[bytes]:
+    """The file's lines, whatever its line ends (Windows or old Mac ones give the same line numbers)."""
+    if b"\r" in data:
+        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    return data.split(b"\n")
+
+
+def _header_line(lines: list[bytes], path) -> int:
+    """Index of the header: the first non-blank line."""
     h = next((i for i, ln in enumerate(lines) if ln.strip()), None)
     if h is None:
         raise InputError(
@@ -78,23 +98,19 @@ def read_csv_take(path: Path, marker_names: list[str], match=None) -> Take:
             path=path,
             hint="a facepipe take starts with the header frame,time,NAME_x,NAME_y,NAME_z,...",
         )
-    columns = _header_columns(lines[h], h + 1, path)
-    frame_col, time_col, file_markers, marker_cols = _parse_header(columns, h + 1, path)
-    n_cols = len(columns)
-    found = find_markers(file_markers, marker_names, path, match)
-    index = found.index
-    present = index >= 0
-    # Columns to parse, in output order: frame, time, then x, y, z of each rig marker
-    # in the file (absent ones stay NaN).
-    use = np.concatenate([[frame_col, time_col], marker_cols[index[present]].ravel()]).astype(np.int64)
+    return h
 
-    # Body rows: skip blank lines, keep each row's line number for messages.
+
+def _body_rows(lines: list[bytes], h: int) -> tuple[list[bytes], np.ndarray]:
+    """The rows after the header line ``h``, blank lines skipped, and each row's line number."""
     body = lines[h + 1:]
-    del lines
     keep = [i for i, ln in enumerate(body) if ln and not ln.isspace()]
     rows = body if len(keep) == len(body) else [body[i] for i in keep]
-    line_no = np.asarray(keep, dtype=np.int64) + (h + 2)
-    del body
+    return rows, np.asarray(keep, dtype=np.int64) + (h + 2)
+
+
+def _check_field_counts(rows: list[bytes], line_no: np.ndarray, n_cols: int, path) -> None:
+    """Every row has the header's number of fields; else name the first row that has not."""
     counts = np.fromiter((ln.count(b",") for ln in rows), dtype=np.int64, count=len(rows))
     bad = np.flatnonzero(counts != n_cols - 1)
     if bad.size:
@@ -110,16 +126,24 @@ def read_csv_take(path: Path, marker_names: list[str], match=None) -> Take:
             "with empty fields)",
         )
 
-    # Frame and time columns apart from the positions, so that positions are written
-    # once, straight into their final (T, M, 3) array.
+
+def _parse_rows(rows: list[bytes], line_no: np.ndarray, use: np.ndarray, columns: list[str], present: np.ndarray,
+                path) -> tuple[np.ndarray, np.ndarray]:
+    """Parse the ``use`` columns of the rows: frame and time (T, 2) and positions (T, M, 3) of the
+    rig's M markers, NaN for those ``present`` says the file lacks.
+
+    Frame and time are kept apart from the positions, so that positions are written once,
+    straight into their final array. Blocks of ~4 MB keep the parser's temporaries small
+    whatever the take's length, and run on several threads: NumPy releases the GIL inside its
+    array operations.
+    """
     n = len(rows)
+    n_cols = len(columns)
     stamps = np.empty((n, 2), dtype=np.float64)
-    positions = np.empty((n, len(marker_names), 3), dtype=np.float64)
+    positions = np.empty((n, len(present), 3), dtype=np.float64)
     # all present (the usual case): parse straight into the result
     inner = positions if present.all() else np.empty((n, int(present.sum()), 3), dtype=np.float64)
     flat = inner.reshape(n, 3 * inner.shape[1])
-    # Blocks of ~4 MB keep the parser's temporaries small whatever the take's length,
-    # and run on several threads: NumPy releases the GIL inside its array operations.
     width = 1 + sum(len(r) for r in rows[:64]) // max(1, min(64, n))
     step = max(1, _BLOCK_BYTES // width)
 
@@ -139,9 +163,7 @@ def read_csv_take(path: Path, marker_names: list[str], match=None) -> Take:
     if inner is not positions:
         positions[:, present] = inner
         positions[:, ~present] = np.nan
-    take = _take_from_values(stamps, positions, line_no, marker_names, found.extra, path)
-    take.markers = found.report
-    return take
+    return stamps, positions
 
 
 def _read_bytes(path: Path) -> bytes:
