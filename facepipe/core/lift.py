@@ -21,28 +21,11 @@ from __future__ import annotations
 import numpy as np
 
 from facepipe.core.camera import project
+from facepipe.core.rigid import rotation_from_vector, skew
 
 __all__ = ["fade_fill", "fit_pose_expression_2d", "intersect_ray_plane", "intersect_rays_triangles",
            "landmark_motion", "landmark_weights", "landmarks_to_handles", "robust_sigma", "rotation_from_vector",
            "soft_keep"]
-
-
-def rotation_from_vector(v: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (Rodrigues)."""
-    v = np.asarray(v, dtype=np.float64)
-    a = np.linalg.norm(v, axis=-1)[..., None, None]
-    K = _skew(v)
-    small = a < 1e-8
-    s = np.where(small, 1.0, np.sin(a) / np.where(small, 1.0, a))
-    c = np.where(small, 0.5, (1 - np.cos(a)) / np.where(small, 1.0, a * a))
-    return np.eye(3) + s * K + c * (K @ K)
-
-
-def _skew(q: np.ndarray) -> np.ndarray:
-    K = np.zeros(q.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -q[..., 2], q[..., 1], -q[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = q[..., 2], -q[..., 1], q[..., 0]
-    return K
 
 
 def landmark_motion(basis: np.ndarray) -> np.ndarray:
@@ -203,7 +186,7 @@ def _residual_jacobian(Jp, q, R, basis_cols, n_pose):
     and t unless the pose is fixed (``n_pose`` 0), then by each weight (R D_kl)."""
     m, L = q.shape[:2]
     K = basis_cols.shape[-1]
-    parts = [-Jp @ _skew(q), Jp] if n_pose else []
+    parts = [-Jp @ skew(q), Jp] if n_pose else []
     if K:
         parts.append(Jp @ (R[:, None] @ basis_cols))
     return np.concatenate(parts, axis=-1).reshape(m, 2 * L, n_pose + K)

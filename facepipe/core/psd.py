@@ -296,28 +296,6 @@ def _inverse_where_clear(A: np.ndarray, squared_scale: np.ndarray, rcond: float)
     return inv, cond * rcond < 0.5  # False for NaN (singular)
 
 
-def pinv_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
-    """``np.linalg.pinv(A, rcond) @ b`` for a batch (n, R, P), (n, R, k), at a fraction of the cost.
-
-    A batched SVD of half a million 8 × 8 systems is slow. Where a square A is clearly
-    non-singular, pinv(A) = A⁻¹: ‖A‖_F ‖A⁻¹‖_F bounds the condition number κ₂ = σ_max / σ_min
-    from above, so where it stays below 1 / (2 rcond) no singular value is cut and the LU inverse
-    gives the same solution up to round-off (κ · 1e-16). The rest — singular or nearly so — and
-    non-square systems take the SVD.
-    """
-    n, R, P = A.shape
-    if R != P or n == 0:
-        return svd_solve(A, b, rcond)
-    inv, clear = _inverse_where_clear(A, np.einsum("nij,nij->n", A, A), rcond)
-    if clear.all():
-        return inv @ b
-    x = np.empty((n, P, b.shape[-1]))
-    x[clear] = inv[clear] @ b[clear]
-    rest = ~clear
-    x[rest] = svd_solve(A[rest], b[rest], rcond)
-    return x
-
-
 def svd_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     """``np.linalg.pinv(A, rcond) @ b`` for a batch, applied from the SVD without forming the
     pseudo-inverse (the same cut: singular values at most ``rcond`` × the largest are dropped;

@@ -203,3 +203,22 @@ def interpolate_poses(R: np.ndarray, t: np.ndarray, times: np.ndarray | None = N
         for a in range(3):
             t[bad, a] = np.interp(q, x[good], t[good, a])
     return R, t, bad
+
+
+def rotation_from_vector(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (Rodrigues)."""
+    v = np.asarray(v, dtype=np.float64)
+    a = np.linalg.norm(v, axis=-1)[..., None, None]
+    K = skew(v)
+    small = a < 1e-8
+    s = np.where(small, 1.0, np.sin(a) / np.where(small, 1.0, a))
+    c = np.where(small, 0.5, (1 - np.cos(a)) / np.where(small, 1.0, a * a))
+    return np.eye(3) + s * K + c * (K @ K)
+
+
+def skew(q: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3): skew(q) @ p = q × p."""
+    K = np.zeros(q.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -q[..., 2], q[..., 1], -q[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = q[..., 2], -q[..., 1], q[..., 0]
+    return K

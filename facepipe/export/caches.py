@@ -68,6 +68,14 @@ def cache_frame(positions, t: int, path: Path) -> np.ndarray:
     return frame
 
 
+def write_frames(fh, positions, path: Path, dtype: str, progress=None) -> None:
+    """Every frame's positions as raw ``dtype`` values (the body of MDD and PC2 files), checked."""
+    for t in range(len(positions)):
+        fh.write(cache_frame(positions, t, path).astype(dtype).tobytes())
+        if progress is not None:
+            progress(1)
+
+
 #: ``write(path, positions, fps, progress) -> Path | None`` (None: ``resume`` kept the file).
 CacheWriter = Callable[[Path, np.ndarray, float, Callable[[int], object]], "Path | None"]
 

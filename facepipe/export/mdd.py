@@ -13,7 +13,7 @@ from typing import Callable
 
 import numpy as np
 
-from facepipe.export.caches import cache_frame, check_positions, export_cache, prepare_cache
+from facepipe.export.caches import check_positions, export_cache, prepare_cache, write_frames
 from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_open
 
@@ -46,10 +46,7 @@ def write_mdd(path: str | os.PathLike, positions, times: np.ndarray, *, force: b
     with atomic_open(path, "wb") as fh:
         fh.write(MDD_HEADER.pack(T, V))
         fh.write(np.asarray(times, dtype=">f4").tobytes())
-        for t in range(T):
-            fh.write(cache_frame(positions, t, path).astype(">f4").tobytes())
-            if progress is not None:
-                progress(1)
+        write_frames(fh, positions, path, ">f4", progress)
     return path
 
 

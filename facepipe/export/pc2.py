@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 
 from facepipe.errors import InputError
-from facepipe.export.caches import cache_frame, check_positions, export_cache, prepare_cache
+from facepipe.export.caches import check_positions, export_cache, prepare_cache, write_frames
 from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_open
 from facepipe.io.replay_folder import is_uniform, time_codes
@@ -58,10 +58,7 @@ def write_pc2(path: str | os.PathLike, positions, times: np.ndarray, fps: float,
     start = float(time_codes(np.asarray(times[:1]), fps)[0])
     with atomic_open(path, "wb") as fh:
         fh.write(PC2_HEADER.pack(PC2_MAGIC, 1, V, start, 1.0, T))
-        for t in range(T):
-            fh.write(cache_frame(positions, t, path).astype("<f4").tobytes())
-            if progress is not None:
-                progress(1)
+        write_frames(fh, positions, path, "<f4", progress)
     return path
 
 

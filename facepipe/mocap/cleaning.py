@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from facepipe.mocap.gaps import fill_gaps
-from facepipe.core.rigid import interpolate_poses, stable_marker_pose
+from facepipe.core.rigid import interpolate_poses, rotation_from_vector, stable_marker_pose
 
 __all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
            "noise_sigma", "rotation_from_vector"]
@@ -112,19 +112,6 @@ class CleanResult:
     weights: np.ndarray
     report: dict
     outliers: np.ndarray | None = None
-
-
-def rotation_from_vector(v: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of rotation vectors (..., 3) (Rodrigues)."""
-    v = np.asarray(v, dtype=np.float64)
-    a = np.linalg.norm(v, axis=-1)[..., None, None]
-    K = np.zeros(v.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    small = a < 1e-8
-    s = np.where(small, 1.0, np.sin(a) / np.where(small, 1.0, a))
-    c = np.where(small, 0.5, (1 - np.cos(a)) / np.where(small, 1.0, a * a))
-    return np.eye(3) + s * K + c * (K @ K)
 
 
 def _skew(q: np.ndarray) -> np.ndarray:
