@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -77,9 +78,8 @@ def read_csv_take(path: Path, marker_names: list[str], match=None) -> Take:
     del lines
     _check_field_counts(rows, line_no, len(columns), path)
     stamps, positions = _parse_rows(rows, line_no, use, columns, present, path)
-    take = _take_from_values(stamps, positions, line_no, marker_names, found.extra, path)
-    take.markers = found.report
-    return take
+    return replace(_take_from_values(stamps, positions, line_no, marker_names, found.extra, path),
+                   markers=found.report)
 
 
 def _text_lines(data: bytes) -> list[bytes]:

@@ -17,7 +17,7 @@ advice to pass ``--camera`` and ``--landmarks``.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -235,8 +235,7 @@ def _check_finite(path, pts, frames, lines, names):
 
 
 def _finish(take: LandmarkTake) -> LandmarkTake:
-    take.fps = estimate_fps(take.times)
-    return take
+    return replace(take, fps=estimate_fps(take.times))
 
 
 def write_uv_csv(path, frames, times, points, names, decimals: int = 3) -> None:

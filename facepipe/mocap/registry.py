@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -203,16 +203,13 @@ def read_take(path: str | os.PathLike, marker_names, frames: slice | str | None 
     def match(file_names):
         return match_markers(file_names, marker_names, path, subject=subject, absent=absent)
 
-    take = fmt.reader(path, marker_names, match)
-    take.format = fmt.name
-    take.path = str(path)
+    take = replace(fmt.reader(path, marker_names, match), format=fmt.name, path=str(path))
     check_order(take)
 
     source = override or take.units or target
-    take.source_units = source
-    if source is not None and target is not None and source != target:
-        take.positions *= unit_factor(source, target)
-    take.units = target or source
+    factor = unit_factor(source, target) if source is not None and target is not None and source != target else 1.0
+    take = replace(take, positions=take.positions * factor if factor != 1.0 else take.positions,
+                   source_units=source, units=target or source)
 
     total = take.n_frames
     if frames is not None:
@@ -224,8 +221,7 @@ def read_take(path: str | os.PathLike, marker_names, frames: slice | str | None 
                 hint=f"choose rows within 0:{total}",
             )
     check_values(take, allow_empty_frames=allow_empty_frames)
-    take.fps = estimate_fps(take.times)
-    return take
+    return replace(take, fps=estimate_fps(take.times))
 
 
 def write_take(path: str | os.PathLike, take: Take, format: str | None = None, *, units: str | None = None,
@@ -260,10 +256,8 @@ def write_take(path: str | os.PathLike, take: Take, format: str | None = None, *
         fmt = FORMATS[format]
     units = normalise_units(units) if units else None
     if units and take.units and units != take.units:
-        scaled = take.select(slice(None))
-        scaled.positions = np.asarray(take.positions, dtype=np.float64) * unit_factor(take.units, units)
-        scaled.units = units
-        take = scaled
+        take = replace(take, positions=np.asarray(take.positions, dtype=np.float64) * unit_factor(take.units, units),
+                       units=units)
     fmt.writer(path, take, units or take.units, **options)
 
 
