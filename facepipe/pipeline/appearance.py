@@ -329,6 +329,7 @@ class Classification:
     """Q (T, R) after hold and decay, raw (T, R) before (NaN where hidden), visible (T, R), frame
     numbers (T,), times (T,), problems: (frame, text) of frames that were skipped."""
 
+    names: list
     q: np.ndarray
     raw: np.ndarray
     visible: np.ndarray
@@ -361,4 +362,4 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
         if progress is not None:
             progress(1)
     q = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
-    return Classification(q, raw, visible, np.asarray(numbers), np.asarray(times), problems)
+    return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems)
