@@ -609,9 +609,13 @@ def transfer(ctx, model_path, target, source_points, target_points, output, targ
 @click.option("--seed", default=0, show_default=True)
 @click.option("--markers", default=None, type=int, help="Markers driving the shell, 6 stable ones included "
               "[default: 96]; 89 is the paper's configuration.")
+@click.option("--appearance", "with_appearance", is_flag=True,
+              help="Also render footage of the take with known texture and light (DIRECTORY/appearance: example "
+                   "frames, the take frontal and with the head turned, truth activations, appearance.toml).")
+@click.option("--image-size", default=384, show_default=True, help="--appearance: image width and height in pixels.")
 @_common
 @click.pass_context
-def sample(ctx, directory, vertices, examples, frames, seed, markers, quiet, verbose):
+def sample(ctx, directory, vertices, examples, frames, seed, markers, with_appearance, image_size, quiet, verbose):
     """Write a self-contained synthetic rig: mesh, markers, anchors, examples, a take with truth, a config."""
     from facepipe.sample_rig import write_sample_rig
 
@@ -622,6 +626,51 @@ def sample(ctx, directory, vertices, examples, frames, seed, markers, quiet, ver
                             n_markers=markers)
     rep.say(f"wrote sample rig to {directory}: " + ", ".join(f"{k} {v}" for k, v in info.items()
                                                              if isinstance(v, (int, float))))
+    if with_appearance:
+        from facepipe.cli.appearance import sample_appearance
+
+        kit = sample_appearance(directory, frames, image_size, rep)
+        rep.say(f"wrote footage of {kit['frames']} frames (frontal and head turned) and {kit['examples']} example "
+                f"frames; config {kit['config']}")
+
+
+# ----------------------------------------------------------------------------- appearance
+
+
+@cli.group()
+def appearance():
+    """Appearance from footage: layered textures driven by wavelet classification (Fidaleo et al. 2000)."""
+
+
+@appearance.command("build")
+@click.argument("config", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default="appearance.npz", show_default=True, type=click.Path(dir_okay=False))
+@_common
+@click.pass_context
+def appearance_build(ctx, config, output, quiet, verbose):
+    """Build an appearance model from the config's [appearance] table (example frames with geometry)."""
+    from facepipe.cli.appearance import build_command
+
+    build_command(config, output, _reporter(ctx, quiet, verbose))
+
+
+@appearance.command("classify")
+@click.argument("model", type=click.Path(dir_okay=False))
+@click.argument("footage")
+@click.option("--geometry", required=True, type=click.Path(),
+              help="The take's geometry: a replay folder or an .npz with positions (T, V, 3) and frame (T,).")
+@click.option("-o", "--output", required=True, type=click.Path(file_okay=False),
+              help="Folder for appearance.csv (frame, time, Q per region) and appearance.json.")
+@click.option("--fps", default=30.0, show_default=True, help="Frame rate (frame times = number / fps).")
+@_common
+@click.pass_context
+def appearance_classify(ctx, model, footage, geometry, output, fps, quiet, verbose):
+    """Classify every frame of FOOTAGE (folder, frame_%04d.png pattern or video) against MODEL's templates."""
+    from facepipe.cli.appearance import classify_command
+
+    if fps <= 0:
+        raise InputError(f"--fps {fps} must be positive")
+    classify_command(model, footage, geometry, output, fps, _reporter(ctx, quiet, verbose))
 
 
 def main(argv=None) -> None:

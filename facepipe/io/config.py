@@ -69,6 +69,37 @@ class TuneConfig:
 
 
 @dataclass
+class AppearanceRegion:
+    """One ``[appearance.regions.NAME]`` table: the region's vertex group, its template's UV
+    rectangle [u0, v0, u1, v1] and its example frames from neutral to extreme."""
+
+    name: str
+    vertices: Path
+    template: list
+    frames: list
+
+
+@dataclass
+class AppearanceConfig:
+    """The ``[appearance]`` table: example footage with its geometry, the camera, the regions."""
+
+    camera: Path
+    footage: str
+    geometry: Path
+    camera_rotation: list = field(default_factory=lambda: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    camera_translation: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    neutral_frame: int = 0
+    texture_size: int = 1024
+    template_size: int = 16
+    keep: int = 50
+    scale_weights: list = field(default_factory=lambda: [2.0, 4.0, 2.0, 1.0, 0.0])
+    ramp: float = 10.0
+    min_facing: float = 0.2  # a region is hidden when its normal is more than ~78° from the camera
+    decay: float = 0.5  # seconds: a hidden region's value fades to neutral
+    regions: list = field(default_factory=list)
+
+
+@dataclass
 class Config:
     path: Path
     mesh: Path
@@ -82,6 +113,7 @@ class Config:
     shell: ShellConfig = field(default_factory=ShellConfig)
     psd: PsdConfig = field(default_factory=PsdConfig)
     tune: TuneConfig = field(default_factory=TuneConfig)
+    appearance: AppearanceConfig | None = None
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -98,7 +130,12 @@ _TYPES: dict[str, dict[str, object]] = {
     "features": {"graph": str},
     "psd": {k: type(v) for k, v in asdict(PsdConfig()).items()},
     "tune": {k: type(v) for k, v in asdict(TuneConfig()).items()},
+    "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
+                   "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
+                   "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
+                   "regions": dict},
 }
+_REGION_TYPES = {"vertices": str, "template": list, "frames": list}
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm",
@@ -182,7 +219,65 @@ def load_config(path: str | Path) -> Config:
         shell=shell,
         psd=psd,
         tune=tune,
+        appearance=_appearance(raw, path) if "appearance" in raw else None,
     )
+
+
+def _appearance(raw: dict, path: Path) -> AppearanceConfig:
+    """The ``[appearance]`` table and its ``[appearance.regions.NAME]`` tables, checked strictly."""
+    # the regions (tables) and the rotation (rows of numbers) are checked below, the rest by type
+    given = dict(raw["appearance"])
+    region_tables = given.pop("regions", {})
+    rotation = given.pop("camera_rotation", None)
+    table = _typed_table({"appearance": given}, "appearance", path)
+    if not isinstance(region_tables, dict):
+        raise InputError(f"[appearance] regions = {_toml(region_tables)} is {_kind(region_tables)}", path=path,
+                         hint="write each region as a table [appearance.regions.NAME]")
+    for key in ("camera", "footage", "geometry"):
+        if not table.get(key):
+            raise InputError(f"[appearance] {key} is required", path=path,
+                             hint="camera = calibration file, footage = example frames, geometry = their positions")
+    base = path.parent
+    regions = []
+    for name, values in region_tables.items():
+        where = f"appearance.regions.{name}"
+        if not isinstance(values, dict):
+            raise InputError(f"[{where}] is not a table", path=path, hint=f"write its keys under [{where}]")
+        unknown = set(values) - set(_REGION_TYPES)
+        missing = set(_REGION_TYPES) - set(values)
+        if unknown or missing:
+            raise InputError(f"[{where}] unknown {sorted(unknown)} / missing {sorted(missing)} keys", path=path,
+                             hint="each region takes vertices, template = [u0, v0, u1, v1], frames = [...]")
+        v = {k: checked_value(values[k], t, path, where, k) for k, t in _REGION_TYPES.items()}
+        template = [checked_value(x, float, path, where, "template") for x in v["template"]]
+        frames = [checked_value(x, int, path, where, "frames") for x in v["frames"]]
+        if len(template) != 4 or not (template[0] < template[2] and template[1] < template[3]):
+            raise InputError(f"[{where}] template = {template} is not [u0, v0, u1, v1] with u0 < u1, v0 < v1",
+                             path=path)
+        if len(frames) < 3:
+            raise InputError(f"[{where}] frames = {frames}: a region needs at least three layers", path=path,
+                             hint="give 3 or more example frames, neutral first (5 or 6 for smooth motion)")
+        regions.append(AppearanceRegion(name, base / v["vertices"], template, frames))
+    if not regions:
+        raise InputError("[appearance] has no regions", path=path,
+                         hint="add tables [appearance.regions.NAME] with vertices, template and frames")
+    out = AppearanceConfig(camera=base / table.pop("camera"), footage=str(base / table.pop("footage")),
+                           geometry=base / table.pop("geometry"), regions=regions)
+    for key, value in table.items():
+        setattr(out, key, value)
+    if rotation is not None:
+        out.camera_rotation = rotation
+    rot = out.camera_rotation
+    if (len(rot) != 3 or any(not isinstance(r, list) or len(r) != 3 for r in rot) or len(out.camera_translation) != 3
+            or not all(_is(x, float) for r in rot for x in r) or not all(_is(x, float) for x in out.camera_translation)):
+        raise InputError("[appearance] camera_rotation must be 3 × 3 numbers and camera_translation 3 numbers",
+                         path=path, hint="the world → camera pose (OpenCV axes); leave them out for camera space")
+    if out.texture_size < 16 or out.template_size < 4 or out.template_size & (out.template_size - 1) or out.keep < 1:
+        raise InputError("[appearance] texture_size must be ≥ 16, template_size a power of two ≥ 4, keep ≥ 1",
+                         path=path)
+    if out.ramp < 0 or out.decay < 0 or not all(_is(x, float) and x >= 0 for x in out.scale_weights):
+        raise InputError("[appearance] ramp, decay and scale_weights must be ≥ 0", path=path)
+    return out
 
 
 def _typed_table(raw: dict, name: str, path: Path) -> dict:

@@ -1,0 +1,312 @@
+"""Footage of a known performance, for checking the appearance classification against the truth.
+
+A face (rest mesh with UVs, expression shapes, a take's expression weights and head motion) is
+rendered through a known pinhole camera with OpenCV lens distortion, Lambert-lit, with a known
+texture: a procedural skin plus, per region, a wrinkle pattern (dark stripes under a smooth
+bump) whose strength is the region's **truth activation** (the mean weight of the expressions
+that drive it). The classification must recover that activation from the images alone.
+
+Independence from the classifier: this renderer rasterises the truth mesh (the preview's
+z-buffer), looks the texture up per pixel through the triangles' UVs with OpenCV's remap, and
+distorts the ideal image by remapping it through ``cv2.undistortPoints``; the classifier
+projects its template points with ``cv2.projectPoints`` and samples with its own bilinear
+lookup, and sees only the written PNG files (with 0.5 % noise, 8-bit).
+
+Used by ``facepipe sample --appearance`` (the synthetic rig) and ``bench/appearance_ict.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import imageio.v3 as iio
+import numpy as np
+
+from facepipe.cli.render import rasterize
+from facepipe.core.tangent_frames import vertex_normals
+from facepipe.io.atomic import atomic_path
+
+__all__ = ["Scene", "make_scene", "region_layout", "skin_texture", "wrinkle_fields", "render_frame",
+           "write_appearance_footage"]
+
+
+@dataclass
+class Scene:
+    """Camera (intrinsics, distortion, world → camera pose) and light of a rendering."""
+
+    matrix: np.ndarray
+    distortion: np.ndarray
+    width: int
+    height: int
+    rotation: np.ndarray
+    translation: np.ndarray
+    light: np.ndarray = None      # direction towards the light, camera coordinates
+    light_rgb: tuple = (1.0, 1.0, 1.0)
+    ambient: float = 0.25
+
+    def to_camera(self, world: np.ndarray) -> np.ndarray:
+        return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
+
+
+def make_scene(rest: np.ndarray, size: int = 512, fill: float = 0.75, distortion=(-0.05, 0.02, 0.0, 0.0, 0.0),
+               light=(-0.4, -0.5, -1.0)) -> Scene:
+    """A camera in front of the face (+z world, +y up) framing ``rest`` to ``fill`` of the image."""
+    centre = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
+    extent = float(np.max(rest.max(axis=0)[:2] - rest.min(axis=0)[:2]))
+    focal = 2.0 * size
+    distance = focal * extent / (fill * size) + float(rest[:, 2].max() - centre[2])
+    R = np.diag([1.0, -1.0, -1.0])  # OpenCV axes: x right, y down, z forward (into the face)
+    t = -R @ centre + np.array([0.0, 0.0, distance])
+    K = np.array([[focal, 0.0, 0.5 * (size - 1)], [0.0, focal, 0.5 * (size - 1)], [0.0, 0.0, 1.0]])
+    light = np.asarray(light, dtype=np.float64)
+    return Scene(K, np.asarray(distortion, dtype=np.float64), size, size, R, t, light / np.linalg.norm(light))
+
+
+def _fits(box, corner_uv) -> bool:
+    """Whether a template rectangle and its half-step offsets lie on the UV layout (no hole)."""
+    from facepipe.pipeline.appearance import locate_uv, template_points  # where the config will be checked
+
+    return bool((locate_uv(template_points(box, 16).reshape(-1, 2), corner_uv)[0] >= 0).all())
+
+
+def region_layout(rest: np.ndarray, vertex_uv: np.ndarray, displacements: np.ndarray, share: float = 0.5,
+                  corner_uv: np.ndarray | None = None) -> dict:
+    """Where each region is, from the displacement (R, V, 3) of its driving expressions.
+
+    A vertex belongs to the region whose displacement is largest there, if at least ``share`` of
+    that region's largest. Returns per region: ``vertices`` (its group, spread over the pattern's
+    footprint), ``centre`` (UV, displacement-weighted), ``radius`` (UV), ``template``
+    [u0, v0, u1, v1] and the stripes' ``angle`` and ``wavelength``.
+    """
+    mag = np.linalg.norm(displacements, axis=-1)  # (R, V)
+    owner = np.argmax(mag, axis=0)
+    out = []
+    for r in range(mag.shape[0]):
+        core = (owner == r) & (mag[r] >= share * mag[r].max())
+        w = mag[r, core] ** 2
+        centre = (vertex_uv[core] * w[:, None]).sum(axis=0) / w.sum()
+        spread = float(np.sqrt((w * ((vertex_uv[core] - centre) ** 2).sum(axis=1)).sum() / w.sum()))
+        out.append({"centre": centre, "radius": max(spread, 1e-3),
+                    "candidates": vertex_uv[core][np.argsort(-mag[r, core])]})
+    centres = np.array([o["centre"] for o in out])
+    for r, o in enumerate(out):  # patterns of neighbouring regions kept apart
+        others = np.delete(centres, r, axis=0)
+        gap = float(np.min(np.linalg.norm(others - o["centre"], axis=1))) if len(others) else np.inf
+        o["radius"] = min(o["radius"] * 1.5, 0.6 * gap)
+        half = 0.45 * o["radius"]
+        if corner_uv is not None:  # off holes (the mouth): the most moving place the template fits
+            for c in [o["centre"], *o.pop("candidates")]:
+                box = [c[0] - half, c[1] - half, c[0] + half, c[1] + half]
+                if _fits(box, corner_uv):
+                    o["centre"] = np.asarray(c)
+                    break
+        o.pop("candidates", None)
+        o["template"] = [float(o["centre"][0] - half), float(o["centre"][1] - half),
+                         float(o["centre"][0] + half), float(o["centre"][1] + half)]
+        o["wavelength"] = 2 * half / 3.0
+        o["angle"] = float(np.pi * ((r * 0.37) % 1.0))
+        o["vertices"] = np.flatnonzero(np.linalg.norm(vertex_uv - o["centre"], axis=1) < 1.4 * o["radius"])
+    return out
+
+
+def skin_texture(size: int, seed: int = 0) -> np.ndarray:
+    """(size, size, 3) float32 skin: a tone, low-frequency blotches and fine pores."""
+    rng = np.random.default_rng(seed)
+    coarse = cv2.GaussianBlur(rng.normal(size=(size, size)).astype(np.float32), (0, 0), size / 40)
+    fine = cv2.GaussianBlur(rng.normal(size=(size, size)).astype(np.float32), (0, 0), 0.8)
+    lum = 1.0 + 0.6 * coarse / max(coarse.std(), 1e-6) * 0.08 + 0.04 * fine / max(fine.std(), 1e-6)
+    tone = np.array([0.78, 0.58, 0.48], dtype=np.float32)
+    return np.clip(lum[..., None] * tone, 0.0, 1.0).astype(np.float32)
+
+
+def wrinkle_fields(size: int, layout: list) -> np.ndarray:
+    """(R, size, size) darkening of each region at full activation: stripes under a smooth bump."""
+    v, u = np.meshgrid(1.0 - (np.arange(size) + 0.5) / size, (np.arange(size) + 0.5) / size, indexing="ij")
+    fields = []
+    for o in layout:
+        d2 = (u - o["centre"][0]) ** 2 + (v - o["centre"][1]) ** 2
+        bump = np.exp(-0.5 * d2 / (0.6 * o["radius"]) ** 2)
+        s = (u - o["centre"][0]) * np.cos(o["angle"]) + (v - o["centre"][1]) * np.sin(o["angle"])
+        stripes = 0.5 * (1.0 + np.cos(2 * np.pi * s / o["wavelength"]))
+        fields.append((0.55 * bump * stripes ** 2).astype(np.float32))
+    return np.stack(fields)
+
+
+def _distortion_maps(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel of the distorted image, where it lies in the ideal pinhole image."""
+    ys, xs = np.mgrid[0:scene.height, 0:scene.width].astype(np.float64)
+    pts = np.stack([xs.ravel(), ys.ravel()], axis=1).reshape(-1, 1, 2)
+    ideal = cv2.undistortPoints(pts, scene.matrix, scene.distortion, P=scene.matrix).reshape(scene.height,
+                                                                                              scene.width, 2)
+    return ideal[..., 0].astype(np.float32), ideal[..., 1].astype(np.float32)
+
+
+def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, texture: np.ndarray, scene: Scene,
+                 maps=None, background: float = 0.12) -> np.ndarray:
+    """(H, W, 3) float image of the textured, lit mesh through the scene's camera (before noise).
+
+    world : (V, 3); faces : (F, 3); corner_uv : (F, 3, 2) UVs of the triangles' corners.
+    """
+    cam = scene.to_camera(world)
+    K = scene.matrix
+    pixels = np.stack([K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]], 1)
+    face, bary = rasterize(pixels, -cam[:, 2], faces, scene.width, scene.height)
+    img = np.full((scene.height, scene.width, 3), background, dtype=np.float32)
+    hit = face >= 0
+    f, b = face[hit], bary[hit]
+    uv = np.einsum("nk,nkc->nc", b, corner_uv[f])
+    S = texture.shape[0]
+    # OpenCV's remap wants maps under 32767 rows: the lookups as rows of 1024
+    n_hit = uv.shape[0]
+    pad = (-n_hit) % 1024
+    tx = np.r_[uv[:, 0] * S - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
+    ty = np.r_[(1.0 - uv[:, 1]) * S - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
+    albedo = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n_hit]
+    normals = vertex_normals(cam, faces)
+    n = np.einsum("nk,nkc->nc", b, normals[faces[f]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    shade = scene.ambient + (1 - scene.ambient) * np.abs(n @ scene.light)
+    img[hit] = albedo * (shade[:, None] * np.asarray(scene.light_rgb))
+    mx, my = maps if maps is not None else _distortion_maps(scene)
+    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _write_png(path: Path, image: np.ndarray, rng: np.random.Generator, noise: float) -> None:
+    noisy = image + noise * rng.normal(size=image.shape)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, np.clip(np.round(noisy * 255), 0, 255).astype(np.uint8), extension=".png")
+
+
+def write_appearance_footage(folder, world_frames: np.ndarray, activations: np.ndarray, faces, corner_uv,
+                             skin: np.ndarray, fields: np.ndarray, scene: Scene, *, noise: float = 0.005,
+                             seed: int = 0, numbers=None, progress=None) -> list[Path]:
+    """Render and write ``folder/frame_NNNN.png`` for every frame: geometry (T, V, 3) world, the
+    regions' activations (T, R) scaling their wrinkle fields (R, S, S) on the skin (S, S, 3)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    maps = _distortion_maps(scene)
+    numbers = np.arange(len(world_frames)) if numbers is None else numbers
+    paths = []
+    for k, (positions, a) in enumerate(zip(world_frames, activations)):
+        dark = np.tensordot(np.asarray(a, dtype=np.float32), fields, axes=1)
+        texture = np.ascontiguousarray(skin * np.clip(1.0 - dark, 0.0, 1.0)[..., None], dtype=np.float32)
+        path = folder / f"frame_{int(numbers[k]):04d}.png"
+        _write_png(path, render_frame(positions, faces, corner_uv, texture, scene, maps), rng, noise)
+        paths.append(path)
+        if progress is not None:
+            progress(1)
+    return paths
+
+
+def scene_json(scene: Scene) -> str:
+    """The scene's camera as the calibration JSON :func:`facepipe.io.camera_file.read_camera` reads."""
+    return json.dumps({"image_width": scene.width, "image_height": scene.height,
+                       "camera_matrix": scene.matrix.tolist(), "dist_coeffs": scene.distortion.tolist()}, indent=1)
+
+
+def _activations(weights: np.ndarray, names: list, drivers: dict) -> np.ndarray:
+    """(T, R) the mean weight of each region's driving expressions."""
+    index = {n: i for i, n in enumerate(names)}
+    return np.stack([weights[:, [index[d] for d in ds]].mean(axis=1) for ds in drivers.values()], axis=1)
+
+
+def _head_turn(world: np.ndarray, degrees: float, pivot: np.ndarray) -> np.ndarray:
+    """World frames turned about ``pivot``: yaw sweeping ±degrees and pitch ±degrees/3 over the take."""
+    T = len(world)
+    out = np.empty_like(world)
+    for f in range(T):
+        yaw = np.deg2rad(degrees) * np.sin(2 * np.pi * f / max(T, 1))
+        pitch = np.deg2rad(degrees / 3) * np.sin(4 * np.pi * f / max(T, 1))
+        Ry = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+        Rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
+        out[f] = (world[f] - pivot) @ (Ry @ Rx).T + pivot
+    return out
+
+
+def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, drivers: dict, take_world: np.ndarray,
+                         take_weights: np.ndarray, take_names: list, *, mesh_path: str, markers_path: str,
+                         layers: int = 5, size: int = 512, texture_size: int = 512, turn_degrees: float = 15.0,
+                         noise: float = 0.005, seed: int = 0, progress=None) -> dict:
+    """Write footage of a known performance and an appearance config for it into ``out_dir``.
+
+    expressions : name → (V, 3) positions at weight 1; drivers : region → expression names.
+    take_world (T, V, 3), take_weights (T, K) with take_names: the performance.
+    Writes ``camera.json``, ``examples/`` (per region, its drivers at ``layers`` strengths from 0 to
+    1, frame 0 neutral) with ``examples.npz``, ``take/`` and ``take_turned/`` (the head turned up
+    to ``turn_degrees`` and another light) each with its geometry ``.npz`` (positions in world
+    space, frame numbers) and truth ``_truth.csv`` (activation per region), ``regions/NAME.txt``
+    and ``appearance.toml``. Returns the paths and the layout.
+    """
+    out = Path(out_dir)
+    (out / "regions").mkdir(parents=True, exist_ok=True)
+    faces = mesh.faces
+    corner_uv = mesh.uvs[mesh.face_uvs]
+    vertex_uv = np.zeros((rest.shape[0], 2))
+    vertex_uv[faces.ravel()] = corner_uv.reshape(-1, 2)
+    names = list(drivers)
+    disp = np.stack([np.mean([expressions[d] - rest for d in drivers[r]], axis=0) for r in names])
+    layout = region_layout(rest, vertex_uv, disp, corner_uv=corner_uv)
+    skin = skin_texture(texture_size, seed)
+    fields = wrinkle_fields(texture_size, layout)
+    scene = make_scene(rest, size)
+    (out / "camera.json").write_text(scene_json(scene))
+
+    # examples: neutral, then each region's drivers at increasing strength, alone
+    strengths = np.linspace(0.0, 1.0, layers)[1:]
+    ex_world, ex_act, frames = [rest], [np.zeros(len(names))], {}
+    for r, name in enumerate(names):
+        frames[name] = [0]
+        for s in strengths:
+            ex_world.append(rest + s * disp[r] * len(drivers[name]) / len(drivers[name]))
+            a = np.zeros(len(names))
+            a[r] = s
+            ex_act.append(a)
+            frames[name].append(len(ex_world) - 1)
+    ex_world = np.asarray(ex_world)
+    write_appearance_footage(out / "examples", ex_world, np.asarray(ex_act), faces, corner_uv, skin, fields, scene,
+                             noise=noise, seed=seed + 1, progress=progress)
+    _save_geometry(out / "examples.npz", ex_world, np.arange(len(ex_world)))
+
+    truth = _activations(take_weights, take_names, drivers)
+    pivot = np.array([0.5 * (rest[:, 0].min() + rest[:, 0].max()), rest[:, 1].min(), rest[:, 2].min()])
+    turned_scene = Scene(scene.matrix, scene.distortion, scene.width, scene.height, scene.rotation, scene.translation,
+                         np.array([0.6, -0.2, -0.8]) / np.linalg.norm([0.6, -0.2, -0.8]), (1.0, 0.9, 0.75), 0.3)
+    variants = {"take": (take_world, scene), "take_turned": (_head_turn(take_world, turn_degrees, pivot), turned_scene)}
+    for k, (world, sc) in enumerate(variants.values()):
+        key = list(variants)[k]
+        write_appearance_footage(out / key, world, truth, faces, corner_uv, skin, fields, sc, noise=noise,
+                                 seed=seed + 2 + k, progress=progress)
+        _save_geometry(out / f"{key}.npz", world, np.arange(len(world)))
+        _write_truth(out / f"{key}_truth.csv", names, truth)
+    for name, o in zip(names, layout):
+        (out / "regions" / f"{name}.txt").write_text("".join(f"{v}\n" for v in o["vertices"].tolist()))
+    config = out / "appearance.toml"
+    config.write_text(_config_text(mesh_path, markers_path, names, layout, frames, scene, texture_size))
+    return {"config": str(config), "regions": names, "layout": layout, "examples": len(ex_world),
+            "frames": len(take_world)}
+
+
+def _save_geometry(path: Path, world: np.ndarray, numbers: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        np.savez(tmp, positions=np.asarray(world, dtype=np.float32), frame=np.asarray(numbers, dtype=np.int32))
+
+
+def _write_truth(path: Path, names: list, truth: np.ndarray) -> None:
+    rows = "".join(f"{f}," + ",".join(f"{x:.6f}" for x in row) + "\n" for f, row in enumerate(truth))
+    path.write_text("frame," + ",".join(names) + "\n" + rows)
+
+
+def _config_text(mesh_path, markers_path, names, layout, frames, scene: Scene, texture_size: int) -> str:
+    lines = ["[rig]", f'mesh = "{mesh_path}"', f'markers = "{markers_path}"', "", "[appearance]",
+             'camera = "camera.json"', f"camera_rotation = {scene.rotation.tolist()}",
+             f"camera_translation = {scene.translation.tolist()}", 'footage = "examples/frame_%04d.png"',
+             'geometry = "examples.npz"', "neutral_frame = 0", f"texture_size = {texture_size}", ""]
+    for name, o in zip(names, layout):
+        lines += [f"[appearance.regions.{name}]", f'vertices = "regions/{name}.txt"',
+                  f"template = [{', '.join(f'{x:.5f}' for x in o['template'])}]",
+                  f"frames = {frames[name]}", ""]
+    return "\n".join(lines)

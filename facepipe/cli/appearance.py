@@ -1,0 +1,79 @@
+"""The bodies of ``facepipe appearance build`` / ``classify`` and of ``facepipe sample --appearance``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from facepipe.errors import InputError
+
+__all__ = ["build_command", "classify_command", "sample_appearance", "SAMPLE_DRIVERS"]
+
+#: Regions of the sample rig and the expressions whose mean weight is each one's truth activation.
+SAMPLE_DRIVERS = {"forehead": ["browRaise"], "brows": ["frown"], "mouth": ["pucker"], "nasolabial_L": ["smile_L"],
+                  "nasolabial_R": ["smile_R"], "eyelid_L": ["squint_L"], "eyelid_R": ["squint_R"], "chin": ["jawOpen"]}
+
+
+def build_command(config_path, output, rep) -> dict:
+    from facepipe.io.appearance_file import save_appearance
+    from facepipe.io.camera_file import read_camera
+    from facepipe.io.config import load_config
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.pipeline.appearance import build_appearance
+
+    config = load_config(config_path)
+    if config.appearance is None:
+        raise InputError("the config has no [appearance] table", path=config_path,
+                         hint="add [appearance] with camera, footage, geometry and [appearance.regions.NAME] tables")
+    mesh = load_mesh(config.mesh)
+    camera = read_camera(config.appearance.camera)
+    with rep.bar(len(config.appearance.regions), unit="region", desc="regions") as bar:
+        model, info = build_appearance(config, mesh, camera, progress=bar.update)
+    save_appearance(output, model)
+    rep.say(f"{len(info['regions'])} regions ({', '.join(f'{n} {k}' for n, k in zip(info['regions'], info['layers']))}"
+            f" layers), texture {info['texture_size']}²; wrote {output}")
+    return info
+
+
+def classify_command(model_path, footage, geometry, output, fps, rep):
+    from facepipe.io.appearance_file import load_appearance, write_stream
+    from facepipe.pipeline.appearance import _read_geometry, classify_frames
+
+    model = load_appearance(model_path)
+    positions, numbers = _read_geometry(geometry, int(model.faces.max()) + 1)
+    times = numbers / fps
+    with rep.bar(len(numbers), desc="classify") as bar:
+        result = classify_frames(model, footage, positions, numbers, times, progress=bar.update)
+    for n, problem in result.problems:
+        rep.say(f"frame {n}: {problem}; skipped (held, decaying to neutral)")
+    never = [name for r, name in enumerate(model.names) if not result.visible[:, r].any()]
+    if never:
+        rep.say(f"note: never visible, kept neutral: {', '.join(never)}")
+    path = write_stream(output, model_path, result, model.layer_counts)
+    rep.say(f"{len(numbers)} frames, {len(model.names)} regions; wrote {path}")
+    return result
+
+
+def sample_appearance(directory, frames: int, size: int, rep) -> dict:
+    """Footage of the sample rig's take (``DIR/appearance``) with its truth and an appearance config."""
+    from facepipe.appearance_sample import write_appearance_kit
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.sample_rig import EXPRESSIONS
+
+    directory = Path(directory)
+    mesh = load_mesh(directory / "neutral.obj")
+    with np.load(directory / "take_truth.npz") as truth:
+        world, weights, names = truth["positions"][:frames], truth["weights"][:frames], list(truth["expressions"])
+    missing = sorted({d for ds in SAMPLE_DRIVERS.values() for d in ds} - set(names))
+    if missing:
+        raise InputError(f"the sample's take lacks the expressions {missing}", path=directory,
+                         hint=f"write the sample with --examples {len(EXPRESSIONS[:8])} or more")
+    from facepipe.io.mesh_read import load_vertices
+
+    expressions = {n: load_vertices(directory / "expressions" / f"{n}.obj") for n in names}
+    total = 1 + 4 * len(SAMPLE_DRIVERS) + 2 * len(world)
+    with rep.bar(total, desc="render") as bar:
+        return write_appearance_kit(directory / "appearance", mesh, mesh.vertices, expressions, SAMPLE_DRIVERS, world,
+                                    weights, names, mesh_path="../neutral.obj", markers_path="../markers.csv",
+                                    size=size, texture_size=512, progress=bar.update)

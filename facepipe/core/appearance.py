@@ -1,0 +1,249 @@
+"""Appearance from footage: Haar-wavelet classification of texture patches against templates
+(Fidaleo et al. 2000, §V), and the layered texture it indexes.
+
+A region of the face has n templates, texture patches of it from example frames ordered from
+neutral (layer 0) to extreme (layer n − 1). A frame's patch of the region (sampled at fixed
+barycentric coordinates on the animated surface, so pose-normalised) is compared with every
+template in a truncated Haar basis, and the best match is refined by a parabola through the
+match distances of it and its neighbours to a continuous layer index Q ∈ [0, n − 1]:
+
+* **Haar decomposition** of a size × size patch (size a power of two) with PyWavelets, as one
+  orthonormal matrix (built by transforming the basis images) so a batch of patches is one
+  product; every coefficient has a scale, 0 the patch mean, then the detail levels from
+  coarse to fine;
+* **coefficient selection**: per region, the ``keep`` coefficients largest over its templates
+  (root mean square). One set per region, not per template, so the distances to the
+  templates are sums over the same terms and comparable;
+* **match distance**: per-scale weighted squared difference on the kept coefficients (the
+  paper's weights 2, 4, 2, 1, 0, coarse to fine). For templates evenly spaced along a line in
+  coefficient space and a patch on that line the distance is exactly a parabola in the layer
+  index with its vertex at the patch's position, which is what the peak interpolation assumes;
+* **peak interpolation**: the vertex of the parabola through the best template's distance and
+  its two neighbours (the nearest triple at the ends), kept within half a layer of the best;
+* **visibility**: a region facing away from the camera keeps its last value, decaying
+  exponentially to neutral (0).
+
+Patches are divided by their mean before the transform (a uniform change of exposure or of
+the light's strength leaves them unchanged): what is classified is the texture's structure.
+
+Pure functions over arrays.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pywt
+from scipy import ndimage
+
+__all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
+           "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
+           "facing", "region_alpha", "layer_lookup", "compose_texture", "DIAGONAL_OFFSETS"]
+
+#: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
+DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
+
+#: The five samples of a patch: in place and shifted diagonally (units of the template's spacing).
+DIAGONAL_OFFSETS = np.array([[0.0, 0.0], [0.5, 0.5], [-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5]])
+
+
+@functools.lru_cache(maxsize=8)
+def haar_matrix(size: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """The 2D Haar transform of a size × size patch as a matrix, and each coefficient's scale.
+
+    Returns
+    -------
+    H : (size², size²) float64, orthonormal; coefficients = H @ patch.ravel(), in the order
+        ``pywt.coeffs_to_array`` lays out ``pywt.wavedec2(patch, "haar")``.
+    scale : (size²,) int64, 0 for the approximation (the patch mean times size), 1 for the
+        coarsest detail level … log2(size) for the finest.
+    """
+    if size < 2 or size & (size - 1):
+        raise ValueError(f"patch size {size} is not a power of two ≥ 2")
+    levels = int(np.log2(size))
+    n = size * size
+    H = np.empty((n, n))
+    for k in range(n):  # the transform of the k-th basis image is the k-th column
+        basis = np.zeros(n)
+        basis[k] = 1.0
+        coeffs = pywt.wavedec2(basis.reshape(size, size), "haar", level=levels)
+        H[:, k] = pywt.coeffs_to_array(coeffs)[0].ravel()
+    coeffs = pywt.wavedec2(np.zeros((size, size)), "haar", level=levels)
+    labels = [np.zeros_like(coeffs[0], dtype=np.int64)]
+    for level, details in enumerate(coeffs[1:], start=1):
+        labels.append(tuple(np.full_like(d, level, dtype=np.int64) for d in details))
+    scale = pywt.coeffs_to_array(labels)[0].ravel().astype(np.int64)
+    H.flags.writeable = False
+    scale.flags.writeable = False
+    return H, scale
+
+
+def haar_coefficients(patches: np.ndarray) -> np.ndarray:
+    """Haar coefficients (..., size²) of square patches (..., size, size)."""
+    patches = np.asarray(patches, dtype=np.float64)
+    size = patches.shape[-1]
+    H, _ = haar_matrix(size)
+    return patches.reshape(patches.shape[:-2] + (size * size,)) @ H.T
+
+
+def normalise_patches(patches: np.ndarray) -> np.ndarray:
+    """Patches divided by their mean intensity (a uniform gain leaves them unchanged)."""
+    patches = np.asarray(patches, dtype=np.float64)
+    mean = patches.mean(axis=(-2, -1), keepdims=True)
+    return patches / np.maximum(np.abs(mean), 1e-6)
+
+
+def select_coefficients(template_coefficients: np.ndarray, keep: int = 50) -> np.ndarray:
+    """Indices of the ``keep`` coefficients largest over a region's templates (RMS), sorted.
+
+    template_coefficients : (n, C).
+    """
+    c = np.asarray(template_coefficients, dtype=np.float64)
+    rms = np.sqrt((c * c).mean(axis=0))
+    keep = min(int(keep), c.shape[1])
+    return np.sort(np.argsort(-rms, kind="stable")[:keep])
+
+
+def coefficient_weights(size: int, scale_weights=DEFAULT_SCALE_WEIGHTS) -> np.ndarray:
+    """(size²,) the weight of every coefficient from the weights per scale (coarse to fine);
+    scales beyond the list get its last weight."""
+    _, scale = haar_matrix(size)
+    w = np.asarray(scale_weights, dtype=np.float64)
+    return w[np.minimum(scale, len(w) - 1)]
+
+
+def match_distances(query: np.ndarray, templates: np.ndarray, indices: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted squared distances (..., n) of query coefficients (..., C) to templates (n, C) over
+    the kept ``indices``, each coefficient weighted by ``weights`` (C,)."""
+    q = np.asarray(query, dtype=np.float64)[..., indices]
+    t = np.asarray(templates, dtype=np.float64)[:, indices]
+    w = np.asarray(weights, dtype=np.float64)[indices]
+    # |q - t|²_w = q·wq − 2 q·wt + t·wt, all templates in one product
+    return ((q * q * w).sum(axis=-1)[..., None] - 2.0 * (q * w) @ t.T + (t * t * w).sum(axis=-1))
+
+
+def peak_index(distances: np.ndarray) -> np.ndarray:
+    """Continuous index (...) of the smallest of distances (..., n), n ≥ 3: the vertex of the parabola
+    through the best one and its neighbours (the nearest three at the ends), within half a
+    layer of the best and within [0, n − 1]."""
+    d = np.asarray(distances, dtype=np.float64)
+    n = d.shape[-1]
+    if n < 3:
+        raise ValueError("peak interpolation needs at least three templates")
+    best = np.argmin(d, axis=-1)
+    centre = np.clip(best, 1, n - 2)
+    dm = np.take_along_axis(d, (centre - 1)[..., None], -1)[..., 0]
+    d0 = np.take_along_axis(d, centre[..., None], -1)[..., 0]
+    dp = np.take_along_axis(d, (centre + 1)[..., None], -1)[..., 0]
+    curvature = dm - 2.0 * d0 + dp
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vertex = centre + 0.5 * (dm - dp) / curvature
+    vertex = np.where(curvature > 0, vertex, best)  # no minimum there: the best template itself
+    return np.clip(np.clip(vertex, best - 0.5, best + 0.5), 0.0, n - 1.0)
+
+
+def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, weights: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Layer index of the best of several samples of a patch.
+
+    patches : (..., S, size, size) S samples (e.g. diagonal offsets) of one patch, raw intensities.
+    templates : (n, C) normalised templates' coefficients; indices, weights : see :func:`match_distances`.
+
+    Returns
+    -------
+    Q : (...) continuous layer index of the sample that matches its best template most closely.
+    distance : (...) that sample's smallest distance.
+    """
+    coefficients = haar_coefficients(normalise_patches(patches))
+    d = match_distances(coefficients, templates, indices, weights)  # (..., S, n)
+    best = d.min(axis=-1)
+    sample = np.argmin(best, axis=-1)
+    chosen = np.take_along_axis(d, sample[..., None, None], axis=-2)[..., 0, :]
+    return peak_index(chosen), np.take_along_axis(best, sample[..., None], -1)[..., 0]
+
+
+def hold_and_decay(values: np.ndarray, visible: np.ndarray, times: np.ndarray, decay: float) -> np.ndarray:
+    """Hidden samples keep the last visible value, decaying exponentially toward 0 (neutral).
+
+    values, visible : (T, R); times : (T,) seconds; decay : time constant in seconds (0: drop to
+    neutral at once). Before a region is first seen it is neutral.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    out = np.zeros_like(values)
+    last = np.zeros(values.shape[1])
+    last_time = np.full(values.shape[1], -np.inf)
+    for t in range(values.shape[0]):
+        seen = np.asarray(visible[t], dtype=bool)
+        last = np.where(seen, values[t], last)
+        last_time = np.where(seen, times[t], last_time)
+        age = times[t] - last_time
+        factor = np.exp(-age / decay) if decay > 0 else (age == 0).astype(np.float64)
+        out[t] = np.where(seen, values[t], last * np.where(np.isfinite(age), factor, 0.0))
+    return out
+
+
+def bilinear_sample(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of an image (H, W[, C]) at pixel positions xy (..., 2) (x right, y down,
+    pixel centres at integers); returns the values (...[, C]) and whether each position lies
+    inside the image (outside ones are clamped to the border)."""
+    image = np.asarray(image)
+    H, W = image.shape[:2]
+    x, y = xy[..., 0], xy[..., 1]
+    inside = np.isfinite(x) & np.isfinite(y) & (x >= -0.5) & (x <= W - 0.5) & (y >= -0.5) & (y <= H - 0.5)
+    x = np.clip(np.nan_to_num(x), 0.0, W - 1.0)
+    y = np.clip(np.nan_to_num(y), 0.0, H - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), W - 2) if W > 1 else np.zeros_like(x, dtype=np.int64)
+    y0 = np.minimum(np.floor(y).astype(np.int64), H - 2) if H > 1 else np.zeros_like(y, dtype=np.int64)
+    fx, fy = x - x0, y - y0
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    if image.ndim == 3:
+        fx, fy = fx[..., None], fy[..., None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy, inside
+
+
+def facing(normals: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Cosine (...) between surface normals (..., 3) and the direction to a camera at the origin
+    (camera coordinates, points (..., 3)): > 0 faces the camera."""
+    n = normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-30)
+    to_camera = -points / np.maximum(np.linalg.norm(points, axis=-1, keepdims=True), 1e-30)
+    return (n * to_camera).sum(axis=-1)
+
+
+def region_alpha(mask: np.ndarray, ramp: float = 10.0) -> np.ndarray:
+    """(H, W) blend weight of a region's texture: 0 outside the mask, rising linearly over ``ramp``
+    texels from its border to 1 inside."""
+    mask = np.asarray(mask, dtype=bool)
+    if not mask.any():
+        return np.zeros(mask.shape)
+    inside = ndimage.distance_transform_edt(mask)  # 1 at the border texels, growing inward
+    return np.clip(inside / max(float(ramp), 1e-9), 0.0, 1.0) * mask
+
+
+def layer_lookup(layers: np.ndarray, q: float) -> np.ndarray:
+    """A texture volume (n, H, W[, C]) at the continuous layer index q (linear between layers; with
+    the bilinear lookup within a layer this is the trilinear lookup of the volume)."""
+    n = layers.shape[0]
+    q = float(np.clip(q, 0.0, n - 1.0))
+    lo = min(int(np.floor(q)), n - 2) if n > 1 else 0
+    f = q - lo
+    if n == 1:
+        return layers[0]
+    return layers[lo] * (1.0 - f) + layers[lo + 1] * f
+
+
+def compose_texture(neutral: np.ndarray, volumes, alphas, boxes, q: np.ndarray) -> np.ndarray:
+    """The frame's texture: the neutral texture with every region's volume at its Q blended in.
+
+    neutral : (H, W, C); volumes : per region (n, h, w, C); alphas : per region (h, w);
+    boxes : per region (row0, col0) of its volume in the texture; q : (R,) layer indices.
+    """
+    out = np.array(neutral, dtype=np.float64, copy=True)
+    for volume, alpha, (r0, c0), qr in zip(volumes, alphas, boxes, q):
+        h, w = alpha.shape
+        a = alpha[..., None]
+        window = out[r0:r0 + h, c0:c0 + w]
+        window[:] = window * (1.0 - a) + layer_lookup(volume, qr) * a
+    return out

@@ -1,0 +1,94 @@
+"""Appearance models (``facepipe appearance build``) as .npz files, and the Q stream (appearance.csv)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from facepipe.core.camera import Camera
+from facepipe.errors import InputError
+from facepipe.io.atomic import atomic_path
+
+__all__ = ["save_appearance", "load_appearance", "write_stream", "read_stream"]
+
+
+def save_appearance(path, model) -> None:
+    """Write an :class:`facepipe.pipeline.appearance.AppearanceModel` (atomically)."""
+    arrays = {"names": np.array(model.names), "camera_matrix": model.camera.matrix,
+              "camera_distortion": model.camera.distortion, "camera_size": np.array([model.camera.width,
+                                                                                    model.camera.height]),
+              "rotation": model.rotation, "translation": model.translation, "faces": model.faces,
+              "normal_sign": np.array(model.normal_sign), "template_face": model.template_face,
+              "template_bary": model.template_bary, "weights": model.weights,
+              "settings": np.array([model.template_size, model.min_facing, model.decay]), "neutral": model.neutral,
+              "boxes": model.boxes}
+    for r in range(len(model.names)):
+        arrays[f"templates_{r}"] = model.templates[r]
+        arrays[f"indices_{r}"] = model.indices[r]
+        arrays[f"volume_{r}"] = model.volumes[r]
+        arrays[f"alpha_{r}"] = model.alphas[r]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+
+def load_appearance(path):
+    """Read a model written by :func:`save_appearance`."""
+    from facepipe.pipeline.appearance import AppearanceModel
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("appearance model not found", path=path, hint="build one: facepipe appearance build CONFIG")
+    try:
+        d = dict(np.load(path))
+        n = len(d["names"])
+        size = d["camera_size"]
+        camera = Camera(d["camera_matrix"], d["camera_distortion"], int(size[0]), int(size[1]), str(path))
+        s = d["settings"]
+        return AppearanceModel([str(x) for x in d["names"]], camera, d["rotation"], d["translation"], d["faces"],
+                               float(d["normal_sign"]), d["template_face"], d["template_bary"],
+                               [d[f"templates_{r}"] for r in range(n)], [d[f"indices_{r}"] for r in range(n)],
+                               d["weights"], int(s[0]), float(s[1]), float(s[2]), d["neutral"],
+                               [d[f"volume_{r}"] for r in range(n)], [d[f"alpha_{r}"] for r in range(n)], d["boxes"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"not an appearance model ({exc})", path=path,
+                         hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
+
+
+def write_stream(folder, model_path, classification, layer_counts) -> Path:
+    """``appearance.csv`` (frame, time, Q per region) and ``appearance.json`` (the model, missing frames)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    c = classification
+    names = [str(n) for n in c.names]
+    lines = ["frame,time," + ",".join(names)]
+    lines += [f"{int(n)},{t:.6f}," + ",".join(f"{q:.4f}" for q in row) for n, t, row in zip(c.numbers, c.times, c.q)]
+    csv = folder / "appearance.csv"
+    with atomic_path(csv) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")
+    info = {"model": str(Path(model_path).resolve()), "regions": names, "layers": list(map(int, layer_counts)),
+            "frames": len(c.numbers), "hidden_fraction": float(1 - c.visible.mean()),
+            "skipped_frames": [{"frame": int(n), "problem": p} for n, p in c.problems]}
+    with atomic_path(folder / "appearance.json") as tmp:
+        Path(tmp).write_text(json.dumps(info, indent=1))
+    return csv
+
+
+def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
+    """appearance.json, frame numbers (T,), times (T,), Q (T, R) of a classified folder."""
+    folder = Path(folder)
+    csv, meta = folder / "appearance.csv", folder / "appearance.json"
+    if not csv.is_file() or not meta.is_file():
+        raise InputError("no appearance.csv / appearance.json here", path=folder,
+                         hint="classify the footage first: facepipe appearance classify ... -o FOLDER")
+    info = json.loads(meta.read_text())
+    try:
+        data = np.loadtxt(csv, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as exc:
+        raise InputError(f"appearance.csv is not numeric ({exc})", path=csv) from None
+    if data.shape[1] != 2 + len(info["regions"]):
+        raise InputError(f"appearance.csv has {data.shape[1] - 2} Q columns for {len(info['regions'])} regions",
+                         path=csv)
+    return info, data[:, 0].astype(np.int64), data[:, 1], data[:, 2:]

@@ -1,0 +1,186 @@
+"""Footage: image sequences (PNG, JPEG, TIFF, EXR) and video files, read frame by frame.
+
+A source is
+
+* a folder: its image files, numbered by the last run of digits in their names (in name
+  order when none has digits);
+* a pattern with a printf field, ``frames/frame_%04d.png`` (``%d`` for unpadded numbers):
+  every file it matches, numbered by the field;
+* a video file (``.mp4``, ``.mov``, ``.avi``, ``.mkv``, ``.webm``, ``.m4v``), read through
+  imageio's ffmpeg plugin, frames numbered from 0.
+
+Frames are returned as float RGB in [0, 1] (8- and 16-bit integers scaled, EXR as stored). A
+frame that cannot be read is reported by :func:`read_frames` and skipped, never raised.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+
+from facepipe.errors import InputError
+
+__all__ = ["Footage", "open_footage", "read_frames", "to_gray", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
+_PRINTF = re.compile(r"%(0?\d*)d")
+_DIGITS = re.compile(r"(\d+)(?!.*\d)")
+_HINT = ("give a folder of images, a pattern such as frames/frame_%04d.png, or a video file "
+         f"({', '.join(VIDEO_SUFFIXES)})")
+
+
+@dataclass
+class Footage:
+    """An opened source: frame numbers and where each frame comes from.
+
+    source : what was given; kind : "images" or "video"; numbers : (N,) int64 frame numbers;
+    paths : per frame its image file (images), empty for a video.
+    """
+
+    source: str
+    kind: str
+    numbers: np.ndarray
+    paths: list = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.numbers)
+
+
+def open_footage(source) -> Footage:
+    """Find the frames of a folder, printf pattern or video file (see the module docstring).
+
+    Raises
+    ------
+    InputError
+        Nothing there, no frames in it, a frame number given twice, a video that cannot be opened.
+    """
+    text = str(source)
+    path = Path(text)
+    if _PRINTF.search(path.name):
+        return _pattern(text, path)
+    if path.is_dir():
+        return _folder(text, path)
+    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
+        return _video(text, path)
+    if path.is_file():
+        raise InputError(f"not footage: {path.suffix or 'no suffix'} is neither an image sequence nor a video",
+                         path=path, hint=_HINT)
+    raise InputError("footage not found", path=path, hint=_HINT)
+
+
+def _pattern(text: str, path: Path) -> Footage:
+    m = _PRINTF.search(path.name)
+    pad = m.group(1)
+    digits = rf"\d{{{int(pad)},}}" if pad.startswith("0") and pad != "0" else r"\d+"
+    regex = re.compile("^" + re.escape(path.name[:m.start()]) + f"({digits})" + re.escape(path.name[m.end():]) + "$")
+    folder = path.parent
+    if not folder.is_dir():
+        raise InputError("the pattern's folder does not exist", path=folder, hint=_HINT)
+    found = sorted((int(mm.group(1)), folder / name) for name in (p.name for p in folder.iterdir())
+                   if (mm := regex.match(name)))
+    if not found:
+        raise InputError(f"no file matches the pattern {path.name}", path=folder, hint=_HINT)
+    return _numbered(text, found)
+
+
+def _folder(text: str, path: Path) -> Footage:
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise InputError("no image files in this folder", path=path, hint=_HINT)
+    numbers = [_DIGITS.search(p.stem) for p in files]
+    if all(numbers):
+        return _numbered(text, sorted((int(m.group(1)), p) for m, p in zip(numbers, files)))
+    return _numbered(text, list(enumerate(files)))
+
+
+def _numbered(text: str, found: list) -> Footage:
+    numbers = np.array([n for n, _ in found], dtype=np.int64)
+    twice = numbers[1:][numbers[1:] == numbers[:-1]]
+    if twice.size:
+        clash = [str(p) for n, p in found if n == twice[0]]
+        raise InputError(f"frame {int(twice[0])} is given by more than one file: {', '.join(clash)}", path=text,
+                         hint="keep one image per frame number")
+    return Footage(text, "images", numbers, [p for _, p in found])
+
+
+def _video(text: str, path: Path) -> Footage:
+    try:
+        props = iio.improps(path)
+        count = int(props.n_images) if props.n_images and np.isfinite(props.n_images) else 0
+    except Exception as exc:  # imageio raises many kinds for unreadable videos
+        raise InputError(f"cannot open the video ({exc})", path=path, hint="is imageio-ffmpeg installed?") from None
+    if count <= 0:  # some containers do not say: count by reading
+        try:
+            count = sum(1 for _ in iio.imiter(path))
+        except Exception as exc:
+            raise InputError(f"cannot read the video ({exc})", path=path) from None
+    return Footage(text, "video", np.arange(count, dtype=np.int64))
+
+
+def _as_float(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype == np.uint8:
+        out = image.astype(np.float32) / 255.0
+    elif image.dtype == np.uint16:
+        out = image.astype(np.float32) / 65535.0
+    else:
+        out = image.astype(np.float32)
+    if out.ndim == 2:
+        out = np.repeat(out[..., None], 3, axis=-1)
+    return out[..., :3]
+
+
+def _read_image(path: Path) -> np.ndarray:
+    if path.suffix.lower() == ".exr":
+        from facepipe.io.exr import read_exr  # lazily: OpenEXR only for EXR footage
+
+        return _as_float(read_exr(path)[0])
+    return _as_float(iio.imread(path))
+
+
+def read_frames(footage: Footage, wanted=None):
+    """Yield (frame number, image (H, W, 3) float32 or None, problem or None) for every frame of
+    ``wanted`` (frame numbers; default all) in order; a frame absent from the footage or that
+    cannot be read comes with image None and the reason."""
+    numbers = footage.numbers if wanted is None else np.asarray(wanted, dtype=np.int64)
+    if footage.kind == "video":
+        yield from _video_frames(footage, numbers)
+        return
+    where = {int(n): p for n, p in zip(footage.numbers, footage.paths)}
+    for n in numbers:
+        p = where.get(int(n))
+        if p is None:
+            yield int(n), None, "no image for this frame"
+            continue
+        try:
+            yield int(n), _read_image(p), None
+        except Exception as exc:  # a truncated or corrupt file: report it, go on
+            yield int(n), None, f"{p.name} cannot be read ({type(exc).__name__}: {exc})"
+
+
+def _video_frames(footage: Footage, numbers: np.ndarray):
+    wanted = set(int(n) for n in numbers)
+    got: dict = {}
+    try:
+        for i, image in enumerate(iio.imiter(footage.source)):
+            if i in wanted:
+                got[i] = _as_float(image)
+            if i >= max(wanted, default=-1):
+                break
+    except Exception as exc:  # a damaged tail: the frames before it are kept
+        problem = f"video ends unreadably ({type(exc).__name__})"
+    else:
+        problem = "beyond the end of the video"
+    for n in numbers:
+        n = int(n)
+        yield (n, got[n], None) if n in got else (n, None, problem)
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """Luminance (Rec. 709 weights) of an RGB image (H, W, 3)."""
+    return image[..., :3] @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)

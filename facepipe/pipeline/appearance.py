@@ -1,0 +1,365 @@
+"""Appearance from footage (Fidaleo et al. 2000, §V): the model's build and the per-frame classification.
+
+**Build** (``facepipe appearance build CONFIG``): the rest mesh's UV layout is rasterised once
+(every texel's triangle and barycentric coordinates); each example frame is unwrapped into it
+through its geometry and the camera (texels facing away are taken from the neutral texture);
+a region's layers are its example frames' texels inside its vertex group's UV triangles, with
+an alpha ramp into the neutral texture at its border. Its template is a template_size² grid of
+UV points in the template rectangle, located in the UV triangles once (fixed barycentric
+coordinates), also shifted diagonally by half a grid step for the offset samples; the
+templates are those points' samples in the example frames.
+
+**Classification** (``facepipe appearance classify``): per frame the template points are put on
+the animated surface through their barycentric coordinates, projected through the camera
+(OpenCV's distortion) and sampled bilinearly from the frame's luminance; the five samples are
+classified (:func:`facepipe.core.appearance.classify`); a region whose template faces away
+from the camera, falls outside the image or whose frame is missing keeps its last value,
+decaying to neutral.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from facepipe.core import appearance as ap
+from facepipe.core.camera import Camera, project_distorted
+from facepipe.core.raster import triangle_pixels
+from facepipe.errors import InputError
+from facepipe.io.footage import open_footage, read_frames, to_gray
+
+__all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames"]
+
+
+def texel_map(corner_uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every texel's triangle (size, size) (−1: none) and barycentric coordinates (size, size, 3).
+
+    Texel (i, j) has its centre at UV ((j + ½)/size, 1 − (i + ½)/size) (row 0 at v = 1).
+    """
+    p = np.stack([corner_uv[..., 0] * size - 0.5, (1.0 - corner_uv[..., 1]) * size - 0.5], axis=-1)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    ok = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) > 1e-12
+    x0 = np.clip(np.ceil(p[..., 0].min(1)), 0, size).astype(np.int64)
+    x1 = np.clip(np.floor(p[..., 0].max(1)), -1, size - 1).astype(np.int64)
+    y0 = np.clip(np.ceil(p[..., 1].min(1)), 0, size).astype(np.int64)
+    y1 = np.clip(np.floor(p[..., 1].max(1)), -1, size - 1).astype(np.int64)
+    face = np.full((size, size), -1, dtype=np.int64)
+    bary = np.zeros((size, size, 3))
+    for t, row, col, b0, b1, b2 in triangle_pixels(p, ok, x0, x1, y0, y1, 1 << 22):
+        face[row, col] = t
+        bary[row, col] = np.stack([b0, b1, b2], axis=1)
+    return face, bary
+
+
+def locate_uv(points: np.ndarray, corner_uv: np.ndarray, candidates: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """The triangle (N,) (−1 where none) and barycentric coordinates (N, 3) of UV points (N, 2)."""
+    from scipy.spatial import cKDTree  # SciPy's import cost only where a model is built
+
+    centres = corner_uv.mean(axis=1)
+    k = min(candidates, len(centres))
+    _, near = cKDTree(centres).query(points, k=k)
+    near = near.reshape(len(points), k)
+    a, b, c = (corner_uv[near, i] for i in range(3))  # (N, k, 2)
+    e1, e2, d = b - a, c - a, points[:, None] - a
+    det = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b1 = (d[..., 0] * e2[..., 1] - d[..., 1] * e2[..., 0]) / det
+        b2 = (e1[..., 0] * d[..., 1] - e1[..., 1] * d[..., 0]) / det
+    b0 = 1 - b1 - b2
+    inside = (np.abs(det) > 1e-14) & (b0 >= -1e-9) & (b1 >= -1e-9) & (b2 >= -1e-9)
+    first = np.argmax(inside, axis=1)
+    found = inside[np.arange(len(points)), first]
+    rows = np.arange(len(points))
+    face = np.where(found, near[rows, first], -1)
+    bary = np.stack([b0[rows, first], b1[rows, first], b2[rows, first]], axis=1)
+    return face, np.where(found[:, None], bary, 0.0)
+
+
+def surface_points(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Points (..., 3) at fixed barycentric coordinates on the posed triangles."""
+    return np.einsum("...k,...kc->...c", bary, camera_positions[faces[face]])
+
+
+def triangle_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray) -> np.ndarray:
+    p = camera_positions[faces[face]]
+    return np.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :])
+
+
+def unwrap(image: np.ndarray, camera_positions: np.ndarray, faces: np.ndarray, texel_face: np.ndarray,
+           texel_bary: np.ndarray, camera: Camera, rows=slice(None), cols=slice(None), min_facing: float = 0.2,
+           normal_sign: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's colours in texture space over texels [rows, cols]: (h, w, 3) and where seen (h, w)."""
+    tf = texel_face[rows, cols]
+    tb = texel_bary[rows, cols]
+    covered = tf >= 0
+    out = np.zeros(tf.shape + (3,))
+    seen = np.zeros(tf.shape, dtype=bool)
+    if not covered.any():
+        return out, seen
+    X = surface_points(camera_positions, faces, tf[covered], tb[covered])
+    cos = normal_sign * ap.facing(triangle_normals(camera_positions, faces, tf[covered]), X)
+    values, inside = ap.bilinear_sample(image, project_distorted(camera, X))
+    out[covered] = values
+    seen[covered] = inside & (cos > min_facing)
+    return out, seen
+
+
+@dataclass
+class AppearanceModel:
+    """What classification and the layered texture need (saved by :mod:`facepipe.io.appearance_file`).
+
+    names : region names; camera : intrinsics; rotation (3, 3), translation (3,) : world → camera;
+    faces : (F, 3) rest-mesh triangles; normal_sign : ±1, the side of the triangles that faces out;
+    template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
+    templates : per region (n, C) coefficients; indices : per region kept coefficients;
+    weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
+    neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
+    boxes : (R, 2) top-left texel of each volume.
+    """
+
+    names: list
+    camera: Camera
+    rotation: np.ndarray
+    translation: np.ndarray
+    faces: np.ndarray
+    normal_sign: float
+    template_face: np.ndarray
+    template_bary: np.ndarray
+    templates: list
+    indices: list
+    weights: np.ndarray
+    template_size: int
+    min_facing: float
+    decay: float
+    neutral: np.ndarray
+    volumes: list
+    alphas: list
+    boxes: np.ndarray
+
+    def to_camera(self, world: np.ndarray) -> np.ndarray:
+        return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
+
+    @property
+    def layer_counts(self) -> list:
+        return [len(t) for t in self.templates]
+
+
+def template_points(rect, size: int) -> np.ndarray:
+    """(5, size², 2) UV points of a template grid over rect [u0, v0, u1, v1] (rows from the top,
+    v decreasing, as images), in place and shifted diagonally by half a grid step."""
+    u0, v0, u1, v1 = rect
+    du, dv = (u1 - u0) / size, (v1 - v0) / size
+    jj, ii = np.meshgrid(np.arange(size), np.arange(size))
+    base = np.stack([u0 + (jj + 0.5) * du, v1 - (ii + 0.5) * dv], axis=-1).reshape(-1, 2)
+    return np.stack([base + o * np.array([du, -dv]) for o in ap.DIAGONAL_OFFSETS])
+
+
+def sample_templates(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's template samples (R, 5, size, size) and each region's visibility (R,)."""
+    X = surface_points(camera_positions, model.faces, model.template_face, model.template_bary)  # (R, 5, N, 3)
+    values, inside = ap.bilinear_sample(gray, project_distorted(model.camera, X))
+    normal = triangle_normals(camera_positions, model.faces, model.template_face[:, 0]).sum(axis=1)
+    cos = model.normal_sign * ap.facing(normal, X[:, 0].mean(axis=1))
+    visible = (cos > model.min_facing) & inside.all(axis=(1, 2)) & (X[..., 2] > 0).all(axis=(1, 2))
+    s = model.template_size
+    return values.reshape(values.shape[:2] + (s, s)), visible
+
+
+def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (T, V, 3) and frame numbers (T,) from an .npz (``positions``, optional ``frame``)
+    or a replay folder (``positions.npy`` and ``replay.json``)."""
+    from pathlib import Path
+
+    from facepipe.io.replay_folder import ReplayDir
+
+    path = Path(path)
+    if path.is_dir():
+        replay = ReplayDir(path)
+        positions, numbers = replay.positions, replay.frame_numbers
+    elif path.is_file():
+        try:
+            with np.load(path) as data:
+                positions = np.asarray(data["positions"])
+                numbers = np.asarray(data["frame"]) if "frame" in data else np.arange(len(positions))
+        except (OSError, ValueError, KeyError) as exc:
+            raise InputError(f"not a geometry .npz with 'positions' ({exc})", path=path,
+                             hint="positions (T, V, 3) and frame (T,), or a replay folder") from None
+    else:
+        raise InputError("geometry not found", path=path, hint="an .npz with positions and frame, or a replay folder")
+    if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
+        raise InputError(f"positions have shape {positions.shape}, the rest mesh has {n_vertices} vertices",
+                         path=path, hint="give the geometry of this rig's mesh")
+    return positions, np.asarray(numbers, dtype=np.int64)
+
+
+def _example_frames(cfg, footage_numbers_needed, positions, numbers, camera: Camera) -> dict:
+    """The example frames the regions name: frame number → (RGB image, camera-space positions)."""
+    index = {int(n): i for i, n in enumerate(numbers)}
+    footage = open_footage(cfg.footage)
+    frames = {}
+    for n, image, problem in read_frames(footage, sorted(footage_numbers_needed)):
+        if image is None:
+            raise InputError(f"example frame {n}: {problem}", path=cfg.footage,
+                             hint="every frame an [appearance.regions] table names must be readable")
+        if n not in index:
+            raise InputError(f"example frame {n} has no geometry", path=cfg.geometry,
+                             hint="the geometry's frame numbers must include the example frames")
+        _check_size(image, camera, n, cfg.footage)
+        frames[n] = (image, positions[index[n]])
+    return frames
+
+
+def _check_size(image: np.ndarray, camera: Camera, number: int, source) -> None:
+    if image.shape[:2] != (camera.height, camera.width):
+        raise InputError(f"frame {number} is {image.shape[1]} × {image.shape[0]} pixels, the camera's calibration "
+                         f"is for {camera.width} × {camera.height}", path=source,
+                         hint="use footage at the calibrated size, or a calibration for this size")
+
+
+def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[AppearanceModel, dict]:
+    """Build the appearance model from a config's ``[appearance]`` table (see the module docstring)."""
+    cfg = config.appearance
+    faces = mesh.faces
+    if mesh.face_uvs is None:
+        raise InputError("the rest mesh has no UVs: the layered texture needs its UV layout", path=config.mesh)
+    corner_uv = mesh.uvs[mesh.face_uvs]
+    R = np.asarray(cfg.camera_rotation, dtype=np.float64)
+    t = np.asarray(cfg.camera_translation, dtype=np.float64)
+    positions, numbers = _read_geometry(cfg.geometry, mesh.n_vertices)
+    needed = {cfg.neutral_frame} | {f for r in cfg.regions for f in r.frames}
+    frames = _example_frames(cfg, needed, positions, numbers, camera)
+    cam_pos = {n: positions_world @ R.T + t for n, (_, positions_world) in frames.items()}
+    S = cfg.texture_size
+    texel_face, texel_bary = texel_map(corner_uv, S)
+    neutral_cam = cam_pos[cfg.neutral_frame]
+    covered = texel_face >= 0
+    cos = ap.facing(triangle_normals(neutral_cam, faces, texel_face[covered]),
+                    surface_points(neutral_cam, faces, texel_face[covered], texel_bary[covered]))
+    normal_sign = 1.0 if np.median(cos) >= 0 else -1.0
+    neutral, seen = unwrap(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_face, texel_bary, camera,
+                           min_facing=cfg.min_facing, normal_sign=normal_sign)
+    neutral[~seen] = neutral[seen].mean(axis=0) if seen.any() else 0.5
+    weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
+    names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
+    for region in cfg.regions:
+        vol, alpha, box = _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral,
+                                         cfg, normal_sign)
+        face, bary = _region_template(region, corner_uv, cfg.template_size, config.path)
+        gray = [to_gray(frames[f][0]) for f in region.frames]
+        patches = []
+        for g, f in zip(gray, region.frames):
+            X = surface_points(cam_pos[f], faces, face[0], bary[0])
+            values, inside = ap.bilinear_sample(g, project_distorted(camera, X))
+            if not inside.all():
+                raise InputError(f"region {region.name}: its template leaves the image in example frame {f}",
+                                 path=config.path, hint="choose example frames where the region is in view")
+            patches.append(values.reshape(cfg.template_size, cfg.template_size))
+        coeffs = ap.haar_coefficients(ap.normalise_patches(np.stack(patches)))
+        names.append(region.name)
+        volumes.append(vol.astype(np.float32))
+        alphas.append(alpha.astype(np.float32))
+        boxes.append(box)
+        tfaces.append(face)
+        tbarys.append(bary)
+        templates.append(coeffs)
+        indices.append(ap.select_coefficients(coeffs, cfg.keep))
+        if progress is not None:
+            progress(1)
+    model = AppearanceModel(names, camera, R, t, faces, normal_sign, np.stack(tfaces), np.stack(tbarys), templates,
+                            indices, weights, cfg.template_size, cfg.min_facing, cfg.decay,
+                            neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64))
+    return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
+
+
+def _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg, normal_sign):
+    """A region's texture volume (n, h, w, 3) over its UV box, its alpha (h, w) and the box's corner."""
+    group = _read_group(region, mesh.n_vertices, config.path)
+    in_group = np.zeros(mesh.n_vertices, dtype=bool)
+    in_group[group] = True
+    tri_in = in_group[mesh.faces].all(axis=1)
+    mask = (texel_face >= 0) & tri_in[np.maximum(texel_face, 0)]
+    if not mask.any():
+        raise InputError(f"region {region.name}: its vertex group covers no texel of the UV layout", path=config.path,
+                         hint="the group needs whole triangles with UVs (or a larger texture_size)")
+    r_idx, c_idx = np.nonzero(mask)
+    rows, cols = slice(r_idx.min(), r_idx.max() + 1), slice(c_idx.min(), c_idx.max() + 1)
+    layers = []
+    for f in region.frames:
+        colours, seen = unwrap(frames[f][0], cam_pos[f], mesh.faces, texel_face, texel_bary, camera, rows, cols,
+                               cfg.min_facing, normal_sign)
+        layers.append(np.where(seen[..., None], colours, neutral[rows, cols]))
+    alpha = ap.region_alpha(mask[rows, cols], cfg.ramp)
+    return np.stack(layers), alpha, (rows.start, cols.start)
+
+
+def _read_group(region, n_vertices: int, config_path) -> np.ndarray:
+    path = region.vertices
+    if not path.is_file():
+        raise InputError(f"region {region.name}: vertex group file not found", path=path,
+                         hint="one 0-based vertex index per line")
+    values = []
+    for line_no, line in enumerate(path.read_text().splitlines(), start=1):
+        text = line.split("#")[0].strip()
+        if not text:
+            continue
+        if not text.isdigit() or int(text) >= n_vertices:
+            raise InputError(f"line {line_no}: {text!r} is not a vertex index below {n_vertices}", path=path)
+        values.append(int(text))
+    if not values:
+        raise InputError(f"region {region.name}: the vertex group is empty", path=path)
+    return np.asarray(values, dtype=np.int64)
+
+
+def _region_template(region, corner_uv, size: int, config_path) -> tuple[np.ndarray, np.ndarray]:
+    pts = template_points(region.template, size)
+    face, bary = locate_uv(pts.reshape(-1, 2), corner_uv)
+    if (face < 0).any():
+        k = int(np.argmax(face < 0))
+        u, v = pts.reshape(-1, 2)[k]
+        raise InputError(f"region {region.name}: template = {region.template} reaches outside the UV layout (at "
+                         f"u {u:.4f}, v {v:.4f}, with the half-step offsets)", path=config_path,
+                         hint="put the template rectangle well inside the region's UV triangles")
+    return face.reshape(5, -1), bary.reshape(5, -1, 3)
+
+
+@dataclass
+class Classification:
+    """Q (T, R) after hold and decay, raw (T, R) before (NaN where hidden), visible (T, R), frame
+    numbers (T,), times (T,), problems: (frame, text) of frames that were skipped."""
+
+    names: list
+    q: np.ndarray
+    raw: np.ndarray
+    visible: np.ndarray
+    numbers: np.ndarray
+    times: np.ndarray
+    problems: list
+
+
+def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
+                    times: np.ndarray, progress=None) -> Classification:
+    """Classify every frame of the geometry (world positions (T, V, 3), frame numbers (T,)) in the footage."""
+    footage = open_footage(footage_source)
+    T, Rn = len(numbers), len(model.names)
+    raw = np.full((T, Rn), np.nan)
+    visible = np.zeros((T, Rn), dtype=bool)
+    problems = []
+    row_of = {int(n): i for i, n in enumerate(numbers)}
+    for n, image, problem in read_frames(footage, numbers):
+        i = row_of[n]
+        if image is not None and image.shape[:2] != (model.camera.height, model.camera.width):
+            _check_size(image, model.camera, n, footage_source)
+        if image is None:
+            problems.append((n, problem))
+        else:
+            patches, seen = sample_templates(to_gray(image), model.to_camera(positions[i]), model)
+            for r in np.flatnonzero(seen):
+                q, _ = ap.classify(patches[r][None], model.templates[r], model.indices[r], model.weights)
+                raw[i, r] = q[0]
+            visible[i] = seen
+        if progress is not None:
+            progress(1)
+    q = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
+    return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems)

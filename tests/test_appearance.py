@@ -1,0 +1,128 @@
+"""Appearance from footage end to end on the rendered sample rig, the footage reader and bad input."""
+
+import shutil
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from scipy.stats import spearmanr
+
+from facepipe.cli.commands import main
+from facepipe.errors import InputError
+from facepipe.io.footage import open_footage, read_frames
+
+pytestmark = pytest.mark.slow
+
+
+def _run(*args):
+    with pytest.raises(SystemExit) as exc:
+        main([str(a) for a in args])
+    return exc.value.code
+
+
+@pytest.fixture(scope="module")
+def kit(tmp_path_factory):
+    d = tmp_path_factory.mktemp("appearance")
+    assert _run("sample", d, "--vertices", 4000, "--frames", 40, "--appearance", "-q") == 0
+    assert _run("appearance", "build", d / "appearance" / "appearance.toml", "-o", d / "app.npz", "-q") == 0
+    return d
+
+
+def _q_and_truth(kit, take):
+    out = kit / f"cls_{take}"
+    assert _run("appearance", "classify", kit / "app.npz", kit / "appearance" / take / "frame_%04d.png",
+                "--geometry", kit / "appearance" / f"{take}.npz", "-o", out, "-q") == 0
+    q = np.loadtxt(out / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    truth = np.loadtxt(kit / "appearance" / f"{take}_truth.csv", delimiter=",", skiprows=1)[:, 1:]
+    return q, truth
+
+
+def test_q_follows_the_truth_activation(kit):
+    q, truth = _q_and_truth(kit, "take")
+    rho = [spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])]
+    # most regions track their activation closely from the images alone
+    assert np.median(rho) > 0.9, rho
+    assert (q >= 0).all() and (q <= 4).all()
+
+
+def test_head_turned_and_another_light(kit):
+    q, truth = _q_and_truth(kit, "take_turned")
+    rho = [spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])]
+    assert np.nanmedian(rho) > 0.8, rho
+
+
+def test_missing_frame_is_skipped_and_wrong_size_refused(kit, tmp_path):
+    frames = tmp_path / "frames"
+    shutil.copytree(kit / "appearance" / "take", frames)
+    (frames / "frame_0005.png").unlink()
+    (frames / "frame_0006.png").write_bytes(b"not a png")
+    out = tmp_path / "cls"
+    assert _run("appearance", "classify", kit / "app.npz", frames, "--geometry", kit / "appearance" / "take.npz",
+                "-o", out, "-q") == 0
+    assert '"frame": 5' in (out / "appearance.json").read_text()
+    assert '"frame": 6' in (out / "appearance.json").read_text()
+    img = iio.imread(frames / "frame_0007.png")
+    iio.imwrite(frames / "frame_0007.png", img[:-2])
+    assert _run("appearance", "classify", kit / "app.npz", frames, "--geometry", kit / "appearance" / "take.npz",
+                "-o", out, "-q") == 2
+
+
+def _edited_config(kit, tmp_path, old, new):
+    src = kit / "appearance"
+    dst = tmp_path / "appearance"
+    shutil.copytree(src, dst)
+    cfg = dst / "appearance.toml"
+    text = cfg.read_text().replace("../neutral.obj", str(kit / "neutral.obj")).replace("../markers.csv",
+                                                                                      str(kit / "markers.csv"))
+    assert old in text
+    cfg.write_text(text.replace(old, new, 1))
+    return cfg
+
+
+@pytest.mark.parametrize("old,new,message", [
+    ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1]", "at least three layers"),
+    ("template = [", "template = [0.98, 0.98, 1.2, 1.2] #", "outside the UV layout"),
+    ("texture_size = 512", "texture_size = 512.0", "expected an integer"),
+])
+def test_bad_config(kit, tmp_path, capsys, old, new, message):
+    cfg = _edited_config(kit, tmp_path, old, new)
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert message in capsys.readouterr().err
+
+
+def test_never_visible_region_is_reported_and_neutral(kit, tmp_path, capsys):
+    # the whole take seen from behind: every region faces away, keeps neutral, and says so
+    geo = np.load(kit / "appearance" / "take.npz")
+    pos = geo["positions"].copy()
+    centre = pos[0].mean(axis=0)
+    pos = (pos - centre) * np.array([-1.0, 1.0, -1.0]) + centre  # turned 180° about the vertical
+    np.savez(tmp_path / "behind.npz", positions=pos, frame=geo["frame"])
+    assert _run("appearance", "classify", kit / "app.npz", kit / "appearance" / "take",
+                "--geometry", tmp_path / "behind.npz", "-o", tmp_path / "cls") == 0
+    assert "never visible" in capsys.readouterr().out
+    q = np.loadtxt(tmp_path / "cls" / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    assert (q == 0).all()
+
+
+def test_footage_patterns_folders_and_video(tmp_path):
+    rng = np.random.default_rng(0)
+    imgs = [(rng.uniform(size=(32, 48, 3)) * 255).astype(np.uint8) for _ in range(3)]
+    for i, im in zip([3, 4, 10], imgs):
+        iio.imwrite(tmp_path / f"shot_{i:04d}.png", im)
+    fp = open_footage(tmp_path / "shot_%04d.png")
+    assert fp.numbers.tolist() == [3, 4, 10]
+    assert open_footage(tmp_path).numbers.tolist() == [3, 4, 10]
+    got = list(read_frames(fp, [4, 5]))
+    assert got[0][1].shape == (32, 48, 3) and abs(got[0][1][0, 0, 0] - imgs[1][0, 0, 0] / 255) < 1e-6
+    assert got[1][1] is None and "no image" in got[1][2]
+    video = tmp_path / "clip.mp4"
+    iio.imwrite(video, np.stack([np.full((32, 48, 3), v, np.uint8) for v in (40, 120, 200)]), fps=30)
+    fv = open_footage(video)
+    assert len(fv) == 3
+    frames = list(read_frames(fv))
+    assert [round(float(f[1].mean()) * 255 / 40) for f in frames] == [1, 3, 5]
+    with pytest.raises(InputError):
+        open_footage(tmp_path / "nothing_%04d.png")
+    with pytest.raises(InputError):
+        open_footage(tmp_path / "missing.mp4")

@@ -1,0 +1,139 @@
+"""The appearance classification's maths (facepipe.core.appearance) against independent checks."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+from scipy.stats import spearmanr
+
+from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, bilinear_sample, classify, coefficient_weights,
+                                      compose_texture, facing, haar_coefficients, haar_matrix, hold_and_decay,
+                                      layer_lookup, match_distances, normalise_patches, peak_index, region_alpha,
+                                      select_coefficients)
+
+
+def test_haar_2x2_by_hand():
+    a, b, c, d = 1.0, 2.0, 3.0, 4.0
+    coeffs = haar_coefficients(np.array([[a, b], [c, d]]))
+    # coeffs_to_array's 2x2 layout, row-major: approximation, the difference between the columns,
+    # the difference between the rows, the diagonal one (PyWavelets' Haar high-pass: first minus second)
+    expected = [(a + b + c + d) / 2, (a - b + c - d) / 2, (a + b - c - d) / 2, (a - b - c + d) / 2]
+    np.testing.assert_allclose(coeffs, expected, atol=1e-12)
+    _, scale = haar_matrix(2)
+    np.testing.assert_array_equal(scale, [0, 1, 1, 1])
+
+
+def test_haar_4x4_blocks_by_hand():
+    # constant 2x2 blocks: the finest details vanish and the coarse level is the 2x2 transform of
+    # the block means, times 2 (each block mean carries a 2x2 block's energy)
+    blocks = np.array([[1.0, 5.0], [-2.0, 3.0]])
+    patch = np.kron(blocks, np.ones((2, 2)))
+    coeffs = haar_coefficients(patch)
+    _, scale = haar_matrix(4)
+    np.testing.assert_allclose(coeffs[scale == 2], 0.0, atol=1e-12)
+    coarse = haar_coefficients(blocks) * 2.0
+    np.testing.assert_allclose(coeffs[scale < 2], coarse, atol=1e-12)
+
+
+def test_haar_matrix_orthonormal_and_scales():
+    H, scale = haar_matrix(16)
+    np.testing.assert_allclose(H @ H.T, np.eye(256), atol=1e-12)
+    assert [int((scale == s).sum()) for s in range(5)] == [1, 3, 12, 48, 192]
+    w = coefficient_weights(16, DEFAULT_SCALE_WEIGHTS)
+    assert w[scale == 1].tolist() == [4.0] * 3 and (w[scale == 4] == 0).all()
+
+
+def test_peak_interpolation_exact_on_parabola():
+    j = np.arange(6.0)
+    for q in [0.0, 0.3, 1.5, 2.49, 3.7, 5.0]:
+        d = 2.5 * (j - q) ** 2 + 7.0
+        assert peak_index(d) == pytest.approx(q, abs=1e-12)
+    flat = np.ones(4)
+    assert peak_index(flat) == 0.0
+    with pytest.raises(ValueError):
+        peak_index(np.ones(2))
+
+
+def test_distances_equal_direct_weighted_sum():
+    rng = np.random.default_rng(1)
+    q, t = rng.normal(size=(7, 256)), rng.normal(size=(4, 256))
+    idx = select_coefficients(t, 50)
+    w = coefficient_weights(16)
+    direct = np.array([[np.sum(w[idx] * (qq[idx] - tt[idx]) ** 2) for tt in t] for qq in q])
+    np.testing.assert_allclose(match_distances(q, t, idx, w), direct, rtol=1e-10)
+    assert len(idx) == 50 and np.all(np.diff(idx) > 0)
+
+
+def _blend_templates(rng, n):
+    x = np.linspace(0, 1, 16)
+    a = 1.0 + 0.05 * rng.normal(size=(16, 16))
+    b = a + 0.3 * np.sin(2 * np.pi * 3 * x)[:, None] * np.ones(16)  # stripes appear: a wrinkle
+    return a, b, [a + (b - a) * k / (n - 1) for k in range(n)]
+
+
+def test_q_monotone_in_a_synthetic_blend():
+    rng = np.random.default_rng(0)
+    n = 5
+    a, b, layers = _blend_templates(rng, n)
+    templates = haar_coefficients(normalise_patches(np.stack(layers)))
+    idx = select_coefficients(templates, 50)
+    w = coefficient_weights(16)
+    s = np.linspace(0, 1, 41)
+    patches = np.stack([a + (b - a) * v for v in s])[:, None]  # one sample each
+    q, _ = classify(patches * 0.7, templates, idx, w)  # a darker exposure: normalised away
+    assert np.all(np.diff(q) >= -1e-9)
+    np.testing.assert_allclose(q, s * (n - 1), atol=0.05)
+    # noise: still ordered
+    noisy = patches + 0.005 * rng.normal(size=patches.shape)
+    qn, _ = classify(noisy, templates, idx, w)
+    assert spearmanr(qn, s).statistic > 0.99
+
+
+def test_best_of_offset_samples_is_kept():
+    rng = np.random.default_rng(2)
+    a, b, layers = _blend_templates(rng, 4)
+    templates = haar_coefficients(normalise_patches(np.stack(layers)))
+    idx, w = select_coefficients(templates, 50), coefficient_weights(16)
+    good = a + (b - a) * (2 / 3)
+    junk = rng.uniform(0.5, 1.5, size=(16, 16))
+    q, d = classify(np.stack([junk, good, junk])[None], templates, idx, w)
+    assert q[0] == pytest.approx(2.0, abs=1e-6) and d[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_hold_and_decay():
+    v = np.array([[1.0], [2.0], [5.0], [5.0], [3.0]])
+    seen = np.array([[False], [True], [False], [False], [True]])
+    t = np.arange(5.0)
+    out = hold_and_decay(v, seen, t, decay=2.0)[:, 0]
+    np.testing.assert_allclose(out, [0.0, 2.0, 2.0 * np.exp(-0.5), 2.0 * np.exp(-1.0), 3.0])
+    np.testing.assert_allclose(hold_and_decay(v, seen, t, decay=0.0)[:, 0], [0, 2, 0, 0, 3])
+
+
+def test_bilinear_matches_map_coordinates():
+    rng = np.random.default_rng(3)
+    img = rng.normal(size=(20, 30))
+    xy = rng.uniform([0, 0], [29, 19], size=(100, 2))
+    vals, inside = bilinear_sample(img, xy)
+    ref = ndimage.map_coordinates(img, [xy[:, 1], xy[:, 0]], order=1)
+    np.testing.assert_allclose(vals, ref, atol=1e-12)
+    assert inside.all()
+    _, inside = bilinear_sample(img, np.array([[-1.0, 3.0], [3.0, 19.6], [np.nan, 1.0]]))
+    assert not inside.any()
+
+
+def test_facing():
+    pts = np.array([[0.0, 0.0, 10.0], [0.0, 0.0, 10.0]])
+    assert facing(np.array([[0, 0, -1.0], [0, 0, 1.0]]), pts).tolist() == [1.0, -1.0]
+
+
+def test_alpha_ramp_and_layers():
+    mask = np.zeros((40, 40), bool)
+    mask[5:35, 5:35] = True
+    alpha = region_alpha(mask, ramp=10)
+    assert alpha[0, 0] == 0 and alpha[20, 20] == 1.0
+    np.testing.assert_allclose(alpha[20, 5:16], np.minimum(np.arange(1, 12) / 10, 1.0))
+    layers = np.arange(3.0)[:, None, None, None] * np.ones((3, 2, 2, 1))
+    assert layer_lookup(layers, 1.25)[0, 0, 0] == pytest.approx(1.25)
+    assert layer_lookup(layers, 9)[0, 0, 0] == 2.0
+    neutral = np.zeros((10, 10, 1))
+    out = compose_texture(neutral, [layers], [np.ones((2, 2))], [(3, 4)], np.array([2.0]))
+    assert out[3:5, 4:6].min() == 2.0 and out.sum() == 8.0
