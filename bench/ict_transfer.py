@@ -217,7 +217,7 @@ def side_by_side(path: Path, meshes: dict, finals: dict, source) -> None:
     """The most expressive frame, each face in its own column: the final surface, and below it the
     detail layer's size (|final − large scale|) on one colour scale."""
     from facepipe.cli.preview import _figure, pick_frames, view_direction
-    from facepipe.cli.render import frame_camera, render
+    from facepipe.core.render import frame_camera, render
 
     hv = source.handle_vertices.astype(np.int64)
     frame = int(pick_frames(finals["source"][0][:, hv].astype(np.float64), source.rest[hv].astype(np.float64))[0])

@@ -25,7 +25,7 @@ import cv2
 import imageio.v3 as iio
 import numpy as np
 
-from facepipe.cli.render import rasterize
+from facepipe.core.render import rasterize
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.io.atomic import atomic_path
 

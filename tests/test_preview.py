@@ -10,7 +10,7 @@ import pytest
 
 from facepipe.errors import InputError
 from facepipe.cli.preview import pick_frames, plot_fit_curves
-from facepipe.cli.render import Camera, frame_camera, rasterize, render
+from facepipe.core.render import Camera, frame_camera, rasterize, render
 from tests.conftest import run_cli as run
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -4,7 +4,7 @@
 and the final result side by side, and with ``--truth`` the truth and heat maps of the
 per-vertex error of both layers on the truth's surface, on one colour scale. The face is
 shown in head space (the take's head motion taken out) from the direction the face looks,
-so frames line up. Rendering is :mod:`facepipe.cli.render` (a NumPy z-buffer); the figure is
+so frames line up. Rendering is :mod:`facepipe.core.render` (a NumPy z-buffer); the figure is
 matplotlib with the Agg backend.
 """
 
@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 
 from facepipe.io.atomic import atomic_path
 from facepipe.errors import InputError
-from facepipe.cli.render import frame_camera, render
+from facepipe.core.render import frame_camera, render
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.export.common import check_targets
 from facepipe.pipeline.evaluate import match_frames

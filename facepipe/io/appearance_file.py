@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -11,11 +12,51 @@ from facepipe.core.camera import Camera
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
-__all__ = ["save_appearance", "load_appearance", "write_stream", "read_stream"]
+__all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream"]
+
+
+@dataclass
+class AppearanceModel:
+    """What classification and the layered texture need (saved by :func:`save_appearance`).
+
+    names : region names; camera : intrinsics; rotation (3, 3), translation (3,) : world → camera;
+    faces : (F, 3) rest-mesh triangles; normal_sign : ±1, the side of the triangles that faces out;
+    template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
+    templates : per region (n, C) coefficients; indices : per region kept coefficients;
+    weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
+    neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
+    boxes : (R, 2) top-left texel of each volume.
+    """
+
+    names: list
+    camera: Camera
+    rotation: np.ndarray
+    translation: np.ndarray
+    faces: np.ndarray
+    normal_sign: float
+    template_face: np.ndarray
+    template_bary: np.ndarray
+    templates: list
+    indices: list
+    weights: np.ndarray
+    template_size: int
+    min_facing: float
+    decay: float
+    neutral: np.ndarray
+    volumes: list
+    alphas: list
+    boxes: np.ndarray
+
+    def to_camera(self, world: np.ndarray) -> np.ndarray:
+        return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
+
+    @property
+    def layer_counts(self) -> list:
+        return [len(t) for t in self.templates]
 
 
 def save_appearance(path, model) -> None:
-    """Write an :class:`facepipe.pipeline.appearance.AppearanceModel` (atomically)."""
+    """Write an :class:`AppearanceModel` (atomically)."""
     arrays = {"names": np.array(model.names), "camera_matrix": model.camera.matrix,
               "camera_distortion": model.camera.distortion, "camera_size": np.array([model.camera.width,
                                                                                     model.camera.height]),
@@ -36,8 +77,6 @@ def save_appearance(path, model) -> None:
 
 def load_appearance(path):
     """Read a model written by :func:`save_appearance`."""
-    from facepipe.pipeline.appearance import AppearanceModel
-
     path = Path(path)
     if not path.is_file():
         raise InputError("appearance model not found", path=path, hint="build one: facepipe appearance build CONFIG")

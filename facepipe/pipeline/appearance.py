@@ -27,6 +27,7 @@ from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted
 from facepipe.core.raster import triangle_pixels
 from facepipe.errors import InputError
+from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import open_footage, read_frames, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames"]
@@ -103,46 +104,6 @@ def unwrap(image: np.ndarray, camera_positions: np.ndarray, faces: np.ndarray, t
     out[covered] = values
     seen[covered] = inside & (cos > min_facing)
     return out, seen
-
-
-@dataclass
-class AppearanceModel:
-    """What classification and the layered texture need (saved by :mod:`facepipe.io.appearance_file`).
-
-    names : region names; camera : intrinsics; rotation (3, 3), translation (3,) : world → camera;
-    faces : (F, 3) rest-mesh triangles; normal_sign : ±1, the side of the triangles that faces out;
-    template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
-    templates : per region (n, C) coefficients; indices : per region kept coefficients;
-    weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
-    neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
-    boxes : (R, 2) top-left texel of each volume.
-    """
-
-    names: list
-    camera: Camera
-    rotation: np.ndarray
-    translation: np.ndarray
-    faces: np.ndarray
-    normal_sign: float
-    template_face: np.ndarray
-    template_bary: np.ndarray
-    templates: list
-    indices: list
-    weights: np.ndarray
-    template_size: int
-    min_facing: float
-    decay: float
-    neutral: np.ndarray
-    volumes: list
-    alphas: list
-    boxes: np.ndarray
-
-    def to_camera(self, world: np.ndarray) -> np.ndarray:
-        return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
-
-    @property
-    def layer_counts(self) -> list:
-        return [len(t) for t in self.templates]
 
 
 def template_points(rect, size: int) -> np.ndarray:
