@@ -82,6 +82,7 @@ class Config:
     shell: ShellConfig = field(default_factory=ShellConfig)
     psd: PsdConfig = field(default_factory=PsdConfig)
     tune: TuneConfig = field(default_factory=TuneConfig)
+    landmarks: Path | None = None  # [video] landmarks: a 2D tracker's points on the mesh (name,vertex CSV)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -98,11 +99,13 @@ _TYPES: dict[str, dict[str, object]] = {
     "features": {"graph": str},
     "psd": {k: type(v) for k, v in asdict(PsdConfig()).items()},
     "tune": {k: type(v) for k, v in asdict(TuneConfig()).items()},
+    "video": {"landmarks": str},
 }
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm",
-             "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1, "graph": "auto"}
+             "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1, "graph": "auto",
+             "landmarks": "landmarks68.csv"}
 
 
 def load_config(path: str | Path) -> Config:
@@ -147,6 +150,7 @@ def load_config(path: str | Path) -> Config:
     if examples.get("sequence_stride", 1) < 1:
         raise InputError(f"[examples] sequence_stride = {examples['sequence_stride']} must be ≥ 1", path=path)
     features = _typed_table(raw, "features", path)
+    video = _typed_table(raw, "video", path)
     shell = _section(ShellConfig, raw.get("shell", {}), path, "shell")
     psd = _section(PsdConfig, raw.get("psd", {}), path, "psd")
     tune = _section(TuneConfig, raw.get("tune", {}), path, "tune")
@@ -182,6 +186,7 @@ def load_config(path: str | Path) -> Config:
         shell=shell,
         psd=psd,
         tune=tune,
+        landmarks=rel(video.get("landmarks")),
     )
 
 
