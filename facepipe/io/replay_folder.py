@@ -3,9 +3,9 @@
 ``facepipe replay`` writes ``positions.npy`` (T × V × 3 float32), ``replay.json`` (frame
 numbers, times, the model's path), ``handles.npz`` (the clean head-space handles and the
 head motion), optionally ``large_scale.npy``, and for a 2D take ``video.npz`` (the camera,
-landmark map and tracked points: :mod:`facepipe.io.video_record`). From the handles any layer of the model can
-be evaluated again (the large-scale shell, the details in local frames) without replaying
-the take. Every read is validated: a missing or inconsistent file is an InputError naming it.
+landmark map and tracked points: :mod:`facepipe.io.video_record`). From the handles any layer
+of the model can be evaluated again (the large-scale shell, the details in local frames)
+without replaying the take. Every read is validated: a missing or inconsistent file is an InputError naming it.
 """
 
 from __future__ import annotations
