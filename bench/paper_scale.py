@@ -249,6 +249,11 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
 
     results["export"] = run_export_bench(work_dir / "export", mesh_path=rig_dir / "neutral.obj", repeats=repeats,
                                          log=log)
+    # ---- lifting a 2D landmark take (68 landmarks, 26 examples): on the ICT kit's video take when
+    # ../shared is there, else on the sample rig filmed by a synthetic camera
+    from bench.video_lift import lift_speed
+
+    results["video_lift"] = lift_speed(work_dir / "video", repeats=max(repeats, 3), log=log)
     return results
 
 

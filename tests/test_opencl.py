@@ -330,7 +330,8 @@ def test_bench_end_to_end_on_a_small_rig(tmp_path):
     runs = res["bake"]["runs_seconds"]
     assert len(runs) == 3 and round(res["bake"]["seconds"], 2) == sorted(runs)[1]  # the median run
     assert res["bake"]["peak_rss_mb"] > 0 and res["bake"]["fit_phases"]["geometry"] > 0
-    for section in ("replay_opencl", "replay_numpy", "baseline_sparse_solve", "ratios", "export"):
+    for section in ("replay_opencl", "replay_numpy", "baseline_sparse_solve", "ratios", "export", "video_lift"):
         assert res[section], section
     assert res["baseline_sparse_solve"]["frames_per_second"] > 0
     assert res["replay_opencl"]["in_memory"]["frames_per_second"] > 0
+    assert res["video_lift"]["frames_per_second"] > 0 and res["video_lift"]["landmarks"] == 68

@@ -415,6 +415,189 @@ def test_a_2d_take_without_camera_is_refused(filmed, tmp_path, capsys):
     assert not (tmp_path / "o" / "positions.npy").exists()
 
 
+def test_nan_fields_are_missing_samples_and_the_replay_fills_them(filmed, tmp_path):
+    f = filmed
+    T = len(f.tt)
+    text = _openface_text(np.arange(1, T + 1), f.tt, np.nan_to_num(f.px), f.success).splitlines()
+    fields = text[6].split(", ")  # frame 6: landmark 4's x is NaN (a tracker writing nan for a lost point)
+    fields[5 + 4] = "nan"
+    text[6] = ", ".join(fields)
+    take = tmp_path / "nan.csv"
+    take.write_text("\n".join(text) + "\n")
+    from facepipe.mocap.landmarks2d import read_landmark_take
+
+    read = read_landmark_take(take, [str(i) for i in range(f.px.shape[1])])
+    assert np.isnan(read.points[5, 4]).all() and not read.failed[5]  # the sample is missing, the frame kept
+    assert _replay(f, tmp_path / "nan", take=take) == 0
+    assert np.isfinite(np.load(tmp_path / "nan" / "positions.npy")).all()
+
+
+def test_more_bad_takes_exit_2_and_write_nothing(filmed, tmp_path, capsys):
+    from facepipe.mocap.landmarks2d import write_uv_csv
+
+    f = filmed
+    T, L = f.px.shape[:2]
+    frames, names = np.arange(1, T + 1), [str(i) for i in range(L)]
+    cases = []
+    # a repeated frame (two rows of frame 8)
+    rep = frames.copy()
+    rep[8] = 8
+    cases.append(("repeat.csv", rep, f.tt, f.px, r"frame 8 \(line 10\): frame number repeats frame 8"))
+    # times that stand still
+    still = f.tt.copy()
+    still[20] = still[19]
+    cases.append(("still.csv", frames, still, f.px, r"frame 21 \(line 22\): time .* is not after"))
+    # every frame blank (a u/v take of a tracker that never found the face)
+    cases.append(("blank.csv", frames, f.tt, np.full_like(f.px, np.nan), r"no frame has a tracked face: 60 of 60"))
+    # a face in every frame, but never 6 of the map's landmarks
+    few = np.full_like(f.px, np.nan)
+    few[:, :4] = f.px[:, :4]
+    cases.append(("few.csv", frames, f.tt, few, r"the others have fewer than 6 landmarks"))
+    for name, fr, tt, px, match in cases:
+        path = tmp_path / name
+        write_uv_csv(path, fr, tt, px, names)
+        _expect_error(f, tmp_path, path, match)
+        err = capsys.readouterr().err
+        assert str(path) in err and __import__("re").search(match, err), err
+    # a tracker of other point names than the map's (a 5-point tracker for a 40-point map)
+    path = tmp_path / "names.csv"
+    write_uv_csv(path, frames, f.tt, f.px[:, :5], ["a", "b", "c", "d", "e"])
+    _expect_error(f, tmp_path, path, "")
+    assert "the landmark map names 40 landmarks, the take has 5" in capsys.readouterr().err
+
+
+def test_pinhole_projection_is_opencvs():
+    import cv2
+
+    from facepipe.core.render import pinhole_project
+
+    rng = np.random.default_rng(12)
+    X = np.concatenate([rng.uniform(-12, 12, size=(200, 2)), rng.uniform(30, 70, size=(200, 1))], axis=1)
+    full = [-0.1, 0.04, 0.001, -0.0007, 0.01, 0.02, -0.01, 0.005, 0.001, -0.002, 0.0015, 0.0008, 0.01, -0.02]
+    for n in (0, 4, 5, 8, 12, 14):
+        dist = np.array(full[:n])
+        ours = pinhole_project(MATRIX, dist, X)
+        theirs, _ = cv2.projectPoints(X.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), MATRIX, dist)
+        assert np.abs(ours - theirs.reshape(-1, 2)).max() < 1e-8, n
+    skewed = MATRIX.copy()
+    skewed[0, 1] = 3.0  # (OpenCV's projectPoints ignores a skew; the ideal pinhole keeps it)
+    assert np.abs(pinhole_project(skewed, np.zeros(0), X) - project(skewed, X)).max() < 1e-9
+
+
+def test_image_window_is_the_projection_cropped_and_resampled():
+    from facepipe.core.render import image_window, pinhole_project
+
+    rng = np.random.default_rng(13)
+    X = np.concatenate([rng.uniform(-10, 10, size=(50, 2)), rng.uniform(40, 60, size=(50, 1))], axis=1)
+    full = pinhole_project(MATRIX, DIST, X)
+    x0, y0, scale = 300.0, 120.0, 0.37
+    window = pinhole_project(image_window(MATRIX, x0, y0, scale), DIST, X)
+    assert np.allclose(window, (full - [x0, y0] + 0.5) * scale - 0.5, atol=1e-9)
+
+
+def test_pinhole_render_draws_the_nearer_surface_where_the_camera_sees_it():
+    from facepipe.core.render import PinholeCamera, pinhole_project, render
+
+    def square(centre, half):  # two triangles facing the camera
+        c = np.asarray(centre, dtype=np.float64)
+        return c + np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]])
+
+    # a small near square in front of a large far one: the near one hides the far one's middle
+    V = np.concatenate([square([0, 0, 20], 1.0), square([0, 0, 40], 8.0)])
+    F = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    colors = np.repeat([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], 4, axis=0)
+    cam = PinholeCamera(np.array([[200.0, 0, 99.5], [0, 200.0, 79.5], [0, 0, 1]]), np.zeros(0), 200, 160)
+    img = render(V, F, cam, colors=colors, ambient=1.0, background=(0.0, 0.0, 0.0))
+    red, blue = img[..., 0] > 0.5, img[..., 2] > 0.5
+    corners = pinhole_project(cam.matrix, cam.distortion, V[:4])
+    rows, cols = np.nonzero(red)
+    # the near square covers the pixels inside its projected corners (±1 px at the edges)
+    assert cols.min() >= corners[:, 0].min() - 1 and cols.max() <= corners[:, 0].max() + 1
+    assert rows.min() >= corners[:, 1].min() - 1 and rows.max() <= corners[:, 1].max() + 1
+    assert red.sum() == pytest.approx(np.ptp(corners[:, 0]) * np.ptp(corners[:, 1]), rel=0.1)
+    assert red[80, 100] and blue[80, 60] and not blue[80, 100]
+    # a triangle reaching behind the camera is left out rather than smeared over the image
+    behind = np.concatenate([V, [[0, 0, -5.0]]])
+    img2 = render(behind, np.concatenate([F, [[0, 1, 8]]]), cam, colors=np.concatenate([colors, [[0, 1, 0]]]),
+                  ambient=1.0, background=(0.0, 0.0, 0.0))
+    assert np.allclose(img2, img)
+
+
+def test_preview_of_a_2d_replay_through_its_camera(filmed, tmp_path, capsys):
+    from facepipe.cli.preview import preview_replay
+
+    f = filmed
+    assert _replay(f, tmp_path / "keep") == 0
+    assert _replay(f, tmp_path / "remove", "--head-motion", "remove") == 0
+    video = np.load(tmp_path / "keep" / "video.npz")
+    assert Path(str(video["camera_path"])).is_absolute() and np.allclose(video["camera_matrix"], MATRIX)
+    assert video["tracked"].shape == f.px.shape and video["landmark_vertices"].tolist() == f.vertices.tolist()
+    camera = json.loads((tmp_path / "keep" / "replay.json").read_text())["video"]["camera"]
+    assert Path(camera["path"]).is_absolute() and np.allclose(camera["matrix"], MATRIX)
+    shown = [5, 21, 50]  # frame 21 is one the tracker lost
+    summaries = {}
+    for mode in ("keep", "remove"):
+        summaries[mode] = preview_replay(tmp_path / mode, None, tmp_path / f"{mode}.png", frame_numbers=shown)
+        assert (tmp_path / f"{mode}.png").stat().st_size > 10_000
+    s = summaries["keep"]
+    assert s["view"] == "camera" and s["frames"] == shown
+    assert s["reprojection_px"][1] is None and 0 < s["reprojection_px"][0] < 1.5 and s["reprojection_px"][2] < 1.5
+    # the same face in the same place whether the replay kept the head motion or not
+    assert np.allclose(summaries["remove"]["reprojection_px"][::2], s["reprojection_px"][::2], atol=1e-3)
+    x0, y0, w, h = s["window"]
+    seen = np.isfinite(f.px[[4, 49]]).all(-1)
+    px = f.px[[4, 49]][seen]
+    assert (px[:, 0] > x0).all() and (px[:, 0] < x0 + w).all() and (px[:, 1] > y0).all() and (px[:, 1] < y0 + h).all()
+    # the command: the camera view by default, --truth only in head space
+    assert run_cli("preview", tmp_path / "keep", "-o", tmp_path / "cli.png", "--strip", 2, "--quiet") == 0
+    assert run_cli("preview", tmp_path / "keep", "-o", tmp_path / "t.png", "--view", "camera", "--truth",
+                   f.root / "rig" / "take_truth.npz") == 2
+    assert "--view head" in capsys.readouterr().err and not (tmp_path / "t.png").exists()
+
+
+def test_camera_view_of_a_3d_replay_is_refused(rig, tmp_path, capsys):
+    assert run_cli("preview", rig.replays["wpsd"], "-o", tmp_path / "c.png", "--view", "camera", "--quiet") == 2
+    assert "not of a 2D take" in capsys.readouterr().err and not (tmp_path / "c.png").exists()
+
+
+def test_config_landmarks_baked_into_the_model(filmed, tmp_path, capsys):
+    from facepipe.io.config import load_config
+    from facepipe.io.model_file import load_model
+
+    f = filmed
+    rig_dir = f.root / "rig"
+    config = (rig_dir / "sample.toml").read_text()
+    bad = rig_dir / "bad_video.toml"
+    bad.write_text(config + "\n[video]\nlandmarks = 3\n")
+    with pytest.raises(InputError, match=r"\[video\] landmarks = 3 is an integer, expected a string"):
+        load_config(bad)
+    missing = rig_dir / "missing_video.toml"
+    missing.write_text(config + "\n[video]\nlandmarks = \"nowhere.csv\"\n")
+    assert run_cli("bake", missing, "-o", tmp_path / "m.npz", "--quiet") == 2
+    assert "[video] landmarks" in capsys.readouterr().err and not (tmp_path / "m.npz").exists()
+    good = rig_dir / "video.toml"
+    good.write_text(config + "\n[video]\nlandmarks = \"../landmarks.csv\"\n")
+    assert load_config(good).landmarks == rig_dir / "../landmarks.csv"
+    assert run_cli("bake", good, "-o", tmp_path / "lm.npz", "--quiet") == 0
+    model = load_model(tmp_path / "lm.npz")
+    assert model.landmark_vertices.tolist() == f.vertices.tolist()
+    assert model.meta["landmark_names"] == [str(i) for i in range(len(f.vertices))]
+    # replay without --landmarks: the model's map
+    common = ["-m", tmp_path / "lm.npz", "--camera", f.camera, "--backend", "numpy", "--quiet"]
+    assert run_cli("replay", f.take, "-o", tmp_path / "own", *common) == 0
+    assert json.loads((tmp_path / "own" / "replay.json").read_text())["video"]["landmarks"] == len(f.vertices)
+    # --landmarks overrides it: here a map of 20 of the points
+    sub = tmp_path / "sub.csv"
+    sub.write_text("name,vertex\n" + "".join(f"{i},{v}\n" for i, v in enumerate(f.vertices[:20])))
+    assert run_cli("replay", f.take, "-o", tmp_path / "sub", *common, "--landmarks", sub) == 0
+    report = json.loads((tmp_path / "sub" / "replay.json").read_text())["video"]
+    assert report["landmarks"] == 20 and report["landmark_map"] == str(sub)
+    # a model baked without a map still asks for one
+    assert run_cli("replay", f.take, "-o", tmp_path / "none", "-m", f.root / "model.npz", "--camera", f.camera,
+                   "--quiet") == 2
+    assert "[video] landmarks" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------- the ICT kit
 
 
@@ -439,7 +622,8 @@ def test_ict_video_take(tmp_path, ict_rig_fit):
     common = ["-m", model, "--backend", "numpy", "--head-motion", "remove", "--quiet"]
     assert run_cli("replay", video / "video_mocap.csv", "-o", tmp_path / "m3d", *common) == 0
     lift = ["--camera", video / "video_camera.yml", "--landmarks", video / "landmarks68.csv"]
-    assert run_cli("replay", video / "video_openface.csv", "-o", tmp_path / "v2d", *lift, *common) == 0
+    # the model carries configs/ict.toml's [video] landmarks: no --landmarks needed
+    assert run_cli("replay", video / "video_openface.csv", "-o", tmp_path / "v2d", *lift[:2], *common) == 0
     assert run_cli("replay", video / "video_openface.csv", "-o", tmp_path / "heur", *lift, "--lift", "heuristic",
                    *common) == 0
     e3d, e2d, eh = error(tmp_path / "m3d"), error(tmp_path / "v2d"), error(tmp_path / "heur")

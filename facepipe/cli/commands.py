@@ -447,26 +447,32 @@ def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half,
               help="Take frame number to show (repeatable) [default: the most expressive frame].")
 @click.option("--strip", default=0, show_default=True, help="Show this many evenly spaced frames, one row each.")
 @click.option("--size", default=420, show_default=True, help="Width of one panel in pixels.")
+@click.option("--view", type=click.Choice(["auto", "camera", "head"]), default="auto", show_default=True,
+              help="camera: a 2D take's replayed face through the footage's camera with the tracked and reprojected "
+                   "landmarks; head: large scale vs final (and --truth) in head space; auto: camera for a 2D take "
+                   "(head with --truth).")
 @click.option("--force", is_flag=True, help="Overwrite an existing image.")
 @_common
 @click.pass_context
-def preview(ctx, outdir, output, model_path, truth, frames, strip, size, force, quiet, verbose):
-    """Render shaded frames of a replay (large scale vs final, error heat maps against --truth) to an image."""
-    from facepipe.cli.preview import render_preview
-    from facepipe.io.replay_folder import ReplayDir
+def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, force, quiet, verbose):
+    """Render shaded frames of a replay (large scale vs final, error heat maps against --truth; a 2D take's
+    face through its camera) to an image."""
+    from facepipe.cli.preview import preview_replay
 
     rep = _reporter(ctx, quiet, verbose)
     if not 32 <= size <= 4096:
         raise InputError(f"--size {size} is outside 32..4096 pixels")
     if strip < 0 or strip > 64:
         raise InputError(f"--strip {strip} is outside 0..64 frames")
-    replay_dir = ReplayDir(outdir)
     t0 = time.perf_counter()
-    s = render_preview(replay_dir, replay_dir.load_model(model_path), output, truth_path=truth,
-                       frame_numbers=list(frames), strip=strip, size=size, force=force)
+    s = preview_replay(outdir, model_path, output, view=view, truth_path=truth, frame_numbers=list(frames),
+                       strip=strip, size=size, force=force)
     for k, f in enumerate(s["frames"]):
         errs = (f"; RMS vs truth: final {s['rms']['final'][k]:.4g}, large scale {s['rms']['large'][k]:.4g}"
                 if "rms" in s else "")
+        if s.get("view") == "camera":
+            px = s["reprojection_px"][k]
+            errs = "; tracker lost the face" if px is None else f"; landmark reprojection RMS {px:.3f} px"
         rep.say(f"frame {f}{errs}")
     rep.say(f"wrote {output} ({time.perf_counter() - t0:.1f} s)")
 

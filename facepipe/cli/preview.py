@@ -206,6 +206,28 @@ def view_direction(model) -> np.ndarray:
     return d / np.linalg.norm(d)
 
 
+def preview_replay(outdir, model_path, path, *, view: str = "auto", truth_path=None, frame_numbers=None,
+                   strip: int = 0, size: int = 420, force: bool = False) -> dict:
+    """``facepipe preview``: the camera view of a 2D take's replay
+    (:func:`facepipe.cli.video_preview.render_camera_preview`) or the head-space view
+    (:func:`render_preview`); ``view`` "auto" takes the camera view where the replay has one."""
+    from facepipe.cli.video_preview import render_camera_preview
+    from facepipe.io.replay_folder import ReplayDir
+
+    replay = ReplayDir(outdir)
+    model = replay.load_model(model_path)
+    if view == "auto":
+        view = "camera" if replay.video is not None and truth_path is None else "head"
+    if view == "camera":
+        if truth_path is not None:
+            raise InputError("--truth is drawn in head space, not through the camera", path=truth_path,
+                             hint="add --view head for the truth and the error heat maps")
+        return render_camera_preview(replay, model, path, frame_numbers=frame_numbers, strip=strip, size=size,
+                                     force=force)
+    return dict(render_preview(replay, model, path, truth_path=truth_path, frame_numbers=frame_numbers, strip=strip,
+                               size=size, force=force), view="head")
+
+
 def render_preview(replay, model, path: str | os.PathLike, *, truth_path=None, frame_numbers=None, strip: int = 0,
                    size: int = 420, force: bool = False, log=None) -> dict:
     """Render a replay's preview image.

@@ -114,6 +114,7 @@ class Config:
     psd: PsdConfig = field(default_factory=PsdConfig)
     tune: TuneConfig = field(default_factory=TuneConfig)
     appearance: AppearanceConfig | None = None
+    landmarks: Path | None = None  # [video] landmarks: a 2D tracker's points on the mesh (name,vertex CSV)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -134,12 +135,14 @@ _TYPES: dict[str, dict[str, object]] = {
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
                    "regions": dict},
+    "video": {"landmarks": str},
 }
 _REGION_TYPES = {"vertices": str, "template": list, "frames": list}
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm",
-             "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1, "graph": "auto"}
+             "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1, "graph": "auto",
+             "landmarks": "landmarks68.csv"}
 
 
 def load_config(path: str | Path) -> Config:
@@ -184,6 +187,7 @@ def load_config(path: str | Path) -> Config:
     if examples.get("sequence_stride", 1) < 1:
         raise InputError(f"[examples] sequence_stride = {examples['sequence_stride']} must be ≥ 1", path=path)
     features = _typed_table(raw, "features", path)
+    video = _typed_table(raw, "video", path)
     shell = _section(ShellConfig, raw.get("shell", {}), path, "shell")
     psd = _section(PsdConfig, raw.get("psd", {}), path, "psd")
     tune = _section(TuneConfig, raw.get("tune", {}), path, "tune")
@@ -220,6 +224,7 @@ def load_config(path: str | Path) -> Config:
         psd=psd,
         tune=tune,
         appearance=_appearance(raw, path) if "appearance" in raw else None,
+        landmarks=rel(video.get("landmarks")),
     )
 
 

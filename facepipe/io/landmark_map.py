@@ -14,7 +14,7 @@ import numpy as np
 
 from facepipe.errors import InputError
 
-__all__ = ["LandmarkMap", "read_landmark_map"]
+__all__ = ["LandmarkMap", "model_landmark_map", "read_landmark_map"]
 
 
 @dataclass(frozen=True)
@@ -26,8 +26,9 @@ class LandmarkMap:
     path: str = ""
 
 
-def read_landmark_map(path, n_vertices: int) -> LandmarkMap:
-    """Read ``name,vertex`` rows (a header line ``name,vertex`` is optional).
+def read_landmark_map(path, n_vertices: int, given_by: str = "--landmarks") -> LandmarkMap:
+    """Read ``name,vertex`` rows (a header line ``name,vertex`` is optional); ``given_by`` says
+    where the path came from (for the message of a missing file).
 
     Raises
     ------
@@ -38,7 +39,7 @@ def read_landmark_map(path, n_vertices: int) -> LandmarkMap:
     path = Path(path)
     if not path.is_file():
         raise InputError("landmark map not found", path=path,
-                         hint="give a name,vertex CSV from the tracker's point names to rig vertices with --landmarks")
+                         hint=f"give a name,vertex CSV from the tracker's point names to rig vertices with {given_by}")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
@@ -71,3 +72,12 @@ def read_landmark_map(path, n_vertices: int) -> LandmarkMap:
         raise InputError(f"the landmark map has {len(names)} landmark(s); the head pose needs at least 6", path=path,
                          hint="map the tracker's points (e.g. OpenFace's 68) to rig vertices")
     return LandmarkMap(names, np.asarray(vertices, dtype=np.int64), str(path))
+
+
+def model_landmark_map(model) -> LandmarkMap | None:
+    """The landmark map a model was baked with (``[video] landmarks`` in its config), or None."""
+    names = model.meta.get("landmark_names")
+    if model.landmark_vertices is None or names is None:
+        return None
+    return LandmarkMap(list(names), np.asarray(model.landmark_vertices, dtype=np.int64),
+                       f"{model.path} (baked from [video] landmarks {model.meta.get('landmark_map', '')})")

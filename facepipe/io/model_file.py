@@ -75,6 +75,8 @@ class Model:
     polygon_groups : (N,) index into ``group_names`` of every polygon's OBJ group (``g``), or None
         (a rest mesh without groups, or a file written before groups were kept).
     group_names : list of str, the OBJ group names (``"default"`` before the first ``g``), or None.
+    landmark_vertices : (L,) the rig vertex of every point of a 2D tracker (the config's
+        ``[video] landmarks``; their names are ``meta["landmark_names"]``), or None.
     path : where the model was read from ("(in memory)" for :func:`model_from_fit`).
     """
 
@@ -104,6 +106,7 @@ class Model:
     novelty_solve: np.ndarray | None = _stored(np.float32, optional=True)
     polygon_groups: np.ndarray | None = _stored(np.int32, optional=True)
     group_names: list[str] | None = _stored(np.str_, optional=True)
+    landmark_vertices: np.ndarray | None = _stored(np.int32, optional=True)
     path: str = ""
 
     @classmethod
@@ -223,6 +226,10 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
                   "phantoms": rig.config.shell.phantoms, "solver": geo.solver},
         "smoothing": rig.config.psd.smoothing,
     }
+    if rig.landmarks is not None:  # a 2D take replays with this map unless --landmarks gives another
+        arrays["landmark_vertices"] = rig.landmarks.vertices
+        meta["landmark_names"] = list(rig.landmarks.names)
+        meta["landmark_map"] = str(rig.landmarks.path)
     if "tune" in fit.report:  # the values `fit --tune` chose, with their validated error
         meta["tuned"] = dict(fit.report["tune"]["chosen"], fallback=fit.report["tune"]["fallback"])
     return arrays, meta
@@ -257,7 +264,12 @@ def load_model(path) -> Model:
         (arrays["basis_features"].shape[1] == arrays["edges"].shape[0], "basis features do not match the graph"),
         (meta.get("method") in ("psd", "wpsd", "none"), f"unknown method {meta.get('method')!r}"),
         (("polygon_groups" in arrays) == ("group_names" in arrays), "polygon groups without their names or back"),
+        (("landmark_vertices" in arrays) == ("landmark_names" in meta), "landmark vertices without their names or back"),
     ]
+    if "landmark_vertices" in arrays and "landmark_names" in meta:
+        lv = arrays["landmark_vertices"]
+        checks += [(lv.shape == (len(meta["landmark_names"]),) and (lv.size == 0 or 0 <= lv.min() and lv.max() < V),
+                    "the landmark map's vertices do not match its names or the mesh")]
     if "polygon_groups" in arrays and "group_names" in arrays:
         groups, n_names = arrays["polygon_groups"], len(arrays["group_names"])
         n_polygons = arrays["polygon_offsets"].shape[0] - 1

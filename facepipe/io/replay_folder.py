@@ -2,9 +2,10 @@
 
 ``facepipe replay`` writes ``positions.npy`` (T × V × 3 float32), ``replay.json`` (frame
 numbers, times, the model's path), ``handles.npz`` (the clean head-space handles and the
-head motion) and optionally ``large_scale.npy``. From the handles any layer of the model can
-be evaluated again (the large-scale shell, the details in local frames) without replaying
-the take. Every read is validated: a missing or inconsistent file is an InputError naming it.
+head motion), optionally ``large_scale.npy``, and for a 2D take ``video.npz`` (the camera,
+landmark map and tracked points: :mod:`facepipe.io.video_record`). From the handles any layer
+of the model can be evaluated again (the large-scale shell, the details in local frames)
+without replaying the take. Every read is validated: a missing or inconsistent file is an InputError naming it.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from facepipe.errors import InputError
 from facepipe.io.model_file import Model, load_model
+from facepipe.io.video_record import VideoRecord, read_video_record
 
 # a frame rate is "uniform" when every frame interval is within this fraction of the median
 _UNIFORM_TOLERANCE = 0.01
@@ -134,6 +136,11 @@ class ReplayDir:
             raise InputError(f"handles.npz: frame {int(self.frame_numbers[t])} has non-finite handles", path=path)
         out["head_motion"] = str(out.get("head_motion", "keep"))
         return out
+
+    @cached_property
+    def video(self) -> VideoRecord | None:
+        """video.npz of a 2D take's replay (camera, landmark map, tracked points), else None."""
+        return read_video_record(self.path, self.n_frames, self.positions.shape[1])
 
     def model_path(self, override=None) -> Path:
         """The model to use: ``override`` or the one replay.json names."""

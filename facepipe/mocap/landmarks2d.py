@@ -5,7 +5,7 @@ Two formats, registered with the mocap registry so that a take is recognised by 
 - **OpenFace 2.0** ``FeatureExtraction`` CSV: ``frame, face_id, timestamp, confidence, success,
   x_0 … x_67, y_0 … y_67`` (columns separated by ``", "``; other columns ignored). A row with
   ``success`` 0 or a confidence below ``min_confidence`` is a missing frame (OpenFace writes
-  zeros there). Point ``N`` is named ``N``.
+  zeros there); a blank or ``nan`` coordinate a missing sample. Point ``N`` is named ``N``.
 - **plain 2D CSV**: ``frame,time,NAME_u,NAME_v,…`` in pixels of the footage, a blank (or
   ``NaN``) field a missing sample.
 
@@ -194,6 +194,7 @@ def read_openface(path, names: list, min_confidence: float = 0.5) -> LandmarkTak
     if confidence is not None:
         failed |= ~(np.nan_to_num(confidence) >= min_confidence)
     pts[failed] = np.nan
+    pts[np.isnan(pts).any(axis=-1)] = np.nan  # a sample with one coordinate (a NaN field) is missing
     take = LandmarkTake(frames, times, pts, list(names), failed, str(path), "openface-csv", confidence, lines,
                         [n for n in available if n not in set(names)])
     return _finish(take)

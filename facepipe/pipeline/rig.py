@@ -20,6 +20,7 @@ from facepipe.pipeline.background import BackgroundCall
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose
 from facepipe.io.config import Config, load_config
+from facepipe.io.landmark_map import LandmarkMap, read_landmark_map
 from facepipe.io.mesh_read import load_mesh, load_vertices
 
 ROLES = ("handle", "stable", "ignore")
@@ -152,6 +153,7 @@ class Rig:
     example_names: list[str]
     example_positions: np.ndarray  # (E, V, 3) float64 (meshes, then sequence frames)
     digest: str
+    landmarks: LandmarkMap | None = None  # [video] landmarks: a 2D tracker's points on the mesh
 
     @property
     def handles(self) -> np.ndarray:
@@ -182,6 +184,8 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         check_mesh(mesh)
         markers = load_markers(config.markers, mesh.n_vertices)
         anchors = load_anchors(config.anchors, mesh.n_vertices)
+        landmarks = None if config.landmarks is None else read_landmark_map(config.landmarks, mesh.n_vertices,
+                                                                                 given_by=f"[video] landmarks in {config.path}")
         if on_mesh is not None:
             on_mesh(mesh, markers)
         if config.shell.method == "shell":
@@ -194,7 +198,7 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         reads.cancel()
         raise
     digest = hashlib.sha256(json.dumps(config.to_dict(), sort_keys=True).encode())
-    for p in [config.mesh, config.markers, config.anchors]:
+    for p in [config.mesh, config.markers, config.anchors, config.landmarks]:
         if p is not None:
             digest.update(Path(p).read_bytes())
     names: list[str] = []
@@ -218,7 +222,7 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
             raise InputError("no example poses", path=config.path,
                              hint="set [examples] meshes and/or sequence, or [psd] method = 'none'")
     positions = np.stack(poses) if poses else np.zeros((0, mesh.n_vertices, 3))
-    return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16])
+    return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16], landmarks)
 
 
 def _read_example(path: Path) -> tuple[np.ndarray, bytes]:

@@ -511,7 +511,8 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     if target.uvs is not None:
         arrays["uvs"] = target.uvs
         arrays["polygon_uvs"] = target.polygon_uvs
-    meta = dict(model.meta)
+    # a 2D tracker's landmark map names source vertices: the target's is given with --landmarks
+    meta = {k: v for k, v in model.meta.items() if k not in ("landmark_names", "landmark_map")}
     meta.update(
         config=f"transfer of {model.path} onto {target.path}",
         marker_spacing=spacing,
