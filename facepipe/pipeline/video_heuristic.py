@@ -21,12 +21,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from facepipe.core.camera import Camera, project, undistort_points
+from facepipe.core.camera import Camera, project
 from facepipe.core.lift import fit_pose_expression_2d, landmark_weights, robust_sigma
-from facepipe.core.rigid import interpolate_poses
-from facepipe.errors import InputError
-from facepipe.mocap.landmarks2d import MIN_LANDMARKS, LandmarkTake
-from facepipe.pipeline.video_lift import LiftResult, LiftRig, _report, backproject, initial_poses
+from facepipe.mocap.landmarks2d import LandmarkTake
+from facepipe.pipeline.video_lift import LiftResult, LiftRig, _report, backproject, every_frames_pose, posed_frames
 
 __all__ = ["heuristic_lift", "JUMP_FACTOR"]
 
@@ -39,14 +37,7 @@ def heuristic_lift(take: LandmarkTake, camera: Camera, rig: LiftRig, opt) -> Lif
     """Fidaleo et al.'s lift of a 2D take (see the module); returns what :func:`lift_take` does."""
     T, L = take.points.shape[:2]
     K = rig.basis.shape[0]
-    pts = undistort_points(camera, take.points)
-    visible = np.isfinite(pts).all(axis=-1)
-    usable = visible.sum(axis=1) >= min(MIN_LANDMARKS, L)
-    R0, t0 = initial_poses(rig.rest, pts, usable, camera.matrix)
-    rows = np.flatnonzero(np.isfinite(t0).all(axis=1))
-    if rows.size == 0:
-        raise InputError("no frame's head pose could be found from the landmarks", path=take.path,
-                         hint="check that the landmark map matches the tracker's points and the camera the footage")
+    pts, visible, rows, R0, t0 = posed_frames(take, camera, rig)
     vis = visible[rows]
     # 1. pose from the rigid points: the neutral face, rigid landmarks weighted highest
     sigma = 1.0
@@ -56,12 +47,7 @@ def heuristic_lift(take: LandmarkTake, camera: Camera, rig: LiftRig, opt) -> Lif
         Rf, tf, _, resid, _ = fit_pose_expression_2d(pts[rows], base, camera.matrix, rig.rest, np.zeros((0, L, 3)),
                                                      Rf, tf, robust=2.5 * sigma, iterations=opt.iterations)
         sigma = max(robust_sigma(resid, vis), 1e-3)
-    R = np.full((T, 3, 3), np.nan)
-    t = np.full((T, 3), np.nan)
-    R[rows], t[rows] = Rf, tf
-    R, t, filled = interpolate_poses(R, t, take.times)
-    fitted = np.zeros(T, dtype=bool)
-    fitted[rows] = True
+    R, t, filled, fitted = every_frames_pose(Rf, tf, rows, take.times)
 
     # 2. the disparities onto the neutral surface
     use = np.zeros((T, L), dtype=bool)

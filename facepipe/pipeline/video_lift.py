@@ -285,6 +285,34 @@ def backproject(rig: LiftRig, camera: Camera, pts: np.ndarray, use: np.ndarray, 
     return np.einsum("tji,tlj->tli", R, X - t[:, None, :]), good
 
 
+def posed_frames(take: LandmarkTake, camera: Camera, rig: LiftRig):
+    """The undistorted points, their visibility, and the frames whose head pose the landmarks
+    give a start for: ``(points, visible, rows, R0, t0)``; InputError where no frame has one."""
+    L = take.points.shape[1]
+    pts = undistort_points(camera, take.points)
+    visible = np.isfinite(pts).all(axis=-1)
+    usable = visible.sum(axis=1) >= min(MIN_LANDMARKS, L)
+    R0, t0 = initial_poses(rig.rest, pts, usable, camera.matrix)
+    posed = np.isfinite(t0).all(axis=1)
+    if not posed.any():
+        raise InputError("no frame's head pose could be found from the landmarks", path=take.path,
+                         hint="check that the landmark map matches the tracker's points and the camera the footage")
+    return pts, visible, np.flatnonzero(posed), R0, t0
+
+
+def every_frames_pose(R_rows: np.ndarray, t_rows: np.ndarray, rows: np.ndarray, times: np.ndarray):
+    """The head pose of every frame from those fitted at ``rows``, the others interpolated:
+    ``(R, t, filled, fitted)``."""
+    T = len(times)
+    R = np.full((T, 3, 3), np.nan)
+    t = np.full((T, 3), np.nan)
+    R[rows], t[rows] = R_rows, t_rows
+    R, t, filled = interpolate_poses(R, t, times)
+    fitted = np.zeros(T, dtype=bool)
+    fitted[rows] = True
+    return R, t, filled, fitted
+
+
 def lift_take(take: LandmarkTake, camera: Camera, rig: LiftRig, options: LiftOptions | None = None) -> LiftResult:
     """Head-space handles and camera-space head pose of a 2D take, with a report.
 
@@ -300,20 +328,13 @@ def lift_take(take: LandmarkTake, camera: Camera, rig: LiftRig, options: LiftOpt
     """
     opt = options or LiftOptions()
     if opt.method == "heuristic":
+        # lazily: the baseline's module builds on this one's helpers
         from facepipe.pipeline.video_heuristic import heuristic_lift
 
         return heuristic_lift(take, camera, rig, opt)
     T, L = take.points.shape[:2]
     K = rig.basis.shape[0]
-    pts = undistort_points(camera, take.points)
-    visible = np.isfinite(pts).all(axis=-1)
-    usable = visible.sum(axis=1) >= min(MIN_LANDMARKS, L)
-    R0, t0 = initial_poses(rig.rest, pts, usable, camera.matrix)
-    posed = np.isfinite(t0).all(axis=1)
-    if not posed.any():
-        raise InputError("no frame's head pose could be found from the landmarks", path=take.path,
-                         hint="check that the landmark map matches the tracker's points and the camera the footage")
-    rows = np.flatnonzero(posed)
+    pts, visible, rows, R0, t0 = posed_frames(take, camera, rig)
     P, Rf, tf = pts[rows], R0[rows], t0[rows]
     vis = visible[rows]
     focal = camera.focal
@@ -328,12 +349,7 @@ def lift_take(take: LandmarkTake, camera: Camera, rig: LiftRig, options: LiftOpt
     outlier = vis & (np.linalg.norm(resid, axis=-1) > 4.0 * sigma)
 
     # every frame: fitted ones, the others interpolated (pose) and faded toward neutral (expression)
-    R = np.full((T, 3, 3), np.nan)
-    t = np.full((T, 3), np.nan)
-    R[rows], t[rows] = Rf, tf
-    R, t, filled = interpolate_poses(R, t, take.times)
-    fitted = np.zeros(T, dtype=bool)
-    fitted[rows] = True
+    R, t, filled, fitted = every_frames_pose(Rf, tf, rows, take.times)
     C = np.zeros((T, K))
     C[rows] = C0
     C = fade_fill(C[:, None, :], fitted[:, None], take.times, opt.decay)[:, 0]
