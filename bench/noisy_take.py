@@ -113,12 +113,20 @@ def main(argv=None) -> int:
                "ratio_vs_default_clean": float(en.mean() / ref_clean.mean()),
                "worst_vs_default_clean": float((en / ref_clean).max()),
                "large_scale_noisy_rms": float(ln.mean()), "large_scale_clean_rms": float(lc.mean()),
-               "outliers": rep["total"].get("outliers"), "noise_sigma": rep["cleaning"].get("noise", {}).get("sigma")}
+               "outliers": rep["total"].get("outliers"), "noise_sigma": rep["cleaning"].get("noise", {}).get("sigma"),
+               "frame_ratios_first": [float(x) for x in (en / ec)[:10]],
+               "frame_ratios_last": [float(x) for x in (en / ec)[-10:]],
+               "frames_over_1_5": int(((en / ec) > 1.5).sum())}
         rows.append(row)
         print(f"{label:30s} {row['noisy_rms']:8.5f} {row['clean_rms']:8.5f} {row['ratio']:6.3f} "
               f"{row['worst_frame_ratio']:6.2f} {row['ratio_vs_default_clean']:7.3f} "
               f"{row['worst_vs_default_clean']:6.2f} "
               f"{row['large_scale_noisy_rms']:8.5f} {row['large_scale_clean_rms']:8.5f}")
+    first = rows[0]
+    print(f"default, per-frame ratio (noisy / clean), first 10 frames: "
+          + " ".join(f"{x:.2f}" for x in first["frame_ratios_first"]))
+    print("                                           last 10 frames:  "
+          + " ".join(f"{x:.2f}" for x in first["frame_ratios_last"]))
     old = legacy_errors(noisy, model, truth, ev)
     old_clean = legacy_errors(clean, model, truth, ev)
     rows.append({"variant": "before #4 (stable Kabsch + PCHIP)", "noisy_rms": float(old.mean()),
