@@ -9,7 +9,7 @@ prints the face-area (vertices 0:9409) RMS error against the truth per variant:
     (asks <= 2), for cleaning and stabilisation on / off, smoothing, and the pipeline before
     this work (stable-marker stabilisation + PCHIP gap filling) for reference.
 
-Usage:  python bench/noisy_take.py [--model /tmp/ict_model.npz] [--json out.json]
+Usage:  PYTHONPATH=. python bench/noisy_take.py [--model /tmp/ict_model.npz] [--json out.json]
 The model is baked from configs/ict.toml when the file does not exist.
 """
 
@@ -60,11 +60,12 @@ def replay_errors(take, model, truth, evaluator, **options):
 def legacy_errors(take, model, truth, evaluator):
     """The pipeline before issue #4: stable-marker stabilisation (with the prior) + PCHIP filling."""
     from facepipe.mocap import fill_gaps
-    from facepipe.core.rigid import stabilise
+    from facepipe.core.rigid import interpolate_poses, stable_marker_pose
 
     rest = model.rest[model.handle_vertices].astype(np.float64)
-    head, R, t = stabilise(take.positions, rest, model.stable.astype(bool),
-                           prior=model.example_handles.astype(np.float64))
+    R, t = stable_marker_pose(rest, take.positions, model.stable.astype(bool), [])
+    R, t, _ = interpolate_poses(R, t, take.times)
+    head = np.einsum("tji,thj->thi", R, take.positions - t[:, None, :])
     head, _ = fill_gaps(head, times=take.times)
     out = evaluator.evaluate(head)
     world = np.einsum("tij,tvj->tvi", R, out) + t[:, None, :]
