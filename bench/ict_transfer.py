@@ -12,7 +12,9 @@ vertices spread over the whole head by farthest-point sampling (seeded at the fi
 written as ``name,vertex`` on each face; on a remeshed face each point is the target vertex
 nearest to the source's. The identities' takes put the markers on the target's marker
 vertices (markers.csv, passed as --target-markers) moving by the truth's displacement; a second
-variant lets transfer place the markers. The remeshed faces' truth is the generic truth's
+variant lets transfer place the markers; a third marks only 40 points on the face (every second
+marker of markers.csv, the first 40) and lets the refinement onto the surface bring the rest of
+the head into correspondence (no --allow-far, no --target-markers). The remeshed faces' truth is the generic truth's
 displacement interpolated at each remeshed vertex's closest point on the generic mesh; their
 face area is where that point's triangle lies in [0, 9409).
 
@@ -136,6 +138,10 @@ def main(argv=None) -> int:
     points = farthest_point_subset(N, N_POINTS, seed_index=int(source.handle_vertices[0]))
     src_points = work / "points_source.csv"
     write_points(src_points, points)
+    # what a user marks: points on the face alone (every second marker of markers.csv, the first 40)
+    face_points = source.handle_vertices.astype(np.int64)[::2][:N_POINTS]
+    src_face_points = work / "face_points_source.csv"
+    write_points(src_face_points, face_points)
 
     rows = {}
     finals = {}
@@ -147,13 +153,18 @@ def main(argv=None) -> int:
         X = load_mesh(target).vertices
         tgt_points = work / f"points_{face}.csv"
         write_points(tgt_points, points)  # same topology: the same vertex ids mark the same places
-        for variant, extra in (("", ["--target-markers", KIT / "markers.csv"]), ("_mapped", [])):
+        tgt_face_points = work / f"face_points_{face}.csv"
+        write_points(tgt_face_points, face_points)
+        for variant, extra in (("", ["--target-markers", KIT / "markers.csv"]), ("_mapped", []),
+                               ("_face_points", [])):
             model_path = work / f"{face}{variant}.npz"
-            facepipe("transfer", source_path, "--target", target, "--source-points", src_points,
-                     "--target-points", tgt_points, "-o", model_path, "-q", *extra)
+            pts = (src_face_points, tgt_face_points) if variant == "_face_points" else (src_points, tgt_points)
+            facepipe("transfer", source_path, "--target", target, "--source-points", pts[0],
+                     "--target-points", pts[1], "-o", model_path, "-q", *extra)
             summary = json.loads(model_path.with_suffix(".json").read_text())
             r, final = replay_case(face + variant, work, model_path, X, displacement, FACE, frames, times)
             r["projection_distance"] = summary["projection_distance"]
+            r["refined"] = summary.get("refined")
             r["markers"] = summary["markers"]
             r["ratio_minus_source"] = r["ratio"] - rows["source"]["ratio"]
             rows[face + variant] = r

@@ -9,7 +9,7 @@ prints the face-area (vertices 0:9409) RMS error against the truth per variant:
     (asks <= 2), for cleaning and stabilisation on / off, smoothing, and the pipeline before
     this work (stable-marker stabilisation + PCHIP gap filling) for reference.
 
-Usage:  python bench/noisy_take.py [--model /tmp/ict_model.npz] [--json out.json]
+Usage:  PYTHONPATH=. python bench/noisy_take.py [--model /tmp/ict_model.npz] [--json out.json]
 The model is baked from configs/ict.toml when the file does not exist.
 """
 
@@ -60,11 +60,12 @@ def replay_errors(take, model, truth, evaluator, **options):
 def legacy_errors(take, model, truth, evaluator):
     """The pipeline before issue #4: stable-marker stabilisation (with the prior) + PCHIP filling."""
     from facepipe.mocap import fill_gaps
-    from facepipe.core.rigid import stabilise
+    from facepipe.core.rigid import interpolate_poses, stable_marker_pose
 
     rest = model.rest[model.handle_vertices].astype(np.float64)
-    head, R, t = stabilise(take.positions, rest, model.stable.astype(bool),
-                           prior=model.example_handles.astype(np.float64))
+    R, t = stable_marker_pose(rest, take.positions, model.stable.astype(bool), [])
+    R, t, _ = interpolate_poses(R, t, take.times)
+    head = np.einsum("tji,thj->thi", R, take.positions - t[:, None, :])
     head, _ = fill_gaps(head, times=take.times)
     out = evaluator.evaluate(head)
     world = np.einsum("tij,tvj->tvi", R, out) + t[:, None, :]
@@ -113,12 +114,20 @@ def main(argv=None) -> int:
                "ratio_vs_default_clean": float(en.mean() / ref_clean.mean()),
                "worst_vs_default_clean": float((en / ref_clean).max()),
                "large_scale_noisy_rms": float(ln.mean()), "large_scale_clean_rms": float(lc.mean()),
-               "outliers": rep["total"].get("outliers"), "noise_sigma": rep["cleaning"].get("noise", {}).get("sigma")}
+               "outliers": rep["total"].get("outliers"), "noise_sigma": rep["cleaning"].get("noise", {}).get("sigma"),
+               "frame_ratios_first": [float(x) for x in (en / ec)[:10]],
+               "frame_ratios_last": [float(x) for x in (en / ec)[-10:]],
+               "frames_over_1_5": int(((en / ec) > 1.5).sum())}
         rows.append(row)
         print(f"{label:30s} {row['noisy_rms']:8.5f} {row['clean_rms']:8.5f} {row['ratio']:6.3f} "
               f"{row['worst_frame_ratio']:6.2f} {row['ratio_vs_default_clean']:7.3f} "
               f"{row['worst_vs_default_clean']:6.2f} "
               f"{row['large_scale_noisy_rms']:8.5f} {row['large_scale_clean_rms']:8.5f}")
+    first = rows[0]
+    print(f"default, per-frame ratio (noisy / clean), first 10 frames: "
+          + " ".join(f"{x:.2f}" for x in first["frame_ratios_first"]))
+    print("                                           last 10 frames:  "
+          + " ".join(f"{x:.2f}" for x in first["frame_ratios_last"]))
     old = legacy_errors(noisy, model, truth, ev)
     old_clean = legacy_errors(clean, model, truth, ev)
     rows.append({"variant": "before #4 (stable Kabsch + PCHIP)", "noisy_rms": float(old.mean()),

@@ -145,7 +145,7 @@ def test_noise_is_reduced_below_the_markers_own():
     smooth = clean_take(noisy, rest, basis, stable, np.arange(T) / 30.0, CleanOptions(smooth=1.5), spacing=2.0)
     np.testing.assert_allclose(smooth.head, gaussian_filter1d(res.head, 1.5, axis=0, mode="nearest"), atol=1e-12)
     jitter = [np.sqrt(np.mean(np.diff(h, 2, axis=0) ** 2)) for h in (res.head, smooth.head)]
-    assert jitter[1] < 0.5 * jitter[0] and smooth.report["smooth_frames"] == 1.5
+    assert jitter[1] < 0.8 * jitter[0] and smooth.report["smooth_frames"] == 1.5
 
 
 def test_jumps_are_outliers_and_filled():
@@ -348,7 +348,11 @@ def test_ict_noisy_take_meets_the_acceptance_figures(ict_model):
     e_clean = rms(_replay(clean, model)[0])
     e_noisy = rms(e_noisy)
     assert e_noisy.mean() <= 1.25 * e_clean.mean(), (e_noisy.mean(), e_clean.mean())
-    assert (e_noisy / e_clean).max() <= 2.0, (e_noisy / e_clean).max()
+    # every frame, the take's first and last included: the pose and the residuals are smoothed over
+    # the take without a window, so its ends are not left to their own frame's noise
+    ratio = e_noisy / e_clean
+    assert ratio.max() <= 1.5, np.round(ratio, 2)
+    assert ratio[[0, -1]].max() <= 1.5
     assert report["total"]["missing"] == int(np.isnan(noisy.positions[..., 0]).sum())
     assert report["cleaning"]["noise"]["sigma"] == pytest.approx(0.02, rel=0.15)
 
@@ -535,3 +539,49 @@ def test_a_long_stretch_without_markers_is_cleaned_whole():
     out, *_, rep = prepare_take(take_of(world, names), model, window=200)
     assert np.isfinite(out).all() and "windows" not in rep["cleaning"]["noise"]
     assert any("cleaned whole" in n for n in rep["notes"])
+
+
+# --------------------------------------------------------------------------- the take's ends
+
+
+def test_whittaker_smoother_keeps_straight_motion_to_the_ends_and_matches_a_dense_solve():
+    """The smoother against the dense normal equations; a straight line is kept exactly (no one-sided
+    window's bias at the ends); GCV smooths white noise on a line hard and leaves a noise-free curve."""
+    from facepipe.core.temporal import smooth_series, whittaker
+
+    rng = np.random.default_rng(3)
+    y = rng.normal(size=(40, 2))
+    D = np.diff(np.eye(40), 2, axis=0)
+    np.testing.assert_allclose(whittaker(y, 7.0), np.linalg.solve(np.eye(40) + 7.0 * D.T @ D, y), atol=1e-10)
+    line = np.linspace(-1, 2, 40)[:, None] * [1.0, -3.0]
+    np.testing.assert_allclose(whittaker(line, 1e5), line, atol=1e-9)
+    z, lam, share = smooth_series(line + 0.05 * rng.normal(size=line.shape))
+    assert (lam >= 30).all() and (share < 0.3).all()
+    assert np.abs(z - line).max() < 0.06  # the ends included (the noise is 0.05)
+    curve = np.sin(np.linspace(0, 6, 40))[:, None]
+    z, lam, _ = smooth_series(curve)
+    assert np.abs(z - curve).max() < 1e-3
+
+
+def test_the_first_and_last_frames_are_cleaned_as_well_as_the_rest():
+    """Synthetic rig, noisy take with head motion: the pose and handles of the first and last frames
+    are about as accurate as the middle's, and the temporal smoothing helps every part of the take."""
+    _, rest, basis, stable, names = make_rig()
+    world, head, R, t, _ = make_truth(rest, basis)
+    errors = {}
+    for temporal in (False, True):
+        e = []
+        for seed in range(4):
+            noisy = world + np.random.default_rng(10 + seed).normal(scale=0.02, size=world.shape)
+            res = clean_take(noisy, rest, basis, stable, np.arange(T) / 30.0, CleanOptions(temporal=temporal),
+                             spacing=2.0)
+            placed = np.einsum("tij,thj->thi", res.R, res.head) + res.t[:, None, :]
+            e.append(np.sqrt(np.mean(np.sum((placed - world) ** 2, axis=-1), axis=1)))
+        errors[temporal] = np.mean(e, axis=0)
+    ends = np.r_[0:3, T - 3:T]
+    middle = errors[True][10:T - 10].mean()
+    # a smoother has fewer neighbours at the ends: more noise stays there than in the middle, but
+    # no more than the take's unsmoothed frames have
+    assert errors[True][ends].max() < 2.0 * middle, (errors[True][ends], middle)
+    assert errors[True].mean() < 0.8 * errors[False].mean()
+    assert errors[True][ends].mean() < errors[False][ends].mean()

@@ -343,3 +343,79 @@ def test_ict_face_a(tmp_path, ict_rig_fit):
 
     r_s, r_t = ratio(model, neutral), ratio(target, face_a.vertices)
     assert r_t < 0.85 and abs(r_t - r_s) < 0.15, (r_s, r_t)
+
+
+# ----------------------------------------------------------------------------- refinement onto the surface
+
+
+def test_refinement_puts_a_sphere_on_an_ellipsoid_from_points_on_one_side():
+    """A unit sphere fitted to an ellipsoid (another mesh) through 8 points on its front: the fit to
+    the points leaves the back far off; refined, every vertex lies on the ellipsoid (the analytic
+    surface, not its mesh, checks it) and the points stay where they were put."""
+    import trimesh
+
+    from facepipe.core.nonrigid import refine_to_surface
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    target = trimesh.creation.icosphere(subdivisions=4)
+    axes = np.array([1.3, 1.0, 0.8])
+    Y = target.vertices * axes
+    X = np.asarray(sphere.vertices, dtype=np.float64)
+    front = np.flatnonzero(X[:, 2] > 0.55)
+    points = front[np.linspace(0, len(front) - 1, 8).astype(int)]
+    on_target = X[points] / np.linalg.norm(X[points] / axes, axis=1)[:, None]  # radially onto the ellipsoid
+
+    from facepipe.pipeline.transfer import deform_to_points
+
+    fitted, _ = deform_to_points(X, sphere.faces, points, on_target, "shell")
+
+    def off(P):  # radial distance to the analytic ellipsoid
+        s = np.linalg.norm(P / axes, axis=1)
+        return np.abs(1 - 1 / s) * np.linalg.norm(P, axis=1)
+
+    spacing = float(np.mean(np.linalg.norm(on_target[:, None] - on_target[None], axis=-1)[np.triu_indices(8, 1)]))
+    r = refine_to_surface(fitted, sphere.faces, Y, target.faces, points, spacing)
+    assert off(fitted).max() > 0.15
+    assert off(r.vertices).max() < 0.01, off(r.vertices).max()
+    np.testing.assert_allclose(r.vertices[points], on_target, atol=1e-12)
+    assert r.paired.all() and r.distance.max() < 0.01
+    assert r.lengths == sorted(r.lengths, reverse=True) and len(r.lengths) >= 2
+
+
+def test_ict_marked_face_points_transfer_to_face_a_and_face_b(tmp_path, ict_rig_fit):
+    """40 points on the face only (every second marker), no target markers, no --allow-far: the neck,
+    ears and back of the head come into correspondence, and details help as much as on the source."""
+    kit = ict_or_skip()
+    from facepipe.io.model_file import model_arrays
+    from facepipe.pipeline.transfer import check_far
+
+    rig, fit = ict_rig_fit
+    arrays, meta = model_arrays(fit, rig)
+    model = Model.from_arrays(arrays, meta, "(memory)")
+    neutral = rig.mesh.vertices
+    disp = np.load(kit / "train_truth.npz")["positions"][::4].astype(np.float64) - neutral
+    points = rig.handles[::2][:40] if len(rig.handles) >= 80 else rig.handles[::2]
+    face = slice(0, 9409)
+
+    def ratio(m, X):
+        truth = X + disp
+        final, large = evaluate(m, truth[:, m.handle_vertices])
+        return frame_errors(final, truth, face)[0].mean() / frame_errors(large, truth, face)[0].mean()
+
+    r_s = ratio(model, neutral)
+    for name in ("face_a", "face_b"):
+        target = load_mesh(kit / "identities" / f"{name}.obj")
+        corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
+                          target.faces, points, points)
+        far, _ = check_far(corr)
+        assert far.size == 0, (name, far.size, corr.distance.max())
+        arrays, meta, _ = transfer_model(model, target, corr)
+        moved = Model.from_arrays({k: np.asarray(v) for k, v in arrays.items()}, meta, "(memory)")
+        r_t = ratio(moved, target.vertices)
+        assert abs(r_t - r_s) < 0.15, (name, r_s, r_t)
+        # the neck, which holds no point, lies on the refined source
+        neck = corr.distance[9409:]
+        assert neck.mean() < 0.05 * corr.point_spacing and np.percentile(neck, 95) < 0.2 * corr.point_spacing, (
+            name, neck.mean(), np.percentile(neck, 95), corr.point_spacing)
+        summary = corr.refinement
+        assert summary is not None and summary.paired.mean() > 0.9

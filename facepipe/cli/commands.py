@@ -576,12 +576,16 @@ def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertic
               help="Target vertices farther than this from the fitted source are an error [default: half the "
                    "points' spacing].")
 @click.option("--allow-far", is_flag=True, help="Map vertices beyond --max-distance anyway (to the nearest source).")
+@click.option("--refine/--no-refine", default=True, show_default=True,
+              help="After the fit to the points, move the whole source onto the target's surface (closest "
+                   "points with agreeing normals, regularised by the thin shell), so parts without points "
+                   "correspond too.")
 @click.option("--scale-details/--no-scale-details", default=True, show_default=True,
               help="Scale the details by the size ratio of the faces (from the points' similarity).")
 @_common
 @click.pass_context
 def transfer(ctx, model_path, target, source_points, target_points, output, target_markers, deform, max_distance,
-             allow_far, scale_details, quiet, verbose):
+             allow_far, refine, scale_details, quiet, verbose):
     """Transfer a MODEL's learned details onto another face: an ordinary model of the target."""
     from facepipe.pipeline.transfer import transfer_files
 
@@ -589,13 +593,18 @@ def transfer(ctx, model_path, target, source_points, target_points, output, targ
     if max_distance is not None and max_distance <= 0:
         raise InputError("--max-distance must be a positive length")
     s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
-                       max_distance=max_distance, allow_far=allow_far, scale_details=scale_details)
+                       max_distance=max_distance, allow_far=allow_far, scale_details=scale_details, refine=refine)
     d = s["projection_distance"]
     rep.say(f"{s['points']} points; similarity scale {s['similarity']['scale']:.4f}, rotation "
             f"{s['similarity']['rotation_deg']:.1f}°; fitted by the {s['deformation']}")
     rep.say(f"mapped {s['vertices_mapped']} target vertices onto {s['source_vertices']} source vertices: distance "
             f"median {d['median']:.3g}, p99 {d['p99']:.3g}, max {d['max']:.3g}; {s['far_vertices']} beyond "
             f"{s['far_limit']:.3g}; {s['normal_mismatches']} without a source triangle facing their way")
+    if s.get("refined"):
+        r, far = s["refined"], s["refined"]["target_to_source"]
+        rep.say(f"refined onto the target's surface in {len(r['stiffness_lengths'])} stiffness steps: target to "
+                f"refined source mean {far['mean']:.3g}, p95 {far['p95']:.3g}, max {far['max']:.3g}; "
+                f"{100 * r['paired_fraction']:.0f} % of the source paired")
     m = s["markers"]
     rep.say(f"markers: {m.get('given', m.get('mapped'))} {'given' if 'given' in m else 'mapped'}; anchors "
             f"{s['anchors']['target']}; method {s['method']}, details scaled by {s['detail_scale']:.4f}")

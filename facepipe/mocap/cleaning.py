@@ -33,12 +33,14 @@ Everything is arrays in, arrays and a JSON-serialisable report out.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from facepipe.mocap.gaps import fill_gaps
 from facepipe.core.rigid import interpolate_poses, rotation_from_vector, stable_marker_pose
+from facepipe.core.temporal import smooth_series
 
 __all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
            "noise_sigma", "rotation_from_vector"]
@@ -86,6 +88,7 @@ class CleanOptions:
     short_gap: int = 5
     smooth: float = 0.0
     iterations: int = 12
+    temporal: bool = True
 
 
 @dataclass
@@ -589,13 +592,25 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         R2, t2, C2 = _relaxed_refit(frames, W_kept, R2, t2, C2, robust, opt.sparsity)
 
     R, t, C = _every_frame(R2, t2, C2, usable, times)
+    # noise-free input (σ at its floor) is left exactly as the fit gives it
+    temporal = opt.temporal and T >= 4 and noise.sigma > sigma_floor
+    if temporal and not fix_pose:
+        # the head moves smoothly: its pose is smoothed over the take, and the expression refitted
+        # under that pose (whatever the pose's noise moved into the expression goes back out)
+        R, t = _smooth_poses(R, t, reference.mean(axis=0))
+        R2, t2 = R[rows], t[rows]
+        posed = replace(frames, fix_pose=True)
+        C2 = _sparse_fit(posed, W_kept, R2, t2, C2, robust, opt.sparsity)[2]
+        if K and opt.sparsity > 0:
+            C2 = _relaxed_refit(posed, W_kept, R2, t2, C2, robust, opt.sparsity)[2]
+        C[rows] = C2
     outlier = np.zeros((T, H), dtype=bool)
     outlier[rows] = outlier_rows
     known = visible & ~outlier
     residual = np.full((T, H, 3), np.nan)
     residual[rows] = np.where(outlier_rows[..., None], np.nan, frames.residual(R2, t2, C2))
-    clean = _clean_handles(reference + np.einsum("tk,khc->thc", C, basis), residual, known, noise.keep, times,
-                           fps, names, opt)
+    clean = _clean_handles(reference + np.einsum("tk,khc->thc", C, basis), residual, known, noise, times,
+                           fps, names, opt, temporal)
     report = _clean_report(visible, outlier, int((~usable).sum()), noise, jump, C, opt, names, notes)
     return CleanResult(clean, R, t, C, report, outlier)
 
@@ -732,14 +747,42 @@ def _every_frame(R_rows: np.ndarray, t_rows: np.ndarray, C_rows: np.ndarray, usa
     return R, t, C
 
 
-def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, keep: np.ndarray,
-                   times: np.ndarray, fps: float, names, opt: CleanOptions) -> np.ndarray:
+def _smooth_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray):
+    """Head poses smoothed over the take (:func:`facepipe.core.temporal.smooth_series`).
+
+    Rotations as rotation vectors from their mean (a head turns far less than π); translations
+    as the motion of ``centre`` (the markers' centroid in head space): about the face itself a
+    rotation's noise does not leak into the translation through the lever arm to the origin, so
+    the two are smoothed apart.
+    """
+    mean = Rotation.from_matrix(R).mean()
+    v = (mean.inv() * Rotation.from_matrix(R)).as_rotvec()
+    moved = np.einsum("tij,j->ti", R, centre) + t
+    z, _, _ = smooth_series(np.concatenate([v, moved], axis=1), groups=np.array([0, 0, 0, 1, 1, 1]))
+    Rs = (mean * Rotation.from_rotvec(z[:, :3])).as_matrix()
+    return Rs, z[:, 3:] - np.einsum("tij,j->ti", Rs, centre)
+
+
+def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, noise: "_NoiseModel",
+                   times: np.ndarray, fps: float, names, opt: CleanOptions, temporal: bool = False) -> np.ndarray:
     """(T, H, 3) the prior's handles ``model`` plus the kept share of each marker's off-span
     residual (NaN where not known): across gaps by PCHIP, faded with the distance to the nearest
-    known sample; smoothed in time if asked."""
+    known sample; smoothed in time if asked.
+
+    With ``temporal``, each marker's residual is first smoothed over the take
+    (:func:`facepipe.core.temporal.smooth_series`: the off-span expression is smooth, the noise
+    white), and the Wiener shrink then weighs the off-span variance τ² against the noise that
+    passes that smoother (its share of σ²) rather than against all of σ².
+    """
     never = ~known.any(axis=0)
     res_known = np.where(never[None, :, None], 0.0, residual)
     res_filled, _ = fill_gaps(res_known, times=times, marker_names=names)
+    keep = noise.keep
+    if temporal:
+        T, H, _ = res_filled.shape
+        smoothed, _, share = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
+        res_filled = smoothed.reshape(T, H, 3)
+        keep = noise.tau2 / np.maximum(noise.tau2 + share * noise.sigma**2, 1e-300)
     fade = np.exp(-_distance_to_visible(known) / max(opt.decay * fps, 1e-9))
     clean = model + keep[None, :, None] * fade[..., None] * res_filled
     if opt.smooth and opt.smooth > 0 and len(clean) > 1:

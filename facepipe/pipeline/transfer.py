@@ -36,10 +36,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from trimesh.triangles import closest_point, points_to_barycentric
 
 from facepipe.errors import InputError
-from facepipe.core.tangent_frames import (frame_neighbors, local_frames, to_local, to_world, vertex_face_matrix, vertex_normals)
+from facepipe.core.closest import MIN_NORMAL_COS, closest_point_on_triangles, project_points  # noqa: F401 (re-exported)
+from facepipe.core.nonrigid import Refinement, refine_to_surface
+from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, to_world, vertex_normals
 from facepipe.core.mesh import check_components, check_marker_vertices, check_mesh
 from facepipe.io.mesh_read import load_mesh
 from facepipe.core.psd import edge_weight_matrix, fit_details
@@ -59,8 +60,6 @@ MISMATCH_FRACTION = 0.3
 # target vertices farther than this fraction of the points' spacing from the deformed source
 # are not explained by the fit: the deformation only controls the surface at that scale
 FAR_FRACTION = 0.5
-# projection: a source triangle faces the target vertex's way when their normals are within 60°
-MIN_NORMAL_COS = 0.5
 
 
 # ----------------------------------------------------------------------------- points
@@ -197,100 +196,6 @@ def _every_part_has(faces: np.ndarray, n_vertices: int, vertices: np.ndarray) ->
     return bool(np.isin(np.unique(labels), labels[vertices]).all())
 
 
-def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates of the closest point of triangles (a, b, c) to points p.
-
-    Parameters
-    ----------
-    p, a, b, c : (..., 3) broadcastable.
-
-    Returns
-    -------
-    (..., 3) barycentric weights (≥ 0, sum 1) of the closest point: q = w0 a + w1 b + w2 c.
-    """
-    p, a, b, c = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (p, a, b, c)))
-    shape = p.shape
-    tri = np.stack([a, b, c], axis=-2).reshape(-1, 3, 3)
-    q = closest_point(tri, p.reshape(-1, 3))
-    with np.errstate(all="ignore"):
-        bary = points_to_barycentric(tri, q)
-    # degenerate (zero-area) triangles give NaN: their centroid stands in, as good as any point
-    bary = np.clip(np.nan_to_num(bary, nan=1.0 / 3.0), 0.0, 1.0)
-    return (bary / bary.sum(axis=-1, keepdims=True)).reshape(shape)
-
-
-def _incident_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
-    """(V, K) the faces around every vertex, padded with −1."""
-    inc = vertex_face_matrix(faces, n_vertices).tocsr()
-    counts = np.diff(inc.indptr)
-    out = np.full((n_vertices, max(int(counts.max(initial=0)), 1)), -1, dtype=np.int64)
-    rows = np.repeat(np.arange(n_vertices), counts)
-    cols = np.arange(inc.indices.size) - np.repeat(inc.indptr[:-1], counts)
-    out[rows, cols] = inc.indices
-    return out
-
-
-def project_points(points: np.ndarray, normals: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                   min_cos: float = MIN_NORMAL_COS, neighbours: int = 8, chunk: int = 8192):
-    """Closest points of a triangle mesh to query points, preferring triangles that face their way.
-
-    Candidates are the triangles around the ``neighbours`` nearest mesh vertices and the
-    ``neighbours`` triangles with the nearest centroids; among them the nearest whose normal is
-    within acos(min_cos) of the query's normal wins (the upper lip's underside is not mapped to
-    the lower lip's top), else the nearest of all, flagged.
-
-    Parameters
-    ----------
-    points, normals : (N, 3) query points and their unit normals.
-    vertices : (V, 3); faces : (T, 3) the mesh projected onto.
-
-    Returns
-    -------
-    face : (N,) int64 triangle; bary : (N, 3) barycentric weights; distance : (N,);
-    normal_ok : (N,) bool, whether the chosen triangle faces the query's way.
-    """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
-    around = _incident_faces(faces, len(vertices))
-    kv = min(neighbours, len(vertices))
-    kc = min(neighbours, len(faces))
-    vtree = cKDTree(vertices)
-    ctree = cKDTree(tri.mean(axis=1))
-    N = len(points)
-    face = np.empty(N, dtype=np.int64)
-    bary = np.empty((N, 3))
-    dist = np.empty(N)
-    ok = np.empty(N, dtype=bool)
-    for s in range(0, N, chunk):
-        p = np.asarray(points[s:s + chunk], dtype=np.float64)
-        n = np.asarray(normals[s:s + chunk], dtype=np.float64)
-        _, iv = vtree.query(p, k=kv)
-        _, ic = ctree.query(p, k=kc)
-        iv, ic = iv.reshape(len(p), kv), ic.reshape(len(p), kc)
-        cand = np.concatenate([around[iv].reshape(len(p), -1), ic], axis=1)  # (n, C), −1 = none
-        valid = cand >= 0
-        c = np.where(valid, cand, 0)
-        t = tri[c]  # (n, C, 3, 3)
-        w = closest_point_on_triangles(p[:, None], t[..., 0, :], t[..., 1, :], t[..., 2, :])
-        q = np.einsum("ncj,ncjx->ncx", w, t)
-        d = np.linalg.norm(q - p[:, None], axis=-1)
-        d = np.where(valid, d, np.inf)
-        agree = np.einsum("nx,ncx->nc", n, fn[c]) >= min_cos
-        d_ok = np.where(agree, d, np.inf)
-        best_ok = np.argmin(d_ok, axis=1)
-        found = np.isfinite(d_ok[np.arange(len(p)), best_ok])
-        best = np.where(found, best_ok, np.argmin(d, axis=1))
-        r = np.arange(len(p))
-        face[s:s + chunk] = c[r, best]
-        bary[s:s + chunk] = w[r, best]
-        dist[s:s + chunk] = d[r, best]
-        ok[s:s + chunk] = found
-    return face, bary, dist, ok
-
-
 @dataclass
 class Correspondence:
     """Target vertices on the source surface, and how the source was brought onto the target.
@@ -305,6 +210,7 @@ class Correspondence:
     point_residual : (N,) the points' distances after the similarity alone.
     point_spacing : mean nearest-neighbour distance of the target's points.
     method : the deformation used ("shell" or "rbf").
+    refinement : the non-rigid refinement onto the target's surface (None when not refined).
     """
     face: np.ndarray
     bary: np.ndarray
@@ -318,6 +224,7 @@ class Correspondence:
     point_spacing: float
     method: str
     source_faces: np.ndarray = field(repr=False, default=None)
+    refinement: Refinement | None = field(repr=False, default=None)
 
     def matrix(self, n_source: int) -> sp.csr_matrix:
         """(Vt, Vs) sparse interpolation matrix: target values = W @ source values."""
@@ -328,7 +235,7 @@ class Correspondence:
 
 def correspond(source_vertices: np.ndarray, source_faces: np.ndarray, target_vertices: np.ndarray,
                target_faces: np.ndarray, source_points: np.ndarray, target_points: np.ndarray,
-               names: list[str] | None = None, deform: str = "auto", path="") -> Correspondence:
+               names: list[str] | None = None, deform: str = "auto", path="", refine: bool = True) -> Correspondence:
     """Dense correspondence from marked points (see the module docstring).
 
     Parameters
@@ -336,6 +243,8 @@ def correspond(source_vertices: np.ndarray, source_faces: np.ndarray, target_ver
     source_vertices : (Vs, 3); source_faces : (Ts, 3); target_vertices : (Vt, 3); target_faces : (Tt, 3).
     source_points, target_points : (N,) vertex indices of the same named points on each mesh.
     deform : "auto" | "shell" | "rbf", see :func:`deform_to_points`.
+    refine : after the fit to the points, move the whole source onto the target surface
+        (:func:`facepipe.core.nonrigid.refine_to_surface`), so parts without points correspond too.
     """
     src = np.asarray(source_vertices, dtype=np.float64)
     tgt = np.asarray(target_vertices, dtype=np.float64)
@@ -343,11 +252,15 @@ def correspond(source_vertices: np.ndarray, source_faces: np.ndarray, target_ver
     s, R, t, residual = similarity_align(src[source_points], tp, names, path)
     aligned = s * src @ R.T + t
     deformed, method = deform_to_points(aligned, source_faces, source_points, tp, deform)
+    spacing = float(cKDTree(tp).query(tp, k=2)[0][:, 1].mean())
+    refinement = None
+    if refine:
+        refinement = refine_to_surface(deformed, source_faces, tgt, target_faces, source_points, spacing)
+        deformed = refinement.vertices
     normals = vertex_normals(tgt, np.asarray(target_faces, dtype=np.int64))
     face, bary, dist, ok = project_points(tgt, normals, deformed, source_faces)
-    spacing = float(cKDTree(tp).query(tp, k=2)[0][:, 1].mean())
     return Correspondence(face, bary, dist, ok, deformed, s, R, t, residual, spacing, method,
-                          np.asarray(source_faces, dtype=np.int64))
+                          np.asarray(source_faces, dtype=np.int64), refinement)
 
 
 def check_far(corr: Correspondence, max_distance: float | None = None) -> tuple[np.ndarray, float]:
@@ -621,7 +534,7 @@ def _stats(x: np.ndarray) -> dict:
 
 def transfer_files(model_path, target_path, source_points_path, target_points_path, output,
                    target_markers_path=None, deform: str = "auto", max_distance: float | None = None,
-                   allow_far: bool = False, scale_details: bool = True) -> dict:
+                   allow_far: bool = False, scale_details: bool = True, refine: bool = True) -> dict:
     """``facepipe transfer``: read, correspond, transfer, write the model and its JSON summary.
 
     Returns
@@ -640,7 +553,7 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         target_handles = read_target_markers(target_markers_path, model.marker_names, target.n_vertices)
 
     corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
-                      target.faces, sp_idx, tp_idx, names, deform, path=target_points_path)
+                      target.faces, sp_idx, tp_idx, names, deform, path=target_points_path, refine=refine)
     far, limit = check_far(corr, max_distance)
     if far.size and not allow_far:
         raise InputError(describe_far(far, corr, target.vertices, names, tp_idx, limit), path=target_path,
@@ -649,7 +562,7 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details)
     meta["config_digest"] = _inputs_digest(
         (model_path, target_path, source_points_path, target_points_path, target_markers_path),
-        [deform, max_distance, scale_details])
+        [deform, max_distance, scale_details, refine])
     summary = {
         "source": str(model_path),
         "target": str(target_path),
@@ -666,7 +579,7 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         **report,
     }
     meta["transfer"] = {k: summary[k] for k in ("source", "target", "points", "deformation", "far_vertices",
-                                                "detail_scale")}
+                                                "detail_scale", "refined")}
     save_model(output, arrays, meta)
     summary["seconds_total"] = time.perf_counter() - t0
     with atomic_path(Path(output).with_suffix(".json")) as tmp:
@@ -711,7 +624,23 @@ def correspondence_summary(corr: Correspondence, far: np.ndarray, limit: float) 
         "far_vertices": int(far.size),
         "far_examples": [int(v) for v in far[np.argsort(-corr.distance[far])][:20]],
         "normal_mismatches": int((~corr.normal_ok).sum()),
+        "refined": refinement_summary(corr),
     }
+
+
+def refinement_summary(corr: Correspondence) -> dict | None:
+    """How far the refined source lies from the target: both ways (target vertices to the refined
+    source, refined source vertices to the target), mean, p95 and max; the stiffness steps and the
+    share of source vertices paired with the target in the last one. None without refinement."""
+    r = corr.refinement
+    if r is None:
+        return None
+
+    def spread(x):
+        return {"mean": float(np.mean(x)), "p95": float(np.percentile(x, 95)), "max": float(np.max(x))}
+
+    return {"target_to_source": spread(corr.distance), "source_to_target": spread(r.distance),
+            "stiffness_lengths": [float(x) for x in r.lengths], "paired_fraction": float(r.paired.mean())}
 
 
 def transfer_notes(corr: Correspondence, far: np.ndarray, limit: float, target_has_uvs: bool, units: str) -> list[str]:
