@@ -89,6 +89,26 @@ def _template_inside(box, mask: np.ndarray) -> bool:
     return bool(inside.all() and mask[row, col].all())
 
 
+def _box(centre, halves, scale) -> list:
+    """UV rectangle [u0, v0, u1, v1] of half-sizes ``halves`` (surface units) about ``centre``."""
+    hu, hv = halves[0] / scale[0], halves[1] / scale[1]
+    return [float(centre[0] - hu), float(centre[1] - hv), float(centre[0] + hu), float(centre[1] + hv)]
+
+
+def _elongate(centre, half: float, scale, mask: np.ndarray, most: float = 4.0) -> tuple:
+    """The largest-area of the square and the rectangles stretched along u or v (up to ``most``
+    times) about ``centre`` that fit in the region (half-sizes in surface units)."""
+    best = (half, half)
+    for axis in (0, 1):
+        for k in np.linspace(1.25, most, 12):
+            halves = (half * k, half) if axis == 0 else (half, half * k)
+            if not _template_inside(_box(centre, halves, scale), mask):
+                break
+            if halves[0] * halves[1] > best[0] * best[1]:
+                best = halves
+    return best
+
+
 def region_layout(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, displacements: np.ndarray,
                   share: float = 0.25, resolution: int = 512) -> list:
     """Where each region is, from the displacement (R, V, 3) of its driving expressions.
@@ -101,7 +121,8 @@ def region_layout(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, di
     pattern is centred on the template and sized to it, in surface units.
 
     Returns per region: ``vertices`` (its group: the pattern's footprint), ``centre`` (UV),
-    ``scale`` (surface length per unit u, v), ``half`` (template half-size, surface units),
+    ``scale`` (surface length per unit u, v), ``half`` (template half-sizes along u and v, surface
+    units; a thin region's template is stretched along it),
     ``template`` [u0, v0, u1, v1] and the stripes' ``angle`` and ``wavelength`` (surface units).
     """
     from scipy import ndimage
@@ -136,14 +157,14 @@ def region_layout(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, di
         ju, jv = np.median(scales[texel_face[near]], axis=0)  # the stretch where the template lies
         half = 0.7 * float(depth[i, j])  # its corners (and half-step offsets) about at the depth
         for _ in range(20):
-            box = [centre[0] - half / ju, centre[1] - half / jv, centre[0] + half / ju, centre[1] + half / jv]
-            if _template_inside(box, mask):
+            if _template_inside(_box(centre, (half, half), (ju, jv)), mask):
                 break
             half *= 0.85
-        d = np.hypot((vertex_uv[:, 0] - centre[0]) * ju, (vertex_uv[:, 1] - centre[1]) * jv)
-        out.append({"centre": centre, "scale": np.array([ju, jv]), "half": half, "template": [float(x) for x in box],
-                    "wavelength": 2 * half / 3.0, "angle": float(np.pi * ((r * 0.37) % 1.0)),
-                    "vertices": np.flatnonzero(d < 3.0 * half)})
+        halves = _elongate(centre, half, (ju, jv), mask)  # along a thin region (an eyelid) as far as it fits
+        d = np.hypot((vertex_uv[:, 0] - centre[0]) * ju / halves[0], (vertex_uv[:, 1] - centre[1]) * jv / halves[1])
+        out.append({"centre": centre, "scale": np.array([ju, jv]), "half": np.array(halves),
+                    "template": _box(centre, halves, (ju, jv)), "wavelength": 2 * min(halves) / 3.0,
+                    "angle": float(np.pi * ((r * 0.37) % 1.0)), "vertices": np.flatnonzero(d < 3.0)})
     return out
 
 
@@ -165,7 +186,7 @@ def wrinkle_fields(size: int, layout: list) -> np.ndarray:
     for o in layout:
         x = (u - o["centre"][0]) * o["scale"][0]
         y = (v - o["centre"][1]) * o["scale"][1]
-        bump = np.exp(-0.5 * (x * x + y * y) / (1.2 * o["half"]) ** 2)
+        bump = np.exp(-0.5 * ((x / (1.2 * o["half"][0])) ** 2 + (y / (1.2 * o["half"][1])) ** 2))
         s = x * np.cos(o["angle"]) + y * np.sin(o["angle"])
         stripes = 0.5 * (1.0 + np.cos(2 * np.pi * s / o["wavelength"]))
         fields.append((0.55 * bump * stripes ** 2).astype(np.float32))
