@@ -29,7 +29,7 @@ from facepipe.core.render import rasterize
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.io.atomic import atomic_path
 
-__all__ = ["Scene", "make_scene", "region_layout", "skin_texture", "wrinkle_fields", "render_frame",
+__all__ = ["Scene", "make_scene", "uv_scales", "region_layout", "skin_texture", "wrinkle_fields", "render_frame",
            "write_appearance_footage"]
 
 
@@ -65,50 +65,106 @@ def make_scene(rest: np.ndarray, size: int = 512, fill: float = 0.75, distortion
     return Scene(K, np.asarray(distortion, dtype=np.float64), size, size, R, t, light / np.linalg.norm(light))
 
 
-def _fits(box, corner_uv) -> bool:
-    """Whether a template rectangle and its half-step offsets lie on the UV layout (no hole)."""
-    from facepipe.pipeline.appearance import locate_uv, template_points  # where the config will be checked
+def uv_scales(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray) -> np.ndarray:
+    """(F, 2) surface length per unit of u and of v on every triangle (the columns' norms of the
+    Jacobian of the UV → surface map); NaN on triangles degenerate in UV."""
+    e3 = np.stack([rest[faces[:, 1]] - rest[faces[:, 0]], rest[faces[:, 2]] - rest[faces[:, 0]]], axis=-1)  # (F,3,2)
+    e2 = np.stack([corner_uv[:, 1] - corner_uv[:, 0], corner_uv[:, 2] - corner_uv[:, 0]], axis=-1)  # (F,2,2)
+    det = e2[:, 0, 0] * e2[:, 1, 1] - e2[:, 0, 1] * e2[:, 1, 0]
+    ok = np.abs(det) > 1e-14
+    inv = np.full_like(e2, np.nan)
+    inv[ok] = np.linalg.inv(e2[ok])
+    return np.linalg.norm(e3 @ inv, axis=1)
 
-    return bool((locate_uv(template_points(box, 16).reshape(-1, 2), corner_uv)[0] >= 0).all())
+
+def _template_inside(box, mask: np.ndarray) -> bool:
+    """Whether a template rectangle and its half-step offsets lie on texels of ``mask`` (the region)."""
+    from facepipe.pipeline.appearance import template_points  # the points the config's template becomes
+
+    n = mask.shape[0]
+    pts = template_points(box, 16).reshape(-1, 2)
+    col = np.floor(pts[:, 0] * n).astype(np.int64)
+    row = np.floor((1.0 - pts[:, 1]) * n).astype(np.int64)
+    inside = (col >= 0) & (col < n) & (row >= 0) & (row < n)
+    return bool(inside.all() and mask[row, col].all())
 
 
-def region_layout(rest: np.ndarray, vertex_uv: np.ndarray, displacements: np.ndarray, share: float = 0.5,
-                  corner_uv: np.ndarray | None = None) -> dict:
+def _box(centre, halves, scale) -> list:
+    """UV rectangle [u0, v0, u1, v1] of half-sizes ``halves`` (surface units) about ``centre``."""
+    hu, hv = halves[0] / scale[0], halves[1] / scale[1]
+    return [float(centre[0] - hu), float(centre[1] - hv), float(centre[0] + hu), float(centre[1] + hv)]
+
+
+def _elongate(centre, half: float, scale, mask: np.ndarray, most: float = 4.0) -> tuple:
+    """The largest-area of the square and the rectangles stretched along u or v (up to ``most``
+    times) about ``centre`` that fit in the region (half-sizes in surface units)."""
+    best = (half, half)
+    for axis in (0, 1):
+        for k in np.linspace(1.25, most, 12):
+            halves = (half * k, half) if axis == 0 else (half, half * k)
+            if not _template_inside(_box(centre, halves, scale), mask):
+                break
+            if halves[0] * halves[1] > best[0] * best[1]:
+                best = halves
+    return best
+
+
+def region_layout(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, displacements: np.ndarray,
+                  share: float = 0.25, resolution: int = 512) -> list:
     """Where each region is, from the displacement (R, V, 3) of its driving expressions.
 
-    A vertex belongs to the region whose displacement is largest there, if at least ``share`` of
-    that region's largest. Returns per region: ``vertices`` (its group, spread over the pattern's
-    footprint), ``centre`` (UV, displacement-weighted), ``radius`` (UV), ``template``
-    [u0, v0, u1, v1] and the stripes' ``angle`` and ``wavelength``.
+    A region's surface is the triangles whose vertices all move most for it, by at least
+    ``share`` of its largest displacement. Its template is a square on the surface (a rectangle
+    in UV, its sides scaled by the UV layout's local stretch) at the place that moves most for
+    how deep it lies inside that surface (away from holes such as the eyes and mouth, from the
+    UV layout's seams and from the neighbouring regions), as large as fits there. The wrinkle
+    pattern is centred on the template and sized to it, in surface units.
+
+    Returns per region: ``vertices`` (its group: the pattern's footprint), ``centre`` (UV),
+    ``scale`` (surface length per unit u, v), ``half`` (template half-sizes along u and v, surface
+    units; a thin region's template is stretched along it),
+    ``template`` [u0, v0, u1, v1] and the stripes' ``angle`` and ``wavelength`` (surface units).
     """
+    from scipy import ndimage
+
+    from facepipe.pipeline.appearance import texel_map
+
     mag = np.linalg.norm(displacements, axis=-1)  # (R, V)
     owner = np.argmax(mag, axis=0)
+    scales = uv_scales(rest, faces, corner_uv)
+    texel_face, texel_bary = texel_map(corner_uv, resolution)
+    covered = texel_face >= 0
+    tf = np.maximum(texel_face, 0)
+    vertex_uv = np.zeros((rest.shape[0], 2))
+    vertex_uv[faces.ravel()] = corner_uv.reshape(-1, 2)
+    rows, cols = np.mgrid[0:resolution, 0:resolution]
+    texel_uv = np.stack([(cols + 0.5) / resolution, 1.0 - (rows + 0.5) / resolution], axis=-1)
     out = []
     for r in range(mag.shape[0]):
-        core = (owner == r) & (mag[r] >= share * mag[r].max())
-        w = mag[r, core] ** 2
-        centre = (vertex_uv[core] * w[:, None]).sum(axis=0) / w.sum()
-        spread = float(np.sqrt((w * ((vertex_uv[core] - centre) ** 2).sum(axis=1)).sum() / w.sum()))
-        out.append({"centre": centre, "radius": max(spread, 1e-3),
-                    "candidates": vertex_uv[core][np.argsort(-mag[r, core])]})
-    centres = np.array([o["centre"] for o in out])
-    for r, o in enumerate(out):  # patterns of neighbouring regions kept apart
-        others = np.delete(centres, r, axis=0)
-        gap = float(np.min(np.linalg.norm(others - o["centre"], axis=1))) if len(others) else np.inf
-        o["radius"] = min(o["radius"] * 1.5, 0.6 * gap)
-        half = 0.45 * o["radius"]
-        if corner_uv is not None:  # off holes (the mouth): the most moving place the template fits
-            for c in [o["centre"], *o.pop("candidates")]:
-                box = [c[0] - half, c[1] - half, c[0] + half, c[1] + half]
-                if _fits(box, corner_uv):
-                    o["centre"] = np.asarray(c)
-                    break
-        o.pop("candidates", None)
-        o["template"] = [float(o["centre"][0] - half), float(o["centre"][1] - half),
-                         float(o["centre"][0] + half), float(o["centre"][1] + half)]
-        o["wavelength"] = 2 * half / 3.0
-        o["angle"] = float(np.pi * ((r * 0.37) % 1.0))
-        o["vertices"] = np.flatnonzero(np.linalg.norm(vertex_uv - o["centre"], axis=1) < 1.4 * o["radius"])
+        moving = (owner == r) & (mag[r] >= share * mag[r].max())
+        tri = moving[faces].all(axis=1) & np.isfinite(scales).all(axis=1)
+        mask = covered & tri[tf]
+        if not mask.any():
+            raise ValueError(f"region {r}: no triangle moves mostly for it")
+        ju, jv = np.median(scales[tri], axis=0)
+        # depth in surface units: distance to the region's border in UV, each axis by its stretch
+        depth = ndimage.distance_transform_edt(mask, sampling=(jv / resolution, ju / resolution))
+        moved = np.einsum("hwk,hwk->hw", texel_bary, mag[r][faces[tf]]) * mask
+        i, j = np.unravel_index(np.argmax(depth * moved), mask.shape)
+        centre = texel_uv[i, j]
+        near = mask & (np.hypot((texel_uv[..., 0] - centre[0]) * ju, (texel_uv[..., 1] - centre[1]) * jv)
+                       <= depth[i, j])
+        ju, jv = np.median(scales[texel_face[near]], axis=0)  # the stretch where the template lies
+        half = 0.7 * float(depth[i, j])  # its corners (and half-step offsets) about at the depth
+        for _ in range(20):
+            if _template_inside(_box(centre, (half, half), (ju, jv)), mask):
+                break
+            half *= 0.85
+        halves = _elongate(centre, half, (ju, jv), mask)  # along a thin region (an eyelid) as far as it fits
+        d = np.hypot((vertex_uv[:, 0] - centre[0]) * ju / halves[0], (vertex_uv[:, 1] - centre[1]) * jv / halves[1])
+        out.append({"centre": centre, "scale": np.array([ju, jv]), "half": np.array(halves),
+                    "template": _box(centre, halves, (ju, jv)), "wavelength": 2 * min(halves) / 3.0,
+                    "angle": float(np.pi * ((r * 0.37) % 1.0)), "vertices": np.flatnonzero(d < 3.0)})
     return out
 
 
@@ -123,13 +179,15 @@ def skin_texture(size: int, seed: int = 0) -> np.ndarray:
 
 
 def wrinkle_fields(size: int, layout: list) -> np.ndarray:
-    """(R, size, size) darkening of each region at full activation: stripes under a smooth bump."""
+    """(R, size, size) darkening of each region at full activation: stripes under a smooth bump
+    covering its template, in surface units (the UV stretch undone)."""
     v, u = np.meshgrid(1.0 - (np.arange(size) + 0.5) / size, (np.arange(size) + 0.5) / size, indexing="ij")
     fields = []
     for o in layout:
-        d2 = (u - o["centre"][0]) ** 2 + (v - o["centre"][1]) ** 2
-        bump = np.exp(-0.5 * d2 / (0.6 * o["radius"]) ** 2)
-        s = (u - o["centre"][0]) * np.cos(o["angle"]) + (v - o["centre"][1]) * np.sin(o["angle"])
+        x = (u - o["centre"][0]) * o["scale"][0]
+        y = (v - o["centre"][1]) * o["scale"][1]
+        bump = np.exp(-0.5 * ((x / (1.2 * o["half"][0])) ** 2 + (y / (1.2 * o["half"][1])) ** 2))
+        s = x * np.cos(o["angle"]) + y * np.sin(o["angle"])
         stripes = 0.5 * (1.0 + np.cos(2 * np.pi * s / o["wavelength"]))
         fields.append((0.55 * bump * stripes ** 2).astype(np.float32))
     return np.stack(fields)
@@ -245,11 +303,9 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     (out / "regions").mkdir(parents=True, exist_ok=True)
     faces = mesh.faces
     corner_uv = mesh.uvs[mesh.face_uvs]
-    vertex_uv = np.zeros((rest.shape[0], 2))
-    vertex_uv[faces.ravel()] = corner_uv.reshape(-1, 2)
     names = list(drivers)
     disp = np.stack([np.mean([expressions[d] - rest for d in drivers[r]], axis=0) for r in names])
-    layout = region_layout(rest, vertex_uv, disp, corner_uv=corner_uv)
+    layout = region_layout(rest, faces, corner_uv, disp)
     skin = skin_texture(texture_size, seed)
     fields = wrinkle_fields(texture_size, layout)
     scene = make_scene(rest, size)
