@@ -684,11 +684,19 @@ class NoveltyGate:
         step = 1.0 / np.maximum(np.linalg.eigvalsh(gram)[:, -1], 1e-30)[:, None, None]
         return A, gram, step, np.where(live, norm, 0.0)
 
+    def site_confidence(self, rho: np.ndarray, tau: float | None = None) -> np.ndarray:
+        """Per-site confidence 1 / (1 + (ρ/τ)^sharpness) from the unexplained fractions ρ (Q, F);
+        ``tau`` defaults to the gate's own (validation scores several τ on one set of fits)."""
+        tau = self.tau if tau is None else tau
+        if tau <= 0:
+            return np.ones_like(rho)
+        return 1.0 / (1.0 + (rho / tau) ** self.sharpness)
+
     def confidence(self, features: np.ndarray) -> np.ndarray:
         """Per-vertex confidence in [0, 1]: (Q, F) → (Q, V)."""
         if self.tau <= 0:
             return np.ones((features.shape[0], self.alpha.shape[0]))
-        site = 1.0 / (1.0 + (self.novelty(features) / self.tau) ** self.sharpness)
+        site = self.site_confidence(self.novelty(features))
         return np.asarray(self.alpha @ site.T).T
 
 
