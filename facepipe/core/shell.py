@@ -499,6 +499,51 @@ def solve_shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarr
     return ShellBasis(B, factor.backend, dict(factor.passed_over))
 
 
+def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray | None,
+                        handle_displacements: np.ndarray, k_stretch: float = 0.0, k_bend: float = 1.0,
+                        spacing: float | None = None) -> np.ndarray:
+    """The shell's displacements u = B · u_H for a few handle displacements, without B.
+
+    The same constrained system as :func:`solve_shell_basis`, solved for the given frames' 3·E
+    right-hand sides instead of B's H columns: where only a few poses are needed (validating the
+    stiffness on the examples) this is the factorisation plus a few substitutions.
+
+    Parameters
+    ----------
+    handle_displacements : (E, H, 3) displacements of ``handles``; other parameters as in
+        :func:`solve_shell_basis`.
+
+    Returns
+    -------
+    (E, V, 3) float64 displacements: ``handle_displacements`` on the handles, 0 on the anchors.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    handles = np.asarray(handles, dtype=np.int64)
+    u_h = np.asarray(handle_displacements, dtype=np.float64)
+    n, E = vertices.shape[0], u_h.shape[0]
+    if spacing is None:
+        spacing = marker_spacing(vertices, handles)
+    A = sp.csr_matrix(shell_operator(vertices, faces, k_stretch, k_bend, spacing))
+    free, constrained = constrained_split(n, handles, anchors)
+    U, _, _ = constrained_system(A, constrained, handles[:0])
+    x = np.zeros((n, 3 * E))
+    x[handles] = np.moveaxis(u_h, 0, 1).reshape(len(handles), 3 * E)
+    # the free rows move with −A_fh u_h; the prescribed rows hold their values (as B's columns do)
+    rhs = -(A @ x)
+    rhs[constrained] = 0.0
+    rhs[handles] = x[handles]
+    if not free.any():
+        return np.moveaxis(rhs.reshape(n, E, 3), 1, 0).copy()
+    rows = np.union1d(A[handles].indices, handles)
+    factor = CholeskyFactor(U, upper=True, rhs_rows=rows)
+    del U
+    out = factor.solve(np.asfortranarray(rhs))
+    factor.close()
+    out[constrained] = 0.0
+    out[handles] = x[handles]
+    return np.moveaxis(out.reshape(n, E, 3), 1, 0).copy()
+
+
 def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarray
                        ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
     """The symmetric system A with its constrained rows and columns replaced by the identity.

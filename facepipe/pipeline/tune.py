@@ -30,7 +30,6 @@ error the details would do harm: ``fallback`` then turns them off (method ``none
 from __future__ import annotations
 
 import copy
-import dataclasses
 import threading
 import time
 
@@ -40,12 +39,13 @@ import scipy.sparse as sp
 from facepipe.errors import InputError
 from facepipe.parallel import map_blocks
 from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
-from facepipe.core.shell import shell_basis
+from facepipe.core.shell import marker_spacing, shell_displacements
+from facepipe.core.tangent_frames import FramePatch, frame_neighbors, to_local
 from facepipe.core.strain import edge_graph
 from facepipe.pipeline.geodesics import geodesic_from
 from facepipe.pipeline.cross_validation import expression_groups, holdout_folds
 from facepipe.pipeline.evaluate import parse_vertex_range
-from facepipe.pipeline.fit import build_geometry
+from facepipe.pipeline.fit import Geometry, feature_graph
 
 
 def _with_unique(values, default) -> list[float]:
@@ -79,12 +79,12 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     limit = 1.0 + tune.max_regression
 
     # ---- stage 1: shell stiffness, validated by the examples' large-scale error
-    geo = build_geometry(rig)
+    geo = _shape_geometry(rig, geodesics)
     poses = np.concatenate([geo.rest[None], rig.example_positions])
     features = geo.features(poses[:, geo.handles])
     default = _default_parameters(cfg, geo.rest_lengths, len(names))
     k_values = _with_unique(tune.k_stretch, default["k_stretch"])
-    geometries, shell_errors = _shell_candidates(rig, geo, poses, vertices, k_values, say)
+    sampled_details, shell_errors = _shell_candidates(rig, geo, poses, vertices, sample, k_values, say)
     t_shell = time.perf_counter() - t0
     shell_rows = shell_table(shell_errors, default["k_stretch"], limit)
     best_k = min((r for r in shell_rows if r["accepted"]), key=lambda r: (r["large_rms"], r["k_stretch"]))["k_stretch"]
@@ -100,13 +100,15 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     tau_values = _with_unique(tune.novelty_tau, default["novelty_tau"])
     grid = detail_grid(best_k, default, beta_values, smooth_values)
     alphas = _sample_edge_weights(distances, geo, sample, beta_values, cfg.psd)
-    details = {k: geometries[k].details(poses)[:, sample] for k in {g[0] for g in grid}}
+    details = {k: sampled_details[k] for k in {g[0] for g in grid}}
     # held-out error without details
     large = {k: rms_per_pose(np.zeros_like(details[k][1:]), details[k][1:]) for k in details}
     errors, dropped = _cross_validate_details(
         cfg.psd, features, details, alphas, splits, grid, tau_values, default, best_k, max_poses,
         site_distance=edge_distances(distances[:, geo.handles], geo.edges),
-        radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)), say=say)
+        radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)),
+        moves=poses[:, geo.handles] - geo.rest[geo.handles], marker_distance=distances[:, geo.handles],
+        edges=geo.edges, say=say)
     t_details = time.perf_counter() - t0 - t_shell
     default_key = (default["k_stretch"], default["beta_scale"], default["smoothing"], default["novelty_tau"])
     # a fold whose training set is smaller than P keeps its largest basis for the larger P
@@ -195,23 +197,34 @@ def _default_parameters(cfg, rest_lengths: np.ndarray, n_examples: int) -> dict:
             "poses": min(cfg.psd.max_poses, n_examples)}
 
 
-def _shell_candidates(rig, geo, poses: np.ndarray, vertices: np.ndarray, k_values: list[float],
-                      say) -> tuple[dict, dict]:
-    """The geometry of every k_stretch (one factorisation each; the config's is ``geo``) and the
-    examples' large-scale RMS per example on ``vertices``: ({k: Geometry}, {k: (E,) errors})."""
+def _shape_geometry(rig, geodesics=None) -> Geometry:
+    """The rig's geometry without a large-scale basis (validation solves the shell per stiffness
+    for the examples alone): rest mesh, feature graph, frame neighbours, marker spacing."""
+    rest, faces, handles = rig.mesh.vertices, rig.mesh.faces, rig.handles
+    edges, rest_lengths = feature_graph(rig, geodesics.graph if geodesics is not None else None)
+    return Geometry(rest, faces, handles, None, edges, rest_lengths, frame_neighbors(faces, len(rest)),
+                    marker_spacing(rest, handles))
+
+
+def _shell_candidates(rig, geo, poses: np.ndarray, vertices: np.ndarray, sample: np.ndarray,
+                      k_values: list[float], say) -> tuple[dict, dict]:
+    """Per k_stretch, the poses' details on the ``sample`` vertices and the examples' large-scale
+    RMS on ``vertices``: ({k: (E + 1, S, 3)}, {k: (E,) errors}).
+
+    B is not needed for this: one factorisation per k and the poses' own right-hand sides
+    (:func:`~facepipe.core.shell.shell_displacements`), whatever the number of handles."""
     cfg = rig.config
-    geometries = {}
-    shell_errors = {}
+    details, shell_errors = {}, {}
+    moves = poses[:, geo.handles] - geo.rest[geo.handles]
+    patch = FramePatch.around(geo.faces, len(geo.rest), sample)
     for i, k in enumerate(k_values):
-        if k == cfg.shell.k_stretch:  # build_geometry factored this one already
-            geometries[k] = geo
-        else:
-            B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
-                            spacing=geo.spacing)
-            geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
-        shell_errors[k] = rms_per_pose(geometries[k].large_scale(poses[1:]), poses[1:], vertices)
+        large = geo.rest + shell_displacements(geo.rest, geo.faces, geo.handles, rig.anchors, moves, k_stretch=k,
+                                               k_bend=cfg.shell.k_bend, spacing=geo.spacing)
+        shell_errors[k] = rms_per_pose(large[1:], poses[1:], vertices)
+        details[k] = to_local(patch.frames(large), poses[:, sample] - large[:, sample])
+        del large
         say("shell", i + 1, len(k_values))
-    return geometries, shell_errors
+    return details, shell_errors
 
 
 def shell_table(shell_errors: dict, default_k: float, limit: float) -> list[dict]:
@@ -260,7 +273,8 @@ def expression_splits(names: list[str], folds: int) -> list[tuple[np.ndarray, np
 
 def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: dict, splits: list, grid: list,
                             tau_values: list[float], default: dict, best_k: float, max_poses: int, *,
-                            site_distance: np.ndarray, radius: float, say) -> tuple[dict, dict]:
+                            site_distance: np.ndarray, radius: float, moves: np.ndarray,
+                            marker_distance: np.ndarray, edges: np.ndarray, say) -> tuple[dict, dict]:
     """The held-out error of every example per (k, β, λ, τ) and basis size.
 
     For each (training, held-out) split the greedy basis grows on the training poses and
@@ -270,7 +284,8 @@ def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: di
 
     The novelty gate depends on the strain features alone, and τ only rescales its output: its
     non-negative fits run once per split, and every β (how sites reach vertices) and τ is
-    scored on them.
+    scored on them. ``moves`` (E + 1, H, 3): the poses' handle displacements, ``marker_distance``
+    (H, H) and ``edges`` (F, 2) for the gate's motion part.
     """
     n_poses = features.shape[0]
     errors: dict[tuple, np.ndarray] = {}
@@ -281,8 +296,9 @@ def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: di
     for i, (train, held) in enumerate(splits):
         P_max = min(max_poses, len(train) - 1)
         identity = sp.identity(features.shape[1], format="csr")
-        gate = novelty_gate(features[train[1:]], site_distance, identity, 1.0, radius)
-        rho = gate.novelty(features[held])
+        gate = novelty_gate(features[train[1:]], site_distance, identity, 1.0, radius,
+                            example_displacements=moves[train[1:]], marker_distance=marker_distance, edges=edges)
+        rho = gate.novelty(features[held], moves[held])
         taus = {c: tau_values if c != default_shell or best_k == default["k_stretch"] else [default["novelty_tau"]]
                 for c in live}
         for (k, b, s), ts in taus.items():
@@ -394,11 +410,6 @@ def choose_candidate(rows: list[dict], errors: dict, default_row: dict) -> dict:
 
 def _key(row: dict) -> tuple:
     return row["k_stretch"], row["beta_scale"], row["smoothing"], row["novelty_tau"]
-
-
-def _confidence(gate, tau: float, features: np.ndarray) -> np.ndarray:
-    """The gate's per-vertex confidence at threshold τ (0: no gate)."""
-    return dataclasses.replace(gate, tau=tau).confidence(features)
 
 
 def _default_beta_scale(psd, rest_lengths) -> float:
