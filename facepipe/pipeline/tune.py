@@ -1,4 +1,4 @@
-"""Choosing the rig's parameters by validation on its own examples (``fit --tune``).
+"""Choosing the rig's parameters by validation on its own examples (what ``fit`` does by default).
 
 Two stages, both deterministic and bounded by the candidate grid of the ``[tune]`` table:
 
@@ -159,10 +159,7 @@ def check_tunable(cfg, n_examples: int, names: list[str] | None = None) -> None:
     """InputError unless the rig's examples can validate its parameters (:func:`validation_obstacle`)."""
     why = validation_obstacle(cfg, names if names is not None else [f"example{i}" for i in range(n_examples)])
     if why is not None:
-        hints = {"rbf": "set [shell] method = 'shell', or fit with --no-tune",
-                 "none": "[psd] method = 'wpsd' or 'psd'"}
-        hint = next((h for key, h in hints.items() if f"'{key}'" in why), "add example poses, or fit with --no-tune")
-        raise InputError(why, path=cfg.path, hint=hint)
+        raise InputError(why, path=cfg.path, hint="change the config or the examples as it says, or fit with --no-tune")
 
 
 def choose_parameters(rig, enabled: bool = True, progress=None, geodesics=None) -> dict:
@@ -282,9 +279,9 @@ def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: di
     RMS, NaN where a split's basis stops short}, {(k, β, λ): splits done before it was dropped}
     for the candidates stopped early (:func:`_clearly_worse`).
 
-    The novelty gate depends on the strain features alone, and τ only rescales its output: its
-    non-negative fits run once per split, and every β (how sites reach vertices) and τ is
-    scored on them. ``moves`` (E + 1, H, 3): the poses' handle displacements, ``marker_distance``
+    The novelty gate depends on the poses' strain and handle motion alone (not on k, β or λ), and
+    τ only rescales its output: its non-negative fits run once per split, and every β (how sites
+    reach vertices) and τ is scored on them. ``moves`` (E + 1, H, 3): the poses' handle displacements, ``marker_distance``
     (H, H) and ``edges`` (F, 2) for the gate's motion part.
     """
     n_poses = features.shape[0]
