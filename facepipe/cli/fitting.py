@@ -78,8 +78,8 @@ def say_choice(rep, report: dict, units: str) -> None:
     if report["harm"]:
         what = "details turned off ([psd] method = none)" if report["fallback"] else \
             "kept, as [tune] fallback = false"
-        rep.say(f"warning: the validated error with details is not below the large-scale-only error: the details "
-                f"would do harm on unseen expressions; {what}")
+        rep.say(f"warning: the validated error with details is above the large-scale-only error by more than "
+                f"{100 * report['max_regression']:g} %: the details would do harm on unseen expressions; {what}")
 
 
 def solver_line(deformer: str, solver: str | None, passed_over: dict | None = None) -> str:
