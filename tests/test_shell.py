@@ -469,6 +469,11 @@ def test_shell_displacements_of_a_few_poses_equal_the_basis_times_the_handles(k_
     u = rng.normal(scale=0.2, size=(4, len(handles), 3))
     B = shell.shell_basis(vertices, faces, handles, anchors, k_stretch=k_stretch)
     got = shell.shell_displacements(vertices, faces, handles, anchors, u, k_stretch=k_stretch)
+    parts = shell.ShellParts.of(vertices, faces)  # the products made once, the same operator
+    again = shell.shell_displacements(vertices, faces, handles, anchors, u, k_stretch=k_stretch, parts=parts)
+    np.testing.assert_array_equal(again, got)
+    A = shell.shell_operator(vertices, faces, k_stretch, 1.0, shell.marker_spacing(vertices, handles))
+    assert (parts.operator(k_stretch, 1.0, shell.marker_spacing(vertices, handles)) != A).nnz == 0
     np.testing.assert_allclose(got, np.einsum("vh,ehc->evc", B, u), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(got[:, handles], u)  # the handles hold their prescribed motion
     if anchored:

@@ -40,7 +40,7 @@ import scipy.sparse as sp
 from facepipe.errors import InputError
 from facepipe.parallel import map_blocks
 from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
-from facepipe.core.shell import marker_spacing, shell_displacements
+from facepipe.core.shell import ShellParts, marker_spacing, shell_displacements
 from facepipe.core.tangent_frames import FramePatch, frame_neighbors, to_local
 from facepipe.core.strain import edge_graph
 from facepipe.pipeline.geodesics import geodesic_from
@@ -219,9 +219,10 @@ def _shell_candidates(rig, geo, poses: np.ndarray, vertices: np.ndarray, sample:
     details, shell_errors = {}, {}
     moves = poses[:, geo.handles] - geo.rest[geo.handles]
     patch = FramePatch.around(geo.faces, len(geo.rest), sample)
+    parts = ShellParts.of(geo.rest, geo.faces)  # the Laplacian's products, shared by every k
     for i, k in enumerate(k_values):
         large = geo.rest + shell_displacements(geo.rest, geo.faces, geo.handles, rig.anchors, moves, k_stretch=k,
-                                               k_bend=cfg.shell.k_bend, spacing=geo.spacing)
+                                               k_bend=cfg.shell.k_bend, spacing=geo.spacing, parts=parts)
         shell_errors[k] = rms_per_pose(large[1:], poses[1:], vertices)
         details[k] = to_local(patch.frames(large), poses[:, sample] - large[:, sample])
         del large
