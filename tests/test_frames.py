@@ -54,3 +54,20 @@ def test_detail_round_trip(sheet):
     d = to_local(R, pose - large)
     assert np.allclose(large + to_world(R, d), pose, atol=1e-12)
     assert np.allclose(d[H], 0, atol=1e-12)
+
+
+def test_frames_of_a_patch_are_the_mesh_frames_at_the_subset():
+    """Frames at a vertex subset from the faces around it equal the whole mesh's frames there."""
+    import numpy as np
+
+    from facepipe.core.psd import spread_subset
+    from facepipe.core.tangent_frames import FramePatch, frame_neighbors, local_frames
+    vertices, faces = grid(60, 50)
+    V = len(vertices)
+    rng = np.random.default_rng(0)
+    poses = vertices + rng.normal(scale=0.01, size=(3,) + vertices.shape)
+    subset = spread_subset(V, 200)
+    whole = local_frames(poses, faces, frame_neighbors(faces, V))[:, subset]
+    patch = FramePatch.around(faces, V, subset)
+    assert len(patch.vertices) < V / 2
+    np.testing.assert_allclose(patch.frames(poses), whole, rtol=0, atol=1e-12)

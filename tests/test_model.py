@@ -24,7 +24,10 @@ DTYPES_BEFORE = {"rest": np.float32, "triangles": np.int32, "polygon_offsets": n
                  "basis_features": np.float32, "rbf_weights": np.float32, "rbf_const": np.float32,
                  "edge_index": np.int32, "edge_weight": np.float32, "example_handles": np.float32}
 OPTIONAL_BEFORE = {"uvs": np.float32, "polygon_uvs": np.int32, "novelty_index": np.int32,
-                   "novelty_weight": np.float32, "novelty_examples": np.float32, "novelty_solve": np.float32}
+                   "novelty_weight": np.float32, "novelty_examples": np.float32, "novelty_solve": np.float32,
+                   # the novelty gate's motion part
+                   "novelty_motion_index": np.int32, "novelty_motion_weight": np.float32,
+                   "novelty_motion_examples": np.float32, "novelty_motion_scale": np.float32}
 ARRAYS_BEFORE = list(DTYPES_BEFORE)
 GROUP_NAMES = ["default", "brow", "cheek", "jaw"]
 

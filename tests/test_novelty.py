@@ -1,6 +1,7 @@
 import logging
 
 import numpy as np
+import pytest
 from scipy.optimize import nnls
 
 from facepipe.pipeline.baselines import global_blend_weights, local_blend_operator, local_blend_positions
@@ -156,3 +157,92 @@ def test_novelty_fit_stops_each_fit_on_its_own():
     together = gate.novelty_fit(queries).rho
     alone = np.concatenate([gate.novelty_fit(queries[q:q + 1]).rho for q in range(len(queries))])
     assert np.allclose(alone, together, rtol=0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- the gate's motion part
+
+
+def _surface_graph(seed=4):
+    """A small planar marker graph in the xy plane: handles, feature edges, distances."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 10, size=(40, 2))
+    rest = np.concatenate([xy, np.zeros((40, 1))], axis=1)
+    tri = Delaunay(xy).simplices
+    edges = np.unique(np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [0, 2]]]), axis=1), axis=0)
+    marker_distance = np.linalg.norm(rest[:, None] - rest[None], axis=-1)
+    return rest, edges, marker_distance
+
+
+def _strain(handles, rest, edges):
+    from facepipe.core.strain import edge_lengths, strain_features
+
+    return strain_features(handles, edges, edge_lengths(rest, edges))
+
+
+def test_motion_part_separates_a_bulge_from_a_scaled_example():
+    """Out-of-surface motion changes the feature edges' lengths only to second order: an
+    expression that sinks the markers where an example slides them in the plane can show that
+    example's scaled strain. The strain test passes it; the motion part does not, while genuine
+    non-negative mixtures of the examples stay seen."""
+    rest, edges, marker_distance = _surface_graph()
+    rng = np.random.default_rng(5)
+    H, F = len(rest), len(edges)
+    # examples: smooth in-plane motions (stretches and shears of regions) of the marker sheet
+    centres = rng.uniform(2, 8, size=(4, 2))
+    moves = np.zeros((4, H, 3))
+    for e, c in enumerate(centres):
+        fall = np.exp(-np.sum((rest[:, :2] - c) ** 2, axis=1) / 6.0)
+        moves[e, :, :2] = 0.4 * fall[:, None] * (rest[:, :2] - c) * (1 if e % 2 else -1)
+    feats = _strain(rest + moves, rest, edges)
+    site_distance = edge_distances(marker_distance, edges)
+    alpha = edge_weight_matrix(np.arange(F)[:, None], np.ones((F, 1)), F)
+    kwargs = dict(example_displacements=moves, marker_distance=marker_distance, edges=edges)
+    gate = novelty_gate(feats, site_distance, alpha, tau=0.2, radius=3.0, max_edges=24, **kwargs)
+    strain_only = novelty_gate(feats, site_distance, alpha, tau=0.2, radius=3.0, max_edges=24)
+    assert gate.has_motion and not strain_only.has_motion
+    # mixtures: small weights keep the strain close to linear in the motion
+    w = rng.uniform(0, 0.1, size=(5, 4))
+    mix = np.einsum("qe,ehc->qhc", w, moves)
+    rho_mix = gate.novelty(_strain(rest + mix, rest, edges), mix)
+    assert rho_mix.max() < 0.05
+    # a scaled example plus a sinking of its region along the normal (z): the strain barely moves
+    scaled = 0.1 * moves[0]
+    bulge = scaled.copy()
+    bulge[:, 2] = -0.5 * np.exp(-np.sum((rest[:, :2] - centres[0]) ** 2, axis=1) / 6.0)
+    f_bulge = _strain(rest + bulge, rest, edges)[None]
+    near = np.argsort(np.linalg.norm(0.5 * (rest[edges[:, 0], :2] + rest[edges[:, 1], :2]) - centres[0], axis=1))[:5]
+    assert strain_only.novelty(f_bulge)[0, near].max() < 0.2  # the strain test calls it seen ...
+    assert gate.novelty(f_bulge, bulge[None])[0, near].min() > 0.5  # ... the motion says otherwise
+    # a translation of the whole sheet is no motion relative to the sites
+    shifted = mix + np.array([0.3, -0.2, 0.5])
+    assert np.allclose(gate.novelty(_strain(rest + shifted, rest, edges), shifted), rho_mix, atol=1e-6)
+
+
+def test_motion_part_matches_exact_nnls_of_each_part():
+    """ρ with the motion part: the larger of the strain's and the motion's unexplained fractions,
+    each from its own non-negative fit (checked against SciPy's NNLS per site)."""
+    rest, edges, marker_distance = _surface_graph(seed=6)
+    rng = np.random.default_rng(7)
+    H, F = len(rest), len(edges)
+    moves = rng.normal(scale=0.1, size=(5, H, 3))
+    feats = _strain(rest + moves, rest, edges)
+    alpha = edge_weight_matrix(np.arange(F)[:, None], np.ones((F, 1)), F)
+    gate = novelty_gate(feats, edge_distances(marker_distance, edges), alpha, tau=0.2, radius=3.0, max_edges=16,
+                        example_displacements=moves, marker_distance=marker_distance, edges=edges)
+    queries = rng.normal(scale=0.1, size=(3, H, 3)) + 0.5 * moves[:3]
+    qf = _strain(rest + queries, rest, edges)
+    rho = gate.novelty(qf, queries, tolerance=1e-12, max_iterations=20000)
+    strain = qf[:, gate.index] * gate.sqrt_weight
+    motion = gate.motion_vectors(queries)
+    for q in range(3):
+        for s in range(0, F, 7):
+            parts = []
+            for x, A in ((strain[q, s], gate.examples[s]), (motion[q, s], gate.motion_examples[s])):
+                c, _ = nnls(A.T.astype(np.float64), x)
+                r = x - A.T.astype(np.float64) @ c
+                parts.append(r @ r / (x @ x + 1e-12))
+            assert abs(rho[q, s] - min(1.0, max(parts))) < 1e-3
+    with pytest.raises(ValueError, match="displacements"):
+        gate.novelty(qf)

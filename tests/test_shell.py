@@ -457,3 +457,24 @@ def test_fit_and_model_record_the_shell_solver(tmp_path, monkeypatch, capsys):
     from facepipe.io.model_file import load_model
 
     assert load_model(tmp_path / "model.npz").meta["shell"]["solver"] == report["shell_solver"]
+
+
+@pytest.mark.parametrize("k_stretch, anchored", [(0.0, True), (3.0, False)])
+def test_shell_displacements_of_a_few_poses_equal_the_basis_times_the_handles(k_stretch, anchored):
+    """Solving the shell for a few poses' right-hand sides gives B · u_H, without forming B."""
+    vertices, faces = grid(16, 14)
+    rng = np.random.default_rng(3)
+    handles = rng.choice(len(vertices), 20, replace=False)
+    anchors = np.setdiff1d(np.arange(0, len(vertices), 16), handles) if anchored else None
+    u = rng.normal(scale=0.2, size=(4, len(handles), 3))
+    B = shell.shell_basis(vertices, faces, handles, anchors, k_stretch=k_stretch)
+    got = shell.shell_displacements(vertices, faces, handles, anchors, u, k_stretch=k_stretch)
+    parts = shell.ShellParts.of(vertices, faces)  # the products made once, the same operator
+    again = shell.shell_displacements(vertices, faces, handles, anchors, u, k_stretch=k_stretch, parts=parts)
+    np.testing.assert_array_equal(again, got)
+    A = shell.shell_operator(vertices, faces, k_stretch, 1.0, shell.marker_spacing(vertices, handles))
+    assert (parts.operator(k_stretch, 1.0, shell.marker_spacing(vertices, handles)) != A).nnz == 0
+    np.testing.assert_allclose(got, np.einsum("vh,ehc->evc", B, u), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(got[:, handles], u)  # the handles hold their prescribed motion
+    if anchored:
+        assert not got[:, anchors].any()

@@ -148,3 +148,92 @@ def test_cli_tune_bad_input_exits_2(sample, tmp_path):
     out = tmp_path / "fit.npz"
     assert run_cli("fit", cfg, "-o", out, "--tune", "-q") == 2
     assert not out.exists() and not (tmp_path / "fit.tune.json").exists()
+
+
+# ----------------------------------------------------------------------------- validated by default
+
+
+def test_expression_splits_hold_every_example_out_once():
+    from facepipe.pipeline.tune import expression_splits
+
+    names = ["smile_L", "smile_R", "blink_L", "blink_R", "jawOpen", "pucker", "frown"]
+    splits = expression_splits(names, 3)
+    held = np.sort(np.concatenate([h for _, h in splits]))
+    assert np.array_equal(held, np.arange(1, len(names) + 1))  # pose indices: every example once
+    for train, h in splits:
+        assert train[0] == 0 and not set(train) & set(h)  # the rest pose always trains, never held
+        assert set(train) | set(h) == set(range(len(names) + 1))
+        sides = {names[j - 1].rsplit("_", 1)[0] for j in h}
+        assert not any(names[j - 1].rsplit("_", 1)[0] in sides for j in train[1:])  # halves go together
+
+
+def test_stopping_clearly_worse_candidates_early_keeps_the_choice(tmp_path, monkeypatch):
+    """The candidates dropped after the first folds are never the ones the full search picks."""
+    import facepipe.pipeline.tune as tune_module
+
+    config = write_sample_rig(tmp_path, n_vertices=2000, n_examples=12, n_frames=4)["config"]
+    table = dict(k_stretch=[0.0, 3.0], beta_scale=[0.1, 1.0, 8.0], smoothing=[0.0, 1.0], max_poses=4, folds=6)
+    pruned = tune_rig(load_rig(config), TuneConfig(**table))
+    monkeypatch.setattr(tune_module, "CLEARLY_WORSE_SE", np.inf)
+    full = tune_rig(load_rig(config), TuneConfig(**table))
+    assert pruned["stopped_early"] and not full["stopped_early"]
+    assert pruned["chosen"] == full["chosen"]
+    assert pruned["default"] == full["default"]
+    dropped = {(r["k_stretch"], r["beta_scale"], r["smoothing"]) for r in pruned["stopped_early"]}
+    kept = {(r["k_stretch"], r["beta_scale"], r["smoothing"]) for r in pruned["details"]}
+    assert not dropped & kept
+    chosen = full["chosen"]
+    assert (chosen["k_stretch"], chosen["beta_scale"], chosen["smoothing"]) not in dropped
+
+
+def test_clearly_worse_needs_a_clear_paired_difference():
+    from facepipe.pipeline.tune import _clearly_worse
+
+    rng = np.random.default_rng(0)
+    base = rng.uniform(1.0, 2.0, size=(3, 8))
+    errors = {("a", 1, 0, 0.1): base, ("b", 1, 0, 0.1): base * 1.2,  # worse on every example
+              ("c", 1, 0, 0.1): base + rng.normal(scale=0.05, size=base.shape),  # as good, within noise
+              ("d", 1, 0, 0.1): base * 1.5}  # the defaults' reference: kept whatever its error
+    live = [k[:3] for k in errors]
+    worse = _clearly_worse(errors, live, np.arange(8), keep=("d", 1, 0))
+    assert worse == [("b", 1, 0)]
+    assert _clearly_worse(errors, live, np.arange(2), keep=("d", 1, 0)) == []  # too few examples to tell
+
+
+def test_fit_validates_by_default_and_no_tune_keeps_the_config(sample, tmp_path):
+    cfg = Path(sample["config"]).parent / "small_tune.toml"
+    cfg.write_text(Path(sample["config"]).read_text(encoding="utf-8")
+                   + "\n[tune]\nk_stretch = [0.0, 1.0]\nbeta_scale = [1.0]\nsmoothing = [0.0]\n"
+                   "max_poses = 3\nfolds = 3\n", encoding="utf-8")
+    assert run_cli("fit", cfg, "-o", tmp_path / "default.npz", "-q") == 0
+    assert run_cli("fit", cfg, "-o", tmp_path / "alias.npz", "--tune", "-q") == 0
+    assert run_cli("fit", cfg, "-o", tmp_path / "fixed.npz", "--no-tune", "-q") == 0
+    default = json.loads((tmp_path / "default.json").read_text())
+    alias = json.loads((tmp_path / "alias.json").read_text())
+    fixed = json.loads((tmp_path / "fixed.json").read_text())
+    assert default["validation"] == {"validated": True} and (tmp_path / "default.tune.json").is_file()
+    assert default["tune"]["chosen"] == alias["tune"]["chosen"] and default["basis"] == alias["basis"]
+    assert fixed["validation"] == {"validated": False, "reason": "disabled"} and "tune" not in fixed
+    assert not (tmp_path / "fixed.tune.json").exists()
+    config = load_config(cfg)
+    assert fixed["k_stretch"] == config.shell.k_stretch and len(fixed["basis"]) - 1 == config.psd.max_poses
+    # bake CONFIG validates the same way
+    assert run_cli("bake", cfg, "-o", tmp_path / "model.npz", "-q") == 0
+    from facepipe.io.model_file import load_model
+
+    assert load_model(tmp_path / "model.npz").meta["tuned"]["k_stretch"] == default["tune"]["chosen"]["k_stretch"]
+
+
+def test_fit_warns_and_keeps_the_defaults_when_the_examples_cannot_validate(sample, tmp_path, capsys):
+    cfg = Path(sample["config"]).parent / "two_examples.toml"
+    text = Path(sample["config"]).read_text(encoding="utf-8")
+    rig = load_rig(sample["config"])
+    assert len(rig.example_names) >= 2
+    pattern = next(line for line in text.splitlines() if line.startswith("meshes"))
+    first_two = [str(p) for p in sorted(Path(sample["config"]).parent.glob("expressions/*.obj"))[:2]]
+    cfg.write_text(text.replace(pattern, "meshes = " + json.dumps(first_two)), encoding="utf-8")
+    assert run_cli("fit", cfg, "-o", tmp_path / "fit.npz") == 0
+    out = capsys.readouterr().out
+    assert "warning: parameters not validated" in out and "at least 3 example poses" in out
+    report = json.loads((tmp_path / "fit.json").read_text())
+    assert report["validation"]["validated"] is False and "tune" not in report

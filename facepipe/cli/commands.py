@@ -87,82 +87,15 @@ def cli(ctx, quiet, verbose):
 # ----------------------------------------------------------------------------- fit / bake
 
 
-def _run_fit(config, rep: Reporter, tune: bool = False):
-    from facepipe.pipeline.fit import fit_config
+def _run_fit(config, rep: Reporter, tune: bool = True):
+    from facepipe.cli.fitting import run_fit
 
-    t0 = time.perf_counter()
-    tuning = {}
-
-    def prepare(rig, geodesics):
-        rep.say(f"rig: {rig.mesh.n_vertices} vertices, {len(rig.handles)} handles, {len(rig.anchors)} anchors, "
-                f"{len(rig.example_names)} example poses")
-        if tune:
-            tuning["report"] = _tune(rig, rep, geodesics)
-
-    def progress(method, n, curve):
-        rep.detail(f"  {method}: {n:2d} poses  mean RMS {curve['mean_rms']:.4f}  max {curve['max_rms']:.4f}")
-
-    rig, fit = fit_config(config, progress=progress, prepare=prepare)
-    rep.detail(_solver_line(fit.report["deformer"], fit.report["shell_solver"], fit.report["shell_solver_passed_over"]))
-    if tuning:
-        fit.report["tune"] = tuning["report"]
-    fit.report["seconds"]["total"] = time.perf_counter() - t0
-    return rig, fit
+    return run_fit(config, rep, tune=tune)
 
 
-def _solver_line(deformer: str, solver: str | None, passed_over: dict | None = None) -> str:
-    """Which sparse solver factored the shell, and the ones passed over before it (--verbose)."""
-    if deformer == "rbf":
-        return "large scale: RBF volume morph (dense solve)"
-    if solver is None:
-        return "shell solver: none (every vertex prescribed, nothing to factor)"
-    skipped = "; ".join(f"{name} passed over: {why}" for name, why in (passed_over or {}).items())
-    return f"shell solver: {solver}" + (f" ({skipped})" if skipped else "")
-
-
-def _tune(rig, rep: Reporter, geodesics=None) -> dict:
-    """Cross-validate the [tune] candidates and switch the rig's config to the chosen values."""
-    from facepipe.pipeline.tune import tune_rig, tuned_config
-
-    bars = {}
-
-    def step(stage, done, total):
-        if stage not in bars:
-            bars[stage] = rep.bar(total, unit="fit" if stage == "details" else "shell", desc=f"tune {stage}")
-        bars[stage].update(1)
-        if done == total:
-            bars[stage].close()
-
-    report = tune_rig(rig, progress=step, geodesics=geodesics)
-    rig.config = tuned_config(rig.config, report)
-    units = rig.config.units
-    c, d = report["chosen"], report["default"]
-    rep.say(f"tuned in {report['seconds']['total']:.1f} s: k_stretch {c['k_stretch']:g}, β ×{c['beta_scale']:g}, "
-            f"λ {c['smoothing']:g}, τ {c['novelty_tau']:g}, P {c['poses']}: held-out RMS {c['cv_rms']:.4f} {units} (defaults "
-            f"{d['cv_rms']:.4f}, large scale only {c['large_cv_rms']:.4f})")
-    if report["harm"]:
-        what = "details turned off ([psd] method = none)" if report["fallback"] else \
-            "kept, as [tune] fallback = false"
-        rep.say(f"warning: the validated error with details is not below the large-scale-only error: the details "
-                f"would do harm on unseen expressions; {what}")
-    return report
-
-
-def _print_fit_summary(rep: Reporter, fit, units: str) -> None:
-    r = fit.report
-    rep.say(f"feature graph: F = {r['feature_edges']} edges; marker spacing {r['marker_spacing']:.3f} {units}; "
-            f"WPSD β = {r['beta']:.3f}/{units}, {r['edges_per_vertex_mean']:.1f} edges per vertex")
-    rep.say(f"large-scale only: training RMS mean {r['large_scale_rms']['mean']:.4f} {units}")
-    for method, curve in r["curves"].items():
-        pts = "  ".join(f"P={c['poses']}:{c['mean_rms']:.4f}" for c in curve
-                        if c["poses"] in (0, 1, 2, 3, 6, 12) or c is curve[-1])
-        rep.say(f"{method.upper():5s} training RMS by basis size: {pts}")
-    rep.say(f"basis ({r['method']}): {', '.join(r['basis'])}")
-    if "holdout" in r:
-        h = r["holdout"]["summary"]
-        rep.say(f"held-out examples ({h['folds']} folds): large-scale RMS {h['large_rms_mean']:.4f}, final "
-                f"{h['final_rms_mean']:.4f} {units}; worst change {100 * h['worst_harm']:+.1f} %, "
-                f"{h['examples_made_worse_over_2pct']} made worse by more than 2 %")
+_TUNE_HELP = ("Choose k_stretch, the WPSD β, the RBF regularisation, the novelty gate's τ and the basis size by "
+              "validation on the examples (whole expressions held out; candidates in the config's [tune] table) — "
+              "the default whenever the examples allow it; --no-tune fits with the config's values.")
 
 
 @cli.command()
@@ -172,64 +105,29 @@ def _print_fit_summary(rep: Reporter, fit, units: str) -> None:
 @click.option("--holdout", default=0, show_default=True,
               help="Also cross-validate: refit leaving about K examples out at a time (left/right halves of an "
                    "expression together) and report the error on them, large-scale vs final.")
-@click.option("--tune", is_flag=True,
-              help="Choose k_stretch, the WPSD β, the RBF regularisation and the basis size by validation on the "
-                   "examples (candidates in the config's [tune] table); writes FIT.tune.json and FIT.tune.png.")
+@click.option("--tune/--no-tune", default=True, show_default=True, help=_TUNE_HELP + " Writes FIT.tune.json and "
+              "FIT.tune.png.")
 @_common
 @click.pass_context
 def fit(ctx, config, output, holdout, tune, quiet, verbose):
-    """Extract the examples' details and select the pose basis greedily."""
-    from facepipe.io.model_file import save_fit
+    """Extract the examples' details and select the pose basis greedily (parameters validated by default)."""
+    from facepipe.cli.fitting import fit_command
 
-    rep = _reporter(ctx, quiet, verbose)
-    rig, result = _run_fit(config, rep, tune=tune)
-    if holdout:
-        from facepipe.pipeline.cross_validation import holdout_errors
-
-        with rep.bar(0, unit="fold", desc="holdout") as bar:
-            def step(i, n):
-                bar.total = n
-                bar.update(1)
-
-            result.report["holdout"] = holdout_errors(rig, holdout, progress=step)
-    save_fit(output, result, rig)
-    report_path = Path(output).with_suffix(".json")
-    _write_json(report_path, result.report)
-    from facepipe.cli.preview import plot_fit_curves
-
-    plot_path = plot_fit_curves(result.report, Path(output).with_suffix(".png"), units=rig.config.units)
-    if tune:
-        from facepipe.cli.preview import plot_tuning
-
-        _write_json(Path(output).with_suffix(".tune.json"), result.report["tune"])
-        plot_tuning(result.report["tune"], Path(output).with_suffix(".tune.png"), units=rig.config.units)
-    _print_fit_summary(rep, result, rig.config.units)
-    rep.say(f"wrote {output}, {report_path} and {plot_path} ({result.report['seconds']['total']:.1f} s)")
+    fit_command(_reporter(ctx, quiet, verbose), config, output, holdout, tune, _write_json)
 
 
 @cli.command()
 @click.argument("source", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default="model.npz", show_default=True, type=click.Path(dir_okay=False))
+@click.option("--tune/--no-tune", default=True, show_default=True,
+              help=_TUNE_HELP + " Only for a CONFIG: a FIT.npz carries its own choice.")
 @_common
 @click.pass_context
-def bake(ctx, source, output, quiet, verbose):
+def bake(ctx, source, output, tune, quiet, verbose):
     """Write the model replay needs (float32, one file) from a CONFIG.toml or a FIT.npz."""
-    from facepipe.io.model_file import fit_to_model, model_arrays, save_model
+    from facepipe.cli.fitting import bake_command
 
-    rep = _reporter(ctx, quiet, verbose)
-    t0 = time.perf_counter()
-    if source.endswith(".npz"):
-        meta = fit_to_model(source, output)
-        shell = meta.get("shell", {})
-        rep.detail(_solver_line(shell.get("method", "shell"), shell.get("solver", "not recorded (an older fit file)")))
-    else:
-        rig, result = _run_fit(source, rep)
-        arrays, meta = model_arrays(result, rig)
-        save_model(output, arrays, meta)
-        _print_fit_summary(rep, result, rig.config.units)
-    size = Path(output).stat().st_size / 1e6
-    rep.say(f"wrote {output}: method {meta['method']}, {len(meta['basis']) - 1} basis poses, "
-            f"{size:.1f} MB ({time.perf_counter() - t0:.1f} s)")
+    bake_command(_reporter(ctx, quiet, verbose), source, output, tune)
 
 
 # ----------------------------------------------------------------------------- replay
@@ -485,7 +383,8 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
 @click.option("--compare", "compare_config", default=None, type=click.Path(dir_okay=False),
               help="CONFIG.toml: also fit it and compare baselines (shell, RBF morph, global and local blend "
                    "shapes, PSD and WPSD by basis size) on this replay's handles; writes compare.json/.png.")
-@click.option("--tune", is_flag=True, help="With --compare: fit the config with 'fit --tune' first.")
+@click.option("--tune/--no-tune", default=True, show_default=True,
+              help="With --compare: fit the config with its parameters validated, as 'fit' does (default).")
 @_common
 @click.pass_context
 def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, quiet, verbose):

@@ -22,6 +22,7 @@ itself always met exactly.
 from __future__ import annotations
 
 import logging
+import dataclasses
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -365,8 +366,9 @@ class DetailModel:
         """Kernel values: (Q, P) for PSD, (Q, V, P) for WPSD."""
         return kernel_matrix(self.method, features, self.basis_features, self.alpha)
 
-    def evaluate(self, features: np.ndarray) -> np.ndarray:
-        """Details in local frames for strain features (Q, F) → (Q, V, 3)."""
+    def evaluate(self, features: np.ndarray, displacements: np.ndarray | None = None) -> np.ndarray:
+        """Details in local frames for strain features (Q, F) → (Q, V, 3); ``displacements``
+        (Q, H, 3), the handles' displacements from the rest pose, for a gate that tests motion."""
         if self.method == "none":
             return np.zeros((features.shape[0],) + self.const.shape)
         phi = self.distances(features)
@@ -375,7 +377,7 @@ class DetailModel:
         else:
             d = np.einsum("qvp,vpc->qvc", phi, self.weights, optimize=True) + self.const
         if self.gate is not None:
-            d *= self.gate.confidence(features)[..., None]
+            d *= self.gate.confidence(features, displacements)[..., None]
         return d
 
 
@@ -529,6 +531,16 @@ class NoveltyGate:
     through the WPSD edge weights α. Computed at the F sites, not per vertex, it costs the
     same at any mesh resolution.
 
+    Strain alone is not enough: a feature edge's length changes only to second order when its
+    markers move out of the surface, so an expression whose markers bulge or sink differently
+    (an eyelid lowered by the gaze rather than by a blink) can show the strain of a scaled
+    example and receive that example's details. With the *motion* part (built from the
+    examples' handle displacements) the test at a site also takes the relative displacements of
+    the markers around it (weighted like the edges, the site's mean displacement removed, so a
+    translation of the region is no novelty) must lie in the cone of the examples' own (a
+    non-negative fit of its own), and ρ is the larger of the two parts' unexplained fractions —
+    never below the strain part's own.
+
     Attributes
     ----------
     index : (F, K) int32 neighbour edges of each site; sqrt_weight : (F, K) their √weights.
@@ -538,6 +550,10 @@ class NoveltyGate:
     alpha : (V, F) sparse vertex weights over the sites.
     unconverged_fits : running count of the (query, site) fits that :meth:`novelty` stopped at
         the iteration cap, for a caller's report (each such call also logs a warning).
+    motion_index : (F, M) int32 handles around each site, or None (strain only).
+    motion_weight : (F, M) their weights (summing to 1 per site).
+    motion_examples : (F, E, 3M) the examples' relative handle displacements per site, scaled.
+    motion_scale : (F,) the scale of the motion part per site (1 / the feature edges' median length).
     """
 
     index: np.ndarray
@@ -548,21 +564,35 @@ class NoveltyGate:
     alpha: sp.csr_matrix
     sharpness: float = 6.0  # seen mixtures leave ρ well below τ, unseen expressions well above: a steep step
     unconverged_fits: int = field(default=0, compare=False)
+    motion_index: np.ndarray | None = None
+    motion_weight: np.ndarray | None = None
+    motion_examples: np.ndarray | None = None
+    motion_scale: np.ndarray | None = None
 
-    def novelty(self, features: np.ndarray, tolerance: float = NOVELTY_TOLERANCE,
-                max_iterations: int = NOVELTY_MAX_ITERATIONS) -> np.ndarray:
-        """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) → (Q, F); see :meth:`novelty_fit`.
+    @property
+    def has_motion(self) -> bool:
+        return self.motion_examples is not None
+
+    def motion_vectors(self, displacements: np.ndarray) -> np.ndarray:
+        """The motion part of the site vectors: handle displacements (Q, H, 3) → (Q, F, 3M)."""
+        return motion_vectors(displacements, self.motion_index, self.motion_weight, self.motion_scale)
+
+    def novelty(self, features: np.ndarray, displacements: np.ndarray | None = None,
+                tolerance: float = NOVELTY_TOLERANCE, max_iterations: int = NOVELTY_MAX_ITERATIONS) -> np.ndarray:
+        """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) [, handle displacements (Q, H, 3)] →
+        (Q, F); see :meth:`novelty_fit`.
 
         Fits left unconverged are added to :attr:`unconverged_fits` and logged."""
-        fit = self.novelty_fit(features, tolerance, max_iterations)
+        fit = self.novelty_fit(features, displacements, tolerance, max_iterations)
         if fit.unconverged:
             self.unconverged_fits += fit.unconverged
             logger.warning("novelty gate: %d of %d site fits stopped after %d iterations, short of the tolerance "
                            "%g", fit.unconverged, fit.rho.size, max_iterations, tolerance)
         return fit.rho
 
-    def novelty_fit(self, features: np.ndarray, tolerance: float = NOVELTY_TOLERANCE,
-                    max_iterations: int = NOVELTY_MAX_ITERATIONS, finish_exactly: bool = True) -> NoveltyFit:
+    def novelty_fit(self, features: np.ndarray, displacements: np.ndarray | None = None,
+                    tolerance: float = NOVELTY_TOLERANCE, max_iterations: int = NOVELTY_MAX_ITERATIONS,
+                    finish_exactly: bool = True) -> NoveltyFit:
         """ρ per query and site, with the iterations taken and the fits left unconverged.
 
         The non-negative coefficients are found by accelerated projected gradient (FISTA) on
@@ -578,101 +608,148 @@ class NoveltyGate:
         stops are finished (``finish_exactly``) by an active-set NNLS (Lawson–Hanson, SciPy),
         exact in finitely many steps; only a fit that solver cannot finish either is
         ``unconverged``.
+
+        With a motion part (:attr:`motion_examples`), ``displacements`` (Q, H, 3) are the
+        handles' displacements from the rest pose; the motion is fitted by its own non-negative
+        fit (strain is not linear in the motion: one set of coefficients for both would call
+        large genuine mixtures novel) and ρ is the larger of the two unexplained fractions.
         """
         x = features[:, self.index] * self.sqrt_weight  # (Q, F, K)
-        energy = np.einsum("qsk,qsk->qs", x, x)
         if self.examples.shape[1] == 0:
-            return NoveltyFit(np.ones_like(energy), 0, 0)
-        A, gram, step, norm = self._cone
-        # sites first, queries last: the iterations are batched matrix products (BLAS)
-        xs = np.moveaxis(x, 0, 2)  # (F, K, Q)
-        b = np.matmul(A, xs)  # Aᵀx: (F, E, Q)
-        solve = self.solve.astype(np.float64)
-        coef = np.maximum(np.matmul(solve, xs), 0.0) * norm[..., None]
-        # the sites still iterating, and their fits' state
-        live = np.arange(coef.shape[0])
-        c, y, g, bl, st = coef.copy(), coef.copy(), gram, b, step
-        limit = tolerance * np.sqrt(energy).T  # (F, Q)
-        active = np.ones(limit.shape, dtype=bool)
-        t = 1.0
-        iterations = 0
-        while live.size and iterations < max_iterations:
-            new = np.matmul(g, y)
-            new -= bl
-            new *= st
-            np.subtract(y, new, out=new)
-            np.maximum(new, 0.0, out=new)
-            moved = y - new
-            moved = np.sqrt(np.einsum("seq,seq->sq", moved, moved))
-            t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
-            going = np.broadcast_to(active[:, None], c.shape)
-            # y ← new + m (new − c), c ← new, where the fit is still going
-            momentum = new - c
-            momentum *= (t - 1.0) / t_new
-            momentum += new
-            np.copyto(y, momentum, where=going)
-            np.copyto(c, new, where=going)
-            t = t_new
-            iterations += 1
-            active &= ~(moved <= limit)
-            finished = ~active.any(axis=1)
-            # sites whose fits have all stopped leave the batch, a few at a time (the copies cost)
-            if finished.sum() * 8 >= live.size:
-                coef[live[finished]] = c[finished]
-                keep = ~finished
-                live, c, y, g, bl, st, active, limit = (a[keep] for a in (live, c, y, g, bl, st, active, limit))
-        finished = 0
-        if finish_exactly and active.any():
-            finished = self._finish_exactly(c, active, live, xs, A)
-        coef[live] = c
-        residual = energy - (2.0 * np.einsum("seq,seq->qs", coef, b)
-                             - np.einsum("seq,seq->qs", coef, np.matmul(gram, coef)))
-        # a site barely strained at all is treated as seen (its details are near zero anyway)
-        rho = np.clip(np.maximum(residual, 0.0) / (energy + 1e-12), 0.0, 1.0)
-        return NoveltyFit(rho, iterations, int(active.sum()), finished)
-
-    @staticmethod
-    def _finish_exactly(c: np.ndarray, active: np.ndarray, live: np.ndarray, xs: np.ndarray, A: np.ndarray) -> int:
-        """Solve the still ``active`` fits exactly in place (``c``: (S, E, Q) coefficients of the
-        ``live`` sites, in the unit-norm examples' scale); marks them done. Returns how many."""
-        done = 0
-        for s_live, q in np.argwhere(active):
-            s = live[s_live]
-            try:
-                c[s_live, :, q] = nnls(A[s].T, xs[s, :, q])[0]
-            except RuntimeError:  # its own iteration cap: the batched iterate stays, reported
-                continue
-            active[s_live, q] = False
-            done += 1
-        return done
+            return NoveltyFit(np.ones(x.shape[:2]), 0, 0)
+        fits = [_cone_fit(x, self._cone, tolerance, max_iterations, finish_exactly)]
+        if self.has_motion:
+            if displacements is None:
+                raise ValueError("this novelty gate tests the handles' motion too: pass their displacements")
+            fits.append(_cone_fit(self.motion_vectors(displacements), self._motion_cone, tolerance, max_iterations,
+                                  finish_exactly))
+        return NoveltyFit(np.maximum.reduce([f.rho for f in fits]), max(f.iterations for f in fits),
+                          sum(f.unconverged for f in fits), sum(f.finished_exactly for f in fits))
 
     @cached_property
-    def _cone(self):
-        """Per-site examples scaled to unit norm, their Gram matrices, FISTA steps and the norms.
+    def _cone(self) -> "_Cone":
+        return _Cone.of(self.examples, self.solve)
 
-        Scaling every example's strain at a site to unit norm (Jacobi) makes an example that barely
-        strains the site as quick to fit as a strong one; positive scales keep the cone. Examples
-        with no strain at the site get scale 0 (they cannot explain anything there).
-        """
-        A = self.examples.astype(np.float64)  # (F, E, K)
+    @cached_property
+    def _motion_cone(self) -> "_Cone":
+        motion = self.motion_examples.astype(np.float64)
+        solve = np.linalg.pinv(np.swapaxes(motion, 1, 2), rcond=1e-2) if motion.shape[1] else motion
+        return _Cone.of(motion, solve)
+
+    def site_confidence(self, rho: np.ndarray, tau: float | None = None) -> np.ndarray:
+        """Per-site confidence 1 / (1 + (ρ/τ)^sharpness) from the unexplained fractions ρ (Q, F);
+        ``tau`` defaults to the gate's own (validation scores several τ on one set of fits)."""
+        tau = self.tau if tau is None else tau
+        if tau <= 0:
+            return np.ones_like(rho)
+        return 1.0 / (1.0 + (rho / tau) ** self.sharpness)
+
+    def confidence(self, features: np.ndarray, displacements: np.ndarray | None = None) -> np.ndarray:
+        """Per-vertex confidence in [0, 1]: (Q, F) [, handle displacements (Q, H, 3)] → (Q, V)."""
+        if self.tau <= 0:
+            return np.ones((features.shape[0], self.alpha.shape[0]))
+        site = self.site_confidence(self.novelty(features, displacements))
+        return np.asarray(self.alpha @ site.T).T
+
+
+@dataclass(frozen=True)
+class _Cone:
+    """The examples of one part of the site vectors, batched over the sites: (F, E, D) scaled to
+    unit norm per example and site (Jacobi: an example that barely reaches a site is as quick to
+    fit as a strong one; positive scales keep the cone; examples with nothing at the site get
+    scale 0: they cannot explain anything there), their Gram matrices, FISTA steps, the norms,
+    and the pseudo-inverse (F, E, D) of the unscaled examples for the first guess."""
+
+    A: np.ndarray
+    gram: np.ndarray
+    step: np.ndarray
+    norm: np.ndarray
+    solve: np.ndarray
+
+    @classmethod
+    def of(cls, examples: np.ndarray, solve: np.ndarray) -> "_Cone":
+        A = examples.astype(np.float64)  # (F, E, D)
         norm = np.sqrt(np.einsum("sek,sek->se", A, A))  # (F, E)
         live = norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
         A = A * np.where(live, 1.0 / np.maximum(norm, 1e-300), 0.0)[..., None]
         gram = np.matmul(A, np.swapaxes(A, 1, 2))  # (F, E, E)
         step = 1.0 / np.maximum(np.linalg.eigvalsh(gram)[:, -1], 1e-30)[:, None, None]
-        return A, gram, step, np.where(live, norm, 0.0)
+        return cls(A, gram, step, np.where(live, norm, 0.0), solve.astype(np.float64))
 
-    def confidence(self, features: np.ndarray) -> np.ndarray:
-        """Per-vertex confidence in [0, 1]: (Q, F) → (Q, V)."""
-        if self.tau <= 0:
-            return np.ones((features.shape[0], self.alpha.shape[0]))
-        site = 1.0 / (1.0 + (self.novelty(features) / self.tau) ** self.sharpness)
-        return np.asarray(self.alpha @ site.T).T
+
+def _cone_fit(x: np.ndarray, cone: _Cone, tolerance: float, max_iterations: int, finish_exactly: bool) -> NoveltyFit:
+    """The non-negative fits of the site vectors x (Q, F, D) by the cone's examples and their
+    unexplained fractions: see :meth:`NoveltyGate.novelty_fit`."""
+    energy = np.einsum("qsk,qsk->qs", x, x)
+    A, gram, step, norm = cone.A, cone.gram, cone.step, cone.norm
+    # sites first, queries last: the iterations are batched matrix products (BLAS)
+    xs = np.moveaxis(x, 0, 2)  # (F, D, Q)
+    b = np.matmul(A, xs)  # Aᵀx: (F, E, Q)
+    coef = np.maximum(np.matmul(cone.solve, xs), 0.0) * norm[..., None]
+    # the sites still iterating, and their fits' state
+    live = np.arange(coef.shape[0])
+    c, y, g, bl, st = coef.copy(), coef.copy(), gram, b, step
+    limit = tolerance * np.sqrt(energy).T  # (F, Q)
+    active = np.ones(limit.shape, dtype=bool)
+    t = 1.0
+    iterations = 0
+    while live.size and iterations < max_iterations:
+        new = np.matmul(g, y)
+        new -= bl
+        new *= st
+        np.subtract(y, new, out=new)
+        np.maximum(new, 0.0, out=new)
+        moved = y - new
+        moved = np.sqrt(np.einsum("seq,seq->sq", moved, moved))
+        t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+        going = np.broadcast_to(active[:, None], c.shape)
+        # y ← new + m (new − c), c ← new, where the fit is still going
+        momentum = new - c
+        momentum *= (t - 1.0) / t_new
+        momentum += new
+        np.copyto(y, momentum, where=going)
+        np.copyto(c, new, where=going)
+        t = t_new
+        iterations += 1
+        active &= ~(moved <= limit)
+        finished = ~active.any(axis=1)
+        # sites whose fits have all stopped leave the batch, a few at a time (the copies cost)
+        if finished.sum() * 8 >= live.size:
+            coef[live[finished]] = c[finished]
+            keep = ~finished
+            live, c, y, g, bl, st, active, limit = (a[keep] for a in (live, c, y, g, bl, st, active, limit))
+    finished = 0
+    if finish_exactly and active.any():
+        finished = _finish_exactly(c, active, live, xs, A)
+    coef[live] = c
+    residual = energy - (2.0 * np.einsum("seq,seq->qs", coef, b)
+                         - np.einsum("seq,seq->qs", coef, np.matmul(gram, coef)))
+    # a site barely strained (or moved) at all is treated as seen (its details are near zero anyway)
+    rho = np.clip(np.maximum(residual, 0.0) / (energy + 1e-12), 0.0, 1.0)
+    return NoveltyFit(rho, iterations, int(active.sum()), finished)
+
+
+def _finish_exactly(c: np.ndarray, active: np.ndarray, live: np.ndarray, xs: np.ndarray, A: np.ndarray) -> int:
+    """Solve the still ``active`` fits exactly in place (``c``: (S, E, Q) coefficients of the
+    ``live`` sites, in the unit-norm examples' scale); marks them done. Returns how many."""
+    done = 0
+    for s_live, q in np.argwhere(active):
+        s = live[s_live]
+        try:
+            c[s_live, :, q] = nnls(A[s].T, xs[s, :, q])[0]
+        except RuntimeError:  # its own iteration cap: the batched iterate stays, reported
+            continue
+        active[s_live, q] = False
+        done += 1
+    return done
 
 
 def novelty_gate(example_features: np.ndarray, edge_distance: np.ndarray, alpha: sp.csr_matrix, tau: float,
-                 radius: float, max_edges: int = 48, rcond: float = 1e-2) -> NoveltyGate:
-    """Build the gate from the examples' strain features.
+                 radius: float, max_edges: int = 48, rcond: float = 1e-2, *,
+                 example_displacements: np.ndarray | None = None, marker_distance: np.ndarray | None = None,
+                 edges: np.ndarray | None = None) -> NoveltyGate:
+    """Build the gate from the examples' strain features (and, given their handle displacements,
+    their motion: see :class:`NoveltyGate`).
 
     Parameters
     ----------
@@ -681,6 +758,12 @@ def novelty_gate(example_features: np.ndarray, edge_distance: np.ndarray, alpha:
         neighbourhood, length units.
     alpha : (V, F) WPSD vertex weights; tau : see :class:`NoveltyGate`.
     rcond : relative cut-off of the pseudo-inverse (nearly parallel examples).
+    example_displacements : (E, H, 3) the examples' handle displacements from the rest pose;
+        with ``marker_distance`` (H, H) geodesic distances between the handles and ``edges``
+        (F, 2) the feature edges, adds the motion part. A site's markers are the
+        ``max_edges // 2`` nearest (a triangulated graph has about three edges per vertex, and
+        each edge's two ends are shared: about that many markers lie on a site's edges),
+        weighted by the same Gaussian.
     """
     F = edge_distance.shape[0]
     K = min(max_edges, F)
@@ -689,5 +772,35 @@ def novelty_gate(example_features: np.ndarray, edge_distance: np.ndarray, alpha:
     sqrt_weight = np.sqrt(np.take_along_axis(W, index, axis=1))
     A = np.moveaxis(example_features[:, index] * sqrt_weight[None], 1, 0)  # (F, E, K)
     solve = np.linalg.pinv(np.swapaxes(A, 1, 2), rcond=rcond) if A.shape[1] else A  # (F, E, K)
-    return NoveltyGate(index.astype(np.int32), sqrt_weight.astype(np.float32), A.astype(np.float32),
+    gate = NoveltyGate(index.astype(np.int32), sqrt_weight.astype(np.float32), A.astype(np.float32),
                        solve.astype(np.float32), float(tau), alpha)
+    if example_displacements is None:
+        return gate
+    if marker_distance is None or edges is None:
+        raise ValueError("the motion part needs the handles' distances and the feature edges")
+    # a site's distance to a marker: the mean of its two end markers' (as between edges)
+    site_marker = 0.5 * (marker_distance[edges[:, 0]] + marker_distance[edges[:, 1]])  # (F, H)
+    M = min(max(K // 2, 1), site_marker.shape[1])
+    Wm = np.exp(-((site_marker / radius) ** 2))
+    motion_index = np.argsort(-Wm, axis=1, kind="stable")[:, :M]
+    motion_weight = np.take_along_axis(Wm, motion_index, axis=1)
+    motion_weight /= np.maximum(motion_weight.sum(axis=1, keepdims=True), 1e-300)
+    # motion in units of the feature edges' length, as strain is: the floor below which a site
+    # counts as unmoved then means the same for both parts
+    length = float(np.median(marker_distance[edges[:, 0], edges[:, 1]]))
+    scale = np.full(F, 1.0 / length if length > 0 else 1.0)
+    examples = np.moveaxis(motion_vectors(example_displacements, motion_index, motion_weight, scale), 1, 0)
+    return dataclasses.replace(gate, motion_index=motion_index.astype(np.int32),
+                               motion_weight=motion_weight.astype(np.float32),
+                               motion_examples=examples.astype(np.float32), motion_scale=scale.astype(np.float32))
+
+
+def motion_vectors(displacements: np.ndarray, index: np.ndarray, weight: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The relative motion of the markers around each site: handle displacements (Q, H, 3), the
+    sites' markers ``index`` (F, M) with ``weight`` (F, M) summing to 1 and ``scale`` (F,) →
+    (Q, F, 3M): √w_m (u_m − Σ w u) × scale, the site's weighted mean displacement removed."""
+    u = np.asarray(displacements, dtype=np.float64)[:, index]  # (Q, F, M, 3)
+    w = np.asarray(weight, dtype=np.float64)
+    u = u - np.einsum("fm,qfmc->qfc", w, u)[:, :, None]
+    u *= (np.sqrt(w) * np.asarray(scale, dtype=np.float64)[:, None])[None, :, :, None]
+    return u.reshape(u.shape[0], u.shape[1], -1)

@@ -176,15 +176,36 @@ def shell_operator(vertices: np.ndarray, faces: np.ndarray, k_stretch: float, k_
     A : (V, V) csr_matrix float64.
     """
     K = cotmatrix(vertices, faces)
-    terms = []
-    if k_bend:
+    if not k_bend:  # K M⁻¹ K is not needed
+        return ((k_stretch / spacing**2) * K).tocsr() if k_stretch else sp.csr_matrix(K.shape)
+    return ShellParts.of(vertices, faces, K).operator(k_stretch, k_bend, spacing)
+
+
+@dataclass(frozen=True)
+class ShellParts:
+    """The parts of the shell operator that do not depend on the stiffnesses: the cotangent
+    Laplacian K and K M⁻¹ K. Validation factors the shell for several k_stretch; the sparse
+    products are made once."""
+
+    K: sp.csr_matrix
+    KMK: sp.csr_matrix
+
+    @classmethod
+    def of(cls, vertices: np.ndarray, faces: np.ndarray, K: sp.csr_matrix | None = None) -> "ShellParts":
+        K = cotmatrix(vertices, faces) if K is None else K
         Minv = sp.diags(1.0 / massmatrix(vertices, faces))
-        terms.append(k_bend * (K @ Minv @ K))
-    if k_stretch:
-        terms.append((k_stretch / spacing**2) * K)
-    if not terms:
-        return sp.csr_matrix(K.shape)
-    return (terms[0] + terms[1] if len(terms) == 2 else terms[0]).tocsr()
+        return cls(K, K @ Minv @ K)
+
+    def operator(self, k_stretch: float, k_bend: float, spacing: float = 1.0) -> sp.csr_matrix:
+        """A = (k_stretch / h²) K + k_bend K M⁻¹ K (see :func:`shell_operator`), the same arithmetic."""
+        terms = []
+        if k_bend:
+            terms.append(k_bend * self.KMK)
+        if k_stretch:
+            terms.append((k_stretch / spacing**2) * self.K)
+        if not terms:
+            return sp.csr_matrix(self.K.shape)
+        return (terms[0] + terms[1] if len(terms) == 2 else terms[0]).tocsr()
 
 
 # PARDISO is told the right-hand sides are sparse when at most 1 / this of the rows are non-zero
@@ -497,6 +518,52 @@ def solve_shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarr
     B[constrained] = 0.0
     B[driven, np.arange(len(driven))] = 1.0
     return ShellBasis(B, factor.backend, dict(factor.passed_over))
+
+
+def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray | None,
+                        handle_displacements: np.ndarray, k_stretch: float = 0.0, k_bend: float = 1.0,
+                        spacing: float | None = None, parts: "ShellParts | None" = None) -> np.ndarray:
+    """The shell's displacements u = B · u_H for a few handle displacements, without B.
+
+    The same constrained system as :func:`solve_shell_basis`, solved for the given frames' 3·E
+    right-hand sides instead of B's H columns: where only a few poses are needed (validating the
+    stiffness on the examples) this is the factorisation plus a few substitutions.
+
+    Parameters
+    ----------
+    handle_displacements : (E, H, 3) displacements of ``handles``; parts : the mesh's
+        :class:`ShellParts`, if at hand; other parameters as in :func:`solve_shell_basis`.
+
+    Returns
+    -------
+    (E, V, 3) float64 displacements: ``handle_displacements`` on the handles, 0 on the anchors.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    handles = np.asarray(handles, dtype=np.int64)
+    u_h = np.asarray(handle_displacements, dtype=np.float64)
+    n, E = vertices.shape[0], u_h.shape[0]
+    if spacing is None:
+        spacing = marker_spacing(vertices, handles)
+    A = sp.csr_matrix(parts.operator(k_stretch, k_bend, spacing) if parts is not None
+                      else shell_operator(vertices, faces, k_stretch, k_bend, spacing))
+    free, constrained = constrained_split(n, handles, anchors)
+    U, _, _ = constrained_system(A, constrained, handles[:0])
+    x = np.zeros((n, 3 * E))
+    x[handles] = np.moveaxis(u_h, 0, 1).reshape(len(handles), 3 * E)
+    # the free rows move with −A_fh u_h; the prescribed rows hold their values (as B's columns do)
+    rhs = -(A @ x)
+    rhs[constrained] = 0.0
+    rhs[handles] = x[handles]
+    if not free.any():
+        return np.moveaxis(rhs.reshape(n, E, 3), 1, 0).copy()
+    rows = np.union1d(A[handles].indices, handles)
+    factor = CholeskyFactor(U, upper=True, rhs_rows=rows)
+    del U
+    out = factor.solve(np.asfortranarray(rhs))
+    factor.close()
+    out[constrained] = 0.0
+    out[handles] = x[handles]
+    return np.moveaxis(out.reshape(n, E, 3), 1, 0).copy()
 
 
 def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarray

@@ -61,7 +61,7 @@ class TuneConfig:
     max_poses: int = 16  # largest basis tried (at least [psd] max_poses, at most the training examples)
     folds: int = 5  # cross-validation folds (whole expressions per fold)
     vertices: str = ""  # vertex range the errors are measured on, e.g. "0:9409" (default: all)
-    sample_vertices: int = 3000  # the details are cross-validated on this many of them, evenly spread
+    sample_vertices: int = 1500  # the details are cross-validated on this many of them, evenly spread
     fallback: bool = True  # details validated worse than the large scale alone → method "none"
     # a candidate may not make any held-out example worse than the defaults (model or large scale
     # alone) by more than this fraction: better on average is not enough

@@ -72,6 +72,10 @@ class Model:
         √weights, or None without a gate.
     novelty_examples, novelty_solve : (F, E, K) the examples' local strain per site and its
         regularised pseudo-inverse, or None without a gate.
+    novelty_motion_index, novelty_motion_weight : (F, M) the handles around each site and their
+        weights, or None (a gate of strain alone).
+    novelty_motion_examples, novelty_motion_scale : (F, E, 3M) the examples' relative handle motion
+        around each site and (F,) its scale: the gate's motion part, or None.
     polygon_groups : (N,) index into ``group_names`` of every polygon's OBJ group (``g``), or None
         (a rest mesh without groups, or a file written before groups were kept).
     group_names : list of str, the OBJ group names (``"default"`` before the first ``g``), or None.
@@ -104,6 +108,10 @@ class Model:
     novelty_weight: np.ndarray | None = _stored(np.float32, optional=True)
     novelty_examples: np.ndarray | None = _stored(np.float32, optional=True)
     novelty_solve: np.ndarray | None = _stored(np.float32, optional=True)
+    novelty_motion_index: np.ndarray | None = _stored(np.int32, optional=True)
+    novelty_motion_weight: np.ndarray | None = _stored(np.float32, optional=True)
+    novelty_motion_examples: np.ndarray | None = _stored(np.float32, optional=True)
+    novelty_motion_scale: np.ndarray | None = _stored(np.float32, optional=True)
     polygon_groups: np.ndarray | None = _stored(np.int32, optional=True)
     group_names: list[str] | None = _stored(np.str_, optional=True)
     landmark_vertices: np.ndarray | None = _stored(np.int32, optional=True)
@@ -149,8 +157,13 @@ class Model:
         or another: the OpenCL engine takes per-site factors with the identity); None without one."""
         if self.novelty_solve is None or not self.meta.get("novelty_tau", 0) > 0:
             return None
+        motion = {}
+        if self.novelty_motion_examples is not None:
+            motion = dict(motion_index=self.novelty_motion_index, motion_weight=self.novelty_motion_weight.astype(dtype),
+                          motion_examples=self.novelty_motion_examples.astype(dtype),
+                          motion_scale=self.novelty_motion_scale.astype(dtype))
         return NoveltyGate(self.novelty_index, self.novelty_weight.astype(dtype), self.novelty_examples.astype(dtype),
-                           self.novelty_solve.astype(dtype), float(self.meta["novelty_tau"]), alpha)
+                           self.novelty_solve.astype(dtype), float(self.meta["novelty_tau"]), alpha, **motion)
 
     def mesh(self) -> Mesh:
         """The rest mesh with its original polygons, UVs and groups (for export)."""
@@ -200,6 +213,9 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
     if gate is not None:
         arrays.update(novelty_index=gate.index, novelty_weight=gate.sqrt_weight, novelty_examples=gate.examples,
                       novelty_solve=gate.solve)
+        if gate.has_motion:
+            arrays.update(novelty_motion_index=gate.motion_index, novelty_motion_weight=gate.motion_weight,
+                          novelty_motion_examples=gate.motion_examples, novelty_motion_scale=gate.motion_scale)
     if mesh.uvs is not None:
         arrays["uvs"] = mesh.uvs
         arrays["polygon_uvs"] = mesh.polygon_uvs

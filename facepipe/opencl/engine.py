@@ -133,9 +133,14 @@ def _site_gate(model):
         return None
     rows = spread_subset(model.n_vertices, 4096)
     alpha = edge_weight_matrix(model.edge_index[rows], model.edge_weight[rows], F)
-    probe = np.random.default_rng(0).normal(scale=0.05, size=(3, F)) + model.basis_features[-1].astype(np.float64)
-    expected = model.novelty_gate(alpha).confidence(probe)
-    got = np.asarray(alpha @ site_gate.confidence(probe).T).T
+    rng = np.random.default_rng(0)
+    probe = rng.normal(scale=0.05, size=(3, F)) + model.basis_features[-1].astype(np.float64)
+    # handle displacements for a gate that tests motion too: the last example's, perturbed
+    moves = model.example_handles[-1].astype(np.float64) - model.rest[model.handle_vertices].astype(np.float64) \
+        if model.example_handles is not None else np.zeros((len(model.handle_vertices), 3))
+    moves = moves[None] + rng.normal(scale=0.05 * float(np.median(model.rest_lengths)), size=(3,) + moves.shape)
+    expected = model.novelty_gate(alpha).confidence(probe, moves)
+    got = np.asarray(alpha @ site_gate.confidence(probe, moves).T).T
     if not np.allclose(got, expected, rtol=1e-6, atol=1e-9):
         raise RuntimeError("the model's novelty gate is not α · (per-site factors): update facepipe/opencl")
     return site_gate
@@ -322,8 +327,8 @@ class OpenCLEvaluator:
             features[:, :n] = f.T
             if self.method == "psd":
                 psd_r[:, :n] = psd_distances(f, self.basis).T
-            if self.gate is not None:
-                site[:, :n] = self.gate.confidence(f).T
+            if self.gate is not None:  # on the host, the NumPy reference's own code (float64)
+                site[:, :n] = self.gate.confidence(f, head - self.rest_handles).T
         rigid = np.zeros((12, C), dtype=np.float32)
         rigid[[0, 4, 8]] = 1.0
         if R is not None:

@@ -70,6 +70,7 @@ class DetailLayer:
         self.details = model.detail_model(np.float64)
         self.edges = model.edges.astype(np.int64)
         self.rest_lengths = model.rest_lengths.astype(np.float64)
+        self.rest_handles = model.rest[model.handle_vertices].astype(np.float64)  # the gate's motion part
         self._evaluator = None
 
     @property
@@ -89,7 +90,7 @@ class DetailLayer:
         """
         head = np.asarray(head, dtype=np.float64)
         if self.space == "local":
-            return self.details.evaluate(self.features(head))
+            return self.details.evaluate(self.features(head), head - self.rest_handles)
         if self._evaluator is None:
 
             self._evaluator = NumpyEvaluator(self.model)

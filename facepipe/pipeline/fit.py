@@ -259,7 +259,9 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
     gate = None
     if cfg.novelty_tau > 0 and len(poses) > 1:
         gate = novelty_gate(features[1:], edge_distances(handle_distances, geo.edges), alpha,
-                            cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)))
+                            cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)),
+                            example_displacements=poses[1:, handles] - rest[handles],
+                            marker_distance=handle_distances, edges=geo.edges)
     large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
     lap("weights")
     methods = ["psd", "wpsd"] if len(poses) > 1 else []

@@ -63,7 +63,7 @@ class NumpyEvaluator:
             frames = local_frames(large, self.faces, self.neighbors, self.incidence)
             t2 = time.perf_counter()
             f = strain_features(handle_positions, self.edges, self.rest_lengths)
-            final = large + to_world(frames, self.details.evaluate(f))
+            final = large + to_world(frames, self.details.evaluate(f, u))
             t3 = time.perf_counter()
             self.stage_seconds["frames"] += t2 - t1
             self.stage_seconds["fine_scale"] += t3 - t2

@@ -1,4 +1,4 @@
-"""Choosing the rig's parameters by validation on its own examples (``fit --tune``).
+"""Choosing the rig's parameters by validation on its own examples (what ``fit`` does by default).
 
 Two stages, both deterministic and bounded by the candidate grid of the ``[tune]`` table:
 
@@ -23,26 +23,30 @@ The defaults of the config are always among the candidates. A candidate is accep
 held-out example gets worse than with the defaults by more than ``max_regression``; among the
 accepted ones that validate as well as the best (within a standard error) and no worse than the
 defaults, the largest basis wins (see :func:`tune_rig`). So tuning never picks a setting validated
-worse than the defaults. When the validated error with details is not below the large-scale-only
-error the details would do harm: ``fallback`` then turns them off (method ``none``).
+worse than the defaults. When the validated error with details is above the large-scale-only
+error by more than ``max_regression`` the details would do harm: ``fallback`` then turns them off
+(method ``none``); details the novelty gate fades on held-out expressions are neutral there and kept.
 """
 
 from __future__ import annotations
 
 import copy
-import dataclasses
+import threading
 import time
 
 import numpy as np
+import scipy.sparse as sp
 
 from facepipe.errors import InputError
+from facepipe.parallel import map_blocks
 from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
-from facepipe.core.shell import shell_basis
+from facepipe.core.shell import ShellParts, marker_spacing, shell_displacements
+from facepipe.core.tangent_frames import FramePatch, frame_neighbors, to_local
 from facepipe.core.strain import edge_graph
 from facepipe.pipeline.geodesics import geodesic_from
-from facepipe.pipeline.cross_validation import holdout_folds
+from facepipe.pipeline.cross_validation import expression_groups, holdout_folds
 from facepipe.pipeline.evaluate import parse_vertex_range
-from facepipe.pipeline.fit import build_geometry
+from facepipe.pipeline.fit import Geometry, feature_graph
 
 
 def _with_unique(values, default) -> list[float]:
@@ -68,7 +72,7 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     """
     tune = tune or rig.config.tune
     cfg = rig.config
-    check_tunable(cfg, len(rig.example_names))
+    check_tunable(cfg, len(rig.example_names), list(rig.example_names))
     names = list(rig.example_names)
     vertices, sample = _validation_vertices(tune, rig.mesh.n_vertices)
     t0 = time.perf_counter()
@@ -76,18 +80,18 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     limit = 1.0 + tune.max_regression
 
     # ---- stage 1: shell stiffness, validated by the examples' large-scale error
-    geo = build_geometry(rig)
+    geo = _shape_geometry(rig, geodesics)
     poses = np.concatenate([geo.rest[None], rig.example_positions])
     features = geo.features(poses[:, geo.handles])
     default = _default_parameters(cfg, geo.rest_lengths, len(names))
     k_values = _with_unique(tune.k_stretch, default["k_stretch"])
-    geometries, shell_errors = _shell_candidates(rig, geo, poses, vertices, k_values, say)
+    sampled_details, shell_errors = _shell_candidates(rig, geo, poses, vertices, sample, k_values, say)
     t_shell = time.perf_counter() - t0
     shell_rows = shell_table(shell_errors, default["k_stretch"], limit)
     best_k = min((r for r in shell_rows if r["accepted"]), key=lambda r: (r["large_rms"], r["k_stretch"]))["k_stretch"]
 
     # ---- stage 2: β, λ, τ and P by leaving whole expressions out
-    folds = holdout_folds(names, max(1, int(round(len(names) / max(tune.folds, 2)))))
+    splits = expression_splits(names, tune.folds)
     distances = geodesics.finish() if geodesics is not None else \
         geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
     max_poses = min(max(tune.max_poses, default["poses"]), len(names))
@@ -97,13 +101,15 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     tau_values = _with_unique(tune.novelty_tau, default["novelty_tau"])
     grid = detail_grid(best_k, default, beta_values, smooth_values)
     alphas = _sample_edge_weights(distances, geo, sample, beta_values, cfg.psd)
-    details = {k: geometries[k].details(poses)[:, sample] for k in {g[0] for g in grid}}
+    details = {k: sampled_details[k] for k in {g[0] for g in grid}}
     # held-out error without details
     large = {k: rms_per_pose(np.zeros_like(details[k][1:]), details[k][1:]) for k in details}
-    errors = _cross_validate_details(
-        cfg.psd, features, details, alphas, folds, grid, tau_values, default, best_k, max_poses,
+    errors, dropped = _cross_validate_details(
+        cfg.psd, features, details, alphas, splits, grid, tau_values, default, best_k, max_poses,
         site_distance=edge_distances(distances[:, geo.handles], geo.edges),
-        radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)), say=say)
+        radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)),
+        moves=poses[:, geo.handles] - geo.rest[geo.handles], marker_distance=distances[:, geo.handles],
+        edges=geo.edges, say=say)
     t_details = time.perf_counter() - t0 - t_shell
     default_key = (default["k_stretch"], default["beta_scale"], default["smoothing"], default["novelty_tau"])
     # a fold whose training set is smaller than P keeps its largest basis for the larger P
@@ -111,13 +117,20 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     rows, default_row = detail_table(errors, large, default_key, default["poses"], max_poses, limit)
     chosen = choose_candidate(rows, errors, default_row)
     chosen = dict(chosen, large_cv_rms=float(large[chosen["k_stretch"]].mean()))
-    harm = chosen["cv_rms"] >= chosen["large_cv_rms"]
+    # harm only where the details validate worse than the large scale alone by more than a held-out
+    # example may regress: where the novelty gate fades them on the held-out (new) expressions they
+    # are neutral there, and they still carry the mixtures of the known expressions, which leaving
+    # whole expressions out does not measure
+    harm = chosen["cv_rms"] > limit * chosen["large_cv_rms"]
     return {
         "method": cfg.psd.method,
         "vertices": tune.vertices or "all",
         "sample_vertices": int(len(sample)),
         "examples": names,
-        "folds": [[names[j] for j in f] for f in folds],
+        "validation": "expressions",  # whole expressions left out: new expressions
+        "folds": [[names[j - 1] for j in held] for _, held in splits],
+        "stopped_early": [{"k_stretch": k, "beta_scale": b, "smoothing": s, "after_folds": n}
+                          for (k, b, s), n in dropped.items()],
         "max_regression": tune.max_regression,
         "shell": shell_rows,
         "details": rows,
@@ -132,17 +145,44 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     }
 
 
-def check_tunable(cfg, n_examples: int) -> None:
-    """InputError unless ``fit --tune`` can validate this rig: a thin shell, a detail method and
-    at least 3 examples."""
+def validation_obstacle(cfg, names: list[str]) -> str | None:
+    """Why the rig's examples cannot validate its parameters, or None when they can: a thin shell
+    (whose stiffness is chosen), a detail method, at least 3 examples in at least 2 expressions
+    (left and right halves count as one), so that every fold leaves some out and trains on others."""
     if cfg.shell.method != "shell":
-        raise InputError("fit --tune chooses the thin shell's stiffness; [shell] method is 'rbf'", path=cfg.path,
-                         hint="set [shell] method = 'shell', or fit without --tune")
+        return "validation chooses the thin shell's stiffness and [shell] method is 'rbf'"
     if cfg.psd.method == "none":
-        raise InputError("fit --tune needs a detail method", path=cfg.path, hint="[psd] method = 'wpsd' or 'psd'")
-    if n_examples < 3:
-        raise InputError(f"fit --tune needs at least 3 example poses to cross-validate, the rig has {n_examples}",
-                         path=cfg.path)
+        return "[psd] method is 'none': there are no details to validate"
+    if len(names) < 3:
+        return f"validation needs at least 3 example poses to cross-validate, the rig has {len(names)}"
+    if len(set(expression_groups(names).tolist())) < 2:
+        return "validation leaves whole expressions out and the examples are all one expression (left/right halves)"
+    return None
+
+
+def check_tunable(cfg, n_examples: int, names: list[str] | None = None) -> None:
+    """InputError unless the rig's examples can validate its parameters (:func:`validation_obstacle`)."""
+    why = validation_obstacle(cfg, names if names is not None else [f"example{i}" for i in range(n_examples)])
+    if why is not None:
+        raise InputError(why, path=cfg.path, hint="change the config or the examples as it says, or fit with --no-tune")
+
+
+def choose_parameters(rig, enabled: bool = True, progress=None, geodesics=None) -> dict:
+    """The validated choice that ``fit`` makes by default: when ``enabled`` and the examples allow
+    it, :func:`tune_rig`, and ``rig.config`` switched to the chosen values; otherwise the config's
+    own values stay.
+
+    Returns the tuning report with ``"validated": True``, or ``{"validated": False, "reason": why}``
+    (``"disabled"`` when not ``enabled``).
+    """
+    if not enabled:
+        return {"validated": False, "reason": "disabled"}
+    why = validation_obstacle(rig.config, list(rig.example_names))
+    if why is not None:
+        return {"validated": False, "reason": why}
+    report = tune_rig(rig, progress=progress, geodesics=geodesics)
+    rig.config = tuned_config(rig.config, report)
+    return dict(report, validated=True)
 
 
 def _validation_vertices(tune, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -159,23 +199,35 @@ def _default_parameters(cfg, rest_lengths: np.ndarray, n_examples: int) -> dict:
             "poses": min(cfg.psd.max_poses, n_examples)}
 
 
-def _shell_candidates(rig, geo, poses: np.ndarray, vertices: np.ndarray, k_values: list[float],
-                      say) -> tuple[dict, dict]:
-    """The geometry of every k_stretch (one factorisation each; the config's is ``geo``) and the
-    examples' large-scale RMS per example on ``vertices``: ({k: Geometry}, {k: (E,) errors})."""
+def _shape_geometry(rig, geodesics=None) -> Geometry:
+    """The rig's geometry without a large-scale basis (validation solves the shell per stiffness
+    for the examples alone): rest mesh, feature graph, frame neighbours, marker spacing."""
+    rest, faces, handles = rig.mesh.vertices, rig.mesh.faces, rig.handles
+    edges, rest_lengths = feature_graph(rig, geodesics.graph if geodesics is not None else None)
+    return Geometry(rest, faces, handles, None, edges, rest_lengths, frame_neighbors(faces, len(rest)),
+                    marker_spacing(rest, handles))
+
+
+def _shell_candidates(rig, geo, poses: np.ndarray, vertices: np.ndarray, sample: np.ndarray,
+                      k_values: list[float], say) -> tuple[dict, dict]:
+    """Per k_stretch, the poses' details on the ``sample`` vertices and the examples' large-scale
+    RMS on ``vertices``: ({k: (E + 1, S, 3)}, {k: (E,) errors}).
+
+    B is not needed for this: one factorisation per k and the poses' own right-hand sides
+    (:func:`~facepipe.core.shell.shell_displacements`), whatever the number of handles."""
     cfg = rig.config
-    geometries = {}
-    shell_errors = {}
+    details, shell_errors = {}, {}
+    moves = poses[:, geo.handles] - geo.rest[geo.handles]
+    patch = FramePatch.around(geo.faces, len(geo.rest), sample)
+    parts = ShellParts.of(geo.rest, geo.faces)  # the Laplacian's products, shared by every k
     for i, k in enumerate(k_values):
-        if k == cfg.shell.k_stretch:  # build_geometry factored this one already
-            geometries[k] = geo
-        else:
-            B = shell_basis(geo.rest, geo.faces, geo.handles, rig.anchors, k_stretch=k, k_bend=cfg.shell.k_bend,
-                            spacing=geo.spacing)
-            geometries[k] = dataclasses.replace(geo, B=B, incidence=geo.incidence)
-        shell_errors[k] = rms_per_pose(geometries[k].large_scale(poses[1:]), poses[1:], vertices)
+        large = geo.rest + shell_displacements(geo.rest, geo.faces, geo.handles, rig.anchors, moves, k_stretch=k,
+                                               k_bend=cfg.shell.k_bend, spacing=geo.spacing, parts=parts)
+        shell_errors[k] = rms_per_pose(large[1:], poses[1:], vertices)
+        details[k] = to_local(patch.frames(large), poses[:, sample] - large[:, sample])
+        del large
         say("shell", i + 1, len(k_values))
-    return geometries, shell_errors
+    return details, shell_errors
 
 
 def shell_table(shell_errors: dict, default_k: float, limit: float) -> list[dict]:
@@ -209,43 +261,112 @@ def _sample_edge_weights(distances: np.ndarray, geo, sample: np.ndarray, beta_va
     return alphas
 
 
-def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: dict, folds: list, grid: list,
+def expression_splits(names: list[str], folds: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(training, held-out) pose indices (pose 0 is the rest pose, always trained on) that leave
+    whole expressions out (:func:`~facepipe.pipeline.cross_validation.holdout_folds`): new
+    expressions. Every example is held out once.
+
+    Validation takes any list of such splits over the rest pose and the training poses, so other
+    schemes (held-out time blocks of a captured performance: new mixtures of known expressions)
+    produce splits of the same form."""
+    groups = holdout_folds(names, max(1, int(round(len(names) / max(folds, 2)))))
+    n_poses = len(names) + 1
+    return [(np.concatenate([[0], np.setdiff1d(np.arange(1, n_poses), g + 1)]), g + 1) for g in groups]
+
+
+def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: dict, splits: list, grid: list,
                             tau_values: list[float], default: dict, best_k: float, max_poses: int, *,
-                            site_distance: np.ndarray, radius: float, say) -> dict:
+                            site_distance: np.ndarray, radius: float, moves: np.ndarray,
+                            marker_distance: np.ndarray, edges: np.ndarray, say) -> tuple[dict, dict]:
     """The held-out error of every example per (k, β, λ, τ) and basis size.
 
-    Each fold's examples are left out, the greedy basis grows on the rest and predicts them at
-    every basis size: {(k, β, λ, τ): (max_poses + 1, E) RMS, NaN where a fold's basis stops short}.
-    Each example is held out once.
+    For each (training, held-out) split the greedy basis grows on the training poses and
+    predicts the held-out ones at every basis size. Returns ({(k, β, λ, τ): (max_poses + 1, E)
+    RMS, NaN where a split's basis stops short}, {(k, β, λ): splits done before it was dropped}
+    for the candidates stopped early (:func:`_clearly_worse`).
+
+    The novelty gate depends on the poses' strain and handle motion alone (not on k, β or λ), and
+    τ only rescales its output: its non-negative fits run once per split, and every β (how sites
+    reach vertices) and τ is scored on them. ``moves`` (E + 1, H, 3): the poses' handle displacements, ``marker_distance``
+    (H, H) and ``edges`` (F, 2) for the gate's motion part.
     """
     n_poses = features.shape[0]
     errors: dict[tuple, np.ndarray] = {}
-    done = 0
-    for fold in folds:
-        held = fold + 1  # pose indices (pose 0 is the rest pose)
-        train = np.concatenate([[0], np.setdiff1d(np.arange(1, n_poses), held)])
+    default_shell = (default["k_stretch"], default["beta_scale"], default["smoothing"])
+    live = list(grid)
+    dropped: dict[tuple, int] = {}
+    count, lock = [0, 0], threading.Lock()  # fits done; fits done before this split
+    for i, (train, held) in enumerate(splits):
         P_max = min(max_poses, len(train) - 1)
-        for (k, b, s) in grid:
-            alpha = alphas[b]
-            # the gate depends on the features only, and τ only scales its output: the greedy fit runs
-            # once and every τ is scored on its predictions
-            gate = novelty_gate(features[train[1:]], site_distance, alpha, 1.0, radius)
-            taus = tau_values if (k, b, s) != (default["k_stretch"], default["beta_scale"], default["smoothing"]) \
-                or best_k == default["k_stretch"] else [default["novelty_tau"]]
-            confidence = {t: _confidence(gate, t, features[held])[..., None] for t in taus}
-            for t in taus:
+        identity = sp.identity(features.shape[1], format="csr")
+        gate = novelty_gate(features[train[1:]], site_distance, identity, 1.0, radius,
+                            example_displacements=moves[train[1:]], marker_distance=marker_distance, edges=edges)
+        rho = gate.novelty(features[held], moves[held])
+        taus = {c: tau_values if c != default_shell or best_k == default["k_stretch"] else [default["novelty_tau"]]
+                for c in live}
+        for (k, b, s), ts in taus.items():
+            for t in ts:
                 errors.setdefault((k, b, s, t), np.full((max_poses + 1, n_poses - 1), np.nan))
 
-            def observe(model, basis, k=k, b=b, s=s, confidence=confidence):
+        def validate(candidate, train=train, held=held, P_max=P_max, gate=gate, rho=rho):
+            k, b, s = candidate
+            confidence = {t: np.asarray(alphas[b] @ gate.site_confidence(rho, t).T).T[..., None]
+                          for t in taus[candidate]}
+
+            def observe(model, basis):
                 raw = model.evaluate(features[held])
-                for t, c in confidence.items():
-                    errors[(k, b, s, t)][len(basis) - 1, fold] = rms_per_pose(raw * c, details[k][held])
+                for t, c in confidence.items():  # each candidate writes only its own rows
+                    errors[(k, b, s, t)][len(basis) - 1, held - 1] = rms_per_pose(raw * c, details[k][held])
 
             greedy_basis(psd.method, features[train], details[k][train], psd.fit, P_max,
-                         alpha=alpha, rcond=psd.rcond, smoothing=s, observe=observe)
-            done += 1
-            say("details", done, len(folds) * len(grid))
-    return errors
+                         alpha=alphas[b], rcond=psd.rcond, smoothing=s, observe=observe)
+            with lock:
+                count[0] += 1
+                # the total shrinks as candidates are dropped
+                say("details", count[0], count[1] + len(live) * (len(splits) - i))
+
+        # the candidates' greedy fits are independent (small LAPACK calls that release the GIL)
+        map_blocks(validate, list(live))
+        count[1] = count[0]
+        seen = np.concatenate([h for _, h in splits[:i + 1]]) - 1
+        for candidate in _clearly_worse(errors, live, seen, keep=default_shell) if i + 1 < len(splits) else []:
+            live.remove(candidate)
+            dropped[candidate] = i + 1
+    for candidate in dropped:  # its errors are partial: it takes no part in the choice
+        for key in [key for key in errors if key[:3] == candidate]:
+            del errors[key]
+    return errors, dropped
+
+
+# A candidate is dropped from the remaining splits once its held-out error so far is above the
+# best candidate's by this many standard errors of their paired per-example differences: the
+# choice keeps only candidates within one standard error of the best, so such a candidate is
+# practically never chosen, and every split after it is saved.
+CLEARLY_WORSE_SE = 3.0
+
+
+def _clearly_worse(errors: dict, live: list, seen: np.ndarray, keep: tuple) -> list:
+    """The (k, β, λ) candidates whose best (τ, P) so far is clearly worse than the best candidate's
+    on the held-out examples ``seen`` so far (never ``keep``, the defaults' reference)."""
+    if len(seen) < 3:
+        return []
+    best_rows = {}
+    for (k, b, s, t), e in errors.items():
+        if (k, b, s) not in live:
+            continue
+        filled = _fill_forward(e[:, seen])[1:]
+        row = filled[int(np.nanargmin(filled.mean(axis=1)))]
+        if (k, b, s) not in best_rows or row.mean() < best_rows[(k, b, s)].mean():
+            best_rows[(k, b, s)] = row
+    leader = min(best_rows, key=lambda c: best_rows[c].mean())
+    out = []
+    for candidate, row in best_rows.items():
+        diff = row - best_rows[leader]
+        if candidate in (leader, keep):
+            continue
+        if diff.mean() > CLEARLY_WORSE_SE * diff.std(ddof=1) / np.sqrt(len(diff)):
+            out.append(candidate)
+    return out
 
 
 def detail_table(errors: dict, large: dict, default_key: tuple, default_poses: int, max_poses: int,
@@ -292,11 +413,6 @@ def choose_candidate(rows: list[dict], errors: dict, default_row: dict) -> dict:
 
 def _key(row: dict) -> tuple:
     return row["k_stretch"], row["beta_scale"], row["smoothing"], row["novelty_tau"]
-
-
-def _confidence(gate, tau: float, features: np.ndarray) -> np.ndarray:
-    """The gate's per-vertex confidence at threshold τ (0: no gate)."""
-    return dataclasses.replace(gate, tau=tau).confidence(features)
 
 
 def _default_beta_scale(psd, rest_lengths) -> float:
