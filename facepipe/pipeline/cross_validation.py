@@ -7,7 +7,7 @@ predicts the other too well to count as unseen.
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import re
 
 import numpy as np
@@ -58,9 +58,8 @@ def holdout_errors(rig, k: int, vertices: slice = slice(None), progress=None) ->
     out = {}
     for i, fold in enumerate(folds):
         train = np.setdiff1d(np.arange(len(names)), fold)
-        sub = copy.copy(rig)
-        sub.example_positions = rig.example_positions[train]
-        sub.example_names = [names[j] for j in train]
+        sub = dataclasses.replace(rig, example_positions=rig.example_positions[train],
+                                  example_names=[names[j] for j in train])
         fit = fit_rig(sub)
         ev = NumpyEvaluator(model_from_fit(fit, sub))
         held = rig.example_positions[fold]

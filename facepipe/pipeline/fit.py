@@ -168,15 +168,13 @@ class FitResult:
     def detail_model(self, method: str, n_poses: int | None = None) -> DetailModel:
         """The model of ``method`` with the first ``n_poses`` greedily chosen poses (all by default)."""
         if method == "none":
-            model = fit_details("psd", self.features, self.details, [0], "interpolate")
-            model.method = "none"
-            return model
+            return dataclasses.replace(fit_details("psd", self.features, self.details, [0], "interpolate"),
+                                       method="none")
         basis = self.bases[method] if n_poses is None else self.bases[method][: n_poses + 1]
         cfg = self.config
         model = fit_details(method, self.features, self.details, basis, cfg.fit, self.alpha, cfg.rcond,
                             cfg.smoothing)
-        model.gate = self.gate
-        return model
+        return dataclasses.replace(model, gate=self.gate)
 
     config: object = None
     gate: NoveltyGate | None = None
@@ -335,11 +333,8 @@ def final_detail_model(cfg, models: dict, features: np.ndarray, details: np.ndar
     all vertices when it was chosen on a sample; the rest pose alone for method ``none`` (or
     without examples)."""
     if cfg.method == "none" or not models:
-        model = fit_details("psd", features, details, [0], "interpolate")
-        model.method = "none"
-        return model, [0]
+        return dataclasses.replace(fit_details("psd", features, details, [0], "interpolate"), method="none"), [0]
     model, basis = models[cfg.method]
     if sampled:
         model = fit_details(cfg.method, features, details, basis, cfg.fit, alpha, cfg.rcond, cfg.smoothing)
-    model.gate = gate
-    return model, basis
+    return dataclasses.replace(model, gate=gate), basis

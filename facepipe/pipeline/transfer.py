@@ -28,7 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -502,8 +502,8 @@ def transferred_details(model, corr: Correspondence, W: sp.csr_matrix, frames_t:
     basis_features = model.basis_features.astype(np.float64)
     P = basis_features.shape[0]
     frames_s = local_frames(corr.deformed, model.triangles.astype(np.int64), model.frame_neighbors.astype(np.int64))
-    source = model.detail_model(np.float64)
-    source.gate = None  # the raw details; the gate is applied on the target as on the source
+    # the raw details: the gate is applied on the target as on the source
+    source = replace(model.detail_model(np.float64), gate=None)
     values = source.evaluate(basis_features)  # (P, Vs, 3) in the source's local frames
     world = to_world(frames_s, values)  # on the source as it lies on the target
     mapped = np.stack([W @ world[i] for i in range(P)]) * detail_scale
