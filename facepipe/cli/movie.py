@@ -96,11 +96,11 @@ def render_movie(replay, model, path, *, truth_path=None, with_large: bool = Fal
 
 
 def _caption(panels: list[np.ndarray], titles: list[str], frame: int, seconds: float, note: str, font) -> np.ndarray:
-    """The panels side by side under a caption strip: the frame number and time, and each panel's
-    title; padded to whole encoder blocks. (H, W, 3) uint8."""
+    """The panels side by side under a caption strip (the frame number and time, and each panel's
+    title) and over a strip with ``note``, if any; padded to whole encoder blocks. (H, W, 3) uint8."""
     h = max(p.shape[0] for p in panels)
     w = sum(p.shape[1] for p in panels)
-    H = -(-(h + LABEL_H) // BLOCK) * BLOCK
+    H = -(-(h + LABEL_H * (2 if note else 1)) // BLOCK) * BLOCK
     W = -(-w // BLOCK) * BLOCK
     canvas = np.full((H, W, 3), 255, dtype=np.uint8)
     x = 0
@@ -115,7 +115,7 @@ def _caption(panels: list[np.ndarray], titles: list[str], frame: int, seconds: f
         draw.text((x + 4, 5), text, fill=(0, 0, 0), font=font)
         x += p.shape[1]
     if note:
-        draw.text((4, H - 14), note, fill=(60, 60, 60), font=font)
+        draw.text((4, LABEL_H + h + 5), note, fill=(60, 60, 60), font=font)
     return np.asarray(img)
 
 
@@ -207,14 +207,15 @@ class _CameraFrames:
         sample = np.unique(np.linspace(0, T - 1, min(T, 30)).round().astype(int))
         projected = [pinhole_project(self.cam.matrix, self.cam.distortion, x)
                      for x in camera_coordinates(replay, sample)]
-        x0, y0, w, h = face_window(np.concatenate(projected + [video.tracked.reshape(-1, 2)]), self.cam.width,
+        # the landmarks the lift used (a failed row's placeholders are not where the face is)
+        x0, y0, w, h = face_window(np.concatenate(projected + [video.tracked[video.used]]), self.cam.width,
                                    self.cam.height)
         self.scale = size / w
         self.origin = (x0 - 0.5, y0 - 0.5)
         self.panel = PinholeCamera(image_window(self.cam.matrix, x0, y0, self.scale), self.cam.distortion,
                                    int(size), max(1, int(round(h * self.scale))))
-        self.panels = ["camera view: tracked landmarks green, replayed red"]
-        self.note = f"window of the {self.cam.width}x{self.cam.height} footage from ({x0:.0f}, {y0:.0f}) px"
+        self.panels = ["camera view"]
+        self.note = f"green: tracked, red: replayed; footage px {x0:.0f},{y0:.0f}+"
 
     def scale_summary(self) -> dict:
         return {}
