@@ -136,14 +136,17 @@ def test_replay_into_an_earlier_replay_needs_force_and_clears_stale_results(kit,
     assert not (out / "eval.json").exists() and not (out / "large_scale.npy").exists()
 
 
-def test_sigterm_during_replay_leaves_no_partial_files(kit, tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_during_replay_leaves_no_partial_files(kit, tmp_path, signum):
     long_rig = tmp_path / "rig"
     assert run("sample", long_rig, "--vertices", 2000, "--frames", 1500, "--examples", 6, "-q") == 0
     out = tmp_path / "out"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "facepipe", "replay", str(long_rig / "take.csv"), "-m",
                              str(kit / "model.npz"), "-o", str(out), "--backend", "numpy", "--chunk", "1", "-q"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            # a shell's background job inherits SIGINT ignored; a terminal's Ctrl-C is not
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 300
     parts = []
     while time.monotonic() < deadline and proc.poll() is None:
@@ -154,9 +157,9 @@ def test_sigterm_during_replay_leaves_no_partial_files(kit, tmp_path):
     assert parts, "the replay finished before it was caught writing"
     # without --save-large-scale no large-scale file is begun
     assert all("large_scale" not in p.name for p in parts), parts
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(signum)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 128 + signal.SIGTERM, err.decode()
+    assert proc.returncode == 128 + signum, err.decode()  # 143 for SIGTERM, 130 for Ctrl-C
     assert b"interrupted" in err
     assert not list(out.glob(".*.part*")) and not (out / "positions.npy").exists()
 
