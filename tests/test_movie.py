@@ -54,6 +54,8 @@ def test_movie_of_a_3d_replay_shows_every_frame_in_order(kit, tmp_path, capsys):
     assert run("preview", kit / "out", "--movie", movie, "-q") == 2
     assert run("preview", kit / "out", "--movie", tmp_path / "take.avi", "-q") == 2
     assert "mp4 or *.gif" in capsys.readouterr().err
+    assert run("preview", kit / "out", "--movie", tmp_path / "s.mp4", "--strip", 3, "-q") == 2
+    assert "every replayed frame" in capsys.readouterr().err and not (tmp_path / "s.mp4").exists()
 
 
 def test_gif_movie(kit, tmp_path):  # noqa: F811

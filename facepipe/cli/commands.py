@@ -382,6 +382,10 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
     if movie:
         from facepipe.cli.movie import movie_command
 
+        if frames or strip:
+            raise InputError("--frame and --strip choose the frames of a still; a movie shows every replayed frame",
+                             hint="replay a part of the take (replay --frames A:B) for a shorter movie")
+
         return movie_command(rep, outdir, model_path, movie, view=view, truth_path=truth,
                              with_large=with_large_scale, size=size, force=force)
     t0 = time.perf_counter()
