@@ -24,6 +24,8 @@ demo: venv
 	$(FP) export $(DEMO)/replay --format obj -o $(DEMO)/obj
 	$(FP) eval $(DEMO)/replay --truth $(DEMO)/rig/take_truth.npz --large-scale
 	$(FP) preview $(DEMO)/replay --truth $(DEMO)/rig/take_truth.npz -o $(DEMO)/preview.png
+	$(FP) preview $(DEMO)/replay --truth $(DEMO)/rig/take_truth.npz --size 300 --movie $(DEMO)/replay.mp4
+	@echo "done: open $(DEMO)/replay.mp4 (the replay as a movie) and $(DEMO)/preview.png; commands: $(FP) --help"
 
 test: venv
 	$(BIN)/python -m pytest -q -ra

@@ -19,9 +19,11 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from facepipe.cli.interrupts import terminate_as_interrupt
 from facepipe.errors import InputError
 from facepipe.export import registry as export_formats  # names the formats without importing them
 from facepipe.io.atomic import atomic_path
+from facepipe.io.outputs import check_output_path, prepare_replay_folder
 
 
 class Reporter:
@@ -193,11 +195,13 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
               help="2D takes: pose and expression through the rig's examples, or Fidaleo et al.'s heuristic.")
 @click.option("--min-confidence", type=float, default=0.5, show_default=True,
               help="2D takes (OpenFace): rows below this tracking confidence are missing frames.")
+@click.option("--force", is_flag=True, help="Replace an earlier replay in OUTPUT (its results, eval.json included, "
+              "are removed).")
 @_common
 @click.pass_context
 def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, neutral_frame,
            neutral_take, take_units, subject, no_stabilise, no_clean, smooth, camera_path, landmarks_path, lift,
-           min_confidence, quiet, verbose):
+           min_confidence, force, quiet, verbose):
     """Replay a mocap TAKE onto the full-resolution face: OUTPUT/positions.npy and replay.json.
 
     TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV; it is converted to the
@@ -206,7 +210,8 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     lifted to 3D through the rig's examples (see the README's Video takes section).
     """
 
-    from facepipe.mocap.cleaning import CleanOptions
+    from facepipe.cli.progress import LazyBar, StageBar
+    from facepipe.mocap.cleaning import CLEAN_STEPS, CleanOptions
     from facepipe.mocap import parse_frame_slice, read_take
     from facepipe.io.model_file import load_model
     from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows, summary_lines
@@ -215,6 +220,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     rep = _reporter(ctx, quiet, verbose)
     if chunk < 1:
         raise InputError("--chunk must be at least 1")
+    prepare_replay_folder(output, force)
     from facepipe.mocap.landmarks2d import is_landmark_take
 
     if camera_path or landmarks_path or is_landmark_take(take):
@@ -255,17 +261,22 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         return {"take": str(take), "mocap": gap_report, "markers": gap_report["markers"],
                 "extra_markers": take_data.extra_markers}
 
-    with rep.bar(prepared.n_frames, desc="replay") as bar:
-        result = replay_windows(model, prepared.windows(), take_data.frames, take_data.times, Path(output),
-                                chunk=chunk, evaluator=evaluator, head_motion=head_motion, progress=bar.update,
-                                extra_report=take_report, save_large=save_large_scale)
+    # cleaning steps on a bar of their own; the frame bar opens with its first frames, so its rate
+    # and ETA are the evaluation's
+    steps = len(CLEAN_STEPS) * prepared.n_windows if not no_clean else 0
+    with StageBar(steps, "clean", quiet=rep.quiet or not steps) as clean_bar, \
+            LazyBar(lambda: rep.bar(prepared.n_frames, desc="replay")) as bar:
+        result = replay_windows(model, prepared.windows(progress=clean_bar.step), take_data.frames, take_data.times,
+                                Path(output), chunk=chunk, evaluator=evaluator, head_motion=head_motion,
+                                progress=bar.update, extra_report=take_report, save_large=save_large_scale)
     gap_report = prepared.report()
     r = result.report
     rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
             f"at {r['frames_per_second']:.1f} frames/s")
     for line in summary_lines(gap_report):
         rep.say(line)
-    rep.say(f"head motion up to {r['head_rotation_deg_max']:.1f}° / {r['head_translation_max']:.2f}")
+    rep.say(f"head motion up to {r['head_rotation_deg_max']:.1f}° rotation, {r['head_translation_max']:.2f} "
+            f"{r.get('units') or 'rig units'} translation")
     rep.say(f"wrote {result.positions_path} and {Path(output) / 'replay.json'}")
 
 
@@ -326,9 +337,9 @@ def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half,
                       padding=padding, half=half, mode="vector" if vector else "scalar", space=space, start=start,
                       up_axis=up_axis, force=force, resume=resume,
                       make_bar=lambda n, d, u="frame": rep.bar(n, unit=u, desc=d))
-    extra = ", existing file kept (--resume)" if r.get("kept_existing") else ""
-    rep.say(f"wrote {r['files']} {fmt.upper()} file{'s' if r['files'] != 1 else ''} to {r['dest']}: "
-            f"{r['bytes'] / 1e6:.1f} MB in {r['seconds']:.1f} s ({r['megabytes_per_second'] or 0:.1f} MB/s){extra}")
+    kept = f"; kept {r['kept']} already there (--resume)" if r["kept"] else ""
+    rep.say(f"wrote {r['written']} {fmt.upper()} file{'s' if r['written'] != 1 else ''} to {r['dest']}: "
+            f"{r['bytes'] / 1e6:.1f} MB in {r['seconds']:.1f} s ({r['megabytes_per_second'] or 0:.1f} MB/s){kept}")
     for note in r.get("notes", []):
         rep.say(f"note: {note}")
     rep.detail(json.dumps(r, default=_json_default))
@@ -350,9 +361,15 @@ def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half,
                    "landmarks; head: large scale vs final (and --truth) in head space; auto: camera for a 2D take "
                    "(head with --truth).")
 @click.option("--force", is_flag=True, help="Overwrite an existing image.")
+@click.option("--movie", default=None, type=click.Path(dir_okay=False),
+              help="Render every frame into a movie instead (.mp4 or .gif) at the take's rate, take frame numbers "
+                   "burnt in: the final surface (and --truth, --with-large-scale beside it; a 2D take through its "
+                   "camera).")
+@click.option("--with-large-scale", is_flag=True, help="--movie: show the large-scale surface beside the final one.")
 @_common
 @click.pass_context
-def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, force, quiet, verbose):
+def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, force, movie, with_large_scale, quiet,
+            verbose):
     """Render shaded frames of a replay (large scale vs final, error heat maps against --truth; a 2D take's
     face through its camera) to an image."""
     from facepipe.cli.preview import preview_replay
@@ -362,6 +379,15 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
         raise InputError(f"--size {size} is outside 32..4096 pixels")
     if strip < 0 or strip > 64:
         raise InputError(f"--strip {strip} is outside 0..64 frames")
+    if movie:
+        from facepipe.cli.movie import movie_command
+
+        if frames or strip:
+            raise InputError("--frame and --strip choose the frames of a still; a movie shows every replayed frame",
+                             hint="replay a part of the take (replay --frames A:B) for a shorter movie")
+
+        return movie_command(rep, outdir, model_path, movie, view=view, truth_path=truth,
+                             with_large=with_large_scale, size=size, force=force)
     t0 = time.perf_counter()
     s = preview_replay(outdir, model_path, output, view=view, truth_path=truth, frame_numbers=list(frames),
                        strip=strip, size=size, force=force)
@@ -389,26 +415,21 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
 @click.pass_context
 def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, quiet, verbose):
     """Per-frame RMS and max vertex error of a replay against ground truth."""
+    from facepipe.io.npz_file import read_truth
     from facepipe.pipeline.evaluate import frame_errors, match_frames, parse_vertex_range, summarize
 
     rep = _reporter(ctx, quiet, verbose)
     outdir = Path(outdir)
     info = _replay_info(outdir)
     positions = _load_positions(outdir)
-    try:
-        data = np.load(truth, mmap_mode="r")
-        truth_pos = data["positions"]
-        truth_frames = data["frame"] if "frame" in data else np.arange(truth_pos.shape[0])
-    except FileNotFoundError:
-        raise InputError("truth file not found", path=truth) from None
-    except Exception as exc:
-        raise InputError(f"cannot read the truth: {exc}", path=truth) from None
+    truth_pos, truth_frames = read_truth(truth)
     if truth_pos.shape[1:] != positions.shape[1:]:
         raise InputError(f"truth has shape {truth_pos.shape}, the replay {positions.shape}", path=truth)
     index = match_frames(np.asarray(info["frame_numbers"]), np.asarray(truth_frames), truth)
     truth_sel = np.asarray(truth_pos)[index] if len(index) < 4096 else truth_pos[index]
     vertices = parse_vertex_range(vertex_range, positions.shape[1])
-    result = {"vertices": [vertices.start, vertices.stop], "truth": str(truth)}
+    units = info.get("units") or "rig units"  # (replays before units were recorded: the rig's)
+    result = {"vertices": [vertices.start, vertices.stop], "truth": str(truth), "units": units}
     sources = [("final", "positions.npy")]
     if large_scale:
         sources.append(("large_scale", "large_scale.npy"))
@@ -418,15 +439,15 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, q
         result[label] = dict(summarize(rms, mx), per_frame_rms=rms.tolist(), per_frame_max=mx.tolist())
         if verbose:
             for f, a, b in zip(info["frame_numbers"], rms, mx):
-                rep.detail(f"  frame {f:6d}  rms {a:.5f}  max {b:.5f}")
+                rep.detail(f"  frame {f:6d}  rms {a:.5f}  max {b:.5f} {units}")
     _write_json(outdir / "eval.json", result)
     if compare_config:
         _compare(rep, outdir, compare_config, np.asarray(truth_sel), vertices, tune)
     for label, _ in sources:
         s = result[label]
         rep.say(f"{label}: {s['frames']} frames, vertices {vertices.start}:{vertices.stop}: RMS mean "
-                f"{s['rms_mean']:.5f}, p95 {s['rms_p95']:.5f}, max frame {s['rms_max']:.5f}; "
-                f"largest vertex error {s['max_error']:.5f}")
+                f"{s['rms_mean']:.5f} {units}, p95 {s['rms_p95']:.5f} {units}, max frame {s['rms_max']:.5f} {units}; "
+                f"largest vertex error {s['max_error']:.5f} {units}")
     rep.say(f"wrote {outdir / 'eval.json'}")
 
 
@@ -536,6 +557,7 @@ def sample(ctx, directory, vertices, examples, frames, seed, markers, with_appea
     rep = _reporter(ctx, quiet, verbose)
     if not 100 <= vertices <= 2_000_000:
         raise InputError(f"--vertices {vertices} is outside 100..2000000")
+    check_output_path(directory, kind="folder", what="sample rig folder")
     info = write_sample_rig(directory, n_vertices=vertices, n_examples=examples, n_frames=frames, seed=seed,
                             n_markers=markers)
     rep.say(f"wrote sample rig to {directory}: " + ", ".join(f"{k} {v}" for k, v in info.items()
@@ -590,19 +612,23 @@ def appearance_classify(ctx, model, footage, geometry, output, fps, quiet, verbo
 def main(argv=None) -> None:
     """Console entry point: maps InputError to exit status 2, anything unexpected to 1."""
     try:
-        status = cli.main(args=argv, standalone_mode=False)
+        with terminate_as_interrupt():  # SIGTERM unwinds as Ctrl-C does: partial outputs removed
+            status = cli.main(args=argv, standalone_mode=False)
     except InputError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(2)
-    except click.exceptions.Abort:
+    except click.exceptions.Abort as exc:
+        if isinstance(exc.__cause__, KeyboardInterrupt):  # click re-raises Ctrl-C (and SIGTERM) as Abort
+            click.echo("interrupted: complete output files are kept, partial ones removed", err=True)
+            sys.exit(getattr(exc.__cause__, "exit_status", 130))
         click.echo("aborted", err=True)
         sys.exit(130)
     except click.ClickException as exc:
         exc.show()
         sys.exit(2)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         click.echo("interrupted: complete output files are kept, partial ones removed", err=True)
-        sys.exit(130)
+        sys.exit(getattr(exc, "exit_status", 130))
     except Exception:
         click.echo("internal error (please report it with the text below):", err=True)
         traceback.print_exc()

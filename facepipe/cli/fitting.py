@@ -11,8 +11,10 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from facepipe.io.outputs import check_output_path
 from facepipe.io.model_file import fit_to_model, model_arrays, save_fit, save_model
-from facepipe.pipeline.fit import fit_config
+from facepipe.cli.progress import StageBar
+from facepipe.pipeline.fit import FIT_STAGES, fit_config
 from facepipe.pipeline.tune import choose_parameters
 
 
@@ -33,7 +35,9 @@ def run_fit(config, rep, tune: bool = True):
     def progress(method, n, curve):
         rep.detail(f"  {method}: {n:2d} poses  mean RMS {curve['mean_rms']:.4f}  max {curve['max_rms']:.4f}")
 
-    rig, fit = fit_config(config, progress=progress, prepare=prepare)
+    # the validation's bars appear under the steps' bar, in its second step
+    with StageBar(len(FIT_STAGES), "fit", quiet=rep.quiet) as steps:
+        rig, fit = fit_config(config, progress=progress, prepare=prepare, stage=steps.step)
     rep.detail(solver_line(fit.report["deformer"], fit.report["shell_solver"], fit.report["shell_solver_passed_over"]))
     report = choice["report"]
     if report["validated"]:
@@ -113,6 +117,7 @@ def fit_command(rep, config: str, output: str, holdout: int, tune: bool, write_j
     """The body of ``facepipe fit``."""
     from facepipe.cli.preview import plot_fit_curves, plot_tuning
 
+    check_output_path(output, kind="file", what="fit file")
     rig, result = run_fit(config, rep, tune=tune)
     if holdout:
         from facepipe.pipeline.cross_validation import holdout_errors
@@ -137,9 +142,11 @@ def fit_command(rep, config: str, output: str, holdout: int, tune: bool, write_j
 def bake_command(rep, source: str, output: str, tune: bool) -> None:
     """The body of ``facepipe bake``: from a FIT.npz (its choice carried over) or a CONFIG (fitted,
     validated by default, here)."""
+    check_output_path(output, kind="file", what="model file")
     t0 = time.perf_counter()
     if source.endswith(".npz"):
-        meta = fit_to_model(source, output)
+        with StageBar(2, "bake", quiet=rep.quiet) as steps:
+            meta = fit_to_model(source, output, stage=steps.step)
         shell = meta.get("shell", {})
         rep.detail(solver_line(shell.get("method", "shell"), shell.get("solver", "not recorded (an older fit file)")))
     else:

@@ -25,6 +25,8 @@ from facepipe.errors import InputError
 from facepipe.core.render import frame_camera, render
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.export.common import check_targets
+from facepipe.io.npz_file import read_truth
+from facepipe.io.outputs import check_output_path
 from facepipe.pipeline.evaluate import match_frames
 from facepipe.pipeline.replay import NumpyEvaluator
 
@@ -135,8 +137,16 @@ def plot_fit_curves(report: dict, path: str | os.PathLike, units: str = "", forc
     if large.get("mean"):
         ax.axhline(large["mean"], color="0.4", ls=":", label="large scale only (mean)")
         positive.append(large["mean"])
-    if positive and min(positive) > 0 and max(positive) / min(positive) > 20:
+    log, bottom, below = error_axis(positive)
+    if log:
         ax.set_yscale("log")
+        ax.set_ylim(bottom=bottom)
+        if below:
+            ax.text(0.99, 0.01, f"{below} value(s) below {bottom:.2g} (numerically zero) drawn at the axis' foot",
+                    transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.3")
+            for line in ax.get_lines():  # clipped to the foot rather than dropped off the plot
+                y = np.asarray(line.get_ydata(), dtype=np.float64)
+                line.set_ydata(np.maximum(y, bottom))
     ax.set_xlabel("basis poses added to the rest pose")
     ax.set_ylabel(f"training RMS of the details{f' ({units})' if units else ''}")
     ax.set_title("Fit error versus basis size")
@@ -144,6 +154,23 @@ def plot_fit_curves(report: dict, path: str | os.PathLike, units: str = "", forc
     ax.legend(fontsize=8)
     fig.tight_layout()
     return _save(fig, Path(path), force)
+
+
+def error_axis(values, span: float = 1e4) -> tuple[bool, float | None, int]:
+    """The scale of an error axis: (log scale?, its bottom, how many values lie below it).
+
+    Errors spanning more than a factor of 20 go on a log axis. Its bottom is the smallest value
+    within ``span`` of the largest: a fit that reproduces an example exactly has an error of
+    rounding size (1e-17), and an axis down to it would squash every value that matters into its
+    top few decades; such values are drawn at the foot and counted.
+    """
+    positive = [float(v) for v in values if v > 0]
+    if not positive or max(positive) / min(positive) <= 20:
+        return False, None, 0
+    top = max(positive)
+    significant = [v for v in positive if v >= top / span]
+    bottom = min(significant) / 1.5
+    return True, bottom, sum(v < bottom for v in values if v is not None)
 
 
 # ----------------------------------------------------------------------------- replay preview
@@ -167,15 +194,7 @@ def load_truth(path, frame_numbers: np.ndarray, n_vertices: int) -> tuple[np.nda
     InputError
         Unreadable file, no ``positions``, other vertex count, or replayed frames it lacks.
     """
-    try:
-        data = np.load(path, mmap_mode="r")
-        positions = data["positions"]
-        frames = np.asarray(data["frame"]) if "frame" in data else np.arange(positions.shape[0])
-    except FileNotFoundError:
-        raise InputError("truth file not found", path=path) from None
-    except Exception as exc:
-        raise InputError(f"cannot read the truth ({exc.__class__.__name__}: {exc})", path=path,
-                         hint="give an .npz with 'positions' (frames × vertices × 3), optionally 'frame'") from None
+    positions, frames = read_truth(path)
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
                          f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
@@ -214,6 +233,7 @@ def preview_replay(outdir, model_path, path, *, view: str = "auto", truth_path=N
     from facepipe.cli.video_preview import render_camera_preview
     from facepipe.io.replay_folder import ReplayDir
 
+    check_output_path(path, kind="file", what="preview image")
     replay = ReplayDir(outdir)
     model = replay.load_model(model_path)
     if view == "auto":
@@ -287,7 +307,13 @@ def render_preview(replay, model, path: str | os.PathLike, *, truth_path=None, f
     if truth:
         fig_w = fig.get_figwidth()
         cax = fig.add_axes((1 - bar_w / fig_w + 0.12 / fig_w, 0.08, 0.16 / fig_w, 0.8))
-        fig.colorbar(ScalarMappable(norm, cmap), cax=cax, label=f"vertex error ({units})" if units else "vertex error")
+        label = f"vertex error ({units})" if units else "vertex error"
+        largest = max(max(summary["max"]["final"]), max(summary["max"]["large"]))
+        clipped = largest > summary["color_max"]
+        if clipped:  # the scale stops at the 99.5th percentile: say so, and what lies beyond
+            label += f"; clipped at {summary['color_max']:.3g} (largest {largest:.3g})"
+        fig.colorbar(ScalarMappable(norm, cmap), cax=cax, label=label, extend="max" if clipped else "neither")
+        summary["color_clipped"] = bool(clipped)
     _save(fig, path, force)
     summary["path"] = str(path)
     return summary

@@ -22,6 +22,7 @@ from typing import Callable
 
 from facepipe.errors import InputError
 from facepipe.export.registry import FORMATS, ExportOptions, get_format, null_bar
+from facepipe.io.outputs import check_output_path
 from facepipe.io.replay_folder import ReplayDir
 
 #: Formats that write a folder of files (the others write one file).
@@ -86,16 +87,44 @@ def export_replay(
     details (resolution, tiles, fps, …), and ``notes`` (strings worth telling the user).
     """
     export_format = get_format(fmt)
+    check_output_path(dest, kind="either" if export_format.suffixes else "folder", what="export destination")
     options = ExportOptions(model_path=model_path, layer=layer, resolution=resolution, padding=padding, half=half,
                             mode=mode, space=space, start=start, up_axis=up_axis, force=force, resume=resume,
                             make_bar=make_bar)
     replay = ReplayDir(outdir)
     dest = Path(dest)
+    before = _file_identities(dest)
     t0 = time.perf_counter()
     paths, details = export_format.export(replay, dest, options)
     info = {"format": fmt, **details}
     seconds = time.perf_counter() - t0
-    size = _file_bytes(paths)
-    info.update(dest=str(dest), files=len(paths), bytes=size, seconds=seconds,
-                megabytes_per_second=size / 1e6 / seconds if seconds > 0 else None)
+    # a file --resume kept is the very file that was there before (every write renames a new
+    # file into place, so a rewritten one has another identity)
+    kept = [p for p in paths if before.get(_key(p)) is not None and before[_key(p)] == _identity(p)]
+    written = [p for p in paths if p not in kept]
+    size = _file_bytes(written)
+    info.update(dest=str(dest), files=len(paths), written=len(written), kept=len(kept), bytes=size,
+                seconds=seconds, megabytes_per_second=size / 1e6 / seconds if seconds > 0 else None)
     return info
+
+
+def _key(path) -> str:
+    return str(Path(path).absolute())
+
+
+def _identity(path) -> tuple | None:
+    """(device, inode, size, modification time) of a file, or None when there is none."""
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
+
+def _file_identities(dest: Path) -> dict:
+    """The identity of every file at ``dest`` (a file, or the files in a folder) before an export."""
+    if dest.is_file():
+        return {_key(dest): _identity(dest)}
+    if dest.is_dir():
+        return {_key(p): _identity(p) for p in dest.rglob("*") if p.is_file()}
+    return {}

@@ -16,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from facepipe.io.atomic import atomic_path
+from facepipe.io.npz_file import open_npz
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
 from facepipe.core.psd import DetailModel, NoveltyGate, edge_weight_matrix
@@ -303,13 +304,15 @@ def load_model(path) -> Model:
 
 def _read_npz(path, kind: str) -> tuple[dict, dict]:
     path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found", path=path)
-    try:
-        data = dict(np.load(path, allow_pickle=False))
-        meta = json.loads(bytes(data.pop("meta")).decode())
-    except Exception as exc:  # zip, pickle and JSON errors all mean: not our file, or truncated
-        raise InputError(f"not a readable facepipe file ({exc.__class__.__name__}: {exc})", path=path) from None
+    name = "fit" if kind == FIT_KIND else "model"
+    expected = f"a {name} file written by 'facepipe {'fit' if kind == FIT_KIND else 'bake'}'"
+    with open_npz(path, expected, hint=f"give the {name} file (e.g. {name}.npz)") as npz:
+        try:
+            data = dict(npz)
+            meta = json.loads(bytes(data.pop("meta")).decode())
+        except Exception as exc:  # damaged members, no or bad metadata: not our file, or truncated
+            raise InputError(f"not a readable facepipe file ({exc.__class__.__name__}: {exc}); expected {expected}",
+                             path=path) from None
     if meta.get("kind") != kind:
         raise InputError(f"this is a {meta.get('kind', 'unknown')} file, expected a {kind} file", path=path)
     if meta.get("format_version") != FORMAT_VERSION:
@@ -341,9 +344,13 @@ def load_fit(path) -> tuple[dict, dict]:
     return data, meta
 
 
-def fit_to_model(path_in, path_out) -> dict:
-    """Bake a fit file into a model file; returns the model metadata."""
+def fit_to_model(path_in, path_out, stage=None) -> dict:
+    """Bake a fit file into a model file; returns the model metadata. ``stage(name)`` is called as
+    reading and writing start (a large model takes seconds for each)."""
+    stage = stage or (lambda name: None)
+    stage("reading the fit")
     data, meta = load_fit(path_in)
+    stage("writing the model")
     meta = {k: v for k, v in meta.items() if k != "report"}
     meta["kind"] = MODEL_KIND
     save_model(path_out, data, meta)

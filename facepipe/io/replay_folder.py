@@ -143,20 +143,32 @@ class ReplayDir:
         return read_video_record(self.path, self.n_frames, self.positions.shape[1])
 
     def model_path(self, override=None) -> Path:
-        """The model to use: ``override`` or the one replay.json names."""
+        """The model to use: ``override``, else the one replay.json names, looked for as stored
+        (absolute; an older replay's relative path from the working directory), relative to this folder
+        (``model_relative``), and an older replay's relative path from this folder and each folder
+        above it; the first that exists (the stored path when none does)."""
         if override:
             return Path(override)
         name = self.info.get("model")
         if not name:
             raise InputError("replay.json does not name its model", path=self.path / "replay.json",
                              hint="pass the model with -m MODEL.npz")
-        return Path(name)
+        candidates = [Path(name)]
+        if self.info.get("model_relative"):
+            candidates.insert(0, self.path / self.info["model_relative"])
+        if not Path(name).is_absolute():
+            # an older replay stored the path relative to where it ran, which is most often the
+            # replay folder or one of the folders above it
+            here = self.path.resolve()
+            candidates += [folder / name for folder in (here, *here.parents)]
+        return next((p for p in candidates if p.is_file()), Path(name))
 
     def load_model(self, override=None) -> Model:
         """The model of this replay, checked against the positions' vertex count."""
         path = self.model_path(override)
         if not path.is_file():
-            raise InputError("the model this replay names is not there", path=path,
+            raise InputError("the model this replay names is not there (looked for it as stored in replay.json, "
+                             "relative to the replay folder and to the working directory)", path=path,
                              hint="pass the model used for the replay with -m MODEL.npz")
         model = load_model(path)
         V = self.positions.shape[1]

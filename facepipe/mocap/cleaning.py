@@ -519,9 +519,13 @@ def _distance_to_visible(known: np.ndarray) -> np.ndarray:
     return np.minimum(idx - last, nxt - idx).astype(np.float64)
 
 
+#: The steps of :func:`clean_take`, in order (what its ``progress`` is called with).
+CLEAN_STEPS = ("pose and expression fit", "robust refit", "smoothing over time", "filling gaps")
+
+
 def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stable: np.ndarray,
                times: np.ndarray, options: CleanOptions | None = None, *, fix_pose: bool = False,
-               spacing: float = 1.0, names=None) -> CleanResult:
+               spacing: float = 1.0, names=None, progress=None) -> CleanResult:
     """Head pose, expression weights and clean head-space handles of a take.
 
     Parameters
@@ -542,6 +546,9 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         Typical marker spacing (rig units), the scale of the default jump threshold.
     names : list[str], optional
         Marker names for the report.
+    progress : callable(step name) or None
+        Called as each of the :data:`CLEAN_STEPS` steps starts (a long take's cleaning takes a
+        while: this is what a progress bar shows).
 
     Returns
     -------
@@ -550,6 +557,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
         (subtract the marker offsets ``reference - rest`` to drive the rig).
     """
     opt = options or CleanOptions()
+    step = progress or (lambda name: None)
     world = np.asarray(world, dtype=np.float64)
     T, H, _ = world.shape
     basis = np.asarray(basis, dtype=np.float64) if opt.prior else np.zeros((0, H, 3))
@@ -569,6 +577,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     rows = np.flatnonzero(usable)
     frames = _UsableFrames(world[rows], visible[rows], reference, basis, opt.iterations, fix_pose)
 
+    step("pose and expression fit")
     # pass 1: unweighted, no sparsity: residuals for the noise and per-marker scales
     sigma_floor = 1e-7 * spacing  # noise-free input: keep the weights finite, the L1 bias negligible
     R1, t1, C1, _ = frames.fit(frames.visible.astype(np.float64), R0[rows], t0[rows], robust_scale=sigma_floor)
@@ -578,6 +587,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     noise = _NoiseModel.measure(frames.residual(R1, t1, C1), frames.visible, sigma_floor, absorbed, opt.outlier,
                                 jump)
 
+    step("robust refit")
     # pass 2: weighted by trust, sparse expression, robust to jumping markers; then without the
     # outliers that leaves, and the chosen expressions refitted without the L1 prior's shrinkage
     W = frames.visible.astype(np.float64) * (noise.trust / noise.sigma**2)[None, :]
@@ -591,6 +601,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     if K and opt.sparsity > 0:
         R2, t2, C2 = _relaxed_refit(frames, W_kept, R2, t2, C2, robust, opt.sparsity)
 
+    step("smoothing over time")
     R, t, C = _every_frame(R2, t2, C2, usable, times)
     # noise-free input (σ at its floor) is left exactly as the fit gives it
     temporal = opt.temporal and T >= 4 and noise.sigma > sigma_floor
@@ -609,6 +620,7 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     known = visible & ~outlier
     residual = np.full((T, H, 3), np.nan)
     residual[rows] = np.where(outlier_rows[..., None], np.nan, frames.residual(R2, t2, C2))
+    step("filling gaps")
     clean = _clean_handles(reference + np.einsum("tk,khc->thc", C, basis), residual, known, noise, times,
                            fps, names, opt, temporal)
     report = _clean_report(visible, outlier, int((~usable).sum()), noise, jump, C, opt, names, notes)

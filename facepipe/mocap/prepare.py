@@ -378,10 +378,11 @@ class PreparedTake:
         self._notes = list(notes)  # of the alignment and the choice of windows
         self._summaries: list[_WindowSummary | None] = [None] * len(windows)
 
-    def windows(self):
-        """Yield (head (n, H, 3), R (n, 3, 3), t (n, 3)) of each window's rows, cleaned now."""
+    def windows(self, progress=None):
+        """Yield (head (n, H, 3), R (n, 3, 3), t (n, 3)) of each window's rows, cleaned now;
+        ``progress(step name)`` is called as each cleaning step of each window starts."""
         for i, window in enumerate(self._window_spans):
-            head, R, t, self._summaries[i] = self._prepare(window)
+            head, R, t, self._summaries[i] = self._prepare(window, progress)
             yield head, R, t
 
     def report(self) -> dict:
@@ -392,7 +393,7 @@ class PreparedTake:
         return _take_report(self._take, self._options, self._alignment, self._cleaning_report(),
                             max([0.0] + [s.rotation_deg_max for s in self._summaries]), self._notes)
 
-    def _prepare(self, window: _Window):
+    def _prepare(self, window: _Window, progress=None):
         """Head, R and t of the window's rows, and its summary."""
         take, rig, opt = self._take, self._rig, self._options
         world = self._alignment.to_rig(take.positions[window.lo:window.hi])
@@ -400,7 +401,8 @@ class PreparedTake:
         times = take.times[window.lo:window.hi]
         if opt.clean:
             result = clean_take(world, reference, rig.basis, rig.stable, times, opt.clean_options,
-                                fix_pose=not opt.stabilise, spacing=rig.spacing, names=take.marker_names)
+                                fix_pose=not opt.stabilise, spacing=rig.spacing, names=take.marker_names,
+                                progress=progress)
             head, R, t, report = result.head, result.R, result.t, result.report
             outliers = result.outliers[window.start - window.lo:window.stop - window.lo]
         else:
@@ -542,7 +544,7 @@ def summary_lines(report: dict) -> list[str]:
             f"in {total.get('gaps', 0)} gaps (longest {total.get('longest_gap', 0)}, "
             f"{total.get('longest_gap_marker') or '-'}): {total.get('interpolated', 0)} interpolated, "
             f"{total.get('from_prior', 0)} from the rig's prior; {total.get('outliers', 0)} outliers removed; "
-            f"noise σ ≈ {noise.get('sigma', 0):.3g}"
+            f"noise σ ≈ {noise.get('sigma', 0):.3g} {units.get('rig') or 'rig units'}"
             + (f"; smoothed σ = {c['smooth_frames']:g} frames" if c.get("smooth_frames") else ""))
     else:
         lines.append(f"markers: {total.get('filled', 0)} missing samples filled in {total.get('gaps', 0)} gaps "

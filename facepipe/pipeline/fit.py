@@ -188,23 +188,32 @@ def handle_geodesics(mesh, handles: np.ndarray) -> Geodesics:
     return Geodesics(edge_graph(mesh.vertices, mesh.faces), handles)
 
 
-def fit_config(config, progress=None, prepare=None) -> tuple[Rig, "FitResult"]:
+#: The steps of :func:`fit_config` (``stage`` is called with each as it starts); validation, run
+#: between loading and the geometry by ``prepare``, has progress of its own.
+FIT_STAGES = ("reading the rig", "validating parameters", "shell and local frames", "details of the examples",
+              "geodesic distances", "WPSD weights", "greedy basis", "final detail model")
+
+
+def fit_config(config, progress=None, prepare=None, stage=None) -> tuple[Rig, "FitResult"]:
     """:func:`~facepipe.pipeline.rig.load_rig` and :func:`fit_rig`, with the geodesics from the handles
     started as soon as the rest mesh and markers are read, while the examples are still loading.
 
     ``prepare(rig, geodesics)``, if given, runs between the two (it may change ``rig.config``;
     ``geodesics.finish()`` gives the distances, which the fit then reuses). The load time is in
-    ``fit.report["seconds"]["load"]``.
+    ``fit.report["seconds"]["load"]``. ``stage(name)`` is called as each of :data:`FIT_STAGES` starts.
     """
+    stage = stage or (lambda name: None)
     t0 = time.perf_counter()
     started: list[Geodesics] = []
     try:
+        stage(FIT_STAGES[0])
         rig = load_rig(config, on_mesh=lambda mesh, markers: started.append(
             handle_geodesics(mesh, markers.handle_vertices)))
         t_load = time.perf_counter() - t0
+        stage(FIT_STAGES[1])
         if prepare is not None:
             prepare(rig, started[0])
-        fit = fit_rig(rig, progress=progress, geodesics=started[0])
+        fit = fit_rig(rig, progress=progress, geodesics=started[0], stage=stage)
     finally:
         for job in started:
             job.close()
@@ -212,13 +221,15 @@ def fit_config(config, progress=None, prepare=None) -> tuple[Rig, "FitResult"]:
     return rig, fit
 
 
-def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitResult:
+def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=None) -> FitResult:
     """Fit the whole rig: geometry, details of every example, greedy basis for PSD and WPSD.
 
     The configured method's model is returned; the error curves of both methods are reported
     (the paper's Fig. 4: error against basis size). ``geodesics``: the Dijkstra runs from
     ``rig.handles``, if already started (:func:`fit_config`); they are started here otherwise.
+    ``stage(name)`` is called as each of the :data:`FIT_STAGES` after validation starts.
     """
+    stage = stage or (lambda name: None)
     cfg = rig.config.psd
     seconds: dict[str, float] = {}
     clock = [time.perf_counter()]
@@ -235,20 +246,24 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
     elif geodesics.n_vertices != rest.shape[0] or not np.array_equal(geodesics.sources, handles):
         raise ValueError("the geodesics were started for another mesh or other handles")
     try:
+        stage(FIT_STAGES[2])
         graph = feature_graph(rig, geodesics.graph)
         beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
         geo = build_geometry(rig, graph=graph)
         lap("geometry")
         poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) \
             else geo.rest[None]
+        stage(FIT_STAGES[3])
         details = geo.details(poses)
         features = geo.features(poses[:, geo.handles])
         lap("details")
+        stage(FIT_STAGES[4])
         distances = geodesics.finish()  # (H, V)
     finally:
         geodesics.close()
     lap("geodesics_wait")
     seconds["geodesics_child_sources"] = geodesics.child_sources
+    stage(FIT_STAGES[5])
     edge_index, edge_weight = wpsd_edge_weights(distances, geo.edges, geo.rest_lengths, beta, cfg.min_edge_weight,
                                                 cfg.max_edges_per_vertex)
     handle_distances = np.ascontiguousarray(distances[:, handles])
@@ -263,8 +278,10 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None) -> FitR
     large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
     lap("weights")
     methods = ["psd", "wpsd"] if len(poses) > 1 else []
+    stage(FIT_STAGES[6])
     curves, models, sample = greedy_bases(cfg, methods, features, details, alpha, progress)
     lap("greedy")
+    stage(FIT_STAGES[7])
     model, basis = final_detail_model(cfg, models, features, details, alpha, len(sample) < geo.rest.shape[0], gate)
     lap("final_fit")
     seconds["total"] = time.perf_counter() - t0

@@ -7,6 +7,8 @@ the large-scale mesh → strain features f → details d(f) → final = large + 
 from __future__ import annotations
 
 import json
+import os
+from contextlib import nullcontext
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -189,7 +191,8 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
     t_start = time.perf_counter()
     final_path = out_dir / "positions.npy"
     large_path = out_dir / "large_scale.npy"
-    with atomic_path(final_path) as tmp, atomic_path(large_path) as tmp_large:
+    # no temporary large-scale file unless it is asked for (an interrupted replay leaves none)
+    with atomic_path(final_path) as tmp, (atomic_path(large_path) if save_large else nullcontext()) as tmp_large:
         # positions stream to disk in frame order while the next chunk is evaluated
         with NpyWriter(tmp, (T, V, 3)) as out, NpyWriter(tmp_large if save_large else None, (T, V, 3)) as out_large:
             def sink(start, final, large=None, normals=None):
@@ -234,13 +237,17 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
         "head_motion": head_motion,
         "head_rotation_deg_max": float(angles.max()) if T else 0.0,
         "head_translation_max": float(np.linalg.norm(t, axis=1).max()) if T else 0.0,
+        "units": model.meta.get("units") or None,  # of positions, errors and translations
         "seconds": seconds,
         "frames_per_second": T / seconds if seconds > 0 else None,
         "stage_seconds": dict(evaluator.stage_seconds),
         # the gate's non-negative fits that stopped at their iteration cap (their confidence is
         # that of the last iterate); None without a gate
         "novelty_fits_at_cap": evaluator.novelty_fits_at_cap,
-        "model": model.path,
+        # absolute, and relative to this folder: found wherever a later export or preview runs
+        # from, and after the replay and model folders are moved together
+        "model": str(Path(model.path).resolve()) if model.path else None,
+        "model_relative": os.path.relpath(Path(model.path).resolve(), out_dir.resolve()) if model.path else None,
         "config_digest": model.meta.get("config_digest"),
     }
     if callable(extra_report):  # (what the windows made known, now that they are all taken)

@@ -1,0 +1,70 @@
+"""Progress for steps of unequal length, honest about what it can tell.
+
+A frame bar's ETA is only as good as its rate, so a bar must not start before its frames do:
+:class:`LazyBar` opens when the first frames are done (set-up and cleaning before them do not
+drag its rate down and its ETA up). Steps of unlike length (reading a rig, factorising the shell,
+fitting the basis) get a :class:`StageBar`: which step is running, how many are done and the time
+spent, never an ETA extrapolated from unlike steps.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from tqdm import tqdm
+
+STAGE_FORMAT = "{desc}: {n_fmt}/{total_fmt} steps [{elapsed}]{postfix}"
+
+
+class StageBar:
+    """A bar counting named steps: ``step("factorising the shell")`` marks the previous step done
+    and names the running one. Nothing is shown when ``quiet``."""
+
+    def __init__(self, total: int, desc: str, quiet: bool = False):
+        self._bar = tqdm(total=total, desc=desc, bar_format=STAGE_FORMAT, disable=quiet, file=sys.stderr,
+                         dynamic_ncols=True)
+        self._started = False
+
+    def step(self, name: str) -> None:
+        if self._started:
+            self._bar.update(1)
+        self._started = True
+        self._bar.set_postfix_str(name)
+
+    def close(self) -> None:
+        if self._started and self._bar.n < self._bar.total:
+            self._bar.update(self._bar.total - self._bar.n)
+        self._bar.set_postfix_str("done")
+        self._bar.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, tb):
+        if kind is None:
+            self.close()
+        else:  # an error: leave the bar where it stopped
+            self._bar.close()
+
+
+class LazyBar:
+    """A frame bar opened at its first update (``make()`` makes the tqdm bar then)."""
+
+    def __init__(self, make):
+        self._make = make
+        self._bar = None
+
+    def update(self, n: int = 1) -> None:
+        if self._bar is None:
+            self._bar = self._make()
+        self._bar.update(n)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
