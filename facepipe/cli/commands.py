@@ -302,7 +302,8 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
               help="Geometry formats: the final surface, or the large-scale one (needs replay --save-large-scale).")
 @click.option("--resolution", default="2048", show_default=True, help="Maps: N or WxH texels per UDIM tile.")
 @click.option("--padding", default=8, show_default=True, help="Maps: texels of edge padding around UV islands.")
-@click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float].")
+@click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float]; textures: EXR half/float instead "
+              "of 16-bit PNG.")
 @click.option("--vector/--scalar", "vector", default=True, help="Maps: R,G,B vector, or Y along the normal. "
               "[default: vector]")
 @click.option("--space", type=click.Choice(["local", "tangent", "object"]), default="local", show_default=True,
@@ -316,7 +317,8 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
 @click.pass_context
 def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half, vector, space, start, up_axis, force,
            resume, quiet, verbose):
-    """Export a replay (OUTDIR) for other tools: OBJ sequence, EXR displacement or wrinkle maps, USD, MDD, PC2."""
+    """Export a replay (OUTDIR) for other tools: OBJ sequence, EXR displacement or wrinkle maps, USD, MDD, PC2;
+    or a classified take's layered textures (OUTDIR with appearance.csv; -m: the appearance model)."""
     from facepipe.export.dispatch import export_replay, parse_resolution
 
     rep = _reporter(ctx, quiet, verbose)

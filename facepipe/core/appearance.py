@@ -39,7 +39,7 @@ from scipy import ndimage
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
-           "facing", "region_alpha", "layer_lookup", "compose_texture", "DIAGONAL_OFFSETS"]
+           "facing", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
 DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
@@ -247,3 +247,11 @@ def compose_texture(neutral: np.ndarray, volumes, alphas, boxes, q: np.ndarray) 
         window = out[r0:r0 + h, c0:c0 + w]
         window[:] = window * (1.0 - a) + layer_lookup(volume, qr) * a
     return out
+
+
+def stream_bits(layer_counts, step: float) -> np.ndarray:
+    """Bits per frame (R,) that each region's Q needs when sent in steps of ``step`` layers: Q of a
+    region of n layers takes (n − 1) / step + 1 values, coded in a whole number of bits."""
+    counts = np.asarray(layer_counts, dtype=np.float64)
+    levels = np.floor((counts - 1.0) / step + 0.5) + 1.0
+    return np.ceil(np.log2(np.maximum(levels, 2.0))).astype(np.int64)

@@ -12,7 +12,11 @@ from facepipe.core.camera import Camera
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
-__all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream"]
+__all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream", "format_stream",
+           "STREAM_DECIMALS"]
+
+#: Q is written to this many decimals: the stream's quantisation step, and its bit rate's.
+STREAM_DECIMALS = 4
 
 
 @dataclass
@@ -102,17 +106,23 @@ def write_stream(folder, model_path, classification, layer_counts) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     c = classification
     names = [str(n) for n in c.names]
-    lines = ["frame,time," + ",".join(names)]
-    lines += [f"{int(n)},{t:.6f}," + ",".join(f"{q:.4f}" for q in row) for n, t, row in zip(c.numbers, c.times, c.q)]
     csv = folder / "appearance.csv"
     with atomic_path(csv) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
+        Path(tmp).write_text(format_stream(names, c.numbers, c.times, c.q))
     info = {"model": str(Path(model_path).resolve()), "regions": names, "layers": list(map(int, layer_counts)),
             "frames": len(c.numbers), "hidden_fraction": float(1 - c.visible.mean()),
             "skipped_frames": [{"frame": int(n), "problem": p} for n, p in c.problems]}
     with atomic_path(folder / "appearance.json") as tmp:
         Path(tmp).write_text(json.dumps(info, indent=1))
     return csv
+
+
+def format_stream(names, numbers, times, q) -> str:
+    """appearance.csv's text: ``frame,time,NAME…``, Q to :data:`STREAM_DECIMALS` decimals."""
+    lines = ["frame,time," + ",".join(str(n) for n in names)]
+    lines += [f"{int(n)},{t:.6f}," + ",".join(f"{x:.{STREAM_DECIMALS}f}" for x in row)
+              for n, t, row in zip(numbers, times, q)]
+    return "\n".join(lines) + "\n"
 
 
 def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
@@ -122,7 +132,12 @@ def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     if not csv.is_file() or not meta.is_file():
         raise InputError("no appearance.csv / appearance.json here", path=folder,
                          hint="classify the footage first: facepipe appearance classify ... -o FOLDER")
-    info = json.loads(meta.read_text())
+    try:
+        info = json.loads(meta.read_text())
+        info["regions"], info["model"]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(f"appearance.json is not a classification's summary ({exc})", path=meta,
+                         hint="classify the footage again: facepipe appearance classify ... -o FOLDER") from None
     try:
         data = np.loadtxt(csv, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as exc:
