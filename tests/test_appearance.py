@@ -199,3 +199,28 @@ def test_texture_export_refuses_overwrite_resumes_and_writes_exr(kit, tmp_path):
     (tmp_path / "bad" / "appearance.csv").write_text("\n".join([text[0], text[1].rsplit(",", 1)[0] + ",7.5"]) + "\n")
     assert _run("export", tmp_path / "bad", "--format", "textures", "-o", tmp_path / "t2", "-q") == 2
     assert _run("export", tmp_path / "nothing", "--format", "textures", "-o", tmp_path / "t3", "-q") == 2
+
+
+def test_reconstructed_texture_is_closer_to_the_frames_than_neutral(kit):
+    # the layered texture at the classified Q against each frame's own texels (unwrapped through
+    # its truth geometry), relative to the neutral texture's difference, over the regions' texels
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.pipeline.appearance import _read_geometry, texel_map, texture_differences
+
+    model = load_appearance(kit / "app.npz")
+    mesh = load_mesh(kit / "neutral.obj")
+    cls = _classified(kit)
+    q = np.loadtxt(cls / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
+    positions, numbers = _read_geometry(kit / "appearance" / "take.npz", mesh.n_vertices)
+    texel_face, texel_bary = texel_map(mesh.uvs[mesh.face_uvs], model.neutral.shape[0])
+    sums, at_truth = np.zeros((len(model.names), 3)), np.zeros((len(model.names), 3))
+    for t, (_, image, _) in enumerate(read_frames(open_footage(kit / "appearance" / "take"), numbers)):
+        cam = model.to_camera(positions[t])
+        sums += texture_differences(model, texel_face, texel_bary, image, cam, q[t])
+        at_truth += texture_differences(model, texel_face, texel_bary, image, cam, truth[t] * 4)
+    ratio = np.sqrt(sums[:, 0].sum() / sums[:, 1].sum())
+    ceiling = np.sqrt(at_truth[:, 0].sum() / at_truth[:, 1].sum())
+    print("texture RMS ratio", ratio, "at the truth Q", ceiling)
+    assert ratio <= 0.5 and ceiling <= 0.5

@@ -28,6 +28,7 @@ class AppearanceModel:
     template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
     templates : per region (n, C) coefficients; indices : per region kept coefficients;
     weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
+    shading : patches divided by their shading plane (else by their mean; models before it);
     neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
     boxes : (R, 2) top-left texel of each volume.
     """
@@ -50,6 +51,7 @@ class AppearanceModel:
     volumes: list
     alphas: list
     boxes: np.ndarray
+    shading: bool = False
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
@@ -67,7 +69,7 @@ def save_appearance(path, model) -> None:
               "rotation": model.rotation, "translation": model.translation, "faces": model.faces,
               "normal_sign": np.array(model.normal_sign), "template_face": model.template_face,
               "template_bary": model.template_bary, "weights": model.weights,
-              "settings": np.array([model.template_size, model.min_facing, model.decay]), "neutral": model.neutral,
+              "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading)]), "neutral": model.neutral,
               "boxes": model.boxes}
     for r in range(len(model.names)):
         arrays[f"templates_{r}"] = model.templates[r]
@@ -94,7 +96,8 @@ def load_appearance(path):
                                float(d["normal_sign"]), d["template_face"], d["template_bary"],
                                [d[f"templates_{r}"] for r in range(n)], [d[f"indices_{r}"] for r in range(n)],
                                d["weights"], int(s[0]), float(s[1]), float(s[2]), d["neutral"],
-                               [d[f"volume_{r}"] for r in range(n)], [d[f"alpha_{r}"] for r in range(n)], d["boxes"])
+                               [d[f"volume_{r}"] for r in range(n)], [d[f"alpha_{r}"] for r in range(n)], d["boxes"],
+                               bool(s[3]) if len(s) > 3 else False)
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
