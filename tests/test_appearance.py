@@ -224,3 +224,50 @@ def test_reconstructed_texture_is_closer_to_the_frames_than_neutral(kit):
     ceiling = np.sqrt(at_truth[:, 0].sum() / at_truth[:, 1].sum())
     print("texture RMS ratio", ratio, "at the truth Q", ceiling)
     assert ratio <= 0.5 and ceiling <= 0.5
+
+
+def test_preview_of_a_classified_take(kit, tmp_path, capsys):
+    cls = _classified(kit)
+    out = tmp_path / "preview.png"
+    assert _run("preview", cls, "-o", out, "--strip", 2) == 0
+    said = capsys.readouterr().out
+    assert said.count("; Q ") == 2
+    image = iio.imread(out)
+    assert image.shape[0] > 400 and image.std() > 10  # panels and curves drawn, not a blank page
+    assert _run("preview", cls, "-o", out) == 2  # not overwritten without --force
+    assert _run("preview", cls, "-o", out, "--frame", 9999, "--force") == 2  # a frame the take lacks
+    bare = tmp_path / "old"
+    bare.mkdir()
+    shutil.copy(cls / "appearance.csv", bare)
+    info = json.loads((cls / "appearance.json").read_text())
+    info.pop("footage")
+    (bare / "appearance.json").write_text(json.dumps(info))
+    assert _run("preview", bare, "-o", tmp_path / "p2.png") == 2
+    assert "does not name the footage" in capsys.readouterr().err
+
+
+def test_bad_examples_exit_2(kit, tmp_path, capsys):
+    # an example frame of another size than the calibration
+    cfg = _edited_config(kit, tmp_path, "neutral_frame = 0", "neutral_frame = 0")
+    frame = cfg.parent / "examples" / "frame_0000.png"
+    iio.imwrite(frame, iio.imread(frame)[:-4])
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert "calibration" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda d: (d / "regions" / "mouth.txt").write_text("12\n99999999\n"), "line 2"),
+    (lambda d: (d / "regions" / "mouth.txt").write_text("# no vertices\n"), "empty"),
+    (lambda d: (d / "regions" / "mouth.txt").unlink(), "not found"),
+])
+def test_bad_vertex_groups_exit_2(kit, tmp_path, capsys, edit, message):
+    cfg = _edited_config(kit, tmp_path, "neutral_frame = 0", "neutral_frame = 0")
+    edit(cfg.parent)
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert message in capsys.readouterr().err
+
+
+def test_example_frame_without_geometry_exits_2(kit, tmp_path, capsys):
+    cfg = _edited_config(kit, tmp_path, "frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 400]")
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert "frame 400" in capsys.readouterr().err

@@ -185,3 +185,33 @@ def test_numpy_projection_matches_opencv(distortion):
     X = rng.uniform([-3, -2, 8], [3, 2, 20], size=(500, 3))
     camera = Camera(np.array([[800, 0, 320], [0, 780, 240], [0, 0, 1.0]]), np.array(distortion), 640, 480, "test")
     np.testing.assert_allclose(project_distorted_fast(camera, X), project_distorted(camera, X), atol=1e-9)
+
+
+def test_light_fit_recovers_a_lambertian_light_despite_outliers():
+    from facepipe.core.appearance import fit_light, light_shading, sh_basis
+
+    rng = np.random.default_rng(8)
+    normals = rng.normal(size=(3000, 3))
+    normals[:, 2] = -np.abs(normals[:, 2])  # the half facing the camera
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo = rng.uniform(0.3, 0.9, size=3000)
+    light = np.array([0.5, 0.1, -0.2, -0.3, 0.05, 0.0, 0.02, 0.04, 0.03])
+    values = albedo * (sh_basis(normals) @ light)
+    values[:300] = rng.uniform(0, 1, size=300)  # an eye, teeth, a shadow: what the model does not hold
+    values[300:310] = np.nan
+    got = fit_light(values, albedo, normals)
+    np.testing.assert_allclose(sh_basis(normals[310:]) @ got, sh_basis(normals[310:]) @ light, atol=2e-3)
+    # a second construction of the basis: the Lambertian shading of a distant light l is linear in
+    # (1, n, quadratic terms); a light along -z gives shading growing with -n_z
+    assert sh_basis(np.array([0.0, 0.0, -1.0]))[3] == -1.0 and sh_basis(np.array([1.0, 0, 0]))[7] == 1.0
+    assert (light_shading(normals, -light) > 0).all()  # the floor keeps it positive
+
+
+def test_light_fit_with_too_few_points_is_uniform():
+    from facepipe.core.appearance import fit_light, light_shading
+
+    normals = np.tile([0.0, 0.0, -1.0], (30, 1))
+    values = np.full(30, np.nan)
+    values[:5] = 0.5
+    light = fit_light(values, np.ones(30), normals)
+    np.testing.assert_allclose(light_shading(normals, light), 1.0)

@@ -347,10 +347,11 @@ def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half,
               help="Take frame number to show (repeatable) [default: the most expressive frame].")
 @click.option("--strip", default=0, show_default=True, help="Show this many evenly spaced frames, one row each.")
 @click.option("--size", default=420, show_default=True, help="Width of one panel in pixels.")
-@click.option("--view", type=click.Choice(["auto", "camera", "head"]), default="auto", show_default=True,
+@click.option("--view", type=click.Choice(["auto", "camera", "head", "appearance"]), default="auto", show_default=True,
               help="camera: a 2D take's replayed face through the footage's camera with the tracked and reprojected "
-                   "landmarks; head: large scale vs final (and --truth) in head space; auto: camera for a 2D take "
-                   "(head with --truth).")
+                   "landmarks; head: large scale vs final (and --truth) in head space; appearance: a classified "
+                   "take's input frames, the layered texture at Q rendered through the camera, the Q curves; auto: "
+                   "appearance for a folder of appearance classify, camera for a 2D take (head with --truth).")
 @click.option("--force", is_flag=True, help="Overwrite an existing image.")
 @_common
 @click.pass_context
@@ -370,6 +371,8 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
     for k, f in enumerate(s["frames"]):
         errs = (f"; RMS vs truth: final {s['rms']['final'][k]:.4g}, large scale {s['rms']['large'][k]:.4g}"
                 if "rms" in s else "")
+        if s.get("view") == "appearance":
+            errs = "; Q " + " ".join(f"{x:.2f}" for x in s["q"][k])
         if s.get("view") == "camera":
             px = s["reprojection_px"][k]
             errs = "; tracker lost the face" if px is None else f"; landmark reprojection RMS {px:.3f} px"

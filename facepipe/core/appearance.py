@@ -40,7 +40,8 @@ from scipy import ndimage
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
-           "facing", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS"]
+           "facing", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS",
+           "sh_basis", "fit_light", "light_shading"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
 DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
@@ -322,3 +323,42 @@ def stream_bits(layer_counts, step: float) -> np.ndarray:
     counts = np.asarray(layer_counts, dtype=np.float64)
     levels = np.floor((counts - 1.0) / step + 0.5) + 1.0
     return np.ceil(np.log2(np.maximum(levels, 2.0))).astype(np.int64)
+
+
+def sh_basis(normals: np.ndarray) -> np.ndarray:
+    """(..., 9) the real spherical harmonics up to second order (unnormalised) of unit normals
+    (..., 3): the space a Lambertian surface's shading under any distant light lies in, to within
+    a few percent (Ramamoorthi and Hanrahan 2001)."""
+    x, y, z = normals[..., 0], normals[..., 1], normals[..., 2]
+    return np.stack([np.ones_like(x), x, y, z, x * y, x * z, y * z, x * x - y * y, 3.0 * z * z - 1.0], axis=-1)
+
+
+def fit_light(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """The light (9,) that best explains intensities (K,) of points of known albedo (K,) and unit
+    normals (K, 3): values ≈ albedo · sh_basis(normals) @ light, by least squares reweighted
+    (Cauchy, scale from the median absolute residual) so that what the model does not hold —
+    an eye, teeth, a shadow, a wrinkle — does not pull the fit. Points with a non-finite value
+    are left out; with fewer than 27 left the light is uniform."""
+    ok = np.isfinite(values) & np.isfinite(albedo) & np.isfinite(normals).all(axis=-1)
+    if ok.sum() < 27:  # too few points seen (a face turned away) to tell a light: a uniform one
+        return np.r_[1.0, np.zeros(8)]
+    A = albedo[ok][:, None] * sh_basis(normals[ok])
+    b = values[ok]
+    w = np.ones(len(b))
+    light = np.zeros(9)
+    # a little ridge towards no directional part keeps a fit over few normals' directions bounded
+    ridge = 1e-6 * max(float((A * A).sum() / max(len(b), 1)), 1e-12) * np.r_[0.0, np.ones(8)]
+    for _ in range(iterations):
+        Aw = A * w[:, None]
+        light = np.linalg.lstsq(Aw.T @ A + np.diag(ridge) * w.sum(), Aw.T @ b, rcond=None)[0]
+        r = b - A @ light
+        scale = 1.4826 * np.median(np.abs(r)) + 1e-9
+        w = 1.0 / (1.0 + (r / (2.385 * scale)) ** 2)
+    return light
+
+
+def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -> np.ndarray:
+    """Shading (...) of unit normals (..., 3) under a light (9,) from :func:`fit_light`, kept above
+    ``floor`` times its median (a point the light fit calls dark is not divided into noise)."""
+    shade = sh_basis(normals) @ light
+    return np.maximum(shade, floor * max(float(np.median(shade)), 1e-9))

@@ -29,6 +29,10 @@ class AppearanceModel:
     templates : per region (n, C) coefficients; indices : per region kept coefficients;
     weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
     shading : patches divided by their shading plane (else by their mean; models before it);
+    light_face (K,), light_bary (K, 3), light_albedo (K,) : points on the surface (fixed
+    barycentric coordinates) and their albedo, over which each frame's light is fitted and
+    divided out of the patches (None: no light fit); corner_uv (F, 3, 2) : the triangles' UVs
+    (to render the layered texture; None in models before it);
     neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
     boxes : (R, 2) top-left texel of each volume.
     """
@@ -52,6 +56,10 @@ class AppearanceModel:
     alphas: list
     boxes: np.ndarray
     shading: bool = False
+    light_face: np.ndarray | None = None
+    light_bary: np.ndarray | None = None
+    light_albedo: np.ndarray | None = None
+    corner_uv: np.ndarray | None = None
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
@@ -71,6 +79,10 @@ def save_appearance(path, model) -> None:
               "template_bary": model.template_bary, "weights": model.weights,
               "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading)]), "neutral": model.neutral,
               "boxes": model.boxes}
+    if model.corner_uv is not None:
+        arrays["corner_uv"] = model.corner_uv
+    if model.light_face is not None:
+        arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     for r in range(len(model.names)):
         arrays[f"templates_{r}"] = model.templates[r]
         arrays[f"indices_{r}"] = model.indices[r]
@@ -97,14 +109,16 @@ def load_appearance(path):
                                [d[f"templates_{r}"] for r in range(n)], [d[f"indices_{r}"] for r in range(n)],
                                d["weights"], int(s[0]), float(s[1]), float(s[2]), d["neutral"],
                                [d[f"volume_{r}"] for r in range(n)], [d[f"alpha_{r}"] for r in range(n)], d["boxes"],
-                               bool(s[3]) if len(s) > 3 else False)
+                               bool(s[3]) if len(s) > 3 else False, d.get("light_face"), d.get("light_bary"),
+                               d.get("light_albedo"), d.get("corner_uv"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
 
 
-def write_stream(folder, model_path, classification, layer_counts) -> Path:
-    """``appearance.csv`` (frame, time, Q per region) and ``appearance.json`` (the model, missing frames)."""
+def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None) -> Path:
+    """``appearance.csv`` (frame, time, Q per region) and ``appearance.json`` (the model, the
+    footage and geometry classified, missing frames)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     c = classification
@@ -112,7 +126,9 @@ def write_stream(folder, model_path, classification, layer_counts) -> Path:
     csv = folder / "appearance.csv"
     with atomic_path(csv) as tmp:
         Path(tmp).write_text(format_stream(names, c.numbers, c.times, c.q))
-    info = {"model": str(Path(model_path).resolve()), "regions": names, "layers": list(map(int, layer_counts)),
+    info = {"model": str(Path(model_path).resolve()), "regions": names,
+            "footage": str(footage) if footage is not None else None,
+            "geometry": str(Path(geometry).resolve()) if geometry is not None else None, "layers": list(map(int, layer_counts)),
             "frames": len(c.numbers), "hidden_fraction": float(1 - c.visible.mean()),
             "skipped_frames": [{"frame": int(n), "problem": p} for n, p in c.problems]}
     with atomic_path(folder / "appearance.json") as tmp:

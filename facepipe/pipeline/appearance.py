@@ -28,6 +28,7 @@ import numpy as np
 from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
 from facepipe.core.raster import triangle_pixels
+from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import open_footage, read_frames, to_gray
@@ -220,6 +221,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     neutral, seen = unwrap(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_face, texel_bary, camera,
                            min_facing=cfg.min_facing, normal_sign=normal_sign)
     neutral[~seen] = neutral[seen].mean(axis=0) if seen.any() else 0.5
+    light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign) if cfg.light_fit \
+        else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
     for region in cfg.regions:
@@ -234,6 +237,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
             if not inside.all():
                 raise InputError(f"region {region.name}: its template leaves the image in example frame {f}",
                                  path=config.path, hint="choose example frames where the region is in view")
+            if light is not None:  # the example's own shading out: the templates hold the albedo's structure
+                normals = point_normals(cam_pos[f][None], faces, face[0], bary[0], normal_sign)[0]
+                values = values / ap.light_shading(normals, light["light"])
             patches.append(values.reshape(cfg.template_size, cfg.template_size))
         coeffs = ap.haar_coefficients(ap.normalise_patches(np.stack(patches), cfg.shading))
         names.append(region.name)
@@ -249,8 +255,36 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     model = AppearanceModel(names, camera, R, t, faces, normal_sign, np.stack(tfaces), np.stack(tbarys), templates,
                             indices, weights, cfg.template_size, cfg.min_facing, cfg.decay,
                             neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64),
-                            cfg.shading)
+                            cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
+                            corner_uv.astype(np.float32))
     return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
+
+
+def point_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
+                  normal_sign: float, incidence=None) -> np.ndarray:
+    """Unit normals (F, ...) of the smooth surface (vertex normals interpolated) at points on the
+    posed triangles of frames (F, V, 3): face (...), bary (..., 3), the same in every frame."""
+    vn = normal_sign * vertex_normals(camera_positions, faces, incidence)  # (F, V, 3)
+    n = np.einsum("...k,f...kc->f...c", bary, vn[:, faces[face]])
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+
+
+def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign, samples: int = 2000):
+    """The example footage's light fitted over the neutral texture's texels (their albedo taken
+    as uniform: the fit is robust to what differs), every texel's albedo under it, and
+    ``samples`` texels spread over the surface, where each frame's light will be fitted."""
+    rows, cols = np.nonzero(seen & (texel_face >= 0))
+    if len(rows) < 50:
+        return None
+    pick = np.random.default_rng(0).choice(len(rows), size=min(samples * 4, len(rows)), replace=False)
+    rows, cols = rows[pick], cols[pick]
+    face, bary = texel_face[rows, cols], texel_bary[rows, cols]
+    normals = point_normals(neutral_cam[None], faces, face, bary, normal_sign)[0]
+    lum = to_gray(neutral[rows, cols])
+    light = ap.fit_light(lum, np.ones(len(lum)), normals)
+    albedo = lum / ap.light_shading(normals, light)
+    keep = slice(0, min(samples, len(rows)))
+    return {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": albedo[keep]}
 
 
 def _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg, normal_sign):
@@ -388,8 +422,32 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
     where a region is hidden, and each region's visibility (F, R)."""
     bank = ap.RegionBank(model.templates, model.indices, model.weights) if bank is None else bank
     patches, seen = sample_template_frames(grays, camera_positions, model)
+    if model.light_face is not None:
+        patches = patches / frame_shading(grays, camera_positions, model)
     q, _ = ap.classify_regions(patches, bank, model.shading)
     return np.where(seen, q, np.nan), seen
+
+
+def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """The shading (F, R, 5, size, size) at the template points of frames: each frame's light
+    fitted over the model's light points (their albedo known, their normals from the geometry)."""
+    if not hasattr(model, "_incidence"):  # built once per model
+        model._incidence = vertex_face_matrix(model.faces, int(model.faces.max()) + 1)
+    F = len(grays)
+    X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
+    normals = point_normals(camera_positions, model.faces, model.light_face, model.light_bary, model.normal_sign,
+                            model._incidence)
+    pixels = project_distorted_fast(model.camera, X)
+    facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
+    t_normals = point_normals(camera_positions, model.faces, model.template_face, model.template_bary,
+                              model.normal_sign, model._incidence)  # (F, R, 5, N, 3)
+    out = np.empty(t_normals.shape[:-1])
+    for f in range(F):
+        values, inside = ap.bilinear_sample(grays[f], pixels[f])
+        light = ap.fit_light(np.where(inside & facing[f], values, np.nan), model.light_albedo, normals[f])
+        out[f] = ap.light_shading(t_normals[f], light)
+    s = model.template_size
+    return out.reshape(out.shape[:3] + (s, s))
 
 
 def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
