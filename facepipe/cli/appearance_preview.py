@@ -12,9 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
+from facepipe.appearance_sample import Scene, render_frame
 from facepipe.cli.preview import _figure, _save, check_image_path
 from facepipe.core.appearance import compose_texture
+from facepipe.core.camera import project_distorted_fast
 from facepipe.errors import InputError
+from facepipe.io.appearance_file import load_appearance, read_stream
+from facepipe.io.footage import open_footage, read_frames
+from facepipe.pipeline.appearance import _read_geometry
 
 __all__ = ["render_appearance_preview", "is_classified"]
 
@@ -40,11 +45,6 @@ def _shown(numbers: np.ndarray, q: np.ndarray, frame_numbers, strip: int) -> np.
 def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=None, frame_numbers=None, strip: int = 0,
                               size: int = 420, force: bool = False) -> dict:
     """Render the preview (see the module docstring); returns ``frames`` shown, their ``q`` and ``path``."""
-    from facepipe.appearance_sample import Scene, render_frame
-    from facepipe.io.appearance_file import load_appearance, read_stream
-    from facepipe.io.footage import open_footage, read_frames
-    from facepipe.pipeline.appearance import _read_geometry
-
     path = Path(path)
     check_image_path(path, force)
     folder = Path(folder)
@@ -107,8 +107,6 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
 
 def _window(model, world: np.ndarray, margin: float = 0.08) -> tuple[int, int, int, int]:
     """The face's square window of the image (x0, x1, y0, y1), from its projected vertices."""
-    from facepipe.core.camera import project_distorted_fast
-
     px = project_distorted_fast(model.camera, model.to_camera(world))
     px = px[np.isfinite(px).all(axis=1)]
     lo, hi = px.min(axis=0), px.max(axis=0)

@@ -334,27 +334,35 @@ def sh_basis(normals: np.ndarray) -> np.ndarray:
 
 
 def fit_light(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """The light (9,) that best explains intensities (K,) of points of known albedo (K,) and unit
-    normals (K, 3): values ≈ albedo · sh_basis(normals) @ light, by least squares reweighted
-    (Cauchy, scale from the median absolute residual) so that what the model does not hold —
-    an eye, teeth, a shadow, a wrinkle — does not pull the fit. Points with a non-finite value
-    are left out; with fewer than 27 left the light is uniform."""
+    """The light (..., 9) that best explains intensities (..., K) of points of known albedo (K,)
+    and unit normals (..., K, 3): values ≈ albedo · sh_basis(normals) @ light, by least squares
+    reweighted (Cauchy, scale from the median absolute residual) so that what the model does not
+    hold — an eye, teeth, a shadow, a wrinkle — does not pull the fit. Points with a non-finite
+    value are left out; with fewer than 27 left the light is uniform. Leading axes (frames) are
+    fitted independently, in the same products."""
+    values = np.asarray(values, dtype=np.float64)
+    lead = values.shape[:-1]
+    values = values.reshape((-1, values.shape[-1]))
+    normals = np.asarray(normals, dtype=np.float64).reshape(values.shape + (3,))
     ok = np.isfinite(values) & np.isfinite(albedo) & np.isfinite(normals).all(axis=-1)
-    if ok.sum() < 27:  # too few points seen (a face turned away) to tell a light: a uniform one
-        return np.r_[1.0, np.zeros(8)]
-    A = albedo[ok][:, None] * sh_basis(normals[ok])
-    b = values[ok]
-    w = np.ones(len(b))
-    light = np.zeros(9)
+    A = np.where(ok[..., None], np.nan_to_num(albedo)[:, None] * sh_basis(np.nan_to_num(normals)), 0.0)  # (B, K, 9)
+    b = np.where(ok, values, 0.0)
+    w = ok.astype(np.float64)
+    count = np.maximum(ok.sum(axis=-1), 1)
     # a little ridge towards no directional part keeps a fit over few normals' directions bounded
-    ridge = 1e-6 * max(float((A * A).sum() / max(len(b), 1)), 1e-12) * np.r_[0.0, np.ones(8)]
+    ridge = 1e-6 * (A * A).sum(axis=(-2, -1)) / count
+    penalty = ridge[:, None, None] * np.diag(np.r_[0.0, np.ones(8)])
+    light = np.zeros(values.shape[:1] + (9,))
     for _ in range(iterations):
-        Aw = A * w[:, None]
-        light = np.linalg.lstsq(Aw.T @ A + np.diag(ridge) * w.sum(), Aw.T @ b, rcond=None)[0]
-        r = b - A @ light
-        scale = 1.4826 * np.median(np.abs(r)) + 1e-9
-        w = 1.0 / (1.0 + (r / (2.385 * scale)) ** 2)
-    return light
+        Aw = A * w[..., None]
+        normal = np.einsum("bki,bkj->bij", Aw, A) + penalty * w.sum(axis=-1)[:, None, None]
+        rhs = np.einsum("bki,bk->bi", Aw, b)
+        light = np.stack([np.linalg.lstsq(n, r, rcond=None)[0] for n, r in zip(normal, rhs)])
+        r = b - np.einsum("bki,bi->bk", A, light)
+        scale = 1.4826 * np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1) + 1e-9
+        w = ok / (1.0 + (r / (2.385 * np.nan_to_num(scale)[:, None])) ** 2)
+    light[ok.sum(axis=-1) < 27] = np.r_[1.0, np.zeros(8)]  # too few points seen (a face turned away): uniform
+    return light.reshape(lead + (9,))
 
 
 def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -> np.ndarray:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from facepipe.core.appearance import compose_texture, stream_bits
@@ -27,6 +28,7 @@ from facepipe.export.common import check_targets, frame_paths, remove_partial_fi
 from facepipe.export.registry import ExportOptions
 from facepipe.io.appearance_file import STREAM_DECIMALS, format_stream, load_appearance, read_stream
 from facepipe.io.atomic import atomic_path
+from facepipe.io.exr import write_exr
 
 __all__ = ["export_textures", "write_texture"]
 
@@ -34,15 +36,12 @@ __all__ = ["export_textures", "write_texture"]
 def write_texture(path: Path, texture: np.ndarray, half: bool | None) -> None:
     """One texture (H, W, 3), values in [0, 1]: 16-bit PNG (``half`` None) or EXR (half / float)."""
     if path.suffix == ".exr":
-        from facepipe.io.exr import write_exr
-
         write_exr(path, texture, half=bool(half), attributes={"facepipe/content": "layered texture"})
         return
-    import cv2  # writes 16-bit RGB PNG (Pillow does not)
-
     pixels = np.round(np.clip(texture, 0.0, 1.0) * 65535.0).astype(np.uint16)
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(pixels[..., ::-1])):  # OpenCV's channel order is BGR
+        # OpenCV writes 16-bit RGB PNG (Pillow does not); its channel order is BGR
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(pixels[..., ::-1])):
             raise OSError(f"could not write {path}")
 
 

@@ -261,12 +261,42 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
 
 
 def point_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
-                  normal_sign: float, incidence=None) -> np.ndarray:
+                  normal_sign: float, vn=None) -> np.ndarray:
     """Unit normals (F, ...) of the smooth surface (vertex normals interpolated) at points on the
-    posed triangles of frames (F, V, 3): face (...), bary (..., 3), the same in every frame."""
-    vn = normal_sign * vertex_normals(camera_positions, faces, incidence)  # (F, V, 3)
+    posed triangles of frames (F, V, 3): face (...), bary (..., 3), the same in every frame
+    (``vn``: the frames' vertex normals (F, V, 3) where already computed)."""
+    vn = normal_sign * vertex_normals(camera_positions, faces) if vn is None else vn
     n = np.einsum("...k,f...kc->f...c", bary, vn[:, faces[face]])
     return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+
+
+def _normal_stencil(model: AppearanceModel):
+    """The vertices of the light points' and the templates' triangles, every triangle around them
+    and their vertex–triangle incidence: those vertices' normals need only these (built once
+    per model). Returns (vertices (M,), local index of every vertex (V,), triangles, incidence (M, T))."""
+    if getattr(model, "_stencil", None) is None:
+        n_vertices = int(model.faces.max()) + 1
+        needed = np.zeros(n_vertices, dtype=bool)
+        needed[model.faces[model.light_face].ravel()] = True
+        needed[model.faces[model.template_face].ravel()] = True
+        vertices = np.flatnonzero(needed)
+        local = np.full(n_vertices, -1, dtype=np.int64)
+        local[vertices] = np.arange(len(vertices))
+        around = model.faces[needed[model.faces].any(axis=1)]
+        incidence = vertex_face_matrix(around, n_vertices)[vertices]
+        model._stencil = (vertices, local, around, incidence)
+    return model._stencil
+
+
+def _stencil_normals(camera_positions: np.ndarray, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vertex normals (F, M, 3) of frames at the stencil's vertices, and the local index map."""
+    _, local, around, incidence = _normal_stencil(model)
+    v0 = camera_positions[:, around[:, 0]]
+    fn = np.cross(camera_positions[:, around[:, 1]] - v0, camera_positions[:, around[:, 2]] - v0)  # (F, T, 3)
+    F, T = fn.shape[:2]
+    vn = np.asarray(incidence @ np.moveaxis(fn, 1, 0).reshape(T, F * 3)).reshape(-1, F, 3)
+    vn = np.moveaxis(vn, 1, 0) * model.normal_sign
+    return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-30), local
 
 
 def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign, samples: int = 2000):
@@ -431,21 +461,20 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
 def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
     """The shading (F, R, 5, size, size) at the template points of frames: each frame's light
     fitted over the model's light points (their albedo known, their normals from the geometry)."""
-    if not hasattr(model, "_incidence"):  # built once per model
-        model._incidence = vertex_face_matrix(model.faces, int(model.faces.max()) + 1)
+    vn, local = _stencil_normals(camera_positions, model)
     F = len(grays)
     X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
-    normals = point_normals(camera_positions, model.faces, model.light_face, model.light_bary, model.normal_sign,
-                            model._incidence)
+    normals = point_normals(camera_positions, local[model.faces], model.light_face, model.light_bary, 1.0, vn)
     pixels = project_distorted_fast(model.camera, X)
     facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
-    t_normals = point_normals(camera_positions, model.faces, model.template_face, model.template_bary,
-                              model.normal_sign, model._incidence)  # (F, R, 5, N, 3)
-    out = np.empty(t_normals.shape[:-1])
+    t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
+                              vn)  # (F, R, 5, N, 3)
+    values = np.empty(X.shape[:2])
     for f in range(F):
-        values, inside = ap.bilinear_sample(grays[f], pixels[f])
-        light = ap.fit_light(np.where(inside & facing[f], values, np.nan), model.light_albedo, normals[f])
-        out[f] = ap.light_shading(t_normals[f], light)
+        sampled, inside = ap.bilinear_sample(grays[f], pixels[f])
+        values[f] = np.where(inside & facing[f], sampled, np.nan)
+    light = ap.fit_light(values, model.light_albedo, normals)  # (F, 9)
+    out = np.stack([ap.light_shading(t_normals[f], light[f]) for f in range(F)])
     s = model.template_size
     return out.reshape(out.shape[:3] + (s, s))
 
