@@ -215,3 +215,18 @@ def test_light_fit_with_too_few_points_is_uniform():
     values[:5] = 0.5
     light = fit_light(values, np.ones(30), normals)
     np.testing.assert_allclose(light_shading(normals, light), 1.0)
+
+
+def test_light_fit_of_frames_at_once_matches_one_by_one():
+    from facepipe.core.appearance import fit_light
+
+    rng = np.random.default_rng(9)
+    normals = rng.normal(size=(3, 400, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    albedo = rng.uniform(0.3, 0.9, size=400)
+    values = rng.uniform(0.2, 0.8, size=(3, 400))
+    values[1, :390] = np.nan  # a frame that sees too little: uniform
+    together = fit_light(values, albedo, normals)
+    for f in range(3):
+        np.testing.assert_allclose(together[f], fit_light(values[f], albedo, normals[f]), atol=1e-10)
+    np.testing.assert_allclose(together[1], np.r_[1.0, np.zeros(8)])

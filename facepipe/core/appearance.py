@@ -345,12 +345,20 @@ def fit_light(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, itera
     values = values.reshape((-1, values.shape[-1]))
     normals = np.asarray(normals, dtype=np.float64).reshape(values.shape + (3,))
     ok = np.isfinite(values) & np.isfinite(albedo) & np.isfinite(normals).all(axis=-1)
+    light = np.zeros(values.shape[:1] + (9,))
+    light[:, 0] = 1.0  # too few points seen (a face turned away) to tell a light: a uniform one
+    enough = ok.sum(axis=-1) >= 27
+    if enough.any():
+        light[enough] = _fit_light_rows(values[enough], albedo, normals[enough], ok[enough], iterations)
+    return light.reshape(lead + (9,))
+
+
+def _fit_light_rows(values, albedo, normals, ok, iterations: int) -> np.ndarray:
     A = np.where(ok[..., None], np.nan_to_num(albedo)[:, None] * sh_basis(np.nan_to_num(normals)), 0.0)  # (B, K, 9)
     b = np.where(ok, values, 0.0)
     w = ok.astype(np.float64)
-    count = np.maximum(ok.sum(axis=-1), 1)
     # a little ridge towards no directional part keeps a fit over few normals' directions bounded
-    ridge = 1e-6 * (A * A).sum(axis=(-2, -1)) / count
+    ridge = 1e-6 * (A * A).sum(axis=(-2, -1)) / ok.sum(axis=-1)
     penalty = ridge[:, None, None] * np.diag(np.r_[0.0, np.ones(8)])
     light = np.zeros(values.shape[:1] + (9,))
     for _ in range(iterations):
@@ -359,10 +367,10 @@ def fit_light(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, itera
         rhs = np.einsum("bki,bk->bi", Aw, b)
         light = np.stack([np.linalg.lstsq(n, r, rcond=None)[0] for n, r in zip(normal, rhs)])
         r = b - np.einsum("bki,bi->bk", A, light)
-        scale = 1.4826 * np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1) + 1e-9
-        w = ok / (1.0 + (r / (2.385 * np.nan_to_num(scale)[:, None])) ** 2)
-    light[ok.sum(axis=-1) < 27] = np.r_[1.0, np.zeros(8)]  # too few points seen (a face turned away): uniform
-    return light.reshape(lead + (9,))
+        # every row here has points: the median over them is finite
+        scale = 1.4826 * np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1, keepdims=True) + 1e-9
+        w = ok / (1.0 + (r / (2.385 * scale)) ** 2)
+    return light
 
 
 def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -> np.ndarray:
