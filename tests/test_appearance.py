@@ -1,5 +1,6 @@
 """Appearance from footage end to end on the rendered sample rig, the footage reader and bad input."""
 
+import json
 import shutil
 from pathlib import Path
 
@@ -126,3 +127,147 @@ def test_footage_patterns_folders_and_video(tmp_path):
         open_footage(tmp_path / "nothing_%04d.png")
     with pytest.raises(InputError):
         open_footage(tmp_path / "missing.mp4")
+
+
+def _classified(kit):
+    out = kit / "cls_take"
+    if not (out / "appearance.csv").is_file():
+        _q_and_truth(kit, "take")
+    return out
+
+
+def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
+    import cv2
+
+    from facepipe.io.appearance_file import load_appearance
+
+    cls = _classified(kit)
+    dest = tmp_path / "tex"
+    assert _run("export", cls, "--format", "textures", "-o", dest) == 0
+    said = capsys.readouterr().out
+    assert "kbit/s" in said
+    summary = json.loads((dest / "textures.json").read_text())
+    q = np.loadtxt(dest / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    assert summary["frames"] == len(q) and summary["bit_rate_kbit_s"] <= 12.0
+    # 8 regions × 16 bits (Q in 1e-4 steps over 4 layers needs 40001 values) at 30 Hz
+    assert summary["bits_per_frame"] == 8 * 16 and abs(summary["bit_rate_kbit_s"] - 3.84) < 0.01
+    model = load_appearance(kit / "app.npz")
+    t = int(np.argmax(q.sum(axis=1)))
+    got = cv2.imread(str(dest / f"frame_{t + 1:04d}.png"), cv2.IMREAD_UNCHANGED)[..., ::-1] / 65535.0
+    # outside every region's box the texture is the neutral one
+    outside = np.ones(model.neutral.shape[:2], dtype=bool)
+    for alpha, (r0, c0) in zip(model.alphas, model.boxes):
+        outside[r0:r0 + alpha.shape[0], c0:c0 + alpha.shape[1]] = False
+    np.testing.assert_allclose(got[outside], model.neutral[outside], atol=1e-4)
+    # inside a region (alpha 1, no other region there) it is the linear blend of its two layers
+    # around Q, computed here by hand
+    r = int(np.argmax(q[t]))
+    lo = min(int(q[t, r]), len(model.volumes[r]) - 2)
+    f = q[t, r] - lo
+    expected = (1 - f) * model.volumes[r][lo] + f * model.volumes[r][lo + 1]
+    (r0, c0), alpha = model.boxes[r], model.alphas[r]
+    window = got[r0:r0 + alpha.shape[0], c0:c0 + alpha.shape[1]]
+    inner = alpha == 1.0
+    for k, (a, (s0, t0)) in enumerate(zip(model.alphas, model.boxes)):
+        if k != r:  # leave out texels another region's box also covers
+            rows = slice(max(s0 - r0, 0), max(min(s0 + a.shape[0] - r0, alpha.shape[0]), 0))
+            cols = slice(max(t0 - c0, 0), max(min(t0 + a.shape[1] - c0, alpha.shape[1]), 0))
+            inner[rows, cols] = False
+    assert inner.sum() > 50
+    np.testing.assert_allclose(window[inner], expected[inner], atol=1e-4)
+
+
+def test_texture_export_refuses_overwrite_resumes_and_writes_exr(kit, tmp_path):
+    from facepipe.io.exr import read_exr
+
+    cls = _classified(kit)
+    dest = tmp_path / "tex"
+    assert _run("export", cls, "--format", "textures", "-o", dest, "--half", "-q") == 0
+    assert _run("export", cls, "--format", "textures", "-o", dest, "--half", "-q") == 2  # no overwrite
+    first = dest / "frame_0001.exr"
+    stamp = first.stat().st_mtime_ns
+    (dest / "frame_0003.exr").unlink()
+    assert _run("export", cls, "--format", "textures", "-o", dest, "--half", "--resume", "-q") == 0
+    assert first.stat().st_mtime_ns == stamp and (dest / "frame_0003.exr").is_file()
+    assert json.loads((dest / "textures.json").read_text())["written"] == 1
+    image, _ = read_exr(dest / "frame_0003.exr")
+    assert image.dtype == np.float16 and image.shape[2] == 3
+    # a stream that is not this model's: exit 2
+    (tmp_path / "bad").mkdir()
+    shutil.copy(cls / "appearance.json", tmp_path / "bad")
+    text = (cls / "appearance.csv").read_text().splitlines()
+    (tmp_path / "bad" / "appearance.csv").write_text("\n".join([text[0], text[1].rsplit(",", 1)[0] + ",7.5"]) + "\n")
+    assert _run("export", tmp_path / "bad", "--format", "textures", "-o", tmp_path / "t2", "-q") == 2
+    assert _run("export", tmp_path / "nothing", "--format", "textures", "-o", tmp_path / "t3", "-q") == 2
+
+
+def test_reconstructed_texture_is_closer_to_the_frames_than_neutral(kit):
+    # the layered texture at the classified Q against each frame's own texels (unwrapped through
+    # its truth geometry), relative to the neutral texture's difference, over the regions' texels
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.pipeline.appearance import _read_geometry, texel_map, texture_differences
+
+    model = load_appearance(kit / "app.npz")
+    mesh = load_mesh(kit / "neutral.obj")
+    cls = _classified(kit)
+    q = np.loadtxt(cls / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
+    positions, numbers = _read_geometry(kit / "appearance" / "take.npz", mesh.n_vertices)
+    texel_face, texel_bary = texel_map(mesh.uvs[mesh.face_uvs], model.neutral.shape[0])
+    sums, at_truth = np.zeros((len(model.names), 3)), np.zeros((len(model.names), 3))
+    for t, (_, image, _) in enumerate(read_frames(open_footage(kit / "appearance" / "take"), numbers)):
+        cam = model.to_camera(positions[t])
+        sums += texture_differences(model, texel_face, texel_bary, image, cam, q[t])
+        at_truth += texture_differences(model, texel_face, texel_bary, image, cam, truth[t] * 4)
+    ratio = np.sqrt(sums[:, 0].sum() / sums[:, 1].sum())
+    ceiling = np.sqrt(at_truth[:, 0].sum() / at_truth[:, 1].sum())
+    print("texture RMS ratio", ratio, "at the truth Q", ceiling)
+    assert ratio <= 0.5 and ceiling <= 0.5
+
+
+def test_preview_of_a_classified_take(kit, tmp_path, capsys):
+    cls = _classified(kit)
+    out = tmp_path / "preview.png"
+    assert _run("preview", cls, "-o", out, "--strip", 2) == 0
+    said = capsys.readouterr().out
+    assert said.count("; Q ") == 2
+    image = iio.imread(out)
+    assert image.shape[0] > 400 and image.std() > 10  # panels and curves drawn, not a blank page
+    assert _run("preview", cls, "-o", out) == 2  # not overwritten without --force
+    assert _run("preview", cls, "-o", out, "--frame", 9999, "--force") == 2  # a frame the take lacks
+    bare = tmp_path / "old"
+    bare.mkdir()
+    shutil.copy(cls / "appearance.csv", bare)
+    info = json.loads((cls / "appearance.json").read_text())
+    info.pop("footage")
+    (bare / "appearance.json").write_text(json.dumps(info))
+    assert _run("preview", bare, "-o", tmp_path / "p2.png") == 2
+    assert "does not name the footage" in capsys.readouterr().err
+
+
+def test_bad_examples_exit_2(kit, tmp_path, capsys):
+    # an example frame of another size than the calibration
+    cfg = _edited_config(kit, tmp_path, "neutral_frame = 0", "neutral_frame = 0")
+    frame = cfg.parent / "examples" / "frame_0000.png"
+    iio.imwrite(frame, iio.imread(frame)[:-4])
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert "calibration" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda d: (d / "regions" / "mouth.txt").write_text("12\n99999999\n"), "line 2"),
+    (lambda d: (d / "regions" / "mouth.txt").write_text("# no vertices\n"), "empty"),
+    (lambda d: (d / "regions" / "mouth.txt").unlink(), "not found"),
+])
+def test_bad_vertex_groups_exit_2(kit, tmp_path, capsys, edit, message):
+    cfg = _edited_config(kit, tmp_path, "neutral_frame = 0", "neutral_frame = 0")
+    edit(cfg.parent)
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert message in capsys.readouterr().err
+
+
+def test_example_frame_without_geometry_exits_2(kit, tmp_path, capsys):
+    cfg = _edited_config(kit, tmp_path, "frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 400]")
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert "frame 400" in capsys.readouterr().err

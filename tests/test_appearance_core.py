@@ -5,7 +5,7 @@ import pytest
 from scipy import ndimage
 from scipy.stats import spearmanr
 
-from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, bilinear_sample, classify, coefficient_weights,
+from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, RegionBank, classify_regions, bilinear_sample, classify, coefficient_weights,
                                       compose_texture, facing, haar_coefficients, haar_matrix, hold_and_decay,
                                       layer_lookup, match_distances, normalise_patches, peak_index, region_alpha,
                                       select_coefficients)
@@ -96,7 +96,42 @@ def test_best_of_offset_samples_is_kept():
     good = a + (b - a) * (2 / 3)
     junk = rng.uniform(0.5, 1.5, size=(16, 16))
     q, d = classify(np.stack([junk, good, junk])[None], templates, idx, w)
+    # exact match (distance 0) with the second sample; the parabola's vertex is exactly 2 only where
+    # the layers are evenly spaced in coefficient space, which dividing by the shading plane bends slightly
+    assert q[0] == pytest.approx(2.0, abs=0.01) and d[0] == pytest.approx(0.0, abs=1e-9)
+    q, d = classify(np.stack([junk, good, junk])[None], haar_coefficients(normalise_patches(np.stack(layers), False)),
+                    idx, w, shading=False)
     assert q[0] == pytest.approx(2.0, abs=1e-6) and d[0] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_shading_plane_against_least_squares():
+    rng = np.random.default_rng(5)
+    patches = rng.uniform(0.5, 1.5, size=(3, 8, 16))
+    yy, xx = np.mgrid[0:8, 0:16]
+    A = np.stack([np.ones(128), xx.ravel(), yy.ravel()], axis=1)
+    for p, got in zip(patches, normalise_patches(patches)):
+        plane = (A @ np.linalg.lstsq(A, p.ravel(), rcond=None)[0]).reshape(8, 16)
+        np.testing.assert_allclose(got, p / plane, rtol=1e-12)
+    # a patch that is all shading (a plane) normalises to ones; a uniform gain changes nothing
+    plane = 0.8 + 0.01 * xx - 0.02 * yy
+    np.testing.assert_allclose(normalise_patches(plane), 1.0, atol=1e-12)
+    np.testing.assert_allclose(normalise_patches(3.0 * patches), normalise_patches(patches), rtol=1e-12)
+
+
+def test_all_regions_at_once_match_one_by_one():
+    rng = np.random.default_rng(6)
+    counts = [3, 5, 4]
+    w = coefficient_weights(16)
+    templates = [haar_coefficients(normalise_patches(rng.uniform(0.5, 1.5, size=(n, 16, 16)))) for n in counts]
+    indices = [select_coefficients(t, k) for t, k in zip(templates, (50, 30, 80))]
+    bank = RegionBank(templates, indices, w)
+    patches = rng.uniform(0.5, 1.5, size=(7, 3, 5, 16, 16))  # frames, regions, samples
+    q, d = classify_regions(patches, bank)
+    for r in range(3):
+        qr, dr = classify(patches[:, r], templates[r], indices[r], w)
+        np.testing.assert_allclose(q[:, r], qr, atol=1e-9)
+        np.testing.assert_allclose(d[:, r], dr, rtol=1e-9)
+    assert (q[:, 0] <= 2).all() and (q[:, 2] <= 3).all()
 
 
 def test_hold_and_decay():
@@ -137,3 +172,61 @@ def test_alpha_ramp_and_layers():
     neutral = np.zeros((10, 10, 1))
     out = compose_texture(neutral, [layers], [np.ones((2, 2))], [(3, 4)], np.array([2.0]))
     assert out[3:5, 4:6].min() == 2.0 and out.sum() == 8.0
+
+
+@pytest.mark.parametrize("distortion", [[-0.05, 0.02, 0, 0, 0], [0.1, -0.2, 0.001, -0.002, 0.05],
+                                        [0.1, -0.2, 0.001, -0.002, 0.05, 0.01, 0.02, -0.03],
+                                        [0.1, -0.2, 0.001, -0.002, 0.05, 0.01, 0.02, -0.03, 0.001, 0.002, -0.001, 0.003],
+                                        [0.1, -0.2, 0.001, -0.002, 0.05, 0, 0, 0, 0, 0, 0, 0, 0.01, -0.02]])
+def test_numpy_projection_matches_opencv(distortion):
+    from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
+
+    rng = np.random.default_rng(7)
+    X = rng.uniform([-3, -2, 8], [3, 2, 20], size=(500, 3))
+    camera = Camera(np.array([[800, 0, 320], [0, 780, 240], [0, 0, 1.0]]), np.array(distortion), 640, 480, "test")
+    np.testing.assert_allclose(project_distorted_fast(camera, X), project_distorted(camera, X), atol=1e-9)
+
+
+def test_light_fit_recovers_a_lambertian_light_despite_outliers():
+    from facepipe.core.appearance import fit_light, light_shading, sh_basis
+
+    rng = np.random.default_rng(8)
+    normals = rng.normal(size=(3000, 3))
+    normals[:, 2] = -np.abs(normals[:, 2])  # the half facing the camera
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo = rng.uniform(0.3, 0.9, size=3000)
+    light = np.array([0.5, 0.1, -0.2, -0.3, 0.05, 0.0, 0.02, 0.04, 0.03])
+    values = albedo * (sh_basis(normals) @ light)
+    values[:300] = rng.uniform(0, 1, size=300)  # an eye, teeth, a shadow: what the model does not hold
+    values[300:310] = np.nan
+    got = fit_light(values, albedo, normals)
+    np.testing.assert_allclose(sh_basis(normals[310:]) @ got, sh_basis(normals[310:]) @ light, atol=2e-3)
+    # a second construction of the basis: the Lambertian shading of a distant light l is linear in
+    # (1, n, quadratic terms); a light along -z gives shading growing with -n_z
+    assert sh_basis(np.array([0.0, 0.0, -1.0]))[3] == -1.0 and sh_basis(np.array([1.0, 0, 0]))[7] == 1.0
+    assert (light_shading(normals, -light) > 0).all()  # the floor keeps it positive
+
+
+def test_light_fit_with_too_few_points_is_uniform():
+    from facepipe.core.appearance import fit_light, light_shading
+
+    normals = np.tile([0.0, 0.0, -1.0], (30, 1))
+    values = np.full(30, np.nan)
+    values[:5] = 0.5
+    light = fit_light(values, np.ones(30), normals)
+    np.testing.assert_allclose(light_shading(normals, light), 1.0)
+
+
+def test_light_fit_of_frames_at_once_matches_one_by_one():
+    from facepipe.core.appearance import fit_light
+
+    rng = np.random.default_rng(9)
+    normals = rng.normal(size=(3, 400, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    albedo = rng.uniform(0.3, 0.9, size=400)
+    values = rng.uniform(0.2, 0.8, size=(3, 400))
+    values[1, :390] = np.nan  # a frame that sees too little: uniform
+    together = fit_light(values, albedo, normals)
+    for f in range(3):
+        np.testing.assert_allclose(together[f], fit_light(values[f], albedo, normals[f]), atol=1e-10)
+    np.testing.assert_allclose(together[1], np.r_[1.0, np.zeros(8)])

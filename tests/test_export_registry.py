@@ -49,18 +49,21 @@ def test_a_registered_format_is_exported_by_name(rig, tmp_path, xyz_format):
 
 
 def test_unknown_format_names_the_registered_ones(rig, tmp_path, xyz_format):
-    with pytest.raises(InputError, match="choose one of obj, exr, wrinkle, usd, mdd, pc2, xyz"):
+    with pytest.raises(InputError, match="choose one of obj, exr, wrinkle, usd, mdd, pc2, textures, xyz"):
         export_replay(rig.replays["psd"], "abc", tmp_path / "abc")
 
 
 def test_cli_format_choices_and_help_come_from_the_registry():
     option = next(p for p in export_command.params if p.name == "fmt")
     assert isinstance(option.type, click.Choice)
-    assert list(option.type.choices) == list(registry.FORMATS) == ["obj", "exr", "wrinkle", "usd", "mdd", "pc2"]
+    assert list(option.type.choices) == list(registry.FORMATS) == ["obj", "exr", "wrinkle", "usd", "mdd", "pc2",
+                                                                         "textures"]
     assert option.help == ("obj: OBJ sequence; exr: displacement maps per frame; wrinkle: wrinkle-map set (PSD); "
-                           "usd: .usdc with time-sampled points; mdd, pc2: point caches.")
+                           "usd: .usdc with time-sampled points; mdd, pc2: point caches; textures: layered textures "
+                           "per frame from a classified take (appearance.csv).")
     dest = next(p for p in export_command.params if p.name == "dest")
-    assert dest.help == "Folder (obj, exr, wrinkle) or file (usd: .usdc/.usd/.usda, mdd: .mdd, pc2: .pc2)."
+    assert dest.help == ("Folder (obj, exr, wrinkle, textures) or file (usd: .usdc/.usd/.usda, mdd: .mdd, "
+                         "pc2: .pc2).")
 
 
 def test_every_built_in_exporter_resolves():

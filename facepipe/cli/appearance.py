@@ -50,9 +50,15 @@ def classify_command(model_path, footage, geometry, output, fps, rep):
     never = [name for r, name in enumerate(model.names) if not result.visible[:, r].any()]
     if never:
         rep.say(f"note: never visible, kept neutral: {', '.join(never)}")
-    path = write_stream(output, model_path, result, model.layer_counts)
+    path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
+                        geometry=geometry)
     rep.say(f"{len(numbers)} frames, {len(model.names)} regions; wrote {path}")
     return result
+
+
+def _absolute_footage(footage) -> str:
+    """The footage's path (a folder, a video, or a ``frame_%04d.png`` pattern) made absolute."""
+    return str(Path(footage).parent.resolve() / Path(footage).name)
 
 
 def sample_appearance(directory, frames: int, size: int, rep) -> dict:

@@ -313,7 +313,8 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
               help="Geometry formats: the final surface, or the large-scale one (needs replay --save-large-scale).")
 @click.option("--resolution", default="2048", show_default=True, help="Maps: N or WxH texels per UDIM tile.")
 @click.option("--padding", default=8, show_default=True, help="Maps: texels of edge padding around UV islands.")
-@click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float].")
+@click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float]; textures: EXR half/float instead "
+              "of 16-bit PNG.")
 @click.option("--vector/--scalar", "vector", default=True, help="Maps: R,G,B vector, or Y along the normal. "
               "[default: vector]")
 @click.option("--space", type=click.Choice(["local", "tangent", "object"]), default="local", show_default=True,
@@ -327,7 +328,8 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
 @click.pass_context
 def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half, vector, space, start, up_axis, force,
            resume, quiet, verbose):
-    """Export a replay (OUTDIR) for other tools: OBJ sequence, EXR displacement or wrinkle maps, USD, MDD, PC2."""
+    """Export a replay (OUTDIR) for other tools: OBJ sequence, EXR displacement or wrinkle maps, USD, MDD, PC2;
+    or a classified take's layered textures (OUTDIR with appearance.csv; -m: the appearance model)."""
     from facepipe.export.dispatch import export_replay, parse_resolution
 
     rep = _reporter(ctx, quiet, verbose)
@@ -356,10 +358,11 @@ def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half,
               help="Take frame number to show (repeatable) [default: the most expressive frame].")
 @click.option("--strip", default=0, show_default=True, help="Show this many evenly spaced frames, one row each.")
 @click.option("--size", default=420, show_default=True, help="Width of one panel in pixels.")
-@click.option("--view", type=click.Choice(["auto", "camera", "head"]), default="auto", show_default=True,
+@click.option("--view", type=click.Choice(["auto", "camera", "head", "appearance"]), default="auto", show_default=True,
               help="camera: a 2D take's replayed face through the footage's camera with the tracked and reprojected "
-                   "landmarks; head: large scale vs final (and --truth) in head space; auto: camera for a 2D take "
-                   "(head with --truth).")
+                   "landmarks; head: large scale vs final (and --truth) in head space; appearance: a classified "
+                   "take's input frames, the layered texture at Q rendered through the camera, the Q curves; auto: "
+                   "appearance for a folder of appearance classify, camera for a 2D take (head with --truth).")
 @click.option("--force", is_flag=True, help="Overwrite an existing image.")
 @click.option("--movie", default=None, type=click.Path(dir_okay=False),
               help="Render every frame into a movie instead (.mp4 or .gif) at the take's rate, take frame numbers "
@@ -394,6 +397,8 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
     for k, f in enumerate(s["frames"]):
         errs = (f"; RMS vs truth: final {s['rms']['final'][k]:.4g}, large scale {s['rms']['large'][k]:.4g}"
                 if "rms" in s else "")
+        if s.get("view") == "appearance":
+            errs = "; Q " + " ".join(f"{x:.2f}" for x in s["q"][k])
         if s.get("view") == "camera":
             px = s["reprojection_px"][k]
             errs = "; tracker lost the face" if px is None else f"; landmark reprojection RMS {px:.3f} px"

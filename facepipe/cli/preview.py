@@ -228,12 +228,19 @@ def view_direction(model) -> np.ndarray:
 def preview_replay(outdir, model_path, path, *, view: str = "auto", truth_path=None, frame_numbers=None,
                    strip: int = 0, size: int = 420, force: bool = False) -> dict:
     """``facepipe preview``: the camera view of a 2D take's replay
-    (:func:`facepipe.cli.video_preview.render_camera_preview`) or the head-space view
-    (:func:`render_preview`); ``view`` "auto" takes the camera view where the replay has one."""
+    (:func:`facepipe.cli.video_preview.render_camera_preview`), the head-space view
+    (:func:`render_preview`) or a classified take's appearance
+    (:func:`facepipe.cli.appearance_preview.render_appearance_preview`); ``view`` "auto" takes the
+    appearance view for a folder with appearance.csv and no replay, the camera view where the
+    replay has one."""
+    from facepipe.cli.appearance_preview import is_classified, render_appearance_preview
     from facepipe.cli.video_preview import render_camera_preview
     from facepipe.io.replay_folder import ReplayDir
 
     check_output_path(path, kind="file", what="preview image")
+    if view == "appearance" or (view == "auto" and is_classified(outdir) and not (Path(outdir) / "replay.json").is_file()):
+        return render_appearance_preview(outdir, path, model_path=model_path, frame_numbers=frame_numbers, strip=strip,
+                                         size=size, force=force)
     replay = ReplayDir(outdir)
     model = replay.load_model(model_path)
     if view == "auto":

@@ -23,8 +23,9 @@ match distances of it and its neighbours to a continuous layer index Q ∈ [0, n
 * **visibility**: a region facing away from the camera keeps its last value, decaying
   exponentially to neutral (0).
 
-Patches are divided by their mean before the transform (a uniform change of exposure or of
-the light's strength leaves them unchanged): what is classified is the texture's structure.
+Patches are divided by their shading before the transform, the plane through their
+intensities (a change of exposure, of the light's strength and, to first order, of its
+direction leaves them unchanged): what is classified is the texture's structure.
 
 Pure functions over arrays.
 """
@@ -38,8 +39,9 @@ import pywt
 from scipy import ndimage
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
-           "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
-           "facing", "region_alpha", "layer_lookup", "compose_texture", "DIAGONAL_OFFSETS"]
+           "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
+           "facing", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS",
+           "sh_basis", "fit_light", "light_shading"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
 DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
@@ -87,11 +89,30 @@ def haar_coefficients(patches: np.ndarray) -> np.ndarray:
     return patches.reshape(patches.shape[:-2] + (size * size,)) @ H.T
 
 
-def normalise_patches(patches: np.ndarray) -> np.ndarray:
-    """Patches divided by their mean intensity (a uniform gain leaves them unchanged)."""
+def normalise_patches(patches: np.ndarray, shading: bool = True) -> np.ndarray:
+    """Patches divided by their shading: the least-squares plane a + b·x + c·y through their
+    intensities (``shading``), or their mean alone.
+
+    Light varies slowly over a small patch of skin, the texture it shows (wrinkles, pores, folds)
+    fast: over a patch a few millimetres wide the shading of a smooth light is close to linear,
+    so dividing by the plane takes out a change of exposure, of the light's strength and of its
+    direction to first order, while a fold's darkening (its structure within the patch, and its
+    mean relative to the patch's gradient) stays. A patch whose plane nears zero somewhere (a
+    patch mostly in shadow) is divided by at least a tenth of its mean.
+    """
     patches = np.asarray(patches, dtype=np.float64)
     mean = patches.mean(axis=(-2, -1), keepdims=True)
-    return patches / np.maximum(np.abs(mean), 1e-6)
+    if not shading:
+        return patches / np.maximum(np.abs(mean), 1e-6)
+    h, w = patches.shape[-2:]
+    y = (np.arange(h) - 0.5 * (h - 1))[:, None]
+    x = (np.arange(w) - 0.5 * (w - 1))[None, :]
+    # the centred coordinates are orthogonal to the constant and to each other on the grid
+    bx = (patches * x).sum(axis=(-2, -1), keepdims=True) / (h * (x * x).sum())
+    by = (patches * y).sum(axis=(-2, -1), keepdims=True) / (w * (y * y).sum())
+    plane = mean + bx * x + by * y
+    floor = np.maximum(0.1 * np.abs(mean), 1e-6)
+    return patches / np.maximum(plane, floor)
 
 
 def select_coefficients(template_coefficients: np.ndarray, keep: int = 50) -> np.ndarray:
@@ -126,10 +147,11 @@ def match_distances(query: np.ndarray, templates: np.ndarray, indices: np.ndarra
 def peak_index(distances: np.ndarray) -> np.ndarray:
     """Continuous index (...) of the smallest of distances (..., n), n ≥ 3: the vertex of the parabola
     through the best one and its neighbours (the nearest three at the ends), within half a
-    layer of the best and within [0, n − 1]."""
+    layer of the best and within [0, n − 1]. Trailing infinite distances are absent templates
+    (regions with fewer layers padded to the most): n is each row's count of finite ones."""
     d = np.asarray(distances, dtype=np.float64)
-    n = d.shape[-1]
-    if n < 3:
+    n = np.isfinite(d).sum(axis=-1)
+    if (n < 3).any():
         raise ValueError("peak interpolation needs at least three templates")
     best = np.argmin(d, axis=-1)
     centre = np.clip(best, 1, n - 2)
@@ -143,8 +165,8 @@ def peak_index(distances: np.ndarray) -> np.ndarray:
     return np.clip(np.clip(vertex, best - 0.5, best + 0.5), 0.0, n - 1.0)
 
 
-def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, weights: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray]:
+def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, weights: np.ndarray,
+             shading: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Layer index of the best of several samples of a patch.
 
     patches : (..., S, size, size) S samples (e.g. diagonal offsets) of one patch, raw intensities.
@@ -155,8 +177,51 @@ def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, we
     Q : (...) continuous layer index of the sample that matches its best template most closely.
     distance : (...) that sample's smallest distance.
     """
-    coefficients = haar_coefficients(normalise_patches(patches))
+    coefficients = haar_coefficients(normalise_patches(patches, shading))
     d = match_distances(coefficients, templates, indices, weights)  # (..., S, n)
+    best = d.min(axis=-1)
+    sample = np.argmin(best, axis=-1)
+    chosen = np.take_along_axis(d, sample[..., None, None], axis=-2)[..., 0, :]
+    return peak_index(chosen), np.take_along_axis(best, sample[..., None], -1)[..., 0]
+
+
+class RegionBank:
+    """Every region's templates in one padded array, for classifying all regions at once.
+
+    templates : per region (n_r, C) normalised templates' coefficients; indices : per region its
+    kept coefficients; weights : (C,). A region's coefficient weights are zero off its kept set
+    and its missing templates (n_r below the most) are at infinite distance, so one batched
+    product gives every region's distances over its own terms, as :func:`match_distances` does.
+    """
+
+    def __init__(self, templates, indices, weights):
+        R = len(templates)
+        C = len(weights)
+        n_max = max(len(t) for t in templates)
+        self.weights = np.zeros((R, C))
+        self.templates = np.zeros((R, n_max, C))
+        self.absent = np.zeros((R, n_max), dtype=bool)
+        for r, (t, idx) in enumerate(zip(templates, indices)):
+            self.weights[r, idx] = np.asarray(weights, dtype=np.float64)[idx]
+            self.templates[r, :len(t)] = t
+            self.absent[r, len(t):] = True
+        self.wt = self.weights[:, None, :] * self.templates  # (R, n, C)
+        self.tt = (self.wt * self.templates).sum(axis=-1)      # (R, n)
+
+    def distances(self, coefficients: np.ndarray) -> np.ndarray:
+        """(..., R, S, n) distances of coefficients (..., R, S, C) to every region's templates."""
+        q = np.asarray(coefficients, dtype=np.float64)
+        qq = np.einsum("...rsc,rc->...rs", q * q, self.weights)
+        qt = np.einsum("...rsc,rnc->...rsn", q, self.wt)
+        d = qq[..., None] - 2.0 * qt + self.tt[:, None, :]
+        return np.where(self.absent[:, None, :], np.inf, d)
+
+
+def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`classify` of every region at once: patches (..., R, S, size, size) → Q (..., R) and
+    the chosen sample's smallest distance (..., R)."""
+    coefficients = haar_coefficients(normalise_patches(patches, shading))
+    d = bank.distances(coefficients)  # (..., R, S, n)
     best = d.min(axis=-1)
     sample = np.argmin(best, axis=-1)
     chosen = np.take_along_axis(d, sample[..., None, None], axis=-2)[..., 0, :]
@@ -235,15 +300,81 @@ def layer_lookup(layers: np.ndarray, q: float) -> np.ndarray:
 
 
 def compose_texture(neutral: np.ndarray, volumes, alphas, boxes, q: np.ndarray) -> np.ndarray:
-    """The frame's texture: the neutral texture with every region's volume at its Q blended in.
+    """The frame's texture: the neutral texture plus every region's change at its Q.
 
-    neutral : (H, W, C); volumes : per region (n, h, w, C); alphas : per region (h, w);
-    boxes : per region (row0, col0) of its volume in the texture; q : (R,) layer indices.
+    neutral : (H, W, C); volumes : per region (n, h, w, C), layer 0 its neutral; alphas : per
+    region (h, w); boxes : per region (row0, col0) of its volume in the texture; q : (R,) layer
+    indices. A region adds alpha · (its layer at Q − the neutral texture): alone it is the alpha
+    blend of its layer over the neutral texture, and where regions overlap (a brow's area
+    reaching into the forehead's) their changes add, rather than the last region covering the
+    others' with its own neutral texels.
     """
     out = np.array(neutral, dtype=np.float64, copy=True)
     for volume, alpha, (r0, c0), qr in zip(volumes, alphas, boxes, q):
         h, w = alpha.shape
-        a = alpha[..., None]
-        window = out[r0:r0 + h, c0:c0 + w]
-        window[:] = window * (1.0 - a) + layer_lookup(volume, qr) * a
+        change = layer_lookup(volume, qr) - neutral[r0:r0 + h, c0:c0 + w]
+        out[r0:r0 + h, c0:c0 + w] += change * alpha[..., None]
     return out
+
+
+def stream_bits(layer_counts, step: float) -> np.ndarray:
+    """Bits per frame (R,) that each region's Q needs when sent in steps of ``step`` layers: Q of a
+    region of n layers takes (n − 1) / step + 1 values, coded in a whole number of bits."""
+    counts = np.asarray(layer_counts, dtype=np.float64)
+    levels = np.floor((counts - 1.0) / step + 0.5) + 1.0
+    return np.ceil(np.log2(np.maximum(levels, 2.0))).astype(np.int64)
+
+
+def sh_basis(normals: np.ndarray) -> np.ndarray:
+    """(..., 9) the real spherical harmonics up to second order (unnormalised) of unit normals
+    (..., 3): the space a Lambertian surface's shading under any distant light lies in, to within
+    a few percent (Ramamoorthi and Hanrahan 2001)."""
+    x, y, z = normals[..., 0], normals[..., 1], normals[..., 2]
+    return np.stack([np.ones_like(x), x, y, z, x * y, x * z, y * z, x * x - y * y, 3.0 * z * z - 1.0], axis=-1)
+
+
+def fit_light(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, iterations: int = 4) -> np.ndarray:
+    """The light (..., 9) that best explains intensities (..., K) of points of known albedo (K,)
+    and unit normals (..., K, 3): values ≈ albedo · sh_basis(normals) @ light, by least squares
+    reweighted (Cauchy, scale from the median absolute residual) so that what the model does not
+    hold — an eye, teeth, a shadow, a wrinkle — does not pull the fit. Points with a non-finite
+    value are left out; with fewer than 27 left the light is uniform. Leading axes (frames) are
+    fitted independently, in the same products."""
+    values = np.asarray(values, dtype=np.float64)
+    lead = values.shape[:-1]
+    values = values.reshape((-1, values.shape[-1]))
+    normals = np.asarray(normals, dtype=np.float64).reshape(values.shape + (3,))
+    ok = np.isfinite(values) & np.isfinite(albedo) & np.isfinite(normals).all(axis=-1)
+    light = np.zeros(values.shape[:1] + (9,))
+    light[:, 0] = 1.0  # too few points seen (a face turned away) to tell a light: a uniform one
+    enough = ok.sum(axis=-1) >= 27
+    if enough.any():
+        light[enough] = _fit_light_rows(values[enough], albedo, normals[enough], ok[enough], iterations)
+    return light.reshape(lead + (9,))
+
+
+def _fit_light_rows(values, albedo, normals, ok, iterations: int) -> np.ndarray:
+    A = np.where(ok[..., None], np.nan_to_num(albedo)[:, None] * sh_basis(np.nan_to_num(normals)), 0.0)  # (B, K, 9)
+    b = np.where(ok, values, 0.0)
+    w = ok.astype(np.float64)
+    # a little ridge towards no directional part keeps a fit over few normals' directions bounded
+    ridge = 1e-6 * (A * A).sum(axis=(-2, -1)) / ok.sum(axis=-1)
+    penalty = ridge[:, None, None] * np.diag(np.r_[0.0, np.ones(8)])
+    light = np.zeros(values.shape[:1] + (9,))
+    for _ in range(iterations):
+        Aw = A * w[..., None]
+        normal = np.einsum("bki,bkj->bij", Aw, A) + penalty * w.sum(axis=-1)[:, None, None]
+        rhs = np.einsum("bki,bk->bi", Aw, b)
+        light = np.stack([np.linalg.lstsq(n, r, rcond=None)[0] for n, r in zip(normal, rhs)])
+        r = b - np.einsum("bki,bi->bk", A, light)
+        # every row here has points: the median over them is finite
+        scale = 1.4826 * np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1, keepdims=True) + 1e-9
+        w = ok / (1.0 + (r / (2.385 * scale)) ** 2)
+    return light
+
+
+def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -> np.ndarray:
+    """Shading (...) of unit normals (..., 3) under a light (9,) from :func:`fit_light`, kept above
+    ``floor`` times its median (a point the light fit calls dark is not divided into noise)."""
+    shade = sh_basis(normals) @ light
+    return np.maximum(shade, floor * max(float(np.median(shade)), 1e-9))

@@ -11,6 +11,7 @@ format        writes                                      needs
 ``pc2``       DEST.pc2 point cache                        positions, uniform frame times
 ``exr``       DEST/frame_NNNN[.TILE].exr displacement     model with UVs, handles.npz
 ``wrinkle``   DEST/wrinkle_*.exr + coefficients.csv       PSD model with UVs, handles.npz
+``textures``  DEST/frame_NNNN.png|exr + appearance.csv    appearance.csv (classify), its model
 ============  ==========================================  ===================================
 """
 

@@ -144,3 +144,5 @@ register(Format("wrinkle", "wrinkle-map set (PSD)", (), "facepipe.export.exr_map
 register(Format("usd", ".usdc with time-sampled points", (".usdc", ".usd", ".usda"), "facepipe.export.usd:export_usd"))
 register(Format("mdd", "point caches", (".mdd",), "facepipe.export.mdd:export_mdd"))
 register(Format("pc2", "point caches", (".pc2",), "facepipe.export.pc2:export_pc2"))
+register(Format("textures", "layered textures per frame from a classified take (appearance.csv)", (),
+                "facepipe.export.textures:export_textures"))

@@ -12,7 +12,11 @@ from facepipe.core.camera import Camera
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
-__all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream"]
+__all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream", "format_stream",
+           "STREAM_DECIMALS"]
+
+#: Q is written to this many decimals: the stream's quantisation step, and its bit rate's.
+STREAM_DECIMALS = 4
 
 
 @dataclass
@@ -24,6 +28,11 @@ class AppearanceModel:
     template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
     templates : per region (n, C) coefficients; indices : per region kept coefficients;
     weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
+    shading : patches divided by their shading plane (else by their mean; models before it);
+    light_face (K,), light_bary (K, 3), light_albedo (K,) : points on the surface (fixed
+    barycentric coordinates) and their albedo, over which each frame's light is fitted and
+    divided out of the patches (None: no light fit); corner_uv (F, 3, 2) : the triangles' UVs
+    (to render the layered texture; None in models before it);
     neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
     boxes : (R, 2) top-left texel of each volume.
     """
@@ -46,6 +55,11 @@ class AppearanceModel:
     volumes: list
     alphas: list
     boxes: np.ndarray
+    shading: bool = False
+    light_face: np.ndarray | None = None
+    light_bary: np.ndarray | None = None
+    light_albedo: np.ndarray | None = None
+    corner_uv: np.ndarray | None = None
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
@@ -63,8 +77,12 @@ def save_appearance(path, model) -> None:
               "rotation": model.rotation, "translation": model.translation, "faces": model.faces,
               "normal_sign": np.array(model.normal_sign), "template_face": model.template_face,
               "template_bary": model.template_bary, "weights": model.weights,
-              "settings": np.array([model.template_size, model.min_facing, model.decay]), "neutral": model.neutral,
+              "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading)]), "neutral": model.neutral,
               "boxes": model.boxes}
+    if model.corner_uv is not None:
+        arrays["corner_uv"] = model.corner_uv
+    if model.light_face is not None:
+        arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     for r in range(len(model.names)):
         arrays[f"templates_{r}"] = model.templates[r]
         arrays[f"indices_{r}"] = model.indices[r]
@@ -90,29 +108,40 @@ def load_appearance(path):
                                float(d["normal_sign"]), d["template_face"], d["template_bary"],
                                [d[f"templates_{r}"] for r in range(n)], [d[f"indices_{r}"] for r in range(n)],
                                d["weights"], int(s[0]), float(s[1]), float(s[2]), d["neutral"],
-                               [d[f"volume_{r}"] for r in range(n)], [d[f"alpha_{r}"] for r in range(n)], d["boxes"])
+                               [d[f"volume_{r}"] for r in range(n)], [d[f"alpha_{r}"] for r in range(n)], d["boxes"],
+                               bool(s[3]) if len(s) > 3 else False, d.get("light_face"), d.get("light_bary"),
+                               d.get("light_albedo"), d.get("corner_uv"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
 
 
-def write_stream(folder, model_path, classification, layer_counts) -> Path:
-    """``appearance.csv`` (frame, time, Q per region) and ``appearance.json`` (the model, missing frames)."""
+def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None) -> Path:
+    """``appearance.csv`` (frame, time, Q per region) and ``appearance.json`` (the model, the
+    footage and geometry classified, missing frames)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     c = classification
     names = [str(n) for n in c.names]
-    lines = ["frame,time," + ",".join(names)]
-    lines += [f"{int(n)},{t:.6f}," + ",".join(f"{q:.4f}" for q in row) for n, t, row in zip(c.numbers, c.times, c.q)]
     csv = folder / "appearance.csv"
     with atomic_path(csv) as tmp:
-        Path(tmp).write_text("\n".join(lines) + "\n")
-    info = {"model": str(Path(model_path).resolve()), "regions": names, "layers": list(map(int, layer_counts)),
+        Path(tmp).write_text(format_stream(names, c.numbers, c.times, c.q))
+    info = {"model": str(Path(model_path).resolve()), "regions": names,
+            "footage": str(footage) if footage is not None else None,
+            "geometry": str(Path(geometry).resolve()) if geometry is not None else None, "layers": list(map(int, layer_counts)),
             "frames": len(c.numbers), "hidden_fraction": float(1 - c.visible.mean()),
             "skipped_frames": [{"frame": int(n), "problem": p} for n, p in c.problems]}
     with atomic_path(folder / "appearance.json") as tmp:
         Path(tmp).write_text(json.dumps(info, indent=1))
     return csv
+
+
+def format_stream(names, numbers, times, q) -> str:
+    """appearance.csv's text: ``frame,time,NAME…``, Q to :data:`STREAM_DECIMALS` decimals."""
+    lines = ["frame,time," + ",".join(str(n) for n in names)]
+    lines += [f"{int(n)},{t:.6f}," + ",".join(f"{x:.{STREAM_DECIMALS}f}" for x in row)
+              for n, t, row in zip(numbers, times, q)]
+    return "\n".join(lines) + "\n"
 
 
 def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
@@ -122,7 +151,12 @@ def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     if not csv.is_file() or not meta.is_file():
         raise InputError("no appearance.csv / appearance.json here", path=folder,
                          hint="classify the footage first: facepipe appearance classify ... -o FOLDER")
-    info = json.loads(meta.read_text())
+    try:
+        info = json.loads(meta.read_text())
+        info["regions"], info["model"]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise InputError(f"appearance.json is not a classification's summary ({exc})", path=meta,
+                         hint="classify the footage again: facepipe appearance classify ... -o FOLDER") from None
     try:
         data = np.loadtxt(csv, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as exc:

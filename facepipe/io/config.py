@@ -96,6 +96,8 @@ class AppearanceConfig:
     ramp: float = 10.0
     min_facing: float = 0.2  # a region is hidden when its normal is more than ~78° from the camera
     decay: float = 0.5  # seconds: a hidden region's value fades to neutral
+    shading: bool = True  # patches divided by their shading plane (else by their mean) before the match
+    light_fit: bool = True  # each frame's light fitted over the face's known normals and divided out of the patches
     regions: list = field(default_factory=list)
 
 
@@ -134,7 +136,7 @@ _TYPES: dict[str, dict[str, object]] = {
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
-                   "regions": dict},
+                   "shading": bool, "light_fit": bool, "regions": dict},
     "video": {"landmarks": str},
 }
 _REGION_TYPES = {"vertices": str, "template": list, "frames": list}

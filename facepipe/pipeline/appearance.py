@@ -19,18 +19,22 @@ decaying to neutral.
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
 from facepipe.core import appearance as ap
-from facepipe.core.camera import Camera, project_distorted
+from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
 from facepipe.core.raster import triangle_pixels
+from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import open_footage, read_frames, to_gray
 
-__all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames"]
+__all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_chunk",
+           "texture_differences"]
 
 
 def texel_map(corner_uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -119,13 +123,28 @@ def template_points(rect, size: int) -> np.ndarray:
 def sample_templates(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
                      ) -> tuple[np.ndarray, np.ndarray]:
     """A frame's template samples (R, 5, size, size) and each region's visibility (R,)."""
-    X = surface_points(camera_positions, model.faces, model.template_face, model.template_bary)  # (R, 5, N, 3)
-    values, inside = ap.bilinear_sample(gray, project_distorted(model.camera, X))
-    normal = triangle_normals(camera_positions, model.faces, model.template_face[:, 0]).sum(axis=1)
-    cos = model.normal_sign * ap.facing(normal, X[:, 0].mean(axis=1))
-    visible = (cos > model.min_facing) & inside.all(axis=(1, 2)) & (X[..., 2] > 0).all(axis=(1, 2))
+    patches, visible = sample_template_frames(gray[None], camera_positions[None], model)
+    return patches[0], visible[0]
+
+
+def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Template samples (F, R, 5, size, size) of frames (F, H, W) with their geometry (F, V, 3) in
+    camera space, and each region's visibility (F, R): every frame's points projected at once."""
+    F = len(grays)
+    X = np.einsum("rsnk,frsnkc->frsnc", model.template_bary,
+                  camera_positions[:, model.faces[model.template_face]])  # (F, R, 5, N, 3)
+    pixels = project_distorted_fast(model.camera, X)
+    values = np.empty(X.shape[:-1])
+    inside = np.empty(X.shape[:-1], dtype=bool)
+    for f in range(F):
+        values[f], inside[f] = ap.bilinear_sample(grays[f], pixels[f])
+    corners = camera_positions[:, model.faces[model.template_face[:, 0]]]  # (F, R, N, 3, 3)
+    normal = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]).sum(axis=2)
+    cos = model.normal_sign * ap.facing(normal, X[:, :, 0].mean(axis=2))
+    visible = (cos > model.min_facing) & inside.all(axis=(2, 3)) & (X[..., 2] > 0).all(axis=(2, 3))
     s = model.template_size
-    return values.reshape(values.shape[:2] + (s, s)), visible
+    return values.reshape(values.shape[:3] + (s, s)), visible
 
 
 def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -202,6 +221,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     neutral, seen = unwrap(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_face, texel_bary, camera,
                            min_facing=cfg.min_facing, normal_sign=normal_sign)
     neutral[~seen] = neutral[seen].mean(axis=0) if seen.any() else 0.5
+    light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign) if cfg.light_fit \
+        else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
     for region in cfg.regions:
@@ -216,8 +237,11 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
             if not inside.all():
                 raise InputError(f"region {region.name}: its template leaves the image in example frame {f}",
                                  path=config.path, hint="choose example frames where the region is in view")
+            if light is not None:  # the example's own shading out: the templates hold the albedo's structure
+                normals = point_normals(cam_pos[f][None], faces, face[0], bary[0], normal_sign)[0]
+                values = values / ap.light_shading(normals, light["light"])
             patches.append(values.reshape(cfg.template_size, cfg.template_size))
-        coeffs = ap.haar_coefficients(ap.normalise_patches(np.stack(patches)))
+        coeffs = ap.haar_coefficients(ap.normalise_patches(np.stack(patches), cfg.shading))
         names.append(region.name)
         volumes.append(vol.astype(np.float32))
         alphas.append(alpha.astype(np.float32))
@@ -230,8 +254,67 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
             progress(1)
     model = AppearanceModel(names, camera, R, t, faces, normal_sign, np.stack(tfaces), np.stack(tbarys), templates,
                             indices, weights, cfg.template_size, cfg.min_facing, cfg.decay,
-                            neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64))
+                            neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64),
+                            cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
+                            corner_uv.astype(np.float32))
     return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
+
+
+def point_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
+                  normal_sign: float, vn=None) -> np.ndarray:
+    """Unit normals (F, ...) of the smooth surface (vertex normals interpolated) at points on the
+    posed triangles of frames (F, V, 3): face (...), bary (..., 3), the same in every frame
+    (``vn``: the frames' vertex normals (F, V, 3) where already computed)."""
+    vn = normal_sign * vertex_normals(camera_positions, faces) if vn is None else vn
+    n = np.einsum("...k,f...kc->f...c", bary, vn[:, faces[face]])
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-30)
+
+
+def _normal_stencil(model: AppearanceModel):
+    """The vertices of the light points' and the templates' triangles, every triangle around them
+    and their vertex–triangle incidence: those vertices' normals need only these (built once
+    per model). Returns (vertices (M,), local index of every vertex (V,), triangles, incidence (M, T))."""
+    if getattr(model, "_stencil", None) is None:
+        n_vertices = int(model.faces.max()) + 1
+        needed = np.zeros(n_vertices, dtype=bool)
+        needed[model.faces[model.light_face].ravel()] = True
+        needed[model.faces[model.template_face].ravel()] = True
+        vertices = np.flatnonzero(needed)
+        local = np.full(n_vertices, -1, dtype=np.int64)
+        local[vertices] = np.arange(len(vertices))
+        around = model.faces[needed[model.faces].any(axis=1)]
+        incidence = vertex_face_matrix(around, n_vertices)[vertices]
+        model._stencil = (vertices, local, around, incidence)
+    return model._stencil
+
+
+def _stencil_normals(camera_positions: np.ndarray, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vertex normals (F, M, 3) of frames at the stencil's vertices, and the local index map."""
+    _, local, around, incidence = _normal_stencil(model)
+    v0 = camera_positions[:, around[:, 0]]
+    fn = np.cross(camera_positions[:, around[:, 1]] - v0, camera_positions[:, around[:, 2]] - v0)  # (F, T, 3)
+    F, T = fn.shape[:2]
+    vn = np.asarray(incidence @ np.moveaxis(fn, 1, 0).reshape(T, F * 3)).reshape(-1, F, 3)
+    vn = np.moveaxis(vn, 1, 0) * model.normal_sign
+    return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-30), local
+
+
+def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign, samples: int = 2000):
+    """The example footage's light fitted over the neutral texture's texels (their albedo taken
+    as uniform: the fit is robust to what differs), every texel's albedo under it, and
+    ``samples`` texels spread over the surface, where each frame's light will be fitted."""
+    rows, cols = np.nonzero(seen & (texel_face >= 0))
+    if len(rows) < 50:
+        return None
+    pick = np.random.default_rng(0).choice(len(rows), size=min(samples * 4, len(rows)), replace=False)
+    rows, cols = rows[pick], cols[pick]
+    face, bary = texel_face[rows, cols], texel_bary[rows, cols]
+    normals = point_normals(neutral_cam[None], faces, face, bary, normal_sign)[0]
+    lum = to_gray(neutral[rows, cols])
+    light = ap.fit_light(lum, np.ones(len(lum)), normals)
+    albedo = lum / ap.light_shading(normals, light)
+    keep = slice(0, min(samples, len(rows)))
+    return {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": albedo[keep]}
 
 
 def _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg, normal_sign):
@@ -285,6 +368,28 @@ def _region_template(region, corner_uv, size: int, config_path) -> tuple[np.ndar
     return face.reshape(5, -1), bary.reshape(5, -1, 3)
 
 
+def texture_differences(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, image: np.ndarray,
+                        camera_positions: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """How far the layered texture at Q and the neutral texture are from a frame's own texels.
+
+    The frame (RGB image, its geometry in camera space) is unwrapped into the texture through the
+    rest mesh's texel map (:func:`texel_map` at the model's texture size) as the layers were.
+    Returns (R, 3) per region over its texels (alpha > 0) the frame shows: the sum of squared
+    differences of the reconstruction at ``q`` (R,), that of the neutral texture, and the count of
+    texel channels — an RMS ratio below 1 says the stream brings the texture closer to the frame.
+    """
+    out = np.zeros((len(model.names), 3))
+    texture = ap.compose_texture(model.neutral, model.volumes, model.alphas, model.boxes, q)
+    for r, (alpha, (r0, c0)) in enumerate(zip(model.alphas, model.boxes)):
+        rows, cols = slice(r0, r0 + alpha.shape[0]), slice(c0, c0 + alpha.shape[1])
+        truth, seen = unwrap(image, camera_positions, model.faces, texel_face, texel_bary, model.camera, rows, cols,
+                             model.min_facing, model.normal_sign)
+        use = seen & (alpha > 0)
+        out[r] = (((texture[rows, cols] - truth)[use] ** 2).sum(), ((model.neutral[rows, cols] - truth)[use] ** 2).sum(),
+                  3 * use.sum())
+    return out
+
+
 @dataclass
 class Classification:
     """Q (T, R) after hold and decay, raw (T, R) before (NaN where hidden), visible (T, R), frame
@@ -300,27 +405,122 @@ class Classification:
 
 
 def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
-                    times: np.ndarray, progress=None) -> Classification:
-    """Classify every frame of the geometry (world positions (T, V, 3), frame numbers (T,)) in the footage."""
+                    times: np.ndarray, progress=None, chunk: int = 8) -> Classification:
+    """Classify every frame of the geometry (world positions (T, V, 3), frame numbers (T,)) in the footage.
+
+    The next frames are read and decoded in a worker thread while these are classified (image
+    decoding releases the GIL); ``chunk`` frames are classified at once, all their regions and
+    offsets in the same products (:func:`classify_chunk`).
+    """
     footage = open_footage(footage_source)
     T, Rn = len(numbers), len(model.names)
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
     problems = []
     row_of = {int(n): i for i, n in enumerate(numbers)}
-    for n, image, problem in read_frames(footage, numbers):
-        i = row_of[n]
-        if image is not None and image.shape[:2] != (model.camera.height, model.camera.width):
-            _check_size(image, model.camera, n, footage_source)
+    bank = ap.RegionBank(model.templates, model.indices, model.weights)
+    rows, grays = [], []
+
+    def flush():
+        if rows:
+            raw[rows], visible[rows] = classify_chunk(np.stack(grays), model.to_camera(positions[rows]), model, bank)
+            if progress is not None:
+                progress(len(rows))
+        rows.clear()
+        grays.clear()
+
+    for n, image, problem in _read_ahead(read_frames(footage, numbers)):
         if image is None:
             problems.append((n, problem))
-        else:
-            patches, seen = sample_templates(to_gray(image), model.to_camera(positions[i]), model)
-            for r in np.flatnonzero(seen):
-                q, _ = ap.classify(patches[r][None], model.templates[r], model.indices[r], model.weights)
-                raw[i, r] = q[0]
-            visible[i] = seen
-        if progress is not None:
-            progress(1)
+            if progress is not None:
+                progress(1)
+            continue
+        if image.shape[:2] != (model.camera.height, model.camera.width):
+            _check_size(image, model.camera, n, footage_source)
+        rows.append(row_of[n])
+        grays.append(to_gray(image))
+        if len(rows) == chunk:
+            flush()
+    flush()
     q = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
     return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems)
+
+
+def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Q (F, R) of frames' luminance (F, H, W) with their geometry in camera space (F, V, 3), NaN
+    where a region is hidden, and each region's visibility (F, R)."""
+    bank = ap.RegionBank(model.templates, model.indices, model.weights) if bank is None else bank
+    patches, seen = sample_template_frames(grays, camera_positions, model)
+    if model.light_face is not None:
+        patches = patches / frame_shading(grays, camera_positions, model)
+    q, _ = ap.classify_regions(patches, bank, model.shading)
+    return np.where(seen, q, np.nan), seen
+
+
+def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """The shading (F, R, 5, size, size) at the template points of frames: each frame's light
+    fitted over the model's light points (their albedo known, their normals from the geometry)."""
+    vn, local = _stencil_normals(camera_positions, model)
+    F = len(grays)
+    X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
+    normals = point_normals(camera_positions, local[model.faces], model.light_face, model.light_bary, 1.0, vn)
+    pixels = project_distorted_fast(model.camera, X)
+    facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
+    t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
+                              vn)  # (F, R, 5, N, 3)
+    values = np.empty(X.shape[:2])
+    for f in range(F):
+        sampled, inside = ap.bilinear_sample(grays[f], pixels[f])
+        values[f] = np.where(inside & facing[f], sampled, np.nan)
+    light = ap.fit_light(values, model.light_albedo, normals)  # (F, 9)
+    out = np.stack([ap.light_shading(t_normals[f], light[f]) for f in range(F)])
+    s = model.template_size
+    return out.reshape(out.shape[:3] + (s, s))
+
+
+def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Q (R,) of one frame's luminance (NaN where hidden) and each region's visibility (R,)."""
+    q, seen = classify_chunk(gray[None], camera_positions[None], model, bank)
+    return q[0], seen[0]
+
+
+def _read_ahead(frames, depth: int = 4):
+    """The items of an iterator, produced up to ``depth`` ahead by a worker thread (which stops
+    when the consumer does, e.g. on bad input)."""
+    box: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def hand_over(item) -> bool:
+        while not stop.is_set():
+            try:
+                box.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def work():
+        try:
+            for item in frames:
+                if not hand_over(item):
+                    return
+        except BaseException as exc:  # raised in the consumer
+            hand_over(exc)
+        hand_over(done)
+
+    worker = threading.Thread(target=work, daemon=True)
+    worker.start()
+    try:
+        while True:
+            item = box.get()
+            if item is done:
+                break
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        worker.join()

@@ -1,0 +1,118 @@
+"""``facepipe preview`` of a classified take (a folder with ``appearance.csv``): per chosen frame
+the input frame and the face rendered through the same camera with the layered texture at that
+frame's Q (the texture unlit: its layers hold the footage's own shading), side by side over the
+face's window of the image; below them the Q curves of every region over the take, the shown
+frames marked. The footage, geometry and model are the ones ``appearance.json`` names.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from facepipe.appearance_sample import Scene, render_frame
+from facepipe.cli.preview import _figure, _save, check_image_path
+from facepipe.core.appearance import compose_texture
+from facepipe.core.camera import project_distorted_fast
+from facepipe.errors import InputError
+from facepipe.io.appearance_file import load_appearance, read_stream
+from facepipe.io.footage import open_footage, read_frames
+from facepipe.pipeline.appearance import _read_geometry
+
+__all__ = ["render_appearance_preview", "is_classified"]
+
+
+def is_classified(folder) -> bool:
+    """Whether a folder holds a classification (``appearance.csv`` and ``appearance.json``)."""
+    folder = Path(folder)
+    return (folder / "appearance.csv").is_file() and (folder / "appearance.json").is_file()
+
+
+def _shown(numbers: np.ndarray, q: np.ndarray, frame_numbers, strip: int) -> np.ndarray:
+    if frame_numbers:
+        missing = [f for f in frame_numbers if f not in set(numbers.tolist())]
+        if missing:
+            raise InputError(f"frame {missing[0]} is not in the classified take ({numbers[0]}..{numbers[-1]})",
+                             hint="choose --frame among the take's frame numbers")
+        return np.array([int(np.flatnonzero(numbers == f)[0]) for f in frame_numbers])
+    if strip > 0:
+        return np.unique(np.linspace(0, len(numbers) - 1, min(strip, len(numbers))).round().astype(np.int64))
+    return np.array([int(np.argmax(q.sum(axis=1)))])  # the frame furthest from neutral
+
+
+def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=None, frame_numbers=None, strip: int = 0,
+                              size: int = 420, force: bool = False) -> dict:
+    """Render the preview (see the module docstring); returns ``frames`` shown, their ``q`` and ``path``."""
+    path = Path(path)
+    check_image_path(path, force)
+    folder = Path(folder)
+    info, numbers, times, q = read_stream(folder)
+    for key in ("footage", "geometry"):
+        if not info.get(key):
+            raise InputError(f"appearance.json does not name the {key} classified", path=folder / "appearance.json",
+                             hint="classify the footage again with this facepipe version")
+    model = load_appearance(model_path or info["model"])
+    if model.corner_uv is None:
+        raise InputError("the appearance model has no UVs to render its texture with", path=model_path or info["model"],
+                         hint="build it again with this facepipe version: facepipe appearance build CONFIG")
+    positions, geo_numbers = _read_geometry(info["geometry"], int(model.faces.max()) + 1)
+    index = _shown(numbers, q, frame_numbers, strip)
+    row_of = {int(n): i for i, n in enumerate(geo_numbers)}
+    images = {n: (image, problem) for n, image, problem in read_frames(open_footage(info["footage"]),
+                                                                       numbers[index])}
+    cam = model.camera
+    # unlit: ambient 1 shows the texture's own values (the layers carry the footage's shading)
+    scene = Scene(cam.matrix, cam.distortion, cam.width, cam.height, model.rotation, model.translation,
+                  np.array([0.0, 0.0, -1.0]), (1.0, 1.0, 1.0), 1.0)
+    corner_uv = model.corner_uv
+    rows = len(index)
+    panel_w = size / 100.0
+    fig = _figure(2 * panel_w, rows * panel_w + 2.4)
+    grid = fig.add_gridspec(rows + 1, 2, height_ratios=[panel_w] * rows + [2.2], hspace=0.25, wspace=0.04,
+                            left=0.06, right=0.98, top=0.97, bottom=0.06)
+    for k, i in enumerate(index):
+        n = int(numbers[i])
+        if n not in row_of:
+            raise InputError(f"frame {n} has no geometry", path=info["geometry"])
+        world = positions[row_of[n]]
+        texture = np.ascontiguousarray(compose_texture(model.neutral, model.volumes, model.alphas, model.boxes, q[i]),
+                                       dtype=np.float32)
+        rendered = render_frame(world, model.faces, corner_uv, texture, scene, background=1.0)
+        image, problem = images.get(n, (None, "not read"))
+        x0, x1, y0, y1 = _window(model, world)
+        for c, (picture, title) in enumerate(((image, f"frame {n}: input"),
+                                              (rendered, "layered texture at Q, through the camera"))):
+            ax = fig.add_subplot(grid[k, c])
+            if picture is None:
+                ax.text(0.5, 0.5, f"no image: {problem}", ha="center", va="center", fontsize=8)
+            else:
+                ax.imshow(np.clip(picture[y0:y1, x0:x1, :3], 0, 1), interpolation="antialiased")
+            ax.set_title(title, fontsize=8)
+            ax.set_axis_off()
+    ax = fig.add_subplot(grid[rows, :])
+    for r, name in enumerate(model.names):
+        ax.plot(numbers, q[:, r], lw=1.0, label=name)
+    for i in index:
+        ax.axvline(numbers[i], color="k", lw=0.6, ls="--")
+    ax.set_xlabel("frame", fontsize=8)
+    ax.set_ylabel("Q (layer)", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=6, ncol=4, loc="upper right", frameon=False)
+    _save(fig, path, force)
+    return {"frames": [int(numbers[i]) for i in index], "q": q[index].tolist(), "path": str(path),
+            "view": "appearance"}
+
+
+def _window(model, world: np.ndarray, margin: float = 0.08) -> tuple[int, int, int, int]:
+    """The face's square window of the image (x0, x1, y0, y1), from its projected vertices."""
+    px = project_distorted_fast(model.camera, model.to_camera(world))
+    px = px[np.isfinite(px).all(axis=1)]
+    lo, hi = px.min(axis=0), px.max(axis=0)
+    side = (1 + 2 * margin) * float(max(hi - lo))
+    centre = 0.5 * (lo + hi)
+    W, H = model.camera.width, model.camera.height
+    x0 = int(np.clip(centre[0] - side / 2, 0, W - 1))
+    y0 = int(np.clip(centre[1] - side / 2, 0, H - 1))
+    return x0, int(np.clip(x0 + side, x0 + 1, W)), y0, int(np.clip(y0 + side, y0 + 1, H))
