@@ -4,9 +4,15 @@ Only the package's static folder and the session's data are served — no path o
 or elsewhere on disk is reachable through a URL. The WebSocket carries JSON requests from the page
 and answers evaluations in binary (little-endian):
 
-* pose terms (browser mode): float64 ``[id, row, 0, 0, handles (H·3), features (F), gate (F, with a gate)]``;
-* positions (server mode): float64 ``[id, row, 1, layers, handles (H·3)]`` then float32 final
-  (V·3) and, when ``layers`` is 2, the large scale (V·3).
+* pose terms (browser mode): float64 ``[id, row, 0, 0, exact, refine, handles (H·3), features (F),
+  gate (F, with a gate)]``;
+* positions (server mode): float64 ``[id, row, 1, layers, exact, refine, handles (H·3)]`` then
+  float32 final (V·3) and, when ``layers`` is 2, the large scale (V·3).
+
+``exact`` is 0 while the novelty gate's fits for a new pose are still running (the latest exact
+gate stands in; in server mode a drag is then evaluated on its patch, see
+:mod:`facepipe.editor.drag_patch`); an answer with ``refine`` 1 follows, unasked, with the exact
+evaluation of the page's latest request once they are made.
 """
 
 from __future__ import annotations
@@ -42,26 +48,62 @@ def _preview(session: EditorSession, request: dict) -> HandleEdit | None:
                       max(0.0, float(drag.get("ease_out", 0))))
 
 
-def evaluation_message(session: EditorSession, request: dict) -> bytes:
-    """The binary answer to an ``eval`` request (see the module's docstring)."""
+def evaluation_message(session: EditorSession, request: dict, exact: bool = False, refine: bool = False) -> tuple[bytes, bool]:
+    """The binary answer to an ``eval`` request (see the module's docstring) and whether it is
+    exact; with ``exact`` False it does not wait for the gate's fits of a new pose."""
     row = int(request["frame"])
     if not 0 <= row < len(session.take.frames):
         raise ValueError(f"no frame row {row}")
-    handles = session.handles(row, _preview(session, request))
-    head = [float(request.get("id", 0)), float(row)]
+    preview = _preview(session, request)
     if session.mode == "browser":
-        features, gate = session.pose_terms(handles)
-        parts = [np.array(head + [0.0, 0.0]), handles.ravel(), features]
+        handles = session.handles(row, preview)
+        features, gate, is_exact = session.pose_terms(handles, exact)
+        head = [float(request.get("id", 0)), float(row), 0.0, 0.0, float(is_exact), float(refine)]
+        parts = [np.array(head), handles.ravel(), features]
         if gate is not None:
             parts.append(gate)
-        return np.concatenate(parts).astype("<f8").tobytes()
-    final, large = session.evaluate(handles)
+        return np.concatenate(parts).astype("<f8").tobytes(), is_exact
+    handles, final, large, is_exact = session.positions(row, preview, exact)
     layers = 1 if request.get("layer", "final") == "final" else 2
-    out = [np.array(head + [1.0, float(layers)]).astype("<f8").tobytes(), handles.astype("<f8").tobytes(),
-           final.astype("<f4").tobytes()]
+    head = [float(request.get("id", 0)), float(row), 1.0, float(layers), float(is_exact), float(refine)]
+    out = [np.array(head).astype("<f8").tobytes(), handles.astype("<f8").tobytes(), final.astype("<f4").tobytes()]
     if layers == 2:
         out.append(large.astype("<f4").tobytes())
-    return b"".join(out)
+    return b"".join(out), is_exact
+
+
+class Refiner:
+    """Sends the exact answer to the page's latest request once the gate's fits for it are made
+    (in the background, newest request first; older ones are dropped)."""
+
+    def __init__(self, session: EditorSession, ws: web.WebSocketResponse, send_lock: asyncio.Lock):
+        self.session, self.ws, self.lock = session, ws, send_lock
+        self.latest: dict | None = None
+        self.task: asyncio.Task | None = None
+
+    def request(self, req: dict) -> None:
+        self.latest = req
+        if self.task is None or self.task.done():
+            self.task = asyncio.create_task(self._run())
+
+    def seen(self, req: dict) -> None:
+        """A newer request was answered exactly: nothing to refine."""
+        self.latest = None
+
+    async def _run(self) -> None:
+        while self.latest is not None:
+            req = self.latest
+            session = self.session
+            row = int(req["frame"])
+            handles = session.handles(row, _preview(session, req))
+            await asyncio.to_thread(session.exact_gate, handles)
+            if self.latest is not req:  # the page has moved on: fit its newest pose instead
+                continue
+            message, _ = await asyncio.to_thread(evaluation_message, session, req, True, True)
+            if self.latest is req and not self.ws.closed:
+                async with self.lock:
+                    await self.ws.send_bytes(message)
+                self.latest = None
 
 
 def _state(session: EditorSession, **extra) -> str:
@@ -97,19 +139,30 @@ async def _socket(request: web.Request) -> web.WebSocketResponse:
     session: EditorSession = request.app["session"]
     ws = web.WebSocketResponse(max_msg_size=1 << 20)
     await ws.prepare(request)
+    lock = asyncio.Lock()
+    refiner = Refiner(session, ws, lock)
     await ws.send_str(_state(session))
-    # one request at a time, in order: the page keeps at most one evaluation in flight
+    # requests are answered one at a time, in order; an answer without the gate's exact fits is
+    # followed by the exact one when they are made, unless a newer request came first
     async for msg in ws:
         if msg.type != WSMsgType.TEXT:
             continue
         try:
             req = json.loads(msg.data)
             if req.get("op") == "eval":
-                await ws.send_bytes(await asyncio.to_thread(evaluation_message, session, req))
+                message, exact = await asyncio.to_thread(evaluation_message, session, req)
+                async with lock:
+                    await ws.send_bytes(message)
+                refiner.seen(req) if exact else refiner.request(req)
             else:
-                await ws.send_str(await asyncio.to_thread(_edit_op, session, req))
+                text = await asyncio.to_thread(_edit_op, session, req)
+                async with lock:
+                    await ws.send_str(text)
         except (ValueError, KeyError, TypeError, OSError) as exc:
-            await ws.send_str(json.dumps({"type": "error", "message": f"{exc.__class__.__name__}: {exc}"}))
+            async with lock:
+                await ws.send_str(json.dumps({"type": "error", "message": f"{exc.__class__.__name__}: {exc}"}))
+    if refiner.task is not None:
+        refiner.task.cancel()
     return ws
 
 
@@ -156,3 +209,5 @@ async def serve(session: EditorSession, host: str, port: int, announce) -> None:
         await asyncio.Event().wait()
     finally:
         await runner.cleanup()
+        if session.gates is not None:
+            session.gates.close()

@@ -9,8 +9,8 @@ const $ = (id) => document.getElementById(id);
 const SKIN = [0.86, 0.72, 0.64];
 
 const state = {
-  ready: false, frame: 0, layer: 'final', preview: null, inFlight: false, pending: false, requestId: 0,
-  playing: false, evaluations: 0, frameTimes: [], truth: null, truthRow: -1, edits: [],
+  ready: false, frame: 0, layer: 'final', preview: null, inFlight: 0, pending: false, requestId: 0,
+  playing: false, inFlightMax: 2, evaluations: 0, frameTimes: [], truth: null, truthRow: -1, edits: [],
 };
 
 const bundle = unpackBundle(await (await fetch('/api/model.bin')).arrayBuffer());
@@ -24,8 +24,18 @@ let handles = new Float64Array(H * 3);
 for (let h = 0; h < H; h++) for (let x = 0; x < 3; x++) handles[3 * h + x] = bundle.arrays.rest[3 * bundle.arrays.handle_vertices[h] + x];
 
 // ---------------------------------------------------------------- scene
-const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-renderer.setPixelRatio(window.devicePixelRatio);
+const renderer = new THREE.WebGLRenderer({ antialias: false });
+// while a handle is dragged or the take plays the canvas renders at half resolution: a software
+// rasteriser (a machine without a GPU) is bound by the pixels it shades; full resolution once settled
+const fullRatio = window.devicePixelRatio;
+let interactive = false;
+function setInteractive(on) {
+  if (on === interactive) return;
+  interactive = on;
+  renderer.setPixelRatio(on ? fullRatio / 2 : fullRatio);
+  renderer.setSize(window.innerWidth, window.innerHeight);
+}
+renderer.setPixelRatio(fullRatio);
 renderer.setSize(window.innerWidth, window.innerHeight);
 document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
@@ -37,7 +47,7 @@ geometry.setAttribute('position', positionAttr);
 const colorAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
 geometry.setAttribute('color', colorAttr);
 geometry.setIndex(new THREE.BufferAttribute(bundle.arrays.triangles, 1));
-const material = new THREE.MeshStandardMaterial({ vertexColors: true, roughness: 0.6, metalness: 0.0, side: THREE.DoubleSide });
+const material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide });
 const face = new THREE.Mesh(geometry, material);
 scene.add(face);
 scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 0.9));
@@ -109,7 +119,7 @@ function draw() {
   geometry.computeBoundingSphere();
   colour();
   for (let h = 0; h < H; h++) markers[h].position.set(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]);
-  renderer.render(scene, camera);
+  if (!state.noRender) renderer.render(scene, camera);
 }
 
 // ---------------------------------------------------------------- the server
@@ -118,9 +128,11 @@ socket.binaryType = 'arraybuffer';
 
 function requestEvaluation() {
   if (socket.readyState !== WebSocket.OPEN) return;
-  if (state.inFlight) { state.pending = true; return; }
-  state.inFlight = true;
+  // two requests in flight: the server forms the next pose terms while this page draws the last
+  if (state.inFlight >= state.inFlightMax) { state.pending = true; return; }
+  state.inFlight += 1;
   state.pending = false;
+  state.sentAt = performance.now();
   socket.send(JSON.stringify({ op: 'eval', id: ++state.requestId, frame: state.frame, preview: state.preview, layer: state.layer }));
 }
 
@@ -129,17 +141,18 @@ function easing() {
 }
 
 function receive(buffer) {
-  const head = new Float64Array(buffer, 0, 4);
+  const t0 = performance.now();
+  const head = new Float64Array(buffer, 0, 6);
   const row = head[1];
   if (head[2] === 0) {  // pose terms: evaluate here
-    const terms = new Float64Array(buffer, 32);
+    const terms = new Float64Array(buffer, 48);
     handles = terms.slice(0, 3 * H);
     const features = terms.subarray(3 * H, 3 * H + F);
     const gate = meta.gate ? terms.subarray(3 * H + F, 3 * H + 2 * F) : null;
     evaluator.evaluate(handles, features, gate, final, large, detailN);
   } else {  // positions from the server
-    handles = new Float64Array(buffer, 32, 3 * H).slice();
-    const offset = 32 + 24 * H;
+    handles = new Float64Array(buffer, 48, 3 * H).slice();
+    const offset = 48 + 24 * H;
     final.set(new Float32Array(buffer, offset, 3 * V));
     if (head[3] === 2) {
       large.set(new Float32Array(buffer, offset + 12 * V, 3 * V));
@@ -151,7 +164,13 @@ function receive(buffer) {
     }
   }
   state.shownRow = row;
+  state.shownId = head[0];
+  state.exact = head[4] === 1;
+  if (!drag && !state.playing && state.exact) setInteractive(false);
+  const t1 = performance.now();
   draw();
+  // where the time goes (the server's share is the rest of the round trip)
+  state.timings = { evaluate: t1 - t0, draw: performance.now() - t1, roundTrip: t0 - state.sentAt };
   state.evaluations += 1;
   const now = performance.now();
   state.frameTimes.push(now);
@@ -174,7 +193,8 @@ function fps() {
 
 function showStatus() {
   const where = meta.mode === 'browser' ? 'evaluated in the browser (JavaScript)' : `evaluated on the server (${meta.engine}), streamed`;
-  $('status').textContent = `${V} vertices · ${where} · ${fps().toFixed(1)} frames/s`;
+  const gate = meta.gate ? (state.exact ? ' · gate exact' : ' · gate updating') : '';
+  $('status').textContent = `${V} vertices · ${where} · ${fps().toFixed(1)} frames/s${gate}`;
 }
 
 function showEdits(message) {
@@ -192,10 +212,15 @@ socket.addEventListener('message', (event) => {
   if (typeof event.data === 'string') {
     const message = JSON.parse(event.data);
     if (message.type === 'state') { showEdits(message); state.lastState = message; }
-    else if (message.type === 'error') { $('message').textContent = message.message; state.inFlight = false; }
+    else if (message.type === 'error') { $('message').textContent = message.message; state.inFlight = Math.max(0, state.inFlight - 1); }
     return;
   }
-  state.inFlight = false;
+  const refine = new Float64Array(event.data, 0, 6);
+  if (refine[5] === 1) {  // the exact evaluation of an earlier request, sent when the gate's fits were made
+    if (refine[0] === state.requestId && state.inFlight === 0) receive(event.data);
+    return;
+  }
+  state.inFlight -= 1;
   receive(event.data);
   if (state.pending) requestEvaluation();
   else if (state.playing) requestAnimationFrame(advance);
@@ -230,6 +255,7 @@ $('play').addEventListener('click', () => {
   if (state.playing) {
     playFrom = state.frame >= meta.frames.length - 1 ? 0 : state.frame;
     playStart = performance.now();
+    setInteractive(true);
     advance();
   }
 });
@@ -283,6 +309,7 @@ renderer.domElement.addEventListener('pointerdown', (event) => {
   drag = { h, start, plane: new THREE.Plane().setFromNormalAndCoplanarPoint(normal, start), y0: event.clientY,
            surfaceNormal: handleNormal(h), perPixel, pointerId: event.pointerId };
   hit.object.material = activeMaterial;
+  setInteractive(true);
   renderer.domElement.setPointerCapture(event.pointerId);
 }, { capture: true });
 renderer.domElement.addEventListener('pointermove', (event) => {
@@ -324,7 +351,9 @@ window.addEventListener('resize', () => {
 window.facepipeEditor = {
   meta, state,
   get ready() { return state.ready; },
-  get idle() { return !state.inFlight && !state.pending; },
+  get idle() { return state.inFlight === 0 && !state.pending; },
+  // the shown frame is the exact evaluation of the latest request (the gate's fits included)
+  get settled() { return state.inFlight === 0 && !state.pending && state.exact && state.shownId === state.requestId; },
   fps,
   setFrame,
   // the positions shown for the current frame (final layer), as a plain array
@@ -335,6 +364,8 @@ window.facepipeEditor = {
     const r = renderer.domElement.getBoundingClientRect();
     return { x: r.left + (p.x + 1) / 2 * r.width, y: r.top + (1 - p.y) / 2 * r.height };
   },
+  // what a drag of handle h by offset (rig units) shows, without committing it (scripts, benches)
+  preview(h, offset) { state.preview = offset ? { handle: h, offset, ...easing() } : null; setInteractive(!!offset); requestEvaluation(); },
   handlePosition: (h) => Array.from(handles.slice(3 * h, 3 * h + 3)),
 };
 setFrame(0);
