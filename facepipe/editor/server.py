@@ -29,6 +29,7 @@ from facepipe.core.edits import HandleEdit
 from facepipe.editor.session import EditorSession
 
 STATIC = Path(__file__).parent / "static"
+SESSION = web.AppKey("session", EditorSession)
 logger = logging.getLogger(__name__)
 
 
@@ -136,7 +137,7 @@ def _edit_op(session: EditorSession, request: dict) -> str:
 
 
 async def _socket(request: web.Request) -> web.WebSocketResponse:
-    session: EditorSession = request.app["session"]
+    session = request.app[SESSION]
     ws = web.WebSocketResponse(max_msg_size=1 << 20)
     await ws.prepare(request)
     lock = asyncio.Lock()
@@ -169,7 +170,7 @@ async def _socket(request: web.Request) -> web.WebSocketResponse:
 def make_app(session: EditorSession) -> web.Application:
     """The aiohttp application of one editing session."""
     app = web.Application()
-    app["session"] = session
+    app[SESSION] = session
     bundle = {}
 
     async def index(_):
@@ -209,5 +210,4 @@ async def serve(session: EditorSession, host: str, port: int, announce) -> None:
         await asyncio.Event().wait()
     finally:
         await runner.cleanup()
-        if session.gates is not None:
-            session.gates.close()
+        session.close()

@@ -182,6 +182,11 @@ class EditorSession:
         if truth_path is not None:
             self.truth = load_truth(truth_path, take.frames, model.n_vertices)
 
+    def close(self) -> None:
+        """Stop the gate's worker process."""
+        if self.gates is not None:
+            self.gates.close()
+
     # ------------------------------------------------------------------ pose terms
 
     def handles(self, index: int, preview: HandleEdit | None = None) -> np.ndarray:
