@@ -16,7 +16,7 @@ from facepipe.editor.session import EditorSession, pack_arrays
 from facepipe.io.model_file import load_model
 from facepipe.pipeline.replay import NumpyEvaluator
 from tests.conftest import run_cli
-from tests.editor_browser import (browser_page, chromium_or_reason, drag, editor_server, save_edits, screenshot,
+from bench.editor_browser import (browser_page, chromium_or_reason, drag, editor_server, save_edits, screenshot,
                                   wait_settled)
 
 
@@ -136,6 +136,8 @@ def test_web_server_serves_only_its_own(editor_rig, tmp_path):
             blob = await (await client.get("/api/model.bin")).read()
             n = struct.unpack("<I", blob[:4])[0]
             assert json.loads(blob[4:4 + n])["meta"]["vertices"] == model.n_vertices
+            with pytest.raises(Exception):  # another site's page may not drive the session
+                await client.ws_connect("/ws", headers={"Origin": "http://evil.example"})
             ws = await client.ws_connect("/ws")
             assert json.loads((await ws.receive()).data)["type"] == "state"
             await ws.send_str(json.dumps({"op": "eval", "id": 7, "frame": 2}))

@@ -21,6 +21,7 @@ import asyncio
 import json
 import logging
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 from aiohttp import WSMsgType, web
@@ -138,6 +139,11 @@ def _edit_op(session: EditorSession, request: dict) -> str:
 
 async def _socket(request: web.Request) -> web.WebSocketResponse:
     session = request.app[SESSION]
+    # WebSockets are not bound by the same-origin policy: another site open in the same browser
+    # could otherwise drive (and save) this session
+    origin = request.headers.get("Origin")
+    if origin is not None and urlsplit(origin).netloc != request.host:
+        raise web.HTTPForbidden(text="the editor's WebSocket answers its own page only")
     ws = web.WebSocketResponse(max_msg_size=1 << 20)
     await ws.prepare(request)
     lock = asyncio.Lock()

@@ -50,7 +50,7 @@ geometry.setIndex(new THREE.BufferAttribute(bundle.arrays.triangles, 1));
 const material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide });
 const face = new THREE.Mesh(geometry, material);
 scene.add(face);
-scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 0.9));
+scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 0.6));
 
 // frame the rest face: look along its mean normal at the markers, y up unless that is the view
 const rest = bundle.arrays.rest;
@@ -66,7 +66,7 @@ camera.lookAt(centre);
 // a key light from above and the side at a grazing angle: wrinkles show as shading
 const key = new THREE.DirectionalLight(0xffffff, 2.2);
 const side = new THREE.Vector3().crossVectors(camera.up, view).normalize();
-key.position.copy(centre).addScaledVector(view, radius).addScaledVector(camera.up, radius * 2).addScaledVector(side, radius);
+key.position.copy(centre).addScaledVector(view, radius * 0.8).addScaledVector(camera.up, radius * 2.5).addScaledVector(side, radius * 0.5);
 key.target.position.copy(centre);
 scene.add(key, key.target);
 
@@ -90,10 +90,12 @@ function heat(t) {  // 0..1 → dark blue, cyan, yellow, red
 function colour() {
   const c = colorAttr.array;
   if (state.layer === 'details') {
-    let top = 1e-12;
-    for (let v = 0; v < V; v++) top = Math.max(top, Math.abs(detailN[v]));
+    // scaled by the 95th percentile over the vertices: a few large details (a sparse neck) would
+    // otherwise wash out the face's wrinkles
+    const sorted = Float32Array.from(detailN, Math.abs).sort();
+    const top = Math.max(sorted[Math.floor(0.95 * (V - 1))], 1e-12);
     for (let v = 0; v < V; v++) {  // blue in, white none, red out
-      const s = detailN[v] / top;
+      const s = Math.max(-1, Math.min(1, detailN[v] / top));
       c[3 * v] = s > 0 ? 1 : 1 + s; c[3 * v + 1] = 1 - Math.abs(s); c[3 * v + 2] = s < 0 ? 1 : 1 - s;
     }
   } else if (state.layer === 'error' && state.truth) {

@@ -1,5 +1,5 @@
-"""Driving the editor page in headless Chromium (Playwright with the system's browser): shared by
-the browser test and bench/editor_speed.py."""
+"""Driving the editor page in headless Chromium (Playwright with the system's browser): used by the
+browser test (tests/test_editor.py) and bench/editor_speed.py."""
 
 from __future__ import annotations
 
