@@ -31,6 +31,8 @@ from facepipe.editor.session import EditorSession
 
 STATIC = Path(__file__).parent / "static"
 SESSION = web.AppKey("session", EditorSession)
+# how long the page's requests must pause before the gate's exact fits of the latest one start
+PAUSE_SECONDS = 0.15
 logger = logging.getLogger(__name__)
 
 
@@ -95,6 +97,11 @@ class Refiner:
     async def _run(self) -> None:
         while self.latest is not None:
             req = self.latest
+            # the fits take a core for a while: wait until the pointer pauses, so that a drag's
+            # answers have the machine to themselves
+            await asyncio.sleep(PAUSE_SECONDS)
+            if self.latest is not req:
+                continue
             session = self.session
             row = int(req["frame"])
             handles = session.handles(row, _preview(session, req))
