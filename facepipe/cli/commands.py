@@ -175,6 +175,8 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
 @click.option("--head-motion", type=click.Choice(["keep", "remove"]), default="keep", show_default=True,
               help="Re-apply the head's rigid motion to the output, or leave the face in rig space.")
 @click.option("--save-large-scale", is_flag=True, help="Also write large_scale.npy (the shell alone).")
+@click.option("--edits", "edits_path", default=None, type=click.Path(dir_okay=False),
+              help="EDITS.json (from `facepipe edit`): handle offsets keyed at frames, added to the cleaned take.")
 @click.option("--neutral-frame", type=int, default=None,
               help="Frame number of the take where the face is neutral: aligns the take to the rig by a similarity "
                    "and removes each marker's offset from the rig's rest pose.")
@@ -199,7 +201,8 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
               "are removed).")
 @_common
 @click.pass_context
-def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, neutral_frame,
+def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, edits_path,
+           neutral_frame,
            neutral_take, take_units, subject, no_stabilise, no_clean, smooth, camera_path, landmarks_path, lift,
            min_confidence, force, quiet, verbose):
     """Replay a mocap TAKE onto the full-resolution face: OUTPUT/positions.npy and replay.json.
@@ -215,7 +218,8 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     from facepipe.mocap import parse_frame_slice, read_take
     from facepipe.io.model_file import load_model
     from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows, summary_lines
-    from facepipe.pipeline.replay import replay_windows
+    from facepipe.io.edits_file import read_edits
+    from facepipe.pipeline.replay import edited_windows, replay_windows
 
     rep = _reporter(ctx, quiet, verbose)
     if chunk < 1:
@@ -234,6 +238,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         raise InputError("--smooth must be 0 (off) or a positive number of frames")
     model = load_model(model_path)
     units = model.meta.get("units")
+    edits = read_edits(edits_path, model.marker_names, units) if edits_path else []
     # the device is set up (B and the tables uploaded, kernels built: seconds at 530k vertices)
     # while the take is read and cleaned
     setup = ThreadPoolExecutor(1)
@@ -266,7 +271,10 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     steps = len(CLEAN_STEPS) * prepared.n_windows if not no_clean else 0
     with StageBar(steps, "clean", quiet=rep.quiet or not steps) as clean_bar, \
             LazyBar(lambda: rep.bar(prepared.n_frames, desc="replay")) as bar:
-        result = replay_windows(model, prepared.windows(progress=clean_bar.step), take_data.frames, take_data.times,
+        windows = prepared.windows(progress=clean_bar.step)
+        if edits:
+            windows = edited_windows(windows, take_data.frames, edits)
+        result = replay_windows(model, windows, take_data.frames, take_data.times,
                                 Path(output), chunk=chunk, evaluator=evaluator, head_motion=head_motion,
                                 progress=bar.update, extra_report=take_report, save_large=save_large_scale)
     gap_report = prepared.report()
@@ -612,6 +620,36 @@ def appearance_classify(ctx, model, footage, geometry, output, fps, quiet, verbo
     if fps <= 0:
         raise InputError(f"--fps {fps} must be positive")
     classify_command(model, footage, geometry, output, fps, _reporter(ctx, quiet, verbose))
+
+
+@cli.command()
+@click.argument("model_path", metavar="MODEL", type=click.Path(dir_okay=False))
+@click.argument("take", required=False, type=click.Path(dir_okay=False))
+@click.option("--edits", "edits_path", default=None, type=click.Path(dir_okay=False),
+              help="EDITS.json to load (if it exists) and save to [default: TAKE.edits.json, or edits.json].")
+@click.option("--port", default=8765, show_default=True, help="TCP port (0 picks a free one).")
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to listen on; anything but loopback lets other machines edit.")
+@click.option("--truth", "truth_path", default=None, type=click.Path(dir_okay=False),
+              help="Truth .npz of the take: the page shows the error as a heat map.")
+@click.option("--evaluate", "mode", type=click.Choice(["auto", "browser", "server"]), default="auto",
+              show_default=True, help="Where the per-vertex evaluation runs: in the page (JavaScript) or on "
+                                      "the server's engine (streamed positions); auto by the size of B.")
+@click.option("--backend", type=click.Choice(["auto", "opencl", "numpy"]), default="auto", show_default=True,
+              help="The server's engine in server mode.")
+@click.option("--take-units", default=None, help="Units of the take, overriding what the file says.")
+@_common
+@click.pass_context
+def edit(ctx, model_path, take, edits_path, port, host, truth_path, mode, backend, take_units, quiet, verbose):
+    """Fine-tune TAKE in the browser: drag handles, see the face with its wrinkles at once.
+
+    Serves a page on http://127.0.0.1:PORT/ (printed); edits (handle offsets keyed at frames,
+    eased in and out) save to EDITS.json, which `facepipe replay TAKE --edits EDITS.json` applies.
+    """
+    from facepipe.cli.editor import edit_command
+
+    edit_command(_reporter(ctx, quiet, verbose), model_path, take, edits_path, host, port, truth_path, mode, backend,
+                 take_units)
 
 
 def main(argv=None) -> None:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from facepipe.io.atomic import atomic_path
+from facepipe.core.edits import HandleEdit, apply_edits
 from facepipe.core.tangent_frames import local_frames, to_world, vertex_face_matrix
 from facepipe.io.model_file import Model
 from facepipe.io.npy_stream import NpyWriter
@@ -144,6 +145,15 @@ def stream_chunks(evaluator, head: np.ndarray, sink, R: np.ndarray | None = None
             pending = pool.submit(sink, s, final, large if with_large else None, None)
         if pending is not None:
             pending.result()
+
+
+def edited_windows(windows, frames: np.ndarray, edits: list[HandleEdit]):
+    """The (head, R, t) windows with the edits' handle offsets added to head, by the frames' numbers."""
+    start = 0
+    for head, R, t in windows:
+        n = len(head)
+        yield apply_edits(head, frames[start:start + n], edits), R, t
+        start += n
 
 
 @dataclass

@@ -1,0 +1,180 @@
+"""Frames/s of `facepipe edit` while a handle is dragged, in headless Chromium and over the WebSocket.
+
+    python -m bench.editor_speed --browser-model ict_model.npz --browser-take ict/train_mocap.csv \\
+        --server-model model_530k.npz --server-take rig/take.csv --shots bench/editor -o bench/editor_speed.json
+
+Browser mode (a model whose B fits the page): a brow handle is dragged with real mouse events
+(Playwright), then the pointer's work is taken off the clock by moving the handle from the page
+itself once per animation frame for a few seconds; the page's evaluations per second are the
+frames/s. Screenshots before and after the drag (final and details layers) go to ``--shots``, and
+the dragged frame's positions from the page are compared with ``replay --edits``.
+
+Server mode (the paper's 530k): a WebSocket client drags a handle with two requests in flight,
+as the page does, and counts the streamed frames per second; then the page itself in Chromium.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bench.editor_browser import (browser_page, chromium_or_reason, drag, editor_server, save_edits, screenshot,
+                                  wait_settled)
+
+SUSTAIN_JS = """async ([h, seconds, amplitude]) => {
+  const ed = window.facepipeEditor, n0 = ed.state.evaluations, t0 = performance.now();
+  await new Promise(done => { const step = () => { const t = performance.now() - t0;
+    ed.preview(h, [0, amplitude * (1 - Math.cos(t / 250)) / 2, 0]);
+    if (t < seconds * 1000) requestAnimationFrame(step); else done(); }; step(); });
+  const fps = (ed.state.evaluations - n0) / ((performance.now() - t0) / 1000);
+  ed.preview(h, null);
+  return { fps, timings: ed.state.timings };
+}"""
+
+
+def brow_handle(rest_handles: np.ndarray, names: list[str], up: np.ndarray) -> int:
+    """A handle on a brow: the highest handle (along ``up``) among those a quarter of the face's
+    width to the side of its middle, leaving out stable markers (named S…) on the skull."""
+    width = np.ptp(rest_handles[:, 0])
+    side = np.abs(rest_handles[:, 0] - np.median(rest_handles[:, 0])) / width
+    ok = (side > 0.12) & (side < 0.3) & np.array([not n.startswith("S") for n in names])
+    # the brow is below the forehead's top row: the highest 40 % of the face, its lowest handle there
+    height = rest_handles @ up
+    top = np.quantile(height[ok], 0.6)
+    candidates = np.flatnonzero(ok & (height >= top))
+    return int(candidates[np.argmin(height[candidates])])
+
+
+def browser_mode(chromium: str, model_path: Path, take: Path, shots: Path, row: int, work: Path,
+                 handle: str | None = None, pixels: float = 40) -> dict:
+    from facepipe.io.model_file import load_model
+
+    model = load_model(model_path)
+    rest = model.rest[model.handle_vertices].astype(np.float64)
+    edits = work / "edits.json"
+    with editor_server(model_path, take, "--edits", edits) as url, browser_page(chromium, url) as page:
+        meta = page.evaluate("window.facepipeEditor.meta")
+        up = np.array([0.0, 1.0, 0.0])
+        h = meta["handle_names"].index(handle) if handle else brow_handle(rest, meta["handle_names"], up)
+        page.evaluate(f"window.facepipeEditor.setFrame({row})")
+        wait_settled(page)
+        screenshot(page, shots / "browser_before.png")
+        start = page.evaluate(f"window.facepipeEditor.handleScreen({h})")
+        mouse_fps = drag(page, start, 0, -pixels, steps=60)
+        wait_settled(page)
+        screenshot(page, shots / "browser_after.png")
+        page.select_option("#layer", "details")
+        wait_settled(page)
+        screenshot(page, shots / "browser_after_details.png")
+        page.select_option("#layer", "final")
+        shown = np.array(page.evaluate("window.facepipeEditor.positions()")).reshape(-1, 3)
+        save_edits(page)
+        sustained = page.evaluate(SUSTAIN_JS, [h, 5, float(np.median(model.rest_lengths)) * 0.5])
+    out = work / "replay"
+    subprocess.run([sys.executable, "-m", "facepipe", "replay", str(take), "-m", str(model_path), "-o", str(out),
+                    "--edits", str(edits), "--backend", "numpy", "--head-motion", "remove", "-q"], check=True)
+    replayed = np.load(out / "positions.npy")[row]
+    return {"vertices": model.n_vertices, "handle": meta["handle_names"][h], "frame_row": row,
+            "mouse_drag_fps": mouse_fps, "sustained_drag_fps": sustained["fps"], "page_timings_ms": sustained["timings"],
+            "page_vs_replay_max_abs": float(np.abs(shown - replayed).max()),
+            "edits": json.loads(edits.read_text())["edits"]}
+
+
+async def stream_drag(url: str, handle: int, seconds: float, amplitude: float) -> dict:
+    """Drag ``handle`` over the WebSocket with two requests in flight; streamed frames per second."""
+    import aiohttp
+
+    async with aiohttp.ClientSession() as client, client.ws_connect(url.replace("http", "ws") + "ws",
+                                                                        max_msg_size=0) as ws:
+        await ws.receive()  # the edit state
+        await ws.send_str(json.dumps({"op": "eval", "id": 0, "frame": 0}))
+        await ws.receive()
+        sent = answered = 0
+        nbytes = 0
+        clock = time.perf_counter()
+
+        async def send():
+            nonlocal sent
+            sent += 1
+            t = time.perf_counter() - clock
+            offset = [0.0, amplitude * (1 - np.cos(t * 4)) / 2, 0.0]
+            await ws.send_str(json.dumps({"op": "eval", "id": sent, "frame": 0,
+                                          "preview": {"handle": handle, "offset": offset}}))
+
+        await send()
+        await send()
+        first = None
+        while time.perf_counter() - clock < seconds:
+            msg = await ws.receive()
+            data = msg.data
+            if np.frombuffer(data, "<f8", 6)[5] == 1:
+                continue  # an unasked exact refinement
+            answered += 1
+            nbytes += len(data)
+            if first is None:  # the first answer builds the drag's patch: timed apart
+                first = time.perf_counter() - clock
+                answered, nbytes, clock = 0, 0, time.perf_counter()
+            await send()
+        seconds = time.perf_counter() - clock
+    return {"streamed_fps": answered / seconds, "first_answer_s": first, "megabytes_per_frame": nbytes / max(answered, 1) / 1e6}
+
+
+def server_mode(chromium: str | None, model_path: Path, take: Path | None, work: Path) -> dict:
+    from facepipe.io.model_file import load_model
+
+    model = load_model(model_path)
+    rest = model.rest[model.handle_vertices].astype(np.float64)
+    h = brow_handle(rest, model.marker_names, np.array([0.0, 1.0, 0.0]))
+    amplitude = float(np.median(model.rest_lengths)) * 0.5
+    args = [model_path] + ([take] if take else []) + ["--edits", work / "edits530.json", "--evaluate", "server"]
+    result = {"vertices": model.n_vertices, "handle": model.marker_names[h]}
+    with editor_server(*args, timeout=600) as url:
+        result.update(asyncio.run(stream_drag(url, h, 8.0, amplitude)))
+        if chromium:
+            with browser_page(chromium, url) as page:
+                wait_settled(page, timeout=600_000)
+                start = page.evaluate(f"window.facepipeEditor.handleScreen({h})")
+                result["page_mouse_drag_fps"] = drag(page, start, 0, -20, steps=30)
+                result["page_sustained_drag_fps"] = page.evaluate(SUSTAIN_JS, [h, 6, amplitude])["fps"]
+    return result
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--browser-model", type=Path)
+    ap.add_argument("--browser-take", type=Path)
+    ap.add_argument("--row", type=int, default=60, help="frame row of the browser-mode drag")
+    ap.add_argument("--handle", default=None, help="browser mode: the handle to drag [default: a brow handle by "
+                                                   "position]")
+    ap.add_argument("--pixels", type=float, default=40, help="browser mode: how far to drag it up")
+    ap.add_argument("--server-model", type=Path)
+    ap.add_argument("--server-take", type=Path)
+    ap.add_argument("--shots", type=Path, default=Path("bench/editor"))
+    ap.add_argument("-o", "--output", type=Path, default=Path("bench/editor_speed.json"))
+    a = ap.parse_args()
+    chromium, reason = chromium_or_reason()
+    results = {"chromium": chromium or reason}
+    a.shots.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="editor-bench-") as work:
+        if a.browser_model:
+            if chromium is None:
+                sys.exit(f"browser mode needs Chromium: {reason}")
+            results["browser"] = browser_mode(chromium, a.browser_model, a.browser_take, a.shots, a.row, Path(work),
+                                              a.handle, a.pixels)
+            print(json.dumps(results["browser"], indent=1, default=str)[:1500], flush=True)
+        if a.server_model:
+            results["server"] = server_mode(chromium, a.server_model, a.server_take, Path(work))
+            print(json.dumps(results["server"], indent=1), flush=True)
+    a.output.write_text(json.dumps(results, indent=2, default=str))
+
+
+if __name__ == "__main__":
+    main()

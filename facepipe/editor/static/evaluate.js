@@ -1,0 +1,143 @@
+// The per-vertex evaluation of a facepipe model in the browser, in double precision over the
+// model's float32 arrays: the same arithmetic as facepipe.pipeline.replay.NumpyEvaluator
+// (large = rest + B·u, local frames of the large scale, WPSD/PSD details, the gate's
+// per-site confidence spread to the vertices by α, final = large + [t b n]·d).
+// The pose terms (handles with the edits applied, strain features, the gate's site confidence)
+// come from the server, computed by the replay's own code.
+
+export function unpackBundle(buffer) {
+  const headerLength = new DataView(buffer).getUint32(0, true);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headerLength)));
+  const base = 4 + headerLength;
+  const kinds = { '<f4': Float32Array, '<f8': Float64Array, '<u4': Uint32Array, '<i4': Int32Array };
+  const arrays = {};
+  for (const [name, entry] of Object.entries(header.arrays)) {
+    const Kind = kinds[entry.dtype];
+    if (!Kind) throw new Error(`unsupported dtype ${entry.dtype} of ${name}`);
+    const count = entry.shape.reduce((a, b) => a * b, 1);
+    arrays[name] = new Kind(buffer, base + entry.offset, count);
+  }
+  return { meta: header.meta, arrays, shapes: Object.fromEntries(Object.entries(header.arrays).map(([k, e]) => [k, e.shape])) };
+}
+
+export class BrowserEvaluator {
+  constructor(bundle) {
+    const a = bundle.arrays;
+    this.meta = bundle.meta;
+    this.rest = a.rest;
+    this.tri = a.triangles;
+    this.hv = a.handle_vertices;
+    this.B = a.B;
+    this.nb = a.frame_neighbors;
+    this.basis = a.basis_features;
+    this.W = a.rbf_weights;
+    this.c = a.rbf_const;
+    this.ei = a.edge_index;
+    this.ew = a.edge_weight;
+    this.V = this.rest.length / 3;
+    this.H = this.hv.length;
+    this.F = bundle.meta.features;
+    this.P = bundle.shapes.basis_features[0];
+    this.K = bundle.shapes.edge_index[1];
+    this.method = bundle.meta.method;
+    this.u = new Float64Array(this.H * 3);
+    this.large = new Float64Array(this.V * 3);
+    this.normal = new Float64Array(this.V * 3);
+    this.sq = new Float64Array(this.F * this.P);
+    this.phi = new Float64Array(this.P);
+  }
+
+  // handles: (H·3) head-space positions; features: (F); gate: (F) site confidence or null.
+  // Writes final and large (V·3 float32) and, if given, detailN (V): the details along the normal.
+  evaluate(handles, features, gate, final, largeOut, detailN) {
+    const { V, H, rest, B, u, large } = this;
+    for (let h = 0; h < H; h++) {
+      const v = this.hv[h];
+      for (let x = 0; x < 3; x++) u[3 * h + x] = handles[3 * h + x] - rest[3 * v + x];
+    }
+    // u = B·u_H
+    for (let v = 0; v < V; v++) {
+      let sx = 0, sy = 0, sz = 0;
+      const row = v * H;
+      for (let h = 0; h < H; h++) {
+        const b = B[row + h];
+        sx += b * u[3 * h]; sy += b * u[3 * h + 1]; sz += b * u[3 * h + 2];
+      }
+      large[3 * v] = sx + rest[3 * v]; large[3 * v + 1] = sy + rest[3 * v + 1]; large[3 * v + 2] = sz + rest[3 * v + 2];
+    }
+    if (this.method === 'none') {
+      for (let i = 0; i < 3 * V; i++) { final[i] = large[i]; largeOut[i] = large[i]; }
+      if (detailN) detailN.fill(0);
+      return;
+    }
+    this.vertexNormals();
+    const { P, K, F, sq, phi, basis, W, c, ei, ew, nb, normal } = this;
+    for (let p = 0; p < P; p++) {
+      for (let f = 0; f < F; f++) { const d = features[f] - basis[p * F + f]; sq[f * P + p] = d * d; }
+    }
+    const wpsd = this.method === 'wpsd';
+    if (!wpsd) {  // PSD: one global distance per basis pose
+      for (let p = 0; p < P; p++) { let s = 0; for (let f = 0; f < F; f++) s += sq[f * P + p]; phi[p] = Math.sqrt(s); }
+    }
+    for (let v = 0; v < V; v++) {
+      if (wpsd) {
+        for (let p = 0; p < P; p++) phi[p] = 0;
+        for (let k = 0; k < K; k++) {
+          const w = ew[v * K + k], e = ei[v * K + k] * P;
+          if (w === 0) continue;
+          for (let p = 0; p < P; p++) phi[p] += w * sq[e + p];
+        }
+        for (let p = 0; p < P; p++) phi[p] = Math.sqrt(Math.max(phi[p], 0));
+      }
+      let d0 = c[3 * v], d1 = c[3 * v + 1], d2 = c[3 * v + 2];
+      const wrow = v * P * 3;
+      for (let p = 0; p < P; p++) {
+        d0 += phi[p] * W[wrow + 3 * p]; d1 += phi[p] * W[wrow + 3 * p + 1]; d2 += phi[p] * W[wrow + 3 * p + 2];
+      }
+      if (gate) {
+        let conf = 0;
+        for (let k = 0; k < K; k++) conf += ew[v * K + k] * gate[ei[v * K + k]];
+        d0 *= conf; d1 *= conf; d2 *= conf;
+      }
+      // the local frame [t b n] of the large-scale surface (tangent_frames.local_frames)
+      const nx = normal[3 * v], ny = normal[3 * v + 1], nz = normal[3 * v + 2];
+      const j = nb[v];
+      const ex = large[3 * j] - large[3 * v], ey = large[3 * j + 1] - large[3 * v + 1], ez = large[3 * j + 2] - large[3 * v + 2];
+      const en = ex * nx + ey * ny + ez * nz;
+      let tx = ex - en * nx, ty = ey - en * ny, tz = ez - en * nz;
+      // n × (1, 0, 0), or n × (0, 1, 0) where the normal is along x
+      let ax = 0, ay = nz, az = -ny;
+      if (Math.hypot(ax, ay, az) < 1e-6) { ax = -nz; ay = 0; az = nx; }
+      const tl = Math.hypot(tx, ty, tz), el = Math.hypot(ex, ey, ez);
+      if (!(tl > 1e-6 * Math.max(el, 1e-30))) { tx = ax; ty = ay; tz = az; }
+      const tn = Math.hypot(tx, ty, tz);
+      if (tn > 1e-30) { tx /= tn; ty /= tn; tz /= tn; } else { tx = 1; ty = 0; tz = 0; }
+      const bx = ny * tz - nz * ty, by = nz * tx - nx * tz, bz = nx * ty - ny * tx;
+      const lx = large[3 * v], ly = large[3 * v + 1], lz = large[3 * v + 2];
+      final[3 * v] = lx + tx * d0 + bx * d1 + nx * d2;
+      final[3 * v + 1] = ly + ty * d0 + by * d1 + ny * d2;
+      final[3 * v + 2] = lz + tz * d0 + bz * d1 + nz * d2;
+      largeOut[3 * v] = lx; largeOut[3 * v + 1] = ly; largeOut[3 * v + 2] = lz;
+      if (detailN) detailN[v] = d2;
+    }
+  }
+
+  // area-weighted vertex normals of the large scale, unit length ((0, 0, 1) where undefined)
+  vertexNormals() {
+    const { tri, large, normal, V } = this;
+    normal.fill(0);
+    for (let f = 0; f < tri.length; f += 3) {
+      const a = 3 * tri[f], b = 3 * tri[f + 1], c = 3 * tri[f + 2];
+      const ux = large[b] - large[a], uy = large[b + 1] - large[a + 1], uz = large[b + 2] - large[a + 2];
+      const vx = large[c] - large[a], vy = large[c + 1] - large[a + 1], vz = large[c + 2] - large[a + 2];
+      const cx = uy * vz - uz * vy, cy = uz * vx - ux * vz, cz = ux * vy - uy * vx;
+      for (const i of [a, b, c]) { normal[i] += cx; normal[i + 1] += cy; normal[i + 2] += cz; }
+    }
+    for (let v = 0; v < V; v++) {
+      const x = normal[3 * v], y = normal[3 * v + 1], z = normal[3 * v + 2];
+      const l = Math.sqrt(x * x + y * y + z * z);
+      if (l > 1e-30) { normal[3 * v] = x / l; normal[3 * v + 1] = y / l; normal[3 * v + 2] = z / l; }
+      else { normal[3 * v] = 0; normal[3 * v + 1] = 0; normal[3 * v + 2] = 1; }
+    }
+  }
+}

@@ -1,0 +1,217 @@
+"""`facepipe edit`: the server's evaluation against the replay's, the drag patch, the web server's
+surface, and the page in headless Chromium against `replay --edits`."""
+
+import asyncio
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from facepipe.core.edits import HandleEdit, apply_edits
+from facepipe.editor.drag_patch import DragPatch
+from facepipe.editor.server import evaluation_message, make_app
+from facepipe.editor.session import EditorSession, pack_arrays
+from facepipe.io.model_file import load_model
+from facepipe.pipeline.replay import NumpyEvaluator
+from tests.conftest import run_cli
+from bench.editor_browser import (browser_page, chromium_or_reason, drag, editor_server, save_edits, screenshot,
+                                  wait_settled)
+
+
+@pytest.fixture(scope="module")
+def editor_rig(tmp_path_factory):
+    """A small sample rig, its model (the config's values) and the take prepared as replay does."""
+    root = tmp_path_factory.mktemp("editor")
+    assert run_cli("sample", root / "rig", "--vertices", 3000, "--frames", 24, "-q") == 0
+    model_path = root / "model.npz"
+    assert run_cli("bake", root / "rig" / "sample.toml", "--no-tune", "-o", model_path, "-q") == 0
+    from facepipe.cli.editor import prepared_take
+
+    model = load_model(model_path)
+    return root, model_path, model, prepared_take(root / "rig" / "take.csv", model)
+
+
+def brow_handle(model) -> int:
+    """The handle over the sample face's left brow (the browRaise region's centre, x = −2.8, y = 4.8)."""
+    rest = model.rest[model.handle_vertices]
+    return int(np.argmin(np.hypot(rest[:, 0] + 2.8, rest[:, 1] - 4.8)))
+
+
+def test_pack_arrays_round_trip():
+    arrays = {"a": np.arange(5, dtype=np.float32), "b": np.arange(6, dtype=np.uint32).reshape(2, 3)}
+    blob = pack_arrays(arrays, {"x": 1})
+    n = struct.unpack("<I", blob[:4])[0]
+    header = json.loads(blob[4:4 + n])
+    assert (4 + n) % 8 == 0 and header["meta"] == {"x": 1}
+    for name, array in arrays.items():
+        e = header["arrays"][name]
+        assert e["offset"] % 8 == 0
+        got = np.frombuffer(blob, dtype=e["dtype"], count=array.size, offset=4 + n + e["offset"]).reshape(e["shape"])
+        np.testing.assert_array_equal(got, array)
+
+
+def test_server_mode_frame_equals_replay(editor_rig, tmp_path):
+    _, _, model, take = editor_rig
+    h = brow_handle(model)
+    edits = [HandleEdit(float(take.frames[10]), {h: (0.0, 0.4, 0.1)}, 3.0, 3.0)]
+    session = EditorSession(model, take, tmp_path / "e.json", edits, mode="server")
+    reference = NumpyEvaluator(model)
+    for row in (8, 10, 12, 20):
+        message, exact = evaluation_message(session, {"op": "eval", "id": 1, "frame": row, "layer": "details"},
+                                            exact=True)
+        assert exact
+        head = np.frombuffer(message, "<f8", 6)
+        V, H = model.n_vertices, len(model.handle_vertices)
+        final = np.frombuffer(message, "<f4", 3 * V, 48 + 24 * H).reshape(V, 3)
+        large = np.frombuffer(message, "<f4", 3 * V, 48 + 24 * H + 12 * V).reshape(V, 3)
+        handles = apply_edits(take.head[row:row + 1], take.frames[row:row + 1], edits)
+        want_final, want_large = reference.evaluate(handles.astype(np.float64), with_large=True)
+        assert head[1] == row and head[4] == 1
+        np.testing.assert_allclose(final, want_final[0], atol=2e-5)
+        np.testing.assert_allclose(large, want_large[0], atol=2e-5)
+    session.close()
+
+
+def test_drag_patch_matches_the_full_frame(editor_rig, tmp_path):
+    _, _, model, take = editor_rig
+    session = EditorSession(model, take, tmp_path / "e.json", mode="server")
+    h, row = brow_handle(model), 6
+    base = session.handles(row)
+    site = session.pose_terms(base)[1]
+    base_final, base_large = session.evaluate(base, site)
+    patch = DragPatch(model, h, base, base_final, base_large, site)
+    offset = np.array([0.1, 0.5, -0.2])
+    moved = base.copy()
+    moved[h] += offset
+    final, large = patch.evaluate(offset)
+    want_final, want_large = session.evaluate(moved, site)
+    np.testing.assert_allclose(large, want_large, atol=1e-5)  # linear: exact everywhere
+    inside = np.zeros(model.n_vertices, bool)
+    inside[patch.patch] = True
+    np.testing.assert_allclose(final[inside], want_final[inside], atol=1e-5)
+    # outside, only the frames' turn is left out: bounded by the support × the offset × the details' reach
+    outside = np.abs(final[~inside] - want_final[~inside]).max() if (~inside).any() else 0.0
+    assert outside < 1e-3 * np.linalg.norm(offset) + 1e-5
+    assert inside.sum() < model.n_vertices  # a patch, not the whole mesh
+    session.close()
+
+
+def test_provisional_gate_then_exact(editor_rig, tmp_path):
+    _, _, model, take = editor_rig
+    session = EditorSession(model, take, tmp_path / "e.json", mode="browser")
+    try:
+        first = session.handles(3)
+        f0, s0, exact0 = session.pose_terms(first, exact=False)
+        assert exact0  # nothing to stand in yet: made at once
+        moved = first.copy()
+        moved[brow_handle(model)] += [0, 0.3, 0]
+        _, s1, exact1 = session.pose_terms(moved, exact=False)
+        assert not exact1 and s1 is s0  # the latest exact gate stands in
+        session.exact_gate(moved)
+        _, s2, exact2 = session.pose_terms(moved, exact=False)
+        want = session.reference.details.gate
+        u = moved[None] - session.rest_handles[None]
+        np.testing.assert_allclose(s2, want.site_confidence(want.novelty(session.pose_terms(moved)[0][None], u))[0])
+        assert exact2
+    finally:
+        session.close()
+
+
+def test_web_server_serves_only_its_own(editor_rig, tmp_path):
+    from aiohttp.test_utils import TestClient, TestServer
+
+    _, _, model, take = editor_rig
+    session = EditorSession(model, take, tmp_path / "e.json", mode="browser")
+
+    async def run():
+        async with TestClient(TestServer(make_app(session))) as client:
+            assert (await client.get("/")).status == 200
+            assert (await client.get("/static/vendor/three/three.module.js")).status == 200
+            assert (await client.get("/static/vendor/three/LICENSE")).status == 200
+            for path in ("/static/../session.py", "/static/%2e%2e/session.py", "/api/truth/0", "/model.npz",
+                         f"/static/{Path(__file__).name}"):
+                assert (await client.get(path)).status in (403, 404), path
+            blob = await (await client.get("/api/model.bin")).read()
+            n = struct.unpack("<I", blob[:4])[0]
+            assert json.loads(blob[4:4 + n])["meta"]["vertices"] == model.n_vertices
+            with pytest.raises(Exception):  # another site's page may not drive the session
+                await client.ws_connect("/ws", headers={"Origin": "http://evil.example"})
+            ws = await client.ws_connect("/ws")
+            assert json.loads((await ws.receive()).data)["type"] == "state"
+            await ws.send_str(json.dumps({"op": "eval", "id": 7, "frame": 2}))
+            answer = np.frombuffer((await ws.receive()).data, "<f8")
+            assert answer[0] == 7 and answer[1] == 2
+            await ws.send_str(json.dumps({"op": "commit", "frame": 2,
+                                          "preview": {"handle": 0, "offset": [0, 0.1, 0], "ease_in": 2}}))
+            assert len(json.loads((await ws.receive()).data)["edits"]) == 1
+            await ws.send_str(json.dumps({"op": "save"}))
+            assert json.loads((await ws.receive()).data)["saved"] == str(tmp_path / "e.json")
+            await ws.send_str(json.dumps({"op": "eval", "frame": 999}))
+            assert json.loads((await ws.receive()).data)["type"] == "error"
+            await ws.close()
+
+    try:
+        asyncio.run(run())
+    finally:
+        session.close()
+    assert json.loads((tmp_path / "e.json").read_text())["edits"][0]["ease_in"] == 2
+
+
+def test_edit_refuses_malformed_edits_file(editor_rig, tmp_path):
+    _, model_path, _, _ = editor_rig
+    bad = tmp_path / "e.json"
+    bad.write_text("[1, 2")
+    assert run_cli("edit", model_path, "--edits", bad, "-q") == 2
+
+
+# ----------------------------------------------------------------------------- in a browser
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["browser", "server"])
+def test_page_drag_replays_identically(editor_rig, tmp_path, mode):
+    chromium, reason = chromium_or_reason()
+    if chromium is None:
+        pytest.skip(reason)
+    root, model_path, model, take = editor_rig
+    edits_path = tmp_path / "edits.json"
+    shots = Path(__import__("os").environ.get("FACEPIPE_EDITOR_SHOTS", tmp_path))
+    h, row = brow_handle(model), 12
+    with editor_server(model_path, root / "rig" / "take.csv", "--edits", edits_path, "--evaluate", mode,
+                       "--backend", "numpy") as url, browser_page(chromium, url) as page:
+        assert page.evaluate("window.facepipeEditor.meta.mode") == mode
+        page.evaluate(f"window.facepipeEditor.setFrame({row})")
+        wait_settled(page)
+        before = screenshot(page, shots / f"editor_{mode}_before.png")
+        start = page.evaluate(f"window.facepipeEditor.handleScreen({h})")
+        drag(page, start, 0, -40)
+        wait_settled(page)
+        after = screenshot(page, shots / f"editor_{mode}_after.png")
+        end = page.evaluate(f"window.facepipeEditor.handleScreen({h})")
+        assert end["y"] < start["y"] - 20  # the handle followed the pointer up
+        # the canvas changed around the brow handle, not at the far (chin) side of the face
+        diff = np.abs(after - before).sum(axis=2)
+        yy, xx = np.mgrid[:diff.shape[0], :diff.shape[1]]
+        near = np.hypot(xx - start["x"], yy - start["y"]) < 60
+        chin = page.evaluate("window.facepipeEditor.handleScreen(%d)" % int(np.argmin(model.rest[model.handle_vertices][:, 1])))
+        far = np.hypot(xx - chin["x"], yy - chin["y"]) < 60
+        assert diff[near].mean() > 10 * max(diff[far].mean(), 0.1)
+        shown = np.array(page.evaluate("window.facepipeEditor.positions()"), dtype=np.float64).reshape(-1, 3)
+        save_edits(page)
+        assert not page.errors
+    saved = json.loads(edits_path.read_text())
+    assert len(saved["edits"]) == 1 and saved["edits"][0]["frame"] == float(take.frames[row])
+    out = tmp_path / "replay"
+    assert run_cli("replay", root / "rig" / "take.csv", "-m", model_path, "-o", out, "--edits", edits_path,
+                   "--backend", "numpy", "--head-motion", "remove", "-q") == 0
+    replayed = np.load(out / "positions.npy")[row]
+    difference = float(np.abs(shown - replayed).max())
+    (shots / f"editor_{mode}_difference.json").write_text(json.dumps({"max_abs_cm": difference}))
+    assert difference < 1e-4
+    # the edit moved the face there, so the agreement is not that of two unedited frames
+    plain = tmp_path / "plain"
+    assert run_cli("replay", root / "rig" / "take.csv", "-m", model_path, "-o", plain, "--backend", "numpy",
+                   "--head-motion", "remove", "--frames", f"{row}:{row + 1}", "-q") == 0
+    assert np.abs(np.load(plain / "positions.npy")[0] - replayed).max() > 0.1
