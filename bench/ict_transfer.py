@@ -227,7 +227,8 @@ def main(argv=None) -> int:
 def side_by_side(path: Path, meshes: dict, finals: dict, source) -> None:
     """The most expressive frame, each face in its own column: the final surface, and below it the
     detail layer's size (|final − large scale|) on one colour scale."""
-    from facepipe.cli.preview import _figure, pick_frames, view_direction
+    from facepipe.cli.preview import _figure, pick_frames
+    from facepipe.core.render import view_direction
     from facepipe.core.render import frame_camera, render
 
     hv = source.handle_vertices.astype(np.int64)

@@ -123,7 +123,8 @@ class _HeadFrames:
     """Head-space panels of each frame: [large scale,] final [, truth, |final − truth|]."""
 
     def __init__(self, replay, model, size, truth_path, with_large):
-        from facepipe.cli.preview import load_truth, to_head_space, view_direction
+        from facepipe.core.render import view_direction
+        from facepipe.pipeline.evaluate import load_truth, to_head_space
 
         self.replay, self.model = replay, model
         self.faces = model.triangles.astype(np.int64)

@@ -22,12 +22,10 @@ from matplotlib.figure import Figure
 
 from facepipe.io.atomic import atomic_path
 from facepipe.errors import InputError
-from facepipe.core.render import frame_camera, render
-from facepipe.core.tangent_frames import vertex_normals
+from facepipe.core.render import frame_camera, render, view_direction
 from facepipe.export.common import check_targets
-from facepipe.io.npz_file import read_truth
 from facepipe.io.outputs import check_output_path
-from facepipe.pipeline.evaluate import match_frames
+from facepipe.pipeline.evaluate import load_truth, to_head_space
 from facepipe.pipeline.replay import NumpyEvaluator
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")
@@ -176,31 +174,6 @@ def error_axis(values, span: float = 1e4) -> tuple[bool, float | None, int]:
 # ----------------------------------------------------------------------------- replay preview
 
 
-def load_truth(path, frame_numbers: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """The truth of a replay: its positions and, per replayed frame, the truth's row.
-
-    Parameters
-    ----------
-    path : .npz with ``positions`` (F, V, 3) in the take's space and optionally ``frame`` (F,).
-    frame_numbers : (T,) the replay's frame numbers.
-    n_vertices : V of the model.
-
-    Returns
-    -------
-    positions : (F, V, 3) memmap-backed array; index : (T,) int64 rows of ``positions``.
-
-    Raises
-    ------
-    InputError
-        Unreadable file, no ``positions``, other vertex count, or replayed frames it lacks.
-    """
-    positions, frames = read_truth(path)
-    if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
-        raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
-                         f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
-    return positions, match_frames(np.asarray(frame_numbers), frames, str(path))
-
-
 def pick_frames(head: np.ndarray, rest_handles: np.ndarray, count: int = 1) -> np.ndarray:
     """Frame indices to show: the most expressive (largest mean handle motion from rest)
     for one, or ``count`` evenly spaced ones over the take.
@@ -215,14 +188,6 @@ def pick_frames(head: np.ndarray, rest_handles: np.ndarray, count: int = 1) -> n
         return np.array([int(np.argmax(motion))])
     return np.unique(np.round(np.linspace(0, T - 1, min(count, T))).astype(np.int64))
 
-
-def view_direction(model) -> np.ndarray:
-    """The direction the face looks in the rest pose: the mean normal at the markers."""
-    n = vertex_normals(model.rest.astype(np.float64), model.triangles.astype(np.int64))
-    d = n[model.handle_vertices].sum(axis=0)
-    if np.linalg.norm(d) < 1e-9:
-        d = np.array([0.0, 0.0, 1.0])
-    return d / np.linalg.norm(d)
 
 
 def preview_replay(outdir, model_path, path, *, view: str = "auto", truth_path=None, frame_numbers=None,
@@ -341,10 +306,6 @@ def _shown_frames(replay, head: np.ndarray, model, frame_numbers, strip: int) ->
     rest_handles = model.rest[model.handle_vertices].astype(np.float64)
     return pick_frames(head.astype(np.float64), rest_handles, max(1, strip))
 
-
-def to_head_space(x, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Take-space positions (V, 3) of a frame in head space (world = R head + t)."""
-    return (np.asarray(x, dtype=np.float64) - translation) @ rotation
 
 
 def _head_space_surfaces(replay, model, index: np.ndarray, truth_path) -> tuple[list, list, list | None]:

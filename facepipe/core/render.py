@@ -255,3 +255,12 @@ def render(vertices: np.ndarray, faces: np.ndarray, camera: Camera, colors: np.n
         base = np.einsum("nk,nkc->nc", b, np.asarray(colors, dtype=np.float64)[corners])
     img[hit] = np.clip(base * shade[:, None], 0.0, 1.0)
     return img
+
+
+def view_direction(model) -> np.ndarray:
+    """The direction the face looks in the rest pose: the mean normal at the markers."""
+    n = vertex_normals(model.rest.astype(np.float64), model.triangles.astype(np.int64))
+    d = n[model.handle_vertices].sum(axis=0)
+    if np.linalg.norm(d) < 1e-9:
+        d = np.array([0.0, 0.0, 1.0])
+    return d / np.linalg.norm(d)

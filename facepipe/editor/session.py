@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from facepipe.cli.preview import load_truth, to_head_space, view_direction
+from facepipe.core.render import view_direction
+from facepipe.pipeline.evaluate import load_truth, to_head_space
 from facepipe.core.edits import HandleEdit, apply_edits
 from facepipe.core.psd import edge_weight_matrix
 from facepipe.core.strain import strain_features

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from facepipe.errors import InputError
+from facepipe.io.npz_file import read_truth
 
 
 def parse_vertex_range(text: str | None, n_vertices: int) -> slice:
@@ -71,3 +72,33 @@ def match_frames(replay_frames: np.ndarray, truth_frames: np.ndarray, path: str 
     if missing:
         raise InputError(f"the truth has no frame {missing[0]} ({len(missing)} replayed frames missing)", path=path)
     return np.array([lookup[int(f)] for f in replay_frames], dtype=np.int64)
+
+
+def load_truth(path, frame_numbers: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The truth of a replay: its positions and, per replayed frame, the truth's row.
+
+    Parameters
+    ----------
+    path : .npz with ``positions`` (F, V, 3) in the take's space and optionally ``frame`` (F,).
+    frame_numbers : (T,) the replay's frame numbers.
+    n_vertices : V of the model.
+
+    Returns
+    -------
+    positions : (F, V, 3) memmap-backed array; index : (T,) int64 rows of ``positions``.
+
+    Raises
+    ------
+    InputError
+        Unreadable file, no ``positions``, other vertex count, or replayed frames it lacks.
+    """
+    positions, frames = read_truth(path)
+    if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
+        raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
+                         f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
+    return positions, match_frames(np.asarray(frame_numbers), frames, str(path))
+
+
+def to_head_space(x, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Take-space positions (V, 3) of a frame in head space (world = R head + t)."""
+    return (np.asarray(x, dtype=np.float64) - translation) @ rotation
