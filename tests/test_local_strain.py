@@ -181,3 +181,17 @@ def test_opencl_matches_numpy(strain_rig, options):
     # the details themselves, not only the sum: the kernels' detail layer against the reference's
     _, large = NumpyEvaluator(model).evaluate(head, with_large=True)
     assert np.abs((final - large) - (ref - large)).max() <= 0.02 * np.abs(ref - large).max() + 1e-5 * diag
+
+
+def test_compare_includes_the_local_strain_model(strain_rig):
+    from facepipe.pipeline.baselines import compare_methods
+
+    _, rig, fit, truth = strain_rig
+    head = truth[:, rig.handles].astype(np.float64)
+    T = len(head)
+    result = compare_methods(fit, rig, head, np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3)), truth)
+    rows = {r["method"]: r for r in result["rows"]}
+    assert "local strain" in rows and rows["local strain"]["poses"] == len(rig.example_names)
+    ev = NumpyEvaluator(model_from_fit(fit, rig))  # the same model as the rig's own
+    own = np.sqrt(((ev.evaluate(head) - truth) ** 2).sum(-1).mean(-1))
+    assert np.isclose(rows["local strain"]["rms_mean"], own.mean())

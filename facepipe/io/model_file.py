@@ -378,9 +378,10 @@ def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = No
     (method ``local_strain`` from a fit of another method: its model is fitted here)."""
 
     arrays, meta = model_arrays(fit, rig)
-    if method == "local_strain" and fit.model.method != "local_strain":
-        strain = fit_local_strain(fit.geometry, arrays["example_handles"].astype(np.float64), fit.details,
-                                  fit.config.strain_width, fit.config.strain_ridge)
+    if method == "local_strain":
+        strain = fit.strain_model if fit.strain_model is not None else fit_local_strain(
+            fit.geometry, arrays["example_handles"].astype(np.float64), fit.details, fit.config.strain_width,
+            fit.config.strain_ridge)
         none = fit.detail_model("none")
         arrays.update(basis_features=none.basis_features, rbf_weights=none.weights, rbf_const=none.const,
                       strain_samples=strain.samples, strain_weights=strain.weights)
