@@ -195,3 +195,12 @@ def test_compare_includes_the_local_strain_model(strain_rig):
     ev = NumpyEvaluator(model_from_fit(fit, rig))  # the same model as the rig's own
     own = np.sqrt(((ev.evaluate(head) - truth) ** 2).sum(-1).mean(-1))
     assert np.isclose(rows["local strain"]["rms_mean"], own.mean())
+
+
+def test_large_batches_are_taken_pose_by_pose_with_the_same_result():
+    V, F = grid(nx=120, ny=100)
+    op = StrainOperator.of(V, F)
+    rng = np.random.default_rng(3)
+    poses = V + 0.05 * rng.normal(size=(60,) + V.shape)  # 60 × 23562 faces: over the batching threshold
+    batched = vertex_strain(poses, op)
+    assert np.allclose(batched[:2], vertex_strain(poses[:2], op), rtol=0, atol=1e-14)  # (2 poses: one batch)

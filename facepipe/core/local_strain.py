@@ -102,6 +102,10 @@ def vertex_strain(positions: np.ndarray, op: StrainOperator) -> np.ndarray:
     The triangles' tensors, as 3 × 3 tensors of the rest space, are averaged over each vertex's
     incident triangles by rest area and read in the vertex's rest tangent axes."""
     positions = np.asarray(positions, dtype=np.float64)
+    if positions.ndim == 3 and positions.shape[0] > 1 and positions.shape[0] * op.faces.shape[0] >= 1_000_000:
+        # a batch of large meshes one pose at a time: the (T, 3, 3) temporaries of a whole batch
+        # would take gigabytes; each pose gets the same arithmetic as alone
+        return np.stack([vertex_strain(p, op) for p in positions])
     lead = positions.shape[:-2]
     E = triangle_green_strain(positions, op)  # (..., T, 2, 2)
     A = op.projection  # (T, 2, 3)

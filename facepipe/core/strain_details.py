@@ -48,7 +48,7 @@ class StrainDetailModel:
 
     method = "local_strain"
 
-    def evaluate(self, strain: np.ndarray, chunk: int = 65536) -> np.ndarray:
+    def evaluate(self, strain: np.ndarray, chunk: int = 8192) -> np.ndarray:
         """Details (Q, V, 3) in local frames for per-vertex strains (Q, V, 3)."""
         strain = np.asarray(strain, dtype=np.float64)
         Q, V = strain.shape[:2]
