@@ -204,3 +204,32 @@ def test_large_batches_are_taken_pose_by_pose_with_the_same_result():
     poses = V + 0.05 * rng.normal(size=(60,) + V.shape)  # 60 × 23562 faces: over the batching threshold
     batched = vertex_strain(poses, op)
     assert np.allclose(batched[:2], vertex_strain(poses[:2], op), rtol=0, atol=1e-14)  # (2 poses: one batch)
+
+
+def test_detail_layer_gives_the_local_strain_details_in_local_frames(strain_rig):
+    from facepipe.core.tangent_frames import local_frames, to_world
+    from facepipe.pipeline.detail_layers import DetailLayer
+
+    _, rig, fit, truth = strain_rig
+    model = model_from_fit(fit, rig)
+    head = truth[:8, rig.handles].astype(np.float64)
+    local = DetailLayer(model)(head)
+    final, large = NumpyEvaluator(model).evaluate(head, with_large=True)
+    frames = local_frames(large, model.triangles.astype(np.int64), model.frame_neighbors.astype(np.int64))
+    assert np.allclose(large + to_world(frames, local), final, atol=1e-9)
+    assert np.abs(local).max() > 0
+
+
+def test_wrinkle_maps_and_transfer_refuse_a_local_strain_model(strain_rig, tmp_path):
+    from facepipe.errors import InputError
+    from facepipe.export.exr_maps import check_wrinkle_model
+    from facepipe.io.model_file import model_arrays, save_model
+    from facepipe.pipeline.transfer import transfer_files
+
+    _, rig, fit, _ = strain_rig
+    with pytest.raises(InputError, match="local strain"):
+        check_wrinkle_model(model_from_fit(fit, rig))
+    save_model(tmp_path / "model.npz", *model_arrays(fit, rig))
+    with pytest.raises(InputError, match="local-strain"):
+        transfer_files(tmp_path / "model.npz", tmp_path / "other.obj", tmp_path / "a.csv", tmp_path / "b.csv",
+                       tmp_path / "out.npz")
