@@ -60,8 +60,9 @@ def grouped(tmp_path_factory):
 def test_model_is_a_dataclass_with_every_field_named_and_typed():
     assert is_dataclass(Model) and "__getattr__" not in vars(Model)
     by_name = {f.name: f for f in fields(Model)}
-    assert set(ARRAYS_BEFORE + list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices", "meta",
-                                                          "path"]) == set(by_name)
+    assert set(ARRAYS_BEFORE + list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices",
+                                                         "strain_samples", "strain_weights", "meta",
+                                                         "path"]) == set(by_name)
     for name in ARRAYS_BEFORE + list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices"]:
         assert "dtype" in by_name[name].metadata, name  # the dtype it is stored as
         assert by_name[name].type, name

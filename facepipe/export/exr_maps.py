@@ -290,6 +290,12 @@ def check_wrinkle_model(model) -> None:
             path=model.path or None,
             hint="export per-frame displacement maps (--format exr), or bake the rig with [psd] method = 'psd' "
                  "for wrinkle maps")
+    if model.method == "local_strain":
+        raise InputError("wrinkle maps need one blend coefficient per basis pose and frame, but this model's details "
+                         "are per-vertex functions of the local strain: no frame-constant blend of maps reproduces "
+                         "them", path=model.path or None,
+                         hint="export per-frame displacement maps (--format exr), or bake the rig with "
+                              "[psd] method = 'psd' for wrinkle maps")
     raise InputError("the model has no fine-scale details (method 'none'): there are no wrinkles to export",
                      path=model.path or None, hint="bake the rig with [psd] method = 'psd'")
 

@@ -48,6 +48,10 @@ class PsdConfig:
     smoothing: float = 0.0
     novelty_tau: float = 0.15  # details fade where this fraction of local strain is unlike the examples' (0 = off)
     novelty_radius: float = 1.5  # neighbourhood of the novelty test, × median feature-edge length
+    # method "local_strain": per-vertex Gaussian kernel regression over the large-scale surface's
+    # local strain (core.strain_details); width σ in strain units (no unit), ridge λ
+    strain_width: float = 0.08
+    strain_ridge: float = 0.3
 
 
 @dataclass
@@ -200,8 +204,11 @@ def load_config(path: str | Path) -> Config:
     if tune.folds < 2 or tune.max_poses < 1 or tune.sample_vertices < 1 or tune.max_regression < 0:
         raise InputError("[tune] folds must be ≥ 2, max_poses and sample_vertices ≥ 1, max_regression ≥ 0",
                          path=path)
-    if psd.method not in ("wpsd", "psd", "none"):
-        raise InputError(f"[psd] method = {psd.method!r}", path=path, hint="use wpsd, psd or none")
+    if psd.method not in ("wpsd", "psd", "local_strain", "none"):
+        raise InputError(f"[psd] method = {psd.method!r}", path=path, hint="use wpsd, psd, local_strain or none")
+    if psd.strain_width <= 0 or psd.strain_ridge <= 0:
+        raise InputError(f"[psd] strain_width = {psd.strain_width!r}, strain_ridge = {psd.strain_ridge!r}", path=path,
+                         hint="both must be > 0 (e.g. strain_width = 0.08, strain_ridge = 0.3)")
     if psd.fit not in ("interpolate", "least-squares"):
         raise InputError(f"[psd] fit = {psd.fit!r}", path=path, hint="use interpolate or least-squares")
     if psd.max_poses < 0 or psd.max_edges_per_vertex < 1 or psd.greedy_vertices < 0:

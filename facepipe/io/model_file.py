@@ -20,6 +20,8 @@ from facepipe.io.npz_file import open_npz
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
 from facepipe.core.psd import DetailModel, NoveltyGate, edge_weight_matrix
+from facepipe.core.strain_details import StrainDetailModel
+from facepipe.pipeline.local_strain_fit import fit_local_strain
 
 FORMAT_VERSION = 1
 MODEL_KIND = "facepipe-model"
@@ -80,6 +82,9 @@ class Model:
     polygon_groups : (N,) index into ``group_names`` of every polygon's OBJ group (``g``), or None
         (a rest mesh without groups, or a file written before groups were kept).
     group_names : list of str, the OBJ group names (``"default"`` before the first ``g``), or None.
+    strain_samples, strain_weights : (V, N, 3) method ``local_strain``: the N training poses' local
+        strain at every vertex and the kernel weights of the details over it (the kernel's width
+        is ``meta["strain_width"]``), or None for the other methods.
     landmark_vertices : (L,) the rig vertex of every point of a 2D tracker (the config's
         ``[video] landmarks``; their names are ``meta["landmark_names"]``), or None.
     path : where the model was read from ("(in memory)" for :func:`model_from_fit`).
@@ -116,6 +121,8 @@ class Model:
     polygon_groups: np.ndarray | None = _stored(np.int32, optional=True)
     group_names: list[str] | None = _stored(np.str_, optional=True)
     landmark_vertices: np.ndarray | None = _stored(np.int32, optional=True)
+    strain_samples: np.ndarray | None = _stored(np.float32, optional=True)
+    strain_weights: np.ndarray | None = _stored(np.float32, optional=True)
     path: str = ""
 
     @classmethod
@@ -152,6 +159,13 @@ class Model:
         return DetailModel(self.method, self.basis_features.astype(dtype), self.rbf_weights.astype(dtype),
                            self.rbf_const.astype(dtype), weights if self.method == "wpsd" else None,
                            self.novelty_gate(weights, dtype))
+
+    def strain_detail_model(self, dtype=np.float64) -> StrainDetailModel | None:
+        """The local-strain detail model (method ``local_strain``), else None."""
+        if self.method != "local_strain":
+            return None
+        return StrainDetailModel(self.strain_samples.astype(dtype), self.strain_weights.astype(dtype),
+                                 float(self.meta["strain_width"]))
 
     def novelty_gate(self, alpha: sp.spmatrix, dtype=np.float64) -> NoveltyGate | None:
         """The model's novelty gate with the site-to-vertex weights ``alpha`` (the model's own α,
@@ -243,6 +257,10 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
                   "phantoms": rig.config.shell.phantoms, "solver": geo.solver},
         "smoothing": rig.config.psd.smoothing,
     }
+    strain = getattr(fit, "strain_model", None)
+    if fit.model.method == "local_strain" and strain is not None:
+        arrays.update(strain_samples=strain.samples, strain_weights=strain.weights)
+        meta["strain_width"] = strain.width
     if rig.landmarks is not None:  # a 2D take replays with this map unless --landmarks gives another
         arrays["landmark_vertices"] = rig.landmarks.vertices
         meta["landmark_names"] = list(rig.landmarks.names)
@@ -279,7 +297,11 @@ def load_model(path) -> Model:
         (arrays["rbf_weights"].shape[0] == V, "RBF weights do not match the vertex count"),
         (arrays["edge_index"].shape[0] == V, "edge weights do not match the vertex count"),
         (arrays["basis_features"].shape[1] == arrays["edges"].shape[0], "basis features do not match the graph"),
-        (meta.get("method") in ("psd", "wpsd", "none"), f"unknown method {meta.get('method')!r}"),
+        (meta.get("method") in ("psd", "wpsd", "local_strain", "none"), f"unknown method {meta.get('method')!r}"),
+        (meta.get("method") != "local_strain" or ("strain_samples" in arrays and "strain_weights" in arrays
+         and arrays["strain_samples"].shape == arrays["strain_weights"].shape
+         and arrays["strain_samples"].shape[0] == V and "strain_width" in meta),
+         "a local_strain model without matching strain samples, weights and width"),
         (("polygon_groups" in arrays) == ("group_names" in arrays), "polygon groups without their names or back"),
         (("landmark_vertices" in arrays) == ("landmark_names" in meta), "landmark vertices without their names or back"),
     ]
@@ -359,12 +381,25 @@ def fit_to_model(path_in, path_out, stage=None) -> dict:
 
 
 def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = None) -> Model:
-    """An in-memory Model from a FitResult, optionally of another method or a smaller basis."""
+    """An in-memory Model from a FitResult, optionally of another method or a smaller basis
+    (method ``local_strain`` from a fit of another method: its model is fitted here)."""
+
     arrays, meta = model_arrays(fit, rig)
-    if method is not None or n_poses is not None:
+    if method == "local_strain":
+        strain = fit.strain_model if fit.strain_model is not None else fit_local_strain(
+            fit.geometry, arrays["example_handles"].astype(np.float64), fit.details, fit.config.strain_width,
+            fit.config.strain_ridge)
+        none = fit.detail_model("none")
+        arrays.update(basis_features=none.basis_features, rbf_weights=none.weights, rbf_const=none.const,
+                      strain_samples=strain.samples, strain_weights=strain.weights)
+        arrays = {k: v for k, v in arrays.items() if not k.startswith("novelty_")}
+        meta = dict(meta, method=method, basis=["rest"], strain_width=strain.width, novelty_tau=0.0)
+    elif method is not None or n_poses is not None:
         method = method or fit.method
         detail = fit.detail_model(method, n_poses)
-        arrays.update(basis_features=detail.basis_features, rbf_weights=detail.weights, rbf_const=detail.const)
+        arrays.update(basis_features=detail.basis_features, rbf_weights=detail.weights, rbf_const=detail.const,
+                      strain_samples=None, strain_weights=None)
+        meta.pop("strain_width", None)
         basis = [0] if method == "none" else fit.bases[method][: None if n_poses is None else n_poses + 1]
         meta = dict(meta, method=method, basis=[fit.example_names[i] for i in basis])
     return Model.from_arrays(arrays, meta, "(in memory)")

@@ -32,8 +32,9 @@ from facepipe.core.strain import strain_features
 from facepipe.opencl.device import _cl, build_program, device_label, open_device
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 from facepipe.core.psd import edge_weight_matrix, spread_subset
+from facepipe.core.local_strain import StrainOperator, ring_strain_coefficients
 
-METHOD_CODES = {"none": 0, "psd": 1, "wpsd": 2}
+METHOD_CODES = {"none": 0, "psd": 1, "wpsd": 2, "local_strain": 3}
 RV = 4  # vertices per work-item in the B product: 4 rows × 3 coordinates of accumulators
 
 
@@ -233,9 +234,11 @@ class OpenCLEvaluator:
         # the novelty gate (psd.NoveltyGate) scales the details by a per-vertex confidence α · s(f)
         # over per-site factors s: the host computes s per frame, the kernel the α-weighted sum
         self.gate = None
-        if method != "none" and float(model.meta.get("novelty_tau", 0) or 0) > 0:
+        if method not in ("none", "local_strain") and float(model.meta.get("novelty_tau", 0) or 0) > 0:
             self.gate = _site_gate(model)
         P = self.basis.shape[0] if method != "none" else 1
+        if method == "local_strain":
+            P = int(model.strain_samples.shape[1])
         F = max(1, int(self.edges.shape[0]))
         K = int(model.edge_index.shape[1]) if model.edge_index.ndim == 2 and model.edge_index.shape[1] else 1
         self.P, self.F, self.K = P, F, K
@@ -273,15 +276,34 @@ class OpenCLEvaluator:
             rbf_w = np.ascontiguousarray(model.rbf_weights[order], dtype=np.float32)
             rbf_c = np.ascontiguousarray(model.rbf_const[order], dtype=np.float32)
             basis = np.ascontiguousarray(self.basis, dtype=np.float32)
+        strain = self._local_strain_tables(model, order, inv)
+        if method == "local_strain":
+            rbf_w = np.ascontiguousarray(model.strain_weights[order], dtype=np.float32)
         self._static = {name: self._upload(a) for name, a in {
             "B": B, "rest": rest, "ring_ptr": ptr, "ring": ring, "neighbor": neighbor, "edge_count": count,
             "edge_index": ei, "edge_weight": ew, "basis": basis, "rbf_weights": rbf_w, "rbf_const": rbf_c,
-            "out_index": order.astype(np.int32)}.items()}
+            "out_index": order.astype(np.int32), **strain}.items()}
         C = self.chunk
         self._large = self._buffer(self.Vp * 3 * C * 4)
         self._final_vc = None
         self._slots = [_Slot() for _ in range(self.n_slots)]
         self.static_bytes = int(sum(b.size for b in self._static.values()))
+
+    def _local_strain_tables(self, model, order: np.ndarray, inv: np.ndarray) -> dict:
+        """The local-strain model's tables in the engine's vertex order (placeholders for the other
+        methods): per ring entry the strain's coefficients over its edges' Gram matrix, per vertex
+        the strain's constant and the training poses' strains; sets ``strain_inv`` = −1 / (2σ²)."""
+        self.strain_inv = 0.0
+        if self.method != "local_strain":
+            return {"strain_coeff": np.zeros(9, np.float32), "strain_const": np.zeros(3, np.float32),
+                    "strain_samples": np.zeros(3, np.float32)}
+        rest = model.rest.astype(np.float64)[order]
+        faces = inv[model.triangles.astype(np.int64)]
+        op = StrainOperator.of(rest, faces, inv[model.frame_neighbors.astype(np.int64)[order]])
+        coeff, const = ring_strain_coefficients(rest, op)
+        self.strain_inv = -0.5 / float(model.meta["strain_width"]) ** 2
+        return {"strain_coeff": coeff.reshape(-1, 9).astype(np.float32), "strain_const": const.astype(np.float32),
+                "strain_samples": np.ascontiguousarray(model.strain_samples[order], dtype=np.float32)}
 
     # ------------------------------------------------------------------ buffers
 
@@ -322,7 +344,7 @@ class OpenCLEvaluator:
         features = np.zeros((self.F, C), dtype=np.float32)
         psd_r = np.zeros((self.P, C), dtype=np.float32)
         site = np.zeros((self.F, C), dtype=np.float32)
-        if self.method != "none" and self.edges.shape[0]:
+        if self.method in ("psd", "wpsd") and self.edges.shape[0]:
             f = strain_features(head, self.edges, self.rest_lengths)  # (n, F) float64
             features[:, :n] = f.T
             if self.method == "psd":
@@ -358,7 +380,7 @@ class OpenCLEvaluator:
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
             s["out_index"], out["final"], out.get("large", out["final"]),
             out["final"] if self._final_vc is None else self._final_vc,
-            np.int32(flags))
+            np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv))
         ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1))
         events = {"large_scale": ev_large, "frames_fine_scale": ev_detail, "last": ev_detail}
         if with_normals:

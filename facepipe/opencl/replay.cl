@@ -16,7 +16,8 @@
  *   out    (C, V, 3)    final positions in the rest mesh's vertex order (out_index), world space
  *
  * Compile-time constants: VW (frames per work-item: 1, 4, 8 or 16), H (handles), RV (vertices
- * per work-item in the B product), METHOD (0 none, 1 PSD, 2 WPSD), P (basis poses), K (WPSD
+ * per work-item in the B product), METHOD (0 none, 1 PSD, 2 WPSD, 3 local strain), P (basis poses, or
+ * the local-strain model's training poses), K (WPSD
  * edges per vertex), F (feature edges), GATE (1: scale the details by the novelty gate's per-vertex
  * confidence Σ_k α_k site_{e_k}, site (F, C) from the host).
  */
@@ -31,6 +32,7 @@
 #define METHOD_NONE 0
 #define METHOD_PSD 1
 #define METHOD_WPSD 2
+#define METHOD_LOCAL_STRAIN 3
 
 #if VW == 1
 typedef float vfloat;
@@ -202,7 +204,9 @@ __kernel void detail(__global const float *restrict large, const int C, const in
                      __global const float *restrict rbf_weights, __global const float *restrict rbf_const,
                      __global const float *restrict rigid, __global const int *restrict out_index,
                      __global float *restrict out, __global float *restrict out_large,
-                     __global float *restrict final_vc, const int flags)
+                     __global float *restrict final_vc, const int flags,
+                     __global const float *restrict strain_coeff, __global const float *restrict strain_const,
+                     __global const float *restrict strain_samples, const float strain_inv)
 {
     const int c0 = get_global_id(0) * VW;
     const int v = get_global_id(1);
@@ -240,7 +244,41 @@ __kernel void detail(__global const float *restrict large, const int C, const in
     const vfloat tx = 1.0f, ty = 0.0f, tz = 0.0f, bx = 0.0f, by = 1.0f, bz = 0.0f, nx = 0.0f, ny = 0.0f, nz = 1.0f;
 #endif
 
-#if STAGES & STAGE_FINE
+#if (STAGES & STAGE_FINE) && METHOD == METHOD_LOCAL_STRAIN
+    /* ---- local strain of the large-scale surface at v (core.local_strain.ring_strain_coefficients):
+     * s_k = const_k + Σ_ring coeff_k · (a·a, a·b, b·b), a and b the ring face's edges from v */
+    vfloat s0 = (vfloat)(strain_const[v * 3 + 0]);
+    vfloat s1 = (vfloat)(strain_const[v * 3 + 1]);
+    vfloat s2 = (vfloat)(strain_const[v * 3 + 2]);
+    const int ring_end = ring_ptr[v + 1];
+    for (int i = ring_ptr[v]; i < ring_end; ++i) {
+        const int2 ab = ring[i];
+        __global const float *pa = large + (size_t)ab.x * 3 * C + c0;
+        __global const float *pb = large + (size_t)ab.y * 3 * C + c0;
+        const vfloat ax = VLOAD(pa) - px, ay = VLOAD(pa + C) - py, az = VLOAD(pa + 2 * C) - pz;
+        const vfloat bx = VLOAD(pb) - px, by = VLOAD(pb + C) - py, bz = VLOAD(pb + 2 * C) - pz;
+        const vfloat gaa = ax * ax + ay * ay + az * az;
+        const vfloat gab = ax * bx + ay * by + az * bz;
+        const vfloat gbb = bx * bx + by * by + bz * bz;
+        __global const float *c = strain_coeff + (size_t)i * 9;
+        s0 += c[0] * gaa + c[1] * gab + c[2] * gbb;
+        s1 += c[3] * gaa + c[4] * gab + c[5] * gbb;
+        s2 += c[6] * gaa + c[7] * gab + c[8] * gbb;
+    }
+    /* ---- Gaussian kernel regression over the training poses' strains at v (core.strain_details) */
+    __global const float *w = rbf_weights + (size_t)v * P * 3;
+    __global const float *sm = strain_samples + (size_t)v * P * 3;
+    vfloat d0 = (vfloat)(0.0f), d1 = (vfloat)(0.0f), d2 = (vfloat)(0.0f);
+    for (int i = 0; i < P; ++i) {
+        const vfloat x = s0 - sm[i * 3 + 0], y = s1 - sm[i * 3 + 1], z = s2 - sm[i * 3 + 2];
+        /* native_exp: the library exp is an out-of-line call per vector on PoCL (as sqrt), and
+         * the kernel needs no more than float accuracy of a factor in [0, 1] */
+        const vfloat k = native_exp(strain_inv * (x * x + y * y + z * z));
+        d0 = FMA((vfloat)(w[i * 3 + 0]), k, d0);
+        d1 = FMA((vfloat)(w[i * 3 + 1]), k, d1);
+        d2 = FMA((vfloat)(w[i * 3 + 2]), k, d2);
+    }
+#elif STAGES & STAGE_FINE
     /* ---- pose-space distances (and the novelty gate, over the same α) */
     vfloat r[P];
 #if METHOD == METHOD_WPSD

@@ -92,7 +92,8 @@ def compare_methods(fit, rig, head: np.ndarray, R: np.ndarray, t: np.ndarray, tr
     Returns
     -------
     {"rows": [{"method", "poses", "rms_mean", "rms_p95", "rms_max", "frames_per_second"}],
-     "curves": {"psd": [...], "wpsd": [...]}} (curves: rows by basis size)
+     "curves": {"psd": [...], "wpsd": [...]}} (curves: rows by basis size); the local-strain model's
+    row ("local strain") has every training pose (``poses``: the examples).
     """
 
     geo = fit.geometry
@@ -141,6 +142,9 @@ def compare_methods(fit, rig, head: np.ndarray, R: np.ndarray, t: np.ndarray, tr
             row = score(method.upper(), world(lambda s, e, ev=ev: ev.evaluate(head[s:e])), n)
             curves[method].append(row)
         rows.append(curves[method][-1])
+    if len(fit.example_names) > 1:  # details over the large scale's local strain, every training pose
+        ev = NumpyEvaluator(model_from_fit(fit, rig, "local_strain"))
+        rows.append(score("local strain", world(lambda s, e: ev.evaluate(head[s:e])), len(fit.example_names) - 1))
     return {"rows": rows, "curves": curves}
 
 

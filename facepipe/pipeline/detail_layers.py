@@ -27,7 +27,7 @@ import scipy.sparse as sp
 
 from facepipe.errors import InputError
 from facepipe.core.strain import strain_features
-from facepipe.core.tangent_frames import vertex_normals
+from facepipe.core.tangent_frames import local_frames, to_local, vertex_normals
 from facepipe.pipeline.replay import NumpyEvaluator
 
 SPACES = ("local", "tangent", "object")
@@ -89,13 +89,16 @@ class DetailLayer:
         ``rotation`` (C, 3, 3), the head motion to apply to ``object`` vectors (None: head space).
         """
         head = np.asarray(head, dtype=np.float64)
-        if self.space == "local":
+        if self.space == "local" and self.model.method != "local_strain":
             return self.details.evaluate(self.features(head), head - self.rest_handles)
         if self._evaluator is None:
 
             self._evaluator = NumpyEvaluator(self.model)
         final, large = self._evaluator.evaluate(head, with_large=True)
         d = final - large
+        if self.space == "local":  # (local strain: its details, back in the large scale's frames)
+            ev = self._evaluator
+            return to_local(local_frames(large, ev.faces, ev.neighbors, ev.incidence), d)
         if self.space == "tangent":
             frames = uv_tangent_frames(large, self._evaluator.faces, self.mesh.face_uvs, self.mesh.uvs)
             return np.einsum("cuji,cuj->cui", frames, d[:, self.uv_vertex])

@@ -19,6 +19,7 @@ from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
 from facepipe.pipeline.rig import Rig, load_rig
 from facepipe.core.shell import ShellBasis, large_scale_positions, marker_spacing, solve_shell_basis
 from facepipe.pipeline.geodesics import Geodesics
+from facepipe.pipeline.local_strain_fit import fit_local_strain
 from facepipe.core.strain import (auto_feature_graph, edge_graph, edge_lengths, graph_from_pairs, strain_features)
 import csv
 from pathlib import Path
@@ -178,6 +179,7 @@ class FitResult:
 
     config: object = None
     gate: NoveltyGate | None = None
+    strain_model: object = None  # method local_strain: a core.strain_details.StrainDetailModel
 
 
 def handle_geodesics(mesh, handles: np.ndarray) -> Geodesics:
@@ -283,6 +285,10 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
     lap("greedy")
     stage(FIT_STAGES[7])
     model, basis = final_detail_model(cfg, models, features, details, alpha, len(sample) < geo.rest.shape[0], gate)
+    strain_model = None
+    if cfg.method == "local_strain" and len(poses) > 1:  # details over the large scale's local strain
+        strain_model = fit_local_strain(geo, poses[:, geo.handles], details, cfg.strain_width, cfg.strain_ridge)
+        model = dataclasses.replace(model, method="local_strain", gate=None)
     lap("final_fit")
     seconds["total"] = time.perf_counter() - t0
     names = ["rest"] + list(rig.example_names)
@@ -313,7 +319,8 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
         "digest": rig.digest,
     }
     return FitResult(geo, names, features, details, cfg.method, model, basis, curves, edge_index, edge_weight,
-                     beta, report, bases={m: b for m, (_, b) in models.items()}, alpha=alpha, config=cfg, gate=gate)
+                     beta, report, bases={m: b for m, (_, b) in models.items()}, alpha=alpha, config=cfg, gate=gate,
+                     strain_model=strain_model)
 
 
 def greedy_bases(cfg, methods: list[str], features: np.ndarray, details: np.ndarray, alpha: sp.csr_matrix,
@@ -349,7 +356,7 @@ def final_detail_model(cfg, models: dict, features: np.ndarray, details: np.ndar
     """The configured method's model on every vertex, with its basis: the greedy one refitted on
     all vertices when it was chosen on a sample; the rest pose alone for method ``none`` (or
     without examples)."""
-    if cfg.method == "none" or not models:
+    if cfg.method in ("none", "local_strain") or not models:  # (local_strain: fitted by fit_rig)
         return dataclasses.replace(fit_details("psd", features, details, [0], "interpolate"), method="none"), [0]
     model, basis = models[cfg.method]
     if sampled:

@@ -21,6 +21,7 @@ from facepipe.core.tangent_frames import local_frames, to_world, vertex_face_mat
 from facepipe.io.model_file import Model
 from facepipe.io.npy_stream import NpyWriter
 from facepipe.core.strain import strain_features
+from facepipe.core.local_strain import StrainOperator, vertex_strain
 import queue
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -44,6 +45,10 @@ class NumpyEvaluator:
         self.rest_lengths = model.rest_lengths.astype(np.float64)
         self.incidence = vertex_face_matrix(self.faces, len(self.rest))
         self.details = model.detail_model(np.float64)
+        # method local_strain: details over the large-scale surface's own local strain
+        self.strain_details = model.strain_detail_model(np.float64)
+        self.strain_operator = None if self.strain_details is None else \
+            StrainOperator.of(self.rest, self.faces, self.neighbors)
         self.stage_seconds = {"large_scale": 0.0, "frames": 0.0, "fine_scale": 0.0}
 
     @property
@@ -65,8 +70,11 @@ class NumpyEvaluator:
         if self.details.method != "none":
             frames = local_frames(large, self.faces, self.neighbors, self.incidence)
             t2 = time.perf_counter()
-            f = strain_features(handle_positions, self.edges, self.rest_lengths)
-            final = large + to_world(frames, self.details.evaluate(f, u))
+            if self.strain_details is not None:
+                local = self.strain_details.evaluate(vertex_strain(large, self.strain_operator))
+            else:
+                local = self.details.evaluate(strain_features(handle_positions, self.edges, self.rest_lengths), u)
+            final = large + to_world(frames, local)
             t3 = time.perf_counter()
             self.stage_seconds["frames"] += t2 - t1
             self.stage_seconds["fine_scale"] += t3 - t2

@@ -543,6 +543,10 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     """
     t0 = time.perf_counter()
     model = load_model(model_path)
+    if model.method == "local_strain":
+        raise InputError("transfer does not carry a local-strain model (its details are per-vertex functions of the "
+                         "source's own strain)", path=model_path,
+                         hint="bake the source rig with [psd] method = 'wpsd' or 'psd' to transfer it")
     target = load_mesh(target_path)
     check_mesh(target)
     src_pts = read_points(source_points_path, model.n_vertices)

@@ -153,6 +153,8 @@ def validation_obstacle(cfg, names: list[str]) -> str | None:
         return "validation chooses the thin shell's stiffness and [shell] method is 'rbf'"
     if cfg.psd.method == "none":
         return "[psd] method is 'none': there are no details to validate"
+    if cfg.psd.method == "local_strain":
+        return "[psd] method is 'local_strain': its kernel width and ridge are not validated yet"
     if len(names) < 3:
         return f"validation needs at least 3 example poses to cross-validate, the rig has {len(names)}"
     if len(set(expression_groups(names).tolist())) < 2:
