@@ -21,7 +21,6 @@ from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
 from facepipe.core.psd import DetailModel, NoveltyGate, edge_weight_matrix
 from facepipe.core.strain_details import StrainDetailModel
-from facepipe.pipeline.local_strain_fit import fit_local_strain
 
 FORMAT_VERSION = 1
 MODEL_KIND = "facepipe-model"
@@ -380,15 +379,17 @@ def fit_to_model(path_in, path_out, stage=None) -> dict:
 
 
 
-def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = None) -> Model:
+def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = None,
+                   strain_model: StrainDetailModel | None = None) -> Model:
     """An in-memory Model from a FitResult, optionally of another method or a smaller basis
-    (method ``local_strain`` from a fit of another method: its model is fitted here)."""
+    (method ``local_strain`` from a fit of another method: pass its ``strain_model``, from
+    :func:`facepipe.pipeline.local_strain_fit.fit_local_strain`)."""
 
     arrays, meta = model_arrays(fit, rig)
     if method == "local_strain":
-        strain = fit.strain_model if fit.strain_model is not None else fit_local_strain(
-            fit.geometry, arrays["example_handles"].astype(np.float64), fit.details, fit.config.strain_width,
-            fit.config.strain_ridge)
+        strain = strain_model if strain_model is not None else fit.strain_model
+        if strain is None:
+            raise ValueError("a local-strain model from a fit of another method needs its strain_model")
         none = fit.detail_model("none")
         arrays.update(basis_features=none.basis_features, rbf_weights=none.weights, rbf_const=none.const,
                       strain_samples=strain.samples, strain_weights=strain.weights)

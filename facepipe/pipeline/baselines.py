@@ -21,6 +21,7 @@ from scipy.optimize import nnls
 
 from facepipe.pipeline.evaluate import frame_errors
 from facepipe.io.model_file import model_from_fit
+from facepipe.pipeline.local_strain_fit import fit_local_strain
 from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
 from facepipe.pipeline.replay import NumpyEvaluator
 from facepipe.io.atomic import atomic_path
@@ -143,7 +144,10 @@ def compare_methods(fit, rig, head: np.ndarray, R: np.ndarray, t: np.ndarray, tr
             curves[method].append(row)
         rows.append(curves[method][-1])
     if len(fit.example_names) > 1:  # details over the large scale's local strain, every training pose
-        ev = NumpyEvaluator(model_from_fit(fit, rig, "local_strain"))
+        strain = fit.strain_model if fit.strain_model is not None else fit_local_strain(
+            fit.geometry, np.concatenate([fit.geometry.rest[None, fit.geometry.handles],
+                                          rig.example_positions[:, fit.geometry.handles]]).astype(np.float64), fit.details, fit.config.strain_width, fit.config.strain_ridge)
+        ev = NumpyEvaluator(model_from_fit(fit, rig, "local_strain", strain_model=strain))
         rows.append(score("local strain", world(lambda s, e: ev.evaluate(head[s:e])), len(fit.example_names) - 1))
     return {"rows": rows, "curves": curves}
 
