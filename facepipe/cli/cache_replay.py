@@ -52,10 +52,10 @@ def replay_cache(rep, take: str, model_path: str, output: str, *, large_scale: s
         band = evaluator.estimate()
         report["cache"]["bands"] = band
         if band.get("method") == "bands":
-            rep.say("details added per band (wavelength, rig units): " + ", ".join(
-                f"{w}: {100 * a:.0f} %" for w, a in zip(band["band_wavelengths"], band["added"]))
-                + f" — {100 * band['added_fraction']:.0f} % of the details' energy; the bands explain "
-                f"{100 * band['deviation_explained']:.0f} % of the cache's deviation from the shell")
+            added = [w for w, a in zip(band["band_wavelengths"], band["added"]) if a]
+            rep.say(f"details added: {', '.join(added) if added else 'none'} (wavelength bands, rig units; "
+                    f"{100 * band['added_fraction']:.0f} % of the details' energy); the cache's own amplitude per "
+                    "band, relative to the details': " + ", ".join(f"{r:.2f}" for r in band["amplitude_ratio"]))
         windows = [(pose.head, pose.rotation, pose.translation)]
         save = True  # the cache's surface is the large scale: kept for --layer large / details exports
     try:

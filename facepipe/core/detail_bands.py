@@ -3,14 +3,12 @@
 A rig's own surface (a point cache) already has part of what the details of a mocap model
 correct the thin shell for — mostly the smooth part between the markers — and, for a rig with
 wrinkles, possibly all of it. Which part is measured on the cache itself: its deviation from the
-shell's smooth solution for the same handles, e = cache − shell, is regressed on the frequency
-bands of the model's details D = Σ_b D_b,
-
-    e ≈ Σ_b α_b D_b,   0 ≤ α_b ≤ 1   (bounded least squares over all vertices and frames),
-
-and (1 − α_b) of every band is added. A band the cache already has (α ≈ 1) is not added twice; a
-band it lacks (α ≈ 0) is added whole. Deviations of the cache unrelated to the details (the rig's
-own shapes) are uncorrelated with D and leave the α's alone.
+shell's smooth solution for the same handles, e = cache − shell, and the model's details
+D = Σ_b D_b are split into the same frequency bands, and per band the amplitudes are compared over
+the cache's frames (:func:`bands_to_add`): where the cache's deviation has a good part of the
+details' amplitude, the rig has content of its own at that scale and the band is not added again;
+where the cache is as smooth as the shell (a rig without wrinkles, the fine bands), the band is
+added whole. A cache the shell itself made (e = 0) gets every band.
 
 The bands come from screened-Poisson low-passes L_ℓ D = (M + ℓ² K)⁻¹ M D (K the cotangent
 stiffness, M the lumped mass): a heat-kernel-like smoothing over the length ℓ, the same on any mesh
@@ -21,14 +19,16 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import lsq_linear
 
 from facepipe.core.shell import CholeskyFactor, cotmatrix, massmatrix
 
-#: Cut-off wavelengths of the band edges in marker spacings: details finer than half the
-#: spacing (wrinkles), up to one, two and four spacings (what the shell misses between markers),
-#: and coarser.
-BAND_WAVELENGTHS = (0.5, 1.0, 2.0, 4.0)
+#: Cut-off wavelengths of the band edges in marker spacings, half-octave steps up to two spacings
+#: (wrinkles are finer than the markers can see; what the shell misses between markers is at one
+#: to two spacings) and an octave beyond.
+BAND_WAVELENGTHS = (0.35, 0.5, 0.71, 1.0, 1.41, 2.0, 4.0)
+#: A band is carried by the cache when its deviation from the shell there has at least this
+#: fraction of the details' amplitude (see :func:`bands_to_add`).
+CARRIED_RATIO = 0.5
 
 
 class DetailBands:
@@ -90,27 +90,31 @@ class DetailBands:
         self._factors.clear()
 
 
-def band_gram(bands: list[np.ndarray], residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """G = ⟨D_i, D_j⟩ and g = ⟨D_i, e⟩ over every vertex and frame (sums to accumulate over chunks)."""
-    flat = np.stack([np.asarray(b, dtype=np.float64).ravel() for b in bands])
-    return flat @ flat.T, flat @ np.asarray(residual, dtype=np.float64).ravel()
+def band_sums(detail_bands: list[np.ndarray], deviation_bands: list[np.ndarray]) -> np.ndarray:
+    """Per band b: [|D_b|², |e_b|², ⟨e_b, D_b⟩] over every vertex and frame (sums to accumulate over chunks)."""
+    return np.array([[float((d * d).sum()), float((e * e).sum()), float((e * d).sum())]
+                     for d, e in zip(detail_bands, deviation_bands)])
 
 
-def carried_fractions(G: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """α in [0, 1]^B minimising |Σ α_b D_b − e|² from the Gram sums of :func:`band_gram`.
+def bands_to_add(sums: np.ndarray, carried_ratio: float = CARRIED_RATIO) -> dict:
+    """Which bands of the details to add, from :func:`band_sums` over a cache's frames.
 
-    A band with no energy (all zero) gets α = 0 (nothing to add either way). The Gram matrix is
-    regularised by a millionth of its trace so nearly collinear bands stay solvable.
+    A band is carried by the cache when its deviation from the shell there has at least
+    ``carried_ratio`` of the details' amplitude, r_b = |e_b| / |D_b| ≥ ``carried_ratio``: the rig has
+    content of its own at that scale and it wins (adding the model's would count it twice); a band
+    the cache lacks (r_b small: it is as smooth as the shell there) is added whole. A band without
+    detail energy is not added (nothing to add).
+
+    Returns
+    -------
+    dict: ``ratio`` r_b, ``projection`` ⟨e_b, D_b⟩ / |D_b|² (how much of the details' own direction the
+    cache has, for the report), ``added`` (0 or 1 per band), ``added_energy`` (the added bands' share of
+    the details' energy).
     """
-    G = np.asarray(G, dtype=np.float64)
-    g = np.asarray(g, dtype=np.float64)
-    n = len(g)
-    live = np.diag(G) > 1e-12 * max(float(np.trace(G)), 1e-300)
-    alpha = np.zeros(n)
-    if not live.any():
-        return alpha
-    Gl = G[np.ix_(live, live)] + 1e-6 * np.trace(G) / n * np.eye(int(live.sum()))
-    R = np.linalg.cholesky(Gl).T  # Gl = Rᵀ R: |R α − R⁻ᵀ g|² = αᵀ Gl α − 2 gᵀ α + const
-    rhs = np.linalg.solve(R.T, g[live])
-    alpha[live] = lsq_linear(R, rhs, bounds=(0.0, 1.0), method="bvls").x
-    return alpha
+    sums = np.asarray(sums, dtype=np.float64)
+    dd, ee, ed = sums[:, 0], sums[:, 1], sums[:, 2]
+    live = dd > 1e-12 * max(float(dd.sum()), 1e-300)
+    ratio = np.where(live, np.sqrt(ee / np.where(live, dd, 1.0)), np.inf)
+    added = (live & (ratio < carried_ratio)).astype(np.float64)
+    return {"ratio": ratio, "projection": np.where(live, ed / np.where(live, dd, 1.0), 0.0), "added": added,
+            "added_energy": float((added * dd).sum() / max(float(dd.sum()), 1e-300))}

@@ -9,8 +9,8 @@ Two ways to use the cache's motion (``replay --large-scale``):
   the feature graph is measured on the cache's handle vertices, the details d(f) are evaluated
   and applied in the local frames of the cache's surface. Only the band of the details that the
   cache does not already carry is added (:mod:`facepipe.core.detail_bands`): it is estimated on
-  the cache itself, from its deviation from the shell's solution for the same handles, before the
-  replay, and reported.
+  the cache itself, from its deviation from the shell's solution for the same handles, band by band,
+  before the replay, and reported.
 
 The head's rigid motion in the cache is found per frame from the handle vertices (the stable
 ones where the rig has at least three) against the rest handles; it is needed for the head-space
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facepipe.core.detail_bands import DetailBands, band_gram, carried_fractions
+from facepipe.core.detail_bands import DetailBands, band_sums, bands_to_add
 from facepipe.core.rigid import robust_rigid_fit, stable_marker_pose
 from facepipe.core.shell import marker_spacing
 from facepipe.core.strain import strain_features
@@ -127,11 +127,13 @@ class CacheDetails:
         self.stage_seconds["fine_scale"] += time.perf_counter() - t1
         return d
 
-    def estimate(self, frames: int = ESTIMATE_FRAMES) -> dict:
-        """Choose the band of the details to add: :mod:`facepipe.core.detail_bands` on ``frames`` frames.
+    def estimate(self, frames: int = ESTIMATE_FRAMES, batch: int = 4) -> dict:
+        """Choose the bands of the details to add (:func:`facepipe.core.detail_bands.bands_to_add`),
+        measured on ``frames`` frames of the cache spread over the take, ``batch`` at a time.
 
-        Returns the report (``carried`` α per band, ``added`` 1 − α, each band's share of the
-        details' energy and of the cache's deviation from the shell that the bands explain).
+        Returns the report: per band its wavelengths (rig units), the amplitude ratio r_b of the
+        cache's deviation from the shell to the details, the projection of the deviation on the
+        details, whether the band is added, and the added bands' share of the details' energy.
         """
         model, cache, pose = self.model, self.cache, self.pose
         if model.method == "none":
@@ -141,33 +143,27 @@ class CacheDetails:
         index = np.unique(np.linspace(0, cache.n_frames - 1, min(frames, cache.n_frames)).round().astype(int))
         B = model.B.astype(np.float64)
         rest = model.rest.astype(np.float64)
-        G = g = None
-        energy_e = 0.0
-        for k in index:
-            R, t, head = pose.rotation[k], pose.translation[k], pose.head[k:k + 1]
-            surface = (cache.frame(int(k)) - t) @ R  # head space: Rᵀ (p − t)
-            shell = rest + B @ (head[0] - self.rest_handles)
-            D = self.world_details(surface[None], head)[0]
-            Gk, gk = band_gram(self.bands.split(D), surface - shell)
-            G, g = (Gk, gk) if G is None else (G + Gk, g + gk)
-            energy_e += float(((surface - shell) ** 2).sum())
-        alpha = carried_fractions(G, g)
-        self.keep = 1.0 - alpha
+        sums = 0.0
+        for s in range(0, len(index), batch):
+            k = index[s:s + batch]
+            R, t, head = pose.rotation[k], pose.translation[k], pose.head[k]
+            surface = np.einsum("cji,cvj->cvi", R, np.stack([cache.frame(int(i)) for i in k]) - t[:, None, :])
+            shell = rest + np.einsum("vh,chx->cvx", B, head - self.rest_handles, optimize=True)
+            D = self.world_details(surface, head)
+            sums = sums + band_sums(self.bands.split(D), self.bands.split(surface - shell))
+        choice = bands_to_add(sums)
+        self.keep = choice["added"]
         edges = list(self.bands.wavelengths)
         labels = [f"< {edges[0]:.3g}"] + [f"{a:.3g}–{b:.3g}" for a, b in zip(edges, edges[1:])] + [f"> {edges[-1]:.3g}"]
-        total = float(np.trace(G)) or 1.0
-        explained = float(2 * alpha @ g - alpha @ G @ alpha)
         return {
             "method": "bands",
             "frames_sampled": int(len(index)),
             "marker_spacing": spacing,
             "band_wavelengths": labels,
-            "carried": [float(a) for a in alpha],
-            "added": [float(x) for x in self.keep],
-            "band_energy_share": [float(G[b, b] / total) for b in range(len(alpha))],
-            # the share of the details' energy that is added (what the chosen bands amount to)
-            "added_fraction": float(self.keep @ G @ self.keep / max(float(G.sum()), 1e-300)),
-            "deviation_explained": explained / energy_e if energy_e > 0 else 0.0,
+            "amplitude_ratio": [float(r) for r in choice["ratio"]],
+            "projection": [float(p) for p in choice["projection"]],
+            "added": [float(a) for a in choice["added"]],
+            "added_fraction": choice["added_energy"],
         }
 
     def stream(self, head, sink, R=None, t=None, with_large: bool = False) -> None:
