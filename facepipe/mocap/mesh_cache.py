@@ -252,8 +252,11 @@ def check_rest_frame(cache: MeshCache, rest: np.ndarray, index: int, rig_units: 
     """
     frame = cache.frame(index)
     rest = np.asarray(rest, dtype=np.float64)
-    s, Q, b = similarity_fit(frame, rest)
     frame_no = int(cache.frames[index])
+    radius = float(np.sqrt(((rest - rest.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    # the size ratio of the point sets does not depend on which vertex is which (a similarity fit
+    # of points in another order shrinks toward scale 0), so units are told apart from order
+    s = radius / max(float(np.sqrt(((frame - frame.mean(axis=0)) ** 2).sum(axis=1).mean())), 1e-300)
     if not SCALE_RANGE[0] <= s <= SCALE_RANGE[1]:
         size = 1.0 / s
         source = cache.source_units or rig_units
@@ -267,8 +270,8 @@ def check_rest_frame(cache: MeshCache, rest: np.ndarray, index: int, rig_units: 
                 unit_hint = "no unit explains it: check that the cache is of this model's face"
         raise InputError(f"scale mismatch: frame {frame_no} of the cache is {size:.3g}× the size of the model's rest "
                          f"mesh", path=cache.path, hint=unit_hint)
+    s, Q, b = similarity_fit(frame, rest)
     distance = np.linalg.norm(s * frame @ Q.T + b - rest, axis=1)
-    radius = float(np.sqrt(((rest - rest.mean(axis=0)) ** 2).sum(axis=1).mean()))
     median = float(np.median(distance))
     if median > ORDER_TOLERANCE * radius:
         raise InputError(f"frame {frame_no} of the cache does not correspond to the model's rest mesh vertex by "
