@@ -197,3 +197,18 @@ def test_sample_writes_the_smooth_cache(tmp_path):
     # the truth differs from the smooth motion by the wrinkles alone: along the normal, zero where
     # nothing compresses (the rest frame of a take at rest, the anchors)
     np.testing.assert_array_equal(rig.take_positions[:, rig.anchors], smooth[:, rig.anchors])
+
+
+def test_details_layer_exports(rig, tmp_path):
+    from facepipe.io.exr import read_exr  # noqa: F401  (the EXR reader is there)
+
+    _, large, final, times = _replay_large(rig)
+    write_mdd(tmp_path / "large.mdd", large, times)
+    assert run_cli("replay", tmp_path / "large.mdd", "-m", rig.models["wpsd"], "-o", tmp_path / "take", "-q") == 0
+    assert run_cli("export", tmp_path / "take", "--format", "mdd", "--layer", "details", "-o",
+                   tmp_path / "details.mdd", "-q") == 0
+    _, details = read_mdd(tmp_path / "details.mdd")
+    np.testing.assert_allclose(details, final - large, atol=1e-5)
+    assert run_cli("export", tmp_path / "take", "--format", "exr", "--resolution", 64, "-o", tmp_path / "maps",
+                   "-q") == 0
+    assert len(list((tmp_path / "maps").glob("*.exr"))) == len(times)

@@ -318,8 +318,9 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
               help=export_formats.format_help())
 @click.option("-o", "--dest", required=True, type=click.Path(), help=export_formats.destination_help())
 @click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
-@click.option("--layer", type=click.Choice(["final", "large"]), default="final", show_default=True,
-              help="Geometry formats: the final surface, or the large-scale one (needs replay --save-large-scale).")
+@click.option("--layer", type=click.Choice(["final", "large", "details"]), default="final", show_default=True,
+              help="Geometry formats: the final surface, the large-scale one, or the details alone (final − large, "
+                   "as vectors; both need replay --save-large-scale, or a mesh cache replayed as a take).")
 @click.option("--resolution", default="2048", show_default=True, help="Maps: N or WxH texels per UDIM tile.")
 @click.option("--padding", default=8, show_default=True, help="Maps: texels of edge padding around UV islands.")
 @click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float].")
