@@ -8,6 +8,7 @@
 2. ICT ``train_truth.npz`` with each frame's displacement smoothed by 20 iterations of uniform
    Laplacian smoothing (half-way to the neighbours' mean), as a PC2: per-frame face-area RMS error
    of the replay against the truth, relative to the cache's own (largest rise).
+   The same for ``face_a`` (its own truth, smoothed) through the kit's model transferred onto it.
 3. The sample rig's smooth cache (``take_smooth.mdd``, the truth without its wrinkles): mean face
    error of the replay relative to the cache's, and frames made worse.
 """
@@ -92,6 +93,40 @@ def ict_cases(work: Path, out: dict) -> None:
     }
 
 
+def transfer_case(work: Path, out: dict, face: str = "face_a") -> None:
+    """The kit's model transferred onto another identity, that face's own smoothed-truth cache replayed."""
+    from facepipe.core.rbf_morph import farthest_point_subset
+    from facepipe.export.pc2 import write_pc2
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.io.model_file import load_model
+
+    source = load_model(work / "ict.npz")
+    neutral = source.rest.astype(np.float64)
+    points = farthest_point_subset(neutral, 40, seed_index=int(source.handle_vertices[0]))
+    for name in ("source", face):  # same topology: the same vertex ids mark the same places
+        (work / f"points_{name}.csv").write_text("name,vertex\n" + "".join(f"P{i:02d},{int(v)}\n"
+                                                                           for i, v in enumerate(points)))
+    target = KIT / "identities" / f"{face}.obj"
+    model_path = work / f"{face}.npz"
+    facepipe("transfer", work / "ict.npz", "--target", target, "--source-points", work / "points_source.csv",
+             "--target-points", work / f"points_{face}.csv", "--target-markers", KIT / "markers.csv", "-o",
+             model_path, "-q")
+    X = load_mesh(target).vertices
+    tt = np.load(KIT / "train_truth.npz")
+    truth = X + (tt["positions"].astype(np.float64) - neutral)  # expressions do not depend on the identity
+    smooth = smoothed_displacements(X, source.triangles.astype(np.int64), truth)
+    write_pc2(work / f"{face}_smooth.pc2", smooth.astype(np.float32), tt["time"], 30.0, force=True)
+    facepipe("replay", work / f"{face}_smooth.pc2", "-m", model_path, "-o", work / f"take_{face}", "-q")
+    cache_err = face_rms(smooth, truth)
+    take_err = face_rms(np.load(work / f"take_{face}" / "positions.npy"), truth)
+    out[f"ict_smoothed_truth_{face}_transferred"] = {
+        "cache_vs_truth_rms_cm": float(cache_err.mean()),
+        "take_vs_truth_rms_cm": float(take_err.mean()),
+        "largest_frame_rise_percent": float(100 * (take_err / cache_err - 1).max()),
+        "bands": json.loads((work / f"take_{face}" / "replay.json").read_text())["cache"]["bands"],
+    }
+
+
 def sample_case(work: Path, out: dict) -> None:
     rig = work / "sample"
     facepipe("sample", rig, "-q")
@@ -124,6 +159,7 @@ def main(argv=None) -> int:
     sample_case(work, out)
     if (KIT / "neutral.obj").is_file():
         ict_cases(work, out)
+        transfer_case(work, out)
     else:
         print(f"the ICT kit is not at {KIT}: its cases are skipped", file=sys.stderr)
     Path(args.json).write_text(json.dumps(out, indent=2))
