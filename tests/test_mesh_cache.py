@@ -212,3 +212,35 @@ def test_details_layer_exports(rig, tmp_path):
     assert run_cli("export", tmp_path / "take", "--format", "exr", "--resolution", 64, "-o", tmp_path / "maps",
                    "-q") == 0
     assert len(list((tmp_path / "maps").glob("*.exr"))) == len(times)
+
+
+def test_opencl_take_matches_numpy(rig, tmp_path):
+    pytest.importorskip("pyopencl")
+    from facepipe.opencl import OpenCLUnavailable  # noqa: F401
+
+    _, large, final, times = _replay_large(rig)
+    write_mdd(tmp_path / "large.mdd", large, times)
+    size = float(np.ptp(final, axis=(0, 1)).max())
+    assert run_cli("replay", tmp_path / "large.mdd", "-m", rig.models["wpsd"], "-o", tmp_path / "np",
+                   "--backend", "numpy", "-q") == 0
+    code = run_cli("replay", tmp_path / "large.mdd", "-m", rig.models["wpsd"], "-o", tmp_path / "cl",
+                   "--backend", "opencl", "-q")
+    if code == 2:
+        pytest.skip("no OpenCL device")
+    assert json.loads((tmp_path / "cl" / "replay.json").read_text())["backend"] == "opencl"
+    assert np.abs(np.load(tmp_path / "cl" / "positions.npy") - np.load(tmp_path / "np" / "positions.npy")).max() \
+        < 1e-5 * size
+
+
+def test_smooth_cache_bands_opencl_and_numpy_agree(rig, tmp_path):
+    """The sample rig's smooth cache: the bands chosen and the replay the same on both backends."""
+    cache = rig.root / "rig" / "take_smooth.mdd"
+    assert run_cli("replay", cache, "-m", rig.models["wpsd"], "-o", tmp_path / "np", "--backend", "numpy",
+                   "-q") == 0
+    report = json.loads((tmp_path / "np" / "replay.json").read_text())["cache"]["bands"]
+    assert len(report["added"]) == len(report["amplitude_ratio"]) == 8
+    code = run_cli("replay", cache, "-m", rig.models["wpsd"], "-o", tmp_path / "cl", "--backend", "opencl", "-q")
+    if code == 2:
+        pytest.skip("no OpenCL device")
+    a, b = np.load(tmp_path / "np" / "positions.npy"), np.load(tmp_path / "cl" / "positions.npy")
+    assert np.abs(a - b).max() < 1e-5 * float(np.ptp(a, axis=(0, 1)).max())

@@ -231,7 +231,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
 
         replay_cache(rep, take, model_path, output, large_scale=large_scale, rest_frame=rest_frame,
                      take_units=take_units, cache_fps=cache_fps, frames_text=frames_text, head_motion=head_motion,
-                     chunk=chunk, save_large=save_large_scale,
+                     chunk=chunk, save_large=save_large_scale, backend=backend, device=device,
                      make_evaluator=lambda model: _make_evaluator(model, backend, device, chunk, rep))
         return
     if large_scale == "take" or rest_frame is not None or cache_fps is not None:
