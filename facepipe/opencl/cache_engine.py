@@ -19,6 +19,9 @@ import numpy as np
 from facepipe.opencl.device import _cl
 from facepipe.opencl.engine import OpenCLEvaluator
 
+#: Vertices per block when the cache's frames are laid out for the device (a few MB: in cache).
+_BLOCK = 4096
+
 
 class OpenCLCacheEvaluator(OpenCLEvaluator):
     """OpenCL replay of a cache's own surface plus details.
@@ -40,20 +43,33 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         self._order = order
         self._rest_padding = model.rest[order].astype(np.float32)[:, :, None]
         self._cursor = 0
+        self._surface_buffers = [np.zeros((self.Vp, 3, self.chunk), dtype=np.float32) for _ in range(self.n_slots)]
         self.stage_seconds["upload_surface"] = 0.0
         self.stage_seconds["bands"] = 0.0
 
     def _surface_table(self, start: int, n: int) -> np.ndarray:
-        """(Vp, 3, C) float32 head-space surface of frames start..start+n in the device's layout."""
+        """(Vp, 3, C) float32 head-space surface of frames start..start+n in the device's layout.
+
+        In float32 (the device's precision), block by block of vertices so every step works in
+        cache: the cache's frames gathered into the device's vertex order and transposed to
+        vertices × coordinates × frames, then moved into head space, Rᵀ (p − t), with the frames
+        along the contiguous axis. Two tables are used in turn (one per chunk in flight), so no
+        chunk allocates fresh memory."""
         C = self.chunk
-        R = self.pose.rotation[start:start + n]
-        t = self.pose.translation[start:start + n]
-        world = self.cache.chunk(start, start + n)[:, self._order]
-        head = np.einsum("cji,cvj->vic", R, world - t[:, None, :])  # Rᵀ (p − t), vertices first
-        table = np.empty((self.Vp, 3, C), dtype=np.float32)
-        table[:self.V, :, :n] = head
+        R = self.pose.rotation[start:start + n].astype(np.float32)
+        t = self.pose.translation[start:start + n].astype(np.float32)
+        table = self._surface_buffers[self._cursor // C % len(self._surface_buffers)]
+        frames = self.cache.positions[start:start + n]
+        for v0 in range(0, self.V, _BLOCK):
+            block = table[v0:min(v0 + _BLOCK, self.V), :, :n]  # (the padding rows past V stay zero)
+            block[...] = np.asarray(frames[:, self._order[v0:v0 + _BLOCK]], dtype=np.float32).transpose(1, 2, 0)
+            if self.cache.scale != 1.0:
+                block *= np.float32(self.cache.scale)
+            block -= t.T[None]
+            x, y, z = block[:, 0].copy(), block[:, 1].copy(), block[:, 2].copy()
+            for j in range(3):  # (Rᵀ q)_j = Σ_i R_ij q_i, per frame
+                block[:, j] = x * R[:, 0, j] + y * R[:, 1, j] + z * R[:, 2, j]
         table[:self.V, :, n:] = self._rest_padding  # padding frames: the rest pose, as large_scale does
-        table[self.V:] = 0.0
         return table
 
     def _enqueue(self, slot, head, R, t, with_large: bool, with_normals: bool) -> dict:

@@ -35,7 +35,7 @@ from facepipe.core.tangent_frames import local_frames, to_world, vertex_face_mat
 
 #: Frames of the cache the band estimate looks at (evenly spread): the α's are a handful of
 #: numbers over the whole take, so a sample of frames determines them.
-ESTIMATE_FRAMES = 24
+ESTIMATE_FRAMES = 12
 
 
 @dataclass
@@ -127,7 +127,7 @@ class CacheDetails:
         self.stage_seconds["fine_scale"] += time.perf_counter() - t1
         return d
 
-    def estimate(self, frames: int = ESTIMATE_FRAMES, batch: int = 4) -> dict:
+    def estimate(self, frames: int = ESTIMATE_FRAMES, batch: int = 6) -> dict:
         """Choose the bands of the details to add (:func:`facepipe.core.detail_bands.bands_to_add`),
         measured on ``frames`` frames of the cache spread over the take, ``batch`` at a time.
 
