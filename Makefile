@@ -37,6 +37,7 @@ test-fast: venv
 # the paper's configuration: ~530k vertices, 89 markers on the shell, 6 example poses (a few minutes)
 bench: venv
 	$(BIN)/python -m bench.paper_scale -o bench/results.json --vertices 530000 --markers 89 --examples 6 --frames 128
+	$(BIN)/python -m bench.point_caches_speed --json bench/point_caches_speed.json
 
 clean:
 	rm -rf $(DEMO) bench/results.* bench/work .pytest_cache

@@ -41,6 +41,7 @@ from scipy.spatial import cKDTree
 from facepipe.io.atomic import atomic_open, atomic_path
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
+from facepipe.export.mdd import write_mdd
 from facepipe.io.mesh_write import format_obj_faces, obj_bytes, save_obj
 
 # --- the surface: the front of an ellipsoid, in cm (+x subject's left, +y up, +z out) -------
@@ -119,6 +120,9 @@ class SampleRig:
     fps: float
     face_coords: np.ndarray
     wavelength: float = WAVELENGTH
+    #: (T, V, 3) float32: the take's truth without the wrinkles (the smooth motion a rig would
+    #: export as a point cache), cm
+    take_smooth: np.ndarray | None = None
 
     @property
     def take_times(self) -> np.ndarray:
@@ -517,15 +521,18 @@ def make_sample_arrays(n_vertices: int = 20000, n_examples: int = 8, n_frames: i
     # the truth uses the weights as stored (float32), so it can be recomputed from the npz
     weights = _take_weights(n_frames, n_examples, np.random.default_rng(seed)).astype(np.float32)
     take = np.empty((n_frames, n_v, 3), dtype=np.float32)
+    smooth = np.empty((n_frames, n_v, 3), dtype=np.float32)
     flat_fields = fields.reshape(n_examples, -1)
     for f in range(n_frames):
-        take[f] = rule((weights[f].astype(np.float64) @ flat_fields).reshape(n_v, 3))[0]
+        field_f = (weights[f].astype(np.float64) @ flat_fields).reshape(n_v, 3)
+        take[f] = rule(field_f)[0]
+        smooth[f] = rest + field_f
 
     return SampleRig(mesh=mesh, marker_names=marker_names, marker_vertices=marker_vertices,
                      marker_roles=marker_roles, anchors=anchors, example_names=names,
                      example_positions=example_positions, example_wrinkles=example_wrinkles,
                      example_compression=example_compression, take_positions=take,
-                     take_weights=weights, fps=FPS, face_coords=xy)
+                     take_weights=weights, fps=FPS, face_coords=xy, take_smooth=smooth)
 
 
 _CONFIG = """\
@@ -584,7 +591,8 @@ def write_sample_rig(out_dir, n_vertices: int = 20000, n_examples: int = 8, n_fr
     Files (every one written atomically; ``sample.toml`` last): ``neutral.obj`` (with
     per-corner ``vt``), ``markers.csv`` (``name,vertex,role``, 0-based), ``anchors.txt``,
     ``expressions/NAME.obj``, ``take.csv`` (mocap CSV), ``take_truth.npz`` (the keys of the ICT
-    kit's truth files) and ``sample.toml`` (paths relative to it).
+    kit's truth files), ``take_smooth.mdd`` (the truth without its wrinkles: the smooth motion as a
+    rig's point cache) and ``sample.toml`` (paths relative to it).
 
     Parameters
     ----------
@@ -624,7 +632,8 @@ def write_sample_rig(out_dir, n_vertices: int = 20000, n_examples: int = 8, n_fr
     mesh = rig.mesh
 
     paths = {"config": out / "sample.toml", "mesh": out / "neutral.obj", "markers": out / "markers.csv",
-             "anchors": out / "anchors.txt", "take": out / "take.csv", "truth": out / "take_truth.npz"}
+             "anchors": out / "anchors.txt", "take": out / "take.csv", "truth": out / "take_truth.npz",
+             "smooth_cache": out / "take_smooth.mdd"}
     save_obj(paths["mesh"], mesh)
     _write_text(paths["markers"], "name,vertex,role\n" + "".join(
         f"{n},{v},{r}\n" for n, v, r in zip(rig.marker_names, rig.marker_vertices.tolist(), rig.marker_roles)))
@@ -652,6 +661,9 @@ def write_sample_rig(out_dir, n_vertices: int = 20000, n_examples: int = 8, n_fr
                  translation=np.zeros((n_frames, 3), dtype=np.float32),
                  weights=rig.take_weights,
                  expressions=np.array(rig.example_names))
+    # the take's motion without the wrinkles, as a rig would export it (replay it with the model to
+    # add the details: facepipe replay take_smooth.mdd -m model.npz -o out)
+    write_mdd(paths["smooth_cache"], rig.take_smooth, rig.take_times, force=True)
     _write_text(paths["config"], _CONFIG.format(max_poses=len(rig.example_names)))
 
     info: dict = {k: str(v) for k, v in paths.items()}

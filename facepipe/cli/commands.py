@@ -162,7 +162,7 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
 
 
 @cli.command()
-@click.argument("take", type=click.Path(dir_okay=False))
+@click.argument("take", type=click.Path())
 @click.option("-m", "--model", "model_path", required=True, type=click.Path(dir_okay=False))
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @click.option("--backend", type=click.Choice(["auto", "opencl", "numpy"]), default="auto", show_default=True,
@@ -199,15 +199,23 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
               help="2D takes (OpenFace): rows below this tracking confidence are missing frames.")
 @click.option("--force", is_flag=True, help="Replace an earlier replay in OUTPUT (its results, eval.json included, "
               "are removed).")
+@click.option("--large-scale", "large_scale", type=click.Choice(["take", "shell"]), default=None,
+              help="Mesh caches (USD, MDD, PC2, OBJ sequence): take = the cache's surface plus the band of details it "
+                   "lacks (estimated on the cache) [default]; shell = its handle vertices replayed as markers.")
+@click.option("--rest-frame", type=int, default=None,
+              help="Mesh caches: frame number checked against the model's rest mesh [default: the first].")
+@click.option("--cache-fps", type=float, default=None,
+              help="Mesh caches: frame rate, for PC2 and OBJ sequences that store none (30), or overriding the file's.")
 @_common
 @click.pass_context
 def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, edits_path,
            neutral_frame,
            neutral_take, take_units, subject, no_stabilise, no_clean, smooth, camera_path, landmarks_path, lift,
-           min_confidence, force, quiet, verbose):
+           min_confidence, force, large_scale, rest_frame, cache_fps, quiet, verbose):
     """Replay a mocap TAKE onto the full-resolution face: OUTPUT/positions.npy and replay.json.
 
-    TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV; it is converted to the
+    TAKE is a facepipe CSV, C3D, TRC, Vicon Nexus CSV or OptiTrack Motive CSV, or a mesh cache of the
+    rig's face (USD, MDD, PC2, a folder or frame_%04d.obj pattern of OBJs; see --large-scale); it is converted to the
     rig's units, aligned to the rig, stabilised and cleaned (see the README's Mocap section). A 2D
     landmark take (OpenFace CSV, or frame,time,NAME_u,NAME_v,…) needs --camera and --landmarks and is
     lifted to 3D through the rig's examples (see the README's Video takes section).
@@ -226,7 +234,23 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         raise InputError("--chunk must be at least 1")
     prepare_replay_folder(output, force)
     from facepipe.mocap.landmarks2d import is_landmark_take
+    from facepipe.mocap.registry import mesh_cache_format
 
+    if edits_path and (mesh_cache_format(take) is not None or camera_path or landmarks_path
+                       or is_landmark_take(take)):
+        raise InputError("--edits offsets the handles of a marker take; mesh caches and 2D takes are not edited",
+                         path=edits_path)
+    if mesh_cache_format(take) is not None:
+        from facepipe.cli.cache_replay import replay_cache
+
+        replay_cache(rep, take, model_path, output, large_scale=large_scale, rest_frame=rest_frame,
+                     take_units=take_units, cache_fps=cache_fps, frames_text=frames_text, head_motion=head_motion,
+                     chunk=chunk, save_large=save_large_scale, backend=backend, device=device,
+                     make_evaluator=lambda model: _make_evaluator(model, backend, device, chunk, rep))
+        return
+    if large_scale == "take" or rest_frame is not None or cache_fps is not None:
+        raise InputError("--large-scale take, --rest-frame and --cache-fps are for mesh caches (USD, MDD, PC2, OBJ "
+                         "sequences); a marker take always drives the shell", path=take)
     if camera_path or landmarks_path or is_landmark_take(take):
         from facepipe.cli.video import replay_video
 
@@ -317,8 +341,9 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
               help=export_formats.format_help())
 @click.option("-o", "--dest", required=True, type=click.Path(), help=export_formats.destination_help())
 @click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
-@click.option("--layer", type=click.Choice(["final", "large"]), default="final", show_default=True,
-              help="Geometry formats: the final surface, or the large-scale one (needs replay --save-large-scale).")
+@click.option("--layer", type=click.Choice(["final", "large", "details"]), default="final", show_default=True,
+              help="Geometry formats: the final surface, the large-scale one, or the details alone (final − large, "
+                   "as vectors; both need replay --save-large-scale, or a mesh cache replayed as a take).")
 @click.option("--resolution", default="2048", show_default=True, help="Maps: N or WxH texels per UDIM tile.")
 @click.option("--padding", default=8, show_default=True, help="Maps: texels of edge padding around UV islands.")
 @click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float]; textures: EXR half/float instead "

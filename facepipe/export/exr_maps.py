@@ -56,7 +56,7 @@ from facepipe.io.exr import write_exr
 from facepipe.export.common import check_targets, frame_paths, remove_partial_files
 from facepipe.export.registry import ExportOptions
 from facepipe.export.uv_raster import TiledRaster, mesh_raster
-from facepipe.pipeline.detail_layers import DetailLayer
+from facepipe.pipeline.detail_layers import DetailLayer, StoredDetailLayer
 
 MODES = ("vector", "scalar")
 
@@ -500,6 +500,10 @@ def export_exr(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], 
 
     def values(s, e):
         return detail(head[s:e], None if rot is None else rot[s:e])
+
+    if replay.large_scale_from_cache:
+        # a mesh cache's large scale is its own surface: the stored layers give the details added to it
+        values = StoredDetailLayer(replay, model, space, mesh)
 
     samples: dict = {}
     with options.make_bar(replay.n_frames, "export exr") as bar:

@@ -13,6 +13,7 @@ from typing import Callable
 
 import numpy as np
 
+from facepipe.errors import InputError
 from facepipe.export.caches import check_positions, export_cache, prepare_cache, write_frames
 from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_open
@@ -48,6 +49,29 @@ def write_mdd(path: str | os.PathLike, positions, times: np.ndarray, *, force: b
         fh.write(np.asarray(times, dtype=">f4").tobytes())
         write_frames(fh, positions, path, ">f4", progress)
     return path
+
+
+def read_mdd(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read an MDD point cache: (times (T,) float64 seconds, positions (T, V, 3) float32 memmap).
+
+    Raises
+    ------
+    InputError
+        A file too short for its header, or whose size is not what its counts say.
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    if size < MDD_HEADER.size:
+        raise InputError("too short for an MDD header (8 bytes)", path=path, hint="export the cache again")
+    with open(path, "rb") as fh:
+        T, V = MDD_HEADER.unpack(fh.read(MDD_HEADER.size))
+    expected = MDD_HEADER.size + 4 * T + 12 * T * V if T >= 0 and V >= 0 else -1
+    if T <= 0 or V <= 0 or size != expected:
+        raise InputError(f"the header says {T} frames of {V} points ({expected} bytes), the file has {size} bytes",
+                         path=path, hint="the file is truncated or not an MDD cache: export it again")
+    times = np.fromfile(path, dtype=">f4", count=T, offset=MDD_HEADER.size).astype(np.float64)
+    positions = np.memmap(path, dtype=">f4", mode="r", offset=MDD_HEADER.size + 4 * T, shape=(T, V, 3))
+    return times, positions
 
 
 def export_mdd(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], dict]:

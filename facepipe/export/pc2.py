@@ -62,6 +62,32 @@ def write_pc2(path: str | os.PathLike, positions, times: np.ndarray, fps: float,
     return path
 
 
+def read_pc2(path: str | os.PathLike) -> tuple[float, float, np.ndarray]:
+    """Read a PC2 point cache: (start frame, frames between samples, positions (T, V, 3) float32 memmap).
+
+    Raises
+    ------
+    InputError
+        Not a PC2 file (magic), an unknown version, or a size other than the header's counts say.
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(PC2_HEADER.size)
+    if len(head) < PC2_HEADER.size or head[:len(PC2_MAGIC)] != PC2_MAGIC:
+        raise InputError("not a PC2 point cache (no POINTCACHE2 header)", path=path,
+                         hint="export the cache again as PC2, or give a cache of another format by its suffix")
+    _, version, V, start, rate, T = PC2_HEADER.unpack(head)
+    expected = PC2_HEADER.size + 12 * T * V
+    if version != 1 or T <= 0 or V <= 0 or size != expected:
+        raise InputError(f"the header says version {version}, {T} samples of {V} points ({expected} bytes); the "
+                         f"file has {size} bytes", path=path, hint="the file is truncated or damaged: export it again")
+    if not (np.isfinite(start) and np.isfinite(rate) and rate > 0):
+        raise InputError(f"the header's start frame {start} or sample rate {rate} is not usable", path=path)
+    positions = np.memmap(path, dtype="<f4", mode="r", offset=PC2_HEADER.size, shape=(T, V, 3))
+    return float(start), float(rate), positions
+
+
 def export_pc2(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], dict]:
     """The replay's layer as a PC2 cache (the ``pc2`` format's exporter)."""
     return export_cache(replay, dest, options, "pc2", lambda path, positions, fps, progress: write_pc2(

@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 from pxr import Sdf, Usd, UsdGeom, Vt
 
+from facepipe.errors import InputError
 from facepipe.export.caches import cache_frame, check_positions, export_cache, prepare_cache
 from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_path
@@ -108,3 +109,86 @@ def export_usd(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], 
                          force=options.force, resume=options.resume, progress=progress)
 
     return export_cache(replay, dest, options, "usd", write)
+
+
+def _units_of(meters_per_unit: float) -> str | None:
+    """The unit name of a ``metersPerUnit`` value (None for one facepipe does not name)."""
+    for name in ("m", "dm", "cm", "mm", "in", "ft"):
+        if abs(meters_per_unit - _METERS_PER_UNIT[name]) <= 1e-9 * _METERS_PER_UNIT[name]:
+            return name
+    return None
+
+
+def _animated_mesh(stage, path: Path, n_vertices: int | None):
+    """The ``UsdGeom.Mesh`` whose points are time-sampled (the one with ``n_vertices`` points among several)."""
+    meshes = [UsdGeom.Mesh(p) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+    animated = [m for m in meshes if m.GetPointsAttr().GetNumTimeSamples() > 0]
+    if not animated:
+        raise InputError(f"no UsdGeom.Mesh with time-sampled points ({len(meshes)} mesh(es), none animated)",
+                         path=path, hint="export the animation as time-sampled points (a point cache), not a rig")
+    if len(animated) > 1 and n_vertices is not None:
+        sized = [m for m in animated if len(m.GetPointsAttr().Get(m.GetPointsAttr().GetTimeSamples()[0])) ==
+                 n_vertices]
+        animated = sized or animated
+    if len(animated) > 1:
+        raise InputError(f"{len(animated)} animated meshes: "
+                         f"{', '.join(str(m.GetPath()) for m in animated[:5])}", path=path,
+                         hint="export the face's mesh alone")
+    return animated[0]
+
+
+def read_usd(path: str | os.PathLike, n_vertices: int | None = None) -> dict:
+    """Read the time-sampled points of a USD layer's animated ``UsdGeom.Mesh``.
+
+    The points are taken in world space (the prim's transforms at each time code applied).
+
+    Parameters
+    ----------
+    path : ``.usd``, ``.usdc``, ``.usda`` (or ``.usdz``).
+    n_vertices : picks the mesh with this many points where several are animated.
+
+    Returns
+    -------
+    dict with ``positions`` (T, V, 3) float32, ``times`` (T,) seconds (time code /
+    ``timeCodesPerSecond``), ``frames`` (T,) int64 (the layer's ``frame_numbers`` when facepipe wrote
+    it, else the rounded time codes), ``fps`` (``timeCodesPerSecond``), ``units`` (from
+    ``metersPerUnit``, None when the layer does not say or names no known unit), ``prim``.
+
+    Raises
+    ------
+    InputError
+        A layer USD cannot open, no animated mesh, several, or frames of different point counts.
+    """
+    path = Path(path)
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Exception as exc:  # pxr raises Tf.ErrorException for unreadable layers
+        raise InputError(f"USD cannot open the layer: {str(exc).strip().splitlines()[-1]}", path=path,
+                         hint="export the cache again as .usd/.usdc/.usda") from None
+    mesh = _animated_mesh(stage, path, n_vertices)
+    attr = mesh.GetPointsAttr()
+    codes = np.asarray(attr.GetTimeSamples(), dtype=np.float64)
+    cache = UsdGeom.XformCache()
+    frames = []
+    for k, code in enumerate(codes):
+        points = np.asarray(attr.Get(code), dtype=np.float64)
+        if k and points.shape != frames[0].shape:
+            raise InputError(f"time code {code:g} has {len(points)} points, the first {len(frames[0])}", path=path,
+                             hint="a point cache keeps one vertex count for the whole animation")
+        cache.SetTime(Usd.TimeCode(code))
+        M = np.asarray(cache.GetLocalToWorldTransform(mesh.GetPrim()), dtype=np.float64)  # row-vector convention
+        if not np.allclose(M, np.eye(4)):
+            points = points @ M[:3, :3] + M[3, :3]
+        frames.append(points.astype(np.float32))
+    tcps = float(stage.GetTimeCodesPerSecond()) if stage.HasAuthoredMetadata("timeCodesPerSecond") else None
+    fps = tcps or float(stage.GetFramesPerSecond() or 24.0)
+    data = stage.GetRootLayer().customLayerData or {}
+    numbers = data.get("frame_numbers")
+    if numbers is not None and len(numbers) == len(codes):
+        frame_numbers = np.asarray(list(numbers), dtype=np.int64)
+    else:
+        frame_numbers = np.round(codes).astype(np.int64)
+    units = _units_of(float(UsdGeom.GetStageMetersPerUnit(stage))) if UsdGeom.StageHasAuthoredMetersPerUnit(
+        stage) else None
+    return {"positions": np.stack(frames), "times": codes / fps, "frames": frame_numbers, "fps": fps,
+            "units": units, "prim": str(mesh.GetPath())}

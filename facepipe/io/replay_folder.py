@@ -102,7 +102,8 @@ class ReplayDir:
         return self._array("large_scale.npy", required=False)
 
     def layer(self, name: str) -> np.ndarray:
-        """Positions of a layer: "final" (positions.npy) or "large" (large_scale.npy)."""
+        """Positions of a layer: "final" (positions.npy), "large" (large_scale.npy) or "details"
+        (final − large: the fine-scale displacements alone, as vectors in the replay's space)."""
         if name == "final":
             return self.positions
         if name == "large":
@@ -111,7 +112,15 @@ class ReplayDir:
                 raise InputError("this replay has no large_scale.npy", path=self.path,
                                  hint="replay the take with --save-large-scale to export the large-scale layer")
             return large
+        if name == "details":
+            return _Difference(self.positions, self.layer("large"))
         raise ValueError(f"unknown layer {name!r}")
+
+    @property
+    def large_scale_from_cache(self) -> bool:
+        """True for a mesh cache replayed with ``--large-scale take``: its large scale is the cache's
+        surface, which the model cannot evaluate again from the handles (use the stored layers)."""
+        return (self.info.get("cache") or {}).get("large_scale") == "take"
 
     @cached_property
     def handles(self) -> dict:
@@ -181,6 +190,20 @@ class ReplayDir:
     def fps(self) -> float:
         """Frames per second of the take (from the replay's frame times)."""
         return frame_rate(self.times)
+
+
+class _Difference:
+    """``a − b`` of two (T, V, 3) arrays, frame slices computed when read (memmaps stay on disk)."""
+
+    def __init__(self, a, b):
+        self.a, self.b = a, b
+        self.shape, self.ndim, self.dtype = a.shape, 3, np.dtype(np.float32)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, index):
+        return np.asarray(self.a[index], dtype=np.float32) - np.asarray(self.b[index], dtype=np.float32)
 
 
 def frame_rate(times: np.ndarray, default: float = 30.0) -> float:

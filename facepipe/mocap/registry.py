@@ -261,6 +261,48 @@ def write_take(path: str | os.PathLike, take: Take, format: str | None = None, *
     fmt.writer(path, take, units or take.units, **options)
 
 
+@dataclass(frozen=True)
+class MeshCacheFormat:
+    """A registered mesh-animation take format (a point cache of every vertex, see :mod:`facepipe.mocap.mesh_cache`).
+
+    Attributes
+    ----------
+    name : ``usd``, ``mdd``, ``pc2``, ``obj-sequence``.
+    suffixes : lower-case suffixes with the dot.
+    reader : ``reader(path, fps, **options) -> MeshCache``.
+    match : callable(Path) -> bool, for formats a suffix alone does not tell (an OBJ sequence
+        is a folder or a ``%04d`` pattern; a single ``.obj`` is a mesh); None: the suffix decides.
+    """
+
+    name: str
+    suffixes: tuple
+    reader: Callable
+    match: Callable[[Path], bool] | None = None
+
+
+#: Mesh-cache formats by name (registered by :mod:`facepipe.mocap.mesh_cache`).
+MESH_CACHES: dict[str, MeshCacheFormat] = {}
+
+
+def register_mesh_cache(fmt: MeshCacheFormat) -> None:
+    """Add a mesh-cache format to the registry (a later one with the same name replaces it)."""
+    MESH_CACHES[fmt.name] = fmt
+
+
+def mesh_cache_format(path: str | os.PathLike) -> MeshCacheFormat | None:
+    """The mesh-cache format of ``path`` (a file, a folder of OBJ files or a ``%04d`` pattern), or None
+    when it is not one (then it is a marker take)."""
+    path = Path(path)
+    suffix = "" if path.is_dir() else path.suffix.lower()
+    for fmt in MESH_CACHES.values():
+        if fmt.match is not None:
+            if fmt.match(path):
+                return fmt
+        elif suffix in fmt.suffixes:
+            return fmt
+    return None
+
+
 def frames_from_rate(first: int, count: int, rate: float) -> tuple[np.ndarray, np.ndarray]:
     """Frame numbers ``first, first+1, ...`` and their times ``frame / rate`` (formats without times)."""
     frames = np.arange(first, first + count, dtype=np.int64)

@@ -183,3 +183,33 @@ def uv_tangent_frames(vertices: np.ndarray, faces: np.ndarray, face_uvs: np.ndar
     b = np.cross(n, t)
     sign = np.where(np.einsum("cui,cui->cu", b, B_acc) < 0, -1.0, 1.0)
     return np.stack([t, sign[..., None] * b, n], axis=-1)
+
+
+class StoredDetailLayer:
+    """The detail layer of a replay whose large scale is stored, not evaluated (a mesh cache replayed
+    as a take): final − large from ``positions.npy`` and ``large_scale.npy``, in the same spaces as
+    :class:`DetailLayer` — ``local`` in the model's frames of the stored large-scale surface,
+    ``tangent`` in its UV-aligned frames, ``object`` as vectors in the replay's space.
+    """
+
+    def __init__(self, replay, model, space: str = "local", mesh=None):
+        if space not in SPACES:
+            raise ValueError(f"unknown space {space!r}")
+        if space == "tangent" and (mesh is None or mesh.uvs is None):
+            raise InputError("tangent-space maps need the rest mesh's UVs", path=model.path or None,
+                             hint="use --space local or object, or bake a rig whose mesh has UVs")
+        self.replay, self.model, self.space, self.mesh = replay, model, space, mesh
+        self.faces = model.triangles.astype(np.int64)
+        self.neighbors = model.frame_neighbors.astype(np.int64)
+        self._uv_vertex = None
+
+    def __call__(self, s: int, e: int) -> np.ndarray:
+        """Displacements (e − s, S, 3) of frames s..e−1."""
+        large = np.asarray(self.replay.layer("large")[s:e], dtype=np.float64)
+        d = np.asarray(self.replay.positions[s:e], dtype=np.float64) - large
+        if self.space == "object":
+            return d
+        if self.space == "local":
+            return to_local(local_frames(large, self.faces, self.neighbors), d)
+        frames = uv_tangent_frames(large, self.faces, self.mesh.face_uvs, self.mesh.uvs)
+        return np.einsum("cuji,cuj->cui", frames, d[:, DetailLayer.uv_vertex.fget(self)])

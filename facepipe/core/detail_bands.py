@@ -1,0 +1,120 @@
+"""Spatial frequency bands of a displacement field on a mesh, and how much of each a surface already carries.
+
+A rig's own surface (a point cache) already has part of what the details of a mocap model
+correct the thin shell for — mostly the smooth part between the markers — and, for a rig with
+wrinkles, possibly all of it. Which part is measured on the cache itself: its deviation from the
+shell's smooth solution for the same handles, e = cache − shell, and the model's details
+D = Σ_b D_b are split into the same frequency bands, and per band the amplitudes are compared over
+the cache's frames (:func:`bands_to_add`): where the cache's deviation has a good part of the
+details' amplitude, the rig has content of its own at that scale and the band is not added again;
+where the cache is as smooth as the shell (a rig without wrinkles, the fine bands), the band is
+added whole. A cache the shell itself made (e = 0) gets every band.
+
+The bands come from screened-Poisson low-passes L_ℓ D = (M + ℓ² K)⁻¹ M D (K the cotangent
+stiffness, M the lumped mass): a heat-kernel-like smoothing over the length ℓ, the same on any mesh
+resolution, so the bands are set by lengths (multiples of the marker spacing), not by vertex counts.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from facepipe.core.shell import CholeskyFactor, cotmatrix, massmatrix
+
+#: Cut-off wavelengths of the band edges in marker spacings, half-octave steps up to two spacings
+#: (wrinkles are finer than the markers can see; what the shell misses between markers is at one
+#: to two spacings) and an octave beyond.
+BAND_WAVELENGTHS = (0.35, 0.5, 0.71, 1.0, 1.41, 2.0, 4.0)
+#: A band is carried by the cache when its deviation from the shell there has at least this
+#: fraction of the details' amplitude (see :func:`bands_to_add`).
+CARRIED_RATIO = 0.5
+
+
+class DetailBands:
+    """Band decomposition of (C, V, 3) displacement fields on one mesh.
+
+    Parameters
+    ----------
+    vertices : (V, 3) the rest mesh; faces : (T, 3).
+    spacing : the marker spacing (length units); the band edges are ``BAND_WAVELENGTHS`` × spacing.
+
+    Attributes
+    ----------
+    wavelengths : (K,) band edges, finest first; there are K + 1 bands, band 0 the finest.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, spacing: float,
+                 wavelengths: tuple = BAND_WAVELENGTHS):
+        self.wavelengths = np.asarray(wavelengths, dtype=np.float64) * float(spacing)
+        self._K = cotmatrix(vertices, faces)
+        self._mass = massmatrix(vertices, faces)
+        self._factors: dict[int, CholeskyFactor] = {}
+
+    @property
+    def n_bands(self) -> int:
+        return len(self.wavelengths) + 1
+
+    def lowpass(self, level: int, D: np.ndarray) -> np.ndarray:
+        """L_level D: the field smoothed below wavelength ``wavelengths[level]`` ((C, V, 3) or (V, 3))."""
+        if level not in self._factors:
+            ell = self.wavelengths[level] / (2.0 * np.pi)  # a wave of wavelength λ is halved where λ = 2πℓ
+            self._factors[level] = CholeskyFactor(sp.diags(self._mass) + ell**2 * self._K)
+        D = np.asarray(D, dtype=np.float64)
+        flat = np.moveaxis(D, -2, 0).reshape(D.shape[-2], -1)  # (V, C·3): all frames in one solve
+        x = self._factors[level].solve(self._mass[:, None] * flat)
+        return np.moveaxis(x.reshape((D.shape[-2],) + D.shape[:-2] + (3,)), 0, -2)
+
+    def split(self, D: np.ndarray) -> list[np.ndarray]:
+        """The K + 1 bands of ``D`` (finest first); they sum to ``D``."""
+        lows = [np.asarray(D, dtype=np.float64)] + [self.lowpass(k, D) for k in range(len(self.wavelengths))]
+        return [lows[k] - lows[k + 1] for k in range(len(self.wavelengths))] + [lows[-1]]
+
+    def combine(self, D: np.ndarray, weights: np.ndarray, atol: float = 1e-6) -> np.ndarray:
+        """Σ_b weights[b] · D_b without splitting where neighbouring weights agree.
+
+        Σ_b c_b D_b = c_0 D + Σ_{k≥1} (c_k − c_{k−1}) L_{k−1} D (telescoping the bands), so only the
+        low-passes at which the weight changes are solved: none when all weights are equal.
+        """
+        c = np.asarray(weights, dtype=np.float64)
+        out = c[0] * np.asarray(D, dtype=np.float64)
+        for k in range(1, len(c)):
+            step = c[k] - c[k - 1]
+            if abs(step) > atol:
+                out = out + step * self.lowpass(k - 1, D)
+        return out
+
+    def close(self) -> None:
+        for f in self._factors.values():
+            f.close()
+        self._factors.clear()
+
+
+def band_sums(detail_bands: list[np.ndarray], deviation_bands: list[np.ndarray]) -> np.ndarray:
+    """Per band b: [|D_b|², |e_b|², ⟨e_b, D_b⟩] over every vertex and frame (sums to accumulate over chunks)."""
+    return np.array([[float((d * d).sum()), float((e * e).sum()), float((e * d).sum())]
+                     for d, e in zip(detail_bands, deviation_bands)])
+
+
+def bands_to_add(sums: np.ndarray, carried_ratio: float = CARRIED_RATIO) -> dict:
+    """Which bands of the details to add, from :func:`band_sums` over a cache's frames.
+
+    A band is carried by the cache when its deviation from the shell there has at least
+    ``carried_ratio`` of the details' amplitude, r_b = |e_b| / |D_b| ≥ ``carried_ratio``: the rig has
+    content of its own at that scale and it wins (adding the model's would count it twice); a band
+    the cache lacks (r_b small: it is as smooth as the shell there) is added whole. A band without
+    detail energy is not added (nothing to add).
+
+    Returns
+    -------
+    dict: ``ratio`` r_b, ``projection`` ⟨e_b, D_b⟩ / |D_b|² (how much of the details' own direction the
+    cache has, for the report), ``added`` (0 or 1 per band), ``added_energy`` (the added bands' share of
+    the details' energy).
+    """
+    sums = np.asarray(sums, dtype=np.float64)
+    dd, ee, ed = sums[:, 0], sums[:, 1], sums[:, 2]
+    live = dd > 1e-12 * max(float(dd.sum()), 1e-300)
+    ratio = np.where(live, np.sqrt(ee / np.where(live, dd, 1.0)), np.inf)
+    added = (live & (ratio < carried_ratio)).astype(np.float64)
+    return {"ratio": ratio, "projection": np.where(live, ed / np.where(live, dd, 1.0), 0.0), "added": added,
+            "added_energy": float((added * dd).sum() / max(float(dd.sum()), 1e-300))}

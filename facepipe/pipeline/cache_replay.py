@@ -1,0 +1,199 @@
+"""Replay of a mesh animation (a point cache of a rigged face) with the model's details added.
+
+Two ways to use the cache's motion (``replay --large-scale``):
+
+* ``shell``: the handle vertices are sampled from the cache and replayed as from markers (the
+  cache's own surface is ignored): :func:`facepipe.pipeline.replay.replay_windows` with the
+  model's evaluator (OpenCL or NumPy);
+* ``take`` (the default): the cache's surface is the large-scale motion. Per frame the strain of
+  the feature graph is measured on the cache's handle vertices, the details d(f) are evaluated
+  and applied in the local frames of the cache's surface. Only the band of the details that the
+  cache does not already carry is added (:mod:`facepipe.core.detail_bands`): it is estimated on
+  the cache itself, from its deviation from the shell's solution for the same handles, band by band,
+  before the replay, and reported.
+
+The head's rigid motion in the cache is found per frame from the handle vertices (the stable
+ones where the rig has at least three) against the rest handles; it is needed for the head-space
+handles (the novelty gate's motion part, the shell's response) and for ``--head-motion remove``.
+Local frames and strain are rotation-invariant, so the details follow the cache's head motion
+as they follow the marker replay's.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from facepipe.core.detail_bands import DetailBands, band_sums, bands_to_add
+from facepipe.core.rigid import robust_rigid_fit, stable_marker_pose
+from facepipe.core.shell import marker_spacing
+from facepipe.core.strain import strain_features
+from facepipe.core.tangent_frames import local_frames, to_world, vertex_face_matrix
+
+#: Frames of the cache the band estimate looks at (evenly spread): the α's are a handful of
+#: numbers over the whole take, so a sample of frames determines them.
+ESTIMATE_FRAMES = 12
+
+
+@dataclass
+class CachePose:
+    """The cache's head motion and head-space handles: world = R @ head + t."""
+
+    head: np.ndarray          # (T, H, 3) float64
+    rotation: np.ndarray      # (T, 3, 3)
+    translation: np.ndarray   # (T, 3)
+    notes: list = field(default_factory=list)
+
+
+#: Anchor vertices the head pose is fitted on, at most (evenly spread over the anchor list).
+POSE_POINTS = 2000
+
+
+def cache_pose(model, cache, chunk: int = 256) -> CachePose:
+    """Head motion of every frame of ``cache``: world = R @ head + t.
+
+    The pose comes from the model's anchors, the vertices no expression moves (the back of the
+    head, the neck's border): on a rig's cache they move with the head alone, so a robust rigid fit
+    of the rest anchors to the cache's gives the head's motion — exactly, on a cache the model
+    itself wrote. Without 3 anchors, from the stable handles (all handles without 3 of them).
+    """
+    handles = model.handle_vertices.astype(np.int64)
+    rest_handles = model.rest[handles].astype(np.float64)
+    anchors = np.asarray(model.anchors, dtype=np.int64)
+    notes: list[str] = []
+    world_handles = np.empty((cache.n_frames, len(handles), 3))
+    if len(anchors) >= 3:
+        pick = anchors[np.unique(np.linspace(0, len(anchors) - 1, min(POSE_POINTS, len(anchors))).astype(int))]
+        R = np.empty((cache.n_frames, 3, 3))
+        t = np.empty((cache.n_frames, 3))
+        rest_pick = model.rest[pick].astype(np.float64)
+    for s in range(0, cache.n_frames, chunk):
+        block = cache.chunk(s, min(cache.n_frames, s + chunk))
+        world_handles[s:s + len(block)] = block[:, handles]
+        if len(anchors) >= 3:
+            R[s:s + len(block)], t[s:s + len(block)], _ = robust_rigid_fit(rest_pick, block[:, pick])
+    if len(anchors) < 3 or not np.isfinite(t).all():
+        notes.append("the model has fewer than 3 anchors: the head pose comes from the handle vertices")
+        R, t = stable_marker_pose(rest_handles, world_handles, np.asarray(model.stable, dtype=bool), notes)
+    head = np.einsum("tji,thj->thi", R, world_handles - t[:, None, :])
+    return CachePose(head, R, t, notes)
+
+
+class CacheDetails:
+    """The details of a model evaluated on a cache's own surface (the ``take`` way of replaying it).
+
+    Parameters
+    ----------
+    model : a baked model (psd, wpsd or none).
+    cache : facepipe.mocap.mesh_cache.MeshCache in the rig's units.
+    pose : :func:`cache_pose` of the cache.
+    """
+
+    backend = "numpy"
+    device = "cpu (numpy, the cache's surface)"
+    on_host_cores = True
+
+    def __init__(self, model, cache, pose: CachePose):
+        self.model = model
+        self.cache = cache
+        self.pose = pose
+        self.faces = model.triangles.astype(np.int64)
+        self.neighbors = model.frame_neighbors.astype(np.int64)
+        self.incidence = vertex_face_matrix(self.faces, model.n_vertices)
+        self.edges = model.edges.astype(np.int64)
+        self.rest_lengths = model.rest_lengths.astype(np.float64)
+        self.rest_handles = model.rest[model.handle_vertices].astype(np.float64)
+        self.details = model.detail_model(np.float64)
+        self.keep = None  # (bands,) fraction of each band added; None: every band whole
+        self.bands: DetailBands | None = None
+        self.stage_seconds = {"frames": 0.0, "fine_scale": 0.0, "bands": 0.0}
+
+    @property
+    def novelty_fits_at_cap(self):
+        gate = None if self.details is None else self.details.gate
+        return None if gate is None else gate.unconverged_fits
+
+    def world_details(self, surface: np.ndarray, head: np.ndarray) -> np.ndarray:
+        """The details (C, V, 3) as vectors in the space of ``surface`` (C, V, 3), for head-space handles."""
+        t0 = time.perf_counter()
+        frames = local_frames(surface, self.faces, self.neighbors, self.incidence)
+        t1 = time.perf_counter()
+        f = strain_features(head, self.edges, self.rest_lengths)
+        d = to_world(frames, self.details.evaluate(f, head - self.rest_handles))
+        self.stage_seconds["frames"] += t1 - t0
+        self.stage_seconds["fine_scale"] += time.perf_counter() - t1
+        return d
+
+    def estimate(self, frames: int = ESTIMATE_FRAMES, batch: int = 6) -> dict:
+        """Choose the bands of the details to add (:func:`facepipe.core.detail_bands.bands_to_add`),
+        measured on ``frames`` frames of the cache spread over the take, ``batch`` at a time.
+
+        Returns the report: per band its wavelengths (rig units), the amplitude ratio r_b of the
+        cache's deviation from the shell to the details, the projection of the deviation on the
+        details, whether the band is added, and the added bands' share of the details' energy.
+        """
+        model, cache, pose = self.model, self.cache, self.pose
+        if model.method == "none":
+            return {"method": "none", "note": "the model has no details: the cache is written as it is"}
+        spacing = float(model.meta.get("marker_spacing") or marker_spacing(model.rest, model.handle_vertices))
+        self.bands = DetailBands(model.rest.astype(np.float64), self.faces, spacing)
+        index = np.unique(np.linspace(0, cache.n_frames - 1, min(frames, cache.n_frames)).round().astype(int))
+        B = model.B.astype(np.float64)
+        rest = model.rest.astype(np.float64)
+        sums = 0.0
+        for s in range(0, len(index), batch):
+            k = index[s:s + batch]
+            R, t, head = pose.rotation[k], pose.translation[k], pose.head[k]
+            surface = np.einsum("cji,cvj->cvi", R, np.stack([cache.frame(int(i)) for i in k]) - t[:, None, :])
+            shell = rest + np.einsum("vh,chx->cvx", B, head - self.rest_handles, optimize=True)
+            D = self.world_details(surface, head)
+            sums = sums + band_sums(self.bands.split(D), self.bands.split(surface - shell))
+        choice = bands_to_add(sums)
+        self.keep = choice["added"]
+        edges = list(self.bands.wavelengths)
+        labels = [f"< {edges[0]:.3g}"] + [f"{a:.3g}–{b:.3g}" for a, b in zip(edges, edges[1:])] + [f"> {edges[-1]:.3g}"]
+        return {
+            "method": "bands",
+            "frames_sampled": int(len(index)),
+            "marker_spacing": spacing,
+            "band_wavelengths": labels,
+            "amplitude_ratio": [float(r) for r in choice["ratio"]],
+            "projection": [float(p) for p in choice["projection"]],
+            "added": [float(a) for a in choice["added"]],
+            "added_fraction": choice["added_energy"],
+        }
+
+    def stream(self, head, sink, R=None, t=None, with_large: bool = False) -> None:
+        """Evaluate every frame and hand chunks to ``sink(start, final, large, None)`` in order
+        (the interface of :func:`facepipe.pipeline.replay.stream_chunks`): ``head`` is the pose's; with
+        ``R``/``t`` (head motion kept) the output is in the cache's space, else in head space."""
+        T = self.cache.n_frames
+        chunk = 8
+        keep_motion = R is not None
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="facepipe-sink") as pool:
+            pending = None
+            for s in range(0, T, chunk):
+                e = min(T, s + chunk)
+                surface = self.cache.chunk(s, e)
+                if not keep_motion:
+                    surface = np.einsum("cji,cvj->cvi", self.pose.rotation[s:e],
+                                        surface - self.pose.translation[s:e, None, :])
+                final = surface
+                if self.model.method != "none" and (self.keep is None or np.any(self.keep > 0)):
+                    D = self.world_details(surface, self.pose.head[s:e])
+                    t0 = time.perf_counter()
+                    add = D if self.keep is None else self.bands.combine(D, self.keep)
+                    self.stage_seconds["bands"] += time.perf_counter() - t0
+                    final = surface + add
+                if pending is not None:
+                    pending.result()
+                pending = pool.submit(sink, s, final, surface if with_large else None, None)
+            if pending is not None:
+                pending.result()
+
+    def close(self) -> None:
+        if self.bands is not None:
+            self.bands.close()
