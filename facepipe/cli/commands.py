@@ -587,6 +587,14 @@ def appearance_classify(ctx, model, footage, geometry, output, fps, quiet, verbo
     classify_command(model, footage, geometry, output, fps, _reporter(ctx, quiet, verbose))
 
 
+# ----------------------------------------------------------------------------- batch
+
+# (its module imports this one's option helpers, so it is registered once they exist)
+from facepipe.cli.batch import batch as _batch  # noqa: E402
+
+cli.add_command(_batch)
+
+
 def main(argv=None) -> None:
     """Console entry point: maps InputError to exit status 2, anything unexpected to 1."""
     try:
