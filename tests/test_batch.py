@@ -221,3 +221,16 @@ def test_killed_worker_take_runs_elsewhere_and_the_batch_completes(takes, cluste
     assert record["attempts"] >= 2 and record["attempt_workers"][0] == "wA" and record["worker"] == "wB"
     assert all(_same_as_serial(root, out, t) for t in paths)
     assert all((out / t.stem / f"{t.stem}.pc2").is_file() for t in paths)
+
+
+@pytest.mark.slow
+def test_local_cluster_by_default(takes, tmp_path, monkeypatch):
+    root, model, paths = takes
+    monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
+    out = tmp_path / "out"
+    assert run_cli("--quiet", "batch", str(paths[0].parent / "take_00[01].csv"), "-m", model, "-o", out,
+                   "--workers", "2", "--backend", "numpy") == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert report["cluster"] == "local cluster of 2 workers" and report["workers"] == 2
+    assert [t["status"] for t in report["takes"]] == ["ok", "ok"]
+    assert all(_same_as_serial(root, out, t) for t in paths[:2])
