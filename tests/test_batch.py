@@ -206,11 +206,13 @@ def test_killed_worker_take_runs_elsewhere_and_the_batch_completes(takes, cluste
     deadline = time.monotonic() + 180
     while killed_take is None and runner.is_alive() and time.monotonic() < deadline:
         for log in out.glob(f"*/{ATTEMPTS_NAME}"):
-            if '"worker": "wA"' in log.read_text():
-                cluster.kill("wA")  # while it works on this take (its attempt has started)
+            lines = log.read_text().splitlines()
+            # wA's attempt is under way and positions.npy half-written: kill it mid-replay
+            if lines and '"worker": "wA"' in lines[-1] and list(log.parent.glob(".positions.npy.*")):
+                cluster.kill("wA")
                 killed_take = log.parent.name
                 break
-        time.sleep(0.01)
+        time.sleep(0.005)
     runner.join(timeout=300)
     assert not runner.is_alive()
     assert killed_take is not None, "worker wA never started a take"
@@ -221,6 +223,7 @@ def test_killed_worker_take_runs_elsewhere_and_the_batch_completes(takes, cluste
     assert record["attempts"] >= 2 and record["attempt_workers"][0] == "wA" and record["worker"] == "wB"
     assert all(_same_as_serial(root, out, t) for t in paths)
     assert all((out / t.stem / f"{t.stem}.pc2").is_file() for t in paths)
+    assert not list(out.rglob(".*.part*"))  # the killed attempt's temporary files are gone
 
 
 @pytest.mark.slow
@@ -234,3 +237,29 @@ def test_local_cluster_by_default(takes, tmp_path, monkeypatch):
     assert report["cluster"] == "local cluster of 2 workers" and report["workers"] == 2
     assert [t["status"] for t in report["takes"]] == ["ok", "ok"]
     assert all(_same_as_serial(root, out, t) for t in paths[:2])
+
+
+@pytest.mark.slow
+def test_lost_scheduler_is_a_cluster_failure(takes, tmp_path):
+    root, model, paths = takes
+    if not DASK.is_file():
+        pytest.skip(f"no dask command beside {sys.executable}")
+    own = Cluster(tmp_path, workers=("wC",))
+    out = tmp_path / "out"
+    result = {}
+    try:
+        runner = threading.Thread(target=lambda: result.update(code=run_cli(
+            "--quiet", "batch", *paths, "-m", model, "-o", out, "--scheduler", own.address, "--backend", "numpy",
+            "--connect-timeout", "3")))
+        runner.start()
+        deadline = time.monotonic() + 120
+        while not list(out.glob(f"*/{ATTEMPTS_NAME}")) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        own.kill("scheduler")
+        runner.join(timeout=180)
+        assert not runner.is_alive()
+    finally:
+        own.close()
+    assert result["code"] == 1
+    report = json.loads((out / "batch.json").read_text())
+    assert report["cluster_error"] and report["totals"]["failed"] >= 1

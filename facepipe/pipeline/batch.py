@@ -31,11 +31,22 @@ import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from distributed import KilledWorker, as_completed, get_worker
+from distributed.comm import get_address_host
+
 from facepipe import parallel
 from facepipe.errors import InputError
 from facepipe.export import registry as export_registry
+from facepipe.export.dispatch import export_replay
 from facepipe.io.atomic import atomic_path
+from facepipe.io.model_file import load_model
+from facepipe.mocap import parse_frame_slice, read_take
 from facepipe.mocap import registry as take_registry
+from facepipe.mocap.cleaning import CleanOptions
+from facepipe.mocap.landmarks2d import is_landmark_take
+from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows
+from facepipe.pipeline.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
+from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
 
 STAMP_NAME = "batch_take.json"
 ATTEMPTS_NAME = "batch_attempts.jsonl"
@@ -217,29 +228,22 @@ def worker_threads(slots_by_host: dict[str, int] | None) -> int:
 
 def _this_host() -> str:
     try:
-        from distributed import get_worker
-        from distributed.comm import get_address_host
-
         return get_address_host(get_worker().address)
-    except (ImportError, ValueError):
+    except ValueError:  # not on a worker
         return socket.gethostname()
 
 
 def _worker_name() -> str:
     try:
-        from distributed import get_worker
-
         worker = get_worker()
         return str(worker.name if worker.name is not None else worker.address)
-    except (ImportError, ValueError):
+    except ValueError:  # not on a worker
         return f"{socket.gethostname()}:{os.getpid()}"
 
 
 def cached_model(ref: ModelRef):
     """The model of ``ref``, loaded once per process; the file this worker sees must be the
     client's (same digest), or the take fails saying so."""
-    from facepipe.io.model_file import load_model
-
     with _cache_lock:
         model = _model_cache.get(ref.digest)
         if model is None:
@@ -257,10 +261,9 @@ def cached_model(ref: ModelRef):
 
 def make_evaluator(model, backend: str, device: str | None, chunk: int):
     """The replay evaluator as ``facepipe replay`` chooses it, and a note when auto fell back."""
-    from facepipe.pipeline.replay import NumpyEvaluator
-
     if backend == "numpy":
         return NumpyEvaluator(model), None
+    # imported here, once the take's task has put PoCL's thread count in the environment
     from facepipe.opencl import OpenCLEvaluator, OpenCLUnavailable
 
     try:
@@ -300,12 +303,6 @@ def _reset_counters(evaluator) -> None:
 
 def replay_into(take_path: str, out_dir: Path, model, evaluator, options: ReplayOptions, extra: dict) -> dict:
     """Replay a marker take into ``out_dir`` as ``facepipe replay`` does; its replay.json report."""
-    from facepipe.mocap import parse_frame_slice, read_take
-    from facepipe.mocap.cleaning import CleanOptions
-    from facepipe.mocap.landmarks2d import is_landmark_take
-    from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows
-    from facepipe.pipeline.replay import replay_windows
-
     if is_landmark_take(take_path):
         raise InputError("a 2D landmark take: batch replays marker takes", path=take_path,
                          hint="replay it with 'facepipe replay TAKE --camera … --landmarks …'")
@@ -350,8 +347,6 @@ def _start_attempt(out_dir: Path, worker: str) -> list[dict]:
 
 
 def _export_take(out_dir: Path, name: str, fmt: str, model_path: str) -> dict:
-    from facepipe.export.dispatch import export_replay
-
     info = export_replay(out_dir, fmt, export_destination(out_dir, name, fmt), model_path=model_path, force=True)
     return {"dest": str(Path(info["dest"]).relative_to(out_dir)), "files": info["files"], "bytes": info["bytes"]}
 
@@ -444,8 +439,6 @@ def _failed_record(job: TakeJob, error: str) -> TakeRecord:
 
 def _gather(client, futures: dict, on_done) -> tuple[dict[str, TakeRecord], str | None]:
     """Records of the submitted takes as they complete; a cluster error ends the wait."""
-    from distributed import KilledWorker, as_completed
-
     records: dict[str, TakeRecord] = {}
     try:
         for future in as_completed(list(futures)):
@@ -473,9 +466,6 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
     Bad input that concerns the whole batch (the model, the takes' names) raises InputError
     before any cluster starts.
     """
-    from facepipe.io.model_file import load_model
-    from facepipe.pipeline.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
-
     cluster = cluster or ClusterSpec()
     out = Path(out).resolve()
     exports = tuple(dict.fromkeys(exports))

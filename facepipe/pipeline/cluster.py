@@ -13,6 +13,9 @@ import contextlib
 import os
 from dataclasses import dataclass
 
+import dask
+from distributed import Client, LocalCluster
+
 from facepipe import parallel
 
 SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
@@ -45,9 +48,6 @@ class ClusterSpec:
 @contextlib.contextmanager
 def open_client(spec: ClusterSpec):
     """A connected ``distributed.Client`` (and the LocalCluster it owns, closed on exit)."""
-    import dask
-    from distributed import Client, LocalCluster
-
     address = spec.scheduler or os.environ.get(SCHEDULER_ENV)
     cluster = None
     try:
