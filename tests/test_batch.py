@@ -62,8 +62,10 @@ class Cluster:
         self.logs = root / "logs"
         self.logs.mkdir(exist_ok=True)
         self.env = dict(os.environ, PYTHONPATH=str(ROOT), FACEPIPE_THREADS="1")
+        self.scheduler_file = self.logs / "scheduler.json"
         self.procs = {"scheduler": self._start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port",
-                                                             str(self.port), "--no-dashboard"])}
+                                                             str(self.port), "--no-dashboard", "--scheduler-file",
+                                                             str(self.scheduler_file)])}
         for name in workers:
             self.procs[name] = self._start(name, ["worker", self.address, "--name", name, "--nthreads", "1",
                                                   "--no-dashboard", "--memory-limit", "2GB", "--death-timeout", "60"])
@@ -184,10 +186,25 @@ def test_corrupt_take_is_reported_and_the_rest_go_on(takes, cluster, tmp_path):
     report = json.loads((out / "batch.json").read_text())
     assert [t["status"] for t in report["takes"]] == ["skipped"] * 3 + ["failed"]
     assert (out / good[0].stem / "positions.npy").stat().st_mtime_ns == mtime
-    assert run_cli("--quiet", "batch", *good, "-m", model, "-o", out, "--scheduler", cluster.address,
+    assert run_cli("--quiet", "batch", *good, "-m", model, "-o", out, "--scheduler-file", cluster.scheduler_file,
                    "--backend", "numpy", "--force") == 0
     report = json.loads((out / "batch.json").read_text())
     assert [t["status"] for t in report["takes"]] == ["ok"] * 3 and all(_same_as_serial(root, out, t) for t in good)
+    assert report["scheduler"] == cluster.address
+
+
+@pytest.mark.slow
+def test_scheduler_from_the_environment_and_model_read_once_per_worker(takes, cluster, tmp_path, monkeypatch):
+    root, model, paths = takes
+    monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", cluster.address)
+    out = tmp_path / "out"
+    assert run_cli("--quiet", "batch", *paths, "-m", model, "-o", out, "--backend", "numpy") == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert report["cluster"] == f"scheduler {cluster.address}"
+    assert all(t["status"] == "ok" for t in report["takes"])
+    loads = [t["worker"] for t in report["takes"] if t["model_loaded"]]
+    # the workers of the earlier tests hold this model already: no worker reads it twice
+    assert len(loads) == len(set(loads)) <= 2
 
 
 @pytest.mark.slow

@@ -119,6 +119,7 @@ class TakeRecord:
     attempts: int = 0
     attempt_workers: list = field(default_factory=list)
     replayed: bool = False
+    model_loaded: bool = False  # this take's worker process read the model for it (once per process)
     exports: dict = field(default_factory=dict)
 
 
@@ -242,21 +243,22 @@ def _worker_name() -> str:
 
 
 def cached_model(ref: ModelRef):
-    """The model of ``ref``, loaded once per process; the file this worker sees must be the
-    client's (same digest), or the take fails saying so."""
+    """(model, whether it was read now): the model of ``ref``, read once per process; the file
+    this worker sees must be the client's (same digest), or the take fails saying so."""
     with _cache_lock:
         model = _model_cache.get(ref.digest)
-        if model is None:
-            digest = file_digest(ref.path) if Path(ref.path).is_file() else None
-            if digest != ref.digest:
-                raise InputError(f"the model file as worker {_worker_name()} sees it is not the client's "
-                                 f"(digest {digest and digest[:12]} ≠ {ref.digest[:12]})", path=ref.path,
-                                 hint="workers must read the model and write OUT on storage they share with "
-                                      "the client, at the same paths")
-            _model_cache.clear()
-            _evaluator_cache.clear()
-            model = _model_cache[ref.digest] = load_model(ref.path)
-        return model
+        if model is not None:
+            return model, False
+        digest = file_digest(ref.path) if Path(ref.path).is_file() else None
+        if digest != ref.digest:
+            raise InputError(f"the model file as worker {_worker_name()} sees it is not the client's "
+                             f"(digest {digest and digest[:12]} ≠ {ref.digest[:12]})", path=ref.path,
+                             hint="workers must read the model and write OUT on storage they share with "
+                                  "the client, at the same paths")
+        _model_cache.clear()  # one model per process: a batch with another model replaces it
+        _evaluator_cache.clear()
+        model = _model_cache[ref.digest] = load_model(ref.path)
+        return model, True
 
 
 def make_evaluator(model, backend: str, device: str | None, chunk: int):
@@ -376,7 +378,7 @@ def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, 
             done_exports = dict(stamp.get("exports", {}))
         else:
             (out_dir / STAMP_NAME).unlink(missing_ok=True)  # the folder is incomplete until the new stamp
-            model = cached_model(model_ref)
+            model, record.model_loaded = cached_model(model_ref)
             evaluator, lock, note = cached_evaluator(model_ref, model, options)
             extra = {"batch": {"worker": worker, "threads": threads, "attempt": len(attempts), "note": note}}
             with lock:
@@ -498,7 +500,7 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
             with open_client(cluster) as client:
                 slots = slots_by_host(client)
                 cluster_info.update(scheduler=client.scheduler.address, workers=sum(1 for _ in client.nthreads()),
-                                    slots_by_host=slots)
+                                    slots_by_host=slots, dashboard=client.dashboard_link)
                 futures = {client.submit(replay_take_task, job, model_ref, options, exports, force, slots,
                                          key=f"facepipe-take-{job.name}-{batch_id}",
                                          retries=retries, pure=False): job for job in to_run}

@@ -59,7 +59,7 @@ def open_client(spec: ClusterSpec):
             with dask.config.set({"distributed.scheduler.allowed-failures": spec.allowed_failures}):
                 # memory_limit "auto": the machine's memory shared evenly among the workers
                 cluster = LocalCluster(n_workers=spec.local_workers(), threads_per_worker=1, processes=True,
-                                       memory_limit="auto", dashboard_address=None)
+                                       memory_limit="auto", dashboard_address=":0")  # any free port
             client = Client(cluster, timeout=spec.connect_timeout)
     except (OSError, TimeoutError) as exc:
         if cluster is not None:
