@@ -6,7 +6,10 @@ read from another starting frame, back and forth so every take is smooth), then 
 * **serial**: ``facepipe replay TAKE -m MODEL -o serial/<stem>`` for every take, one after another,
   each a new process (Python start-up, model load, OpenCL kernel build, every time);
 * **batch**: ``facepipe batch TAKES -m MODEL -o batch --workers W`` (one process; each worker loads
-  the model and builds the kernels once).
+  the model and builds the kernels once);
+* **one process** (for reference): every take replayed one after another in this process with one
+  model and one evaluator, as a worker does: what the batch gains by running takes side by side
+  alone, start-up costs aside.
 
 Reports wall times, the throughput ratio and whether every positions.npy is identical to the byte.
 Run from the repository root: ``python -m bench.batch_speed -o bench/batch.json``.
@@ -51,6 +54,20 @@ def write_takes(take_csv: Path, out_dir: Path, count: int, frames: int | None = 
     return paths
 
 
+def one_process(takes: list[Path], model_path: Path, out: Path, backend: str) -> float:
+    """Seconds to replay every take in this process, loading the model and building the evaluator once."""
+    from facepipe.io.model_file import load_model
+    from facepipe.pipeline.batch import ReplayOptions, make_evaluator, replay_into
+
+    t0 = time.perf_counter()
+    options = ReplayOptions(backend=backend)
+    model = load_model(model_path)
+    evaluator, _ = make_evaluator(model, options.backend, options.device, options.chunk)
+    for take in takes:
+        replay_into(str(take), out / take.stem, model, evaluator, options, {})
+    return time.perf_counter() - t0
+
+
 def _run(args: list, env=None) -> float:
     t0 = time.perf_counter()
     subprocess.run(args, check=True, env=env, stdout=subprocess.DEVNULL)
@@ -65,7 +82,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--frames", type=int, default=200)
     parser.add_argument("--vertices", type=int, default=20000)
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--backend", default="auto", help="replay's --backend for both runs")
+    parser.add_argument("--backend", default="auto", help="replay's --backend for every run")
+    parser.add_argument("--no-one-process", dest="one_process", action="store_false",
+                        help="leave out the reference run of every take in this process")
     a = parser.parse_args(argv)
     work = Path(a.work)
     fp = [sys.executable, "-m", "facepipe", "--quiet"]
@@ -75,14 +94,18 @@ def main(argv=None) -> dict:
         subprocess.run(fp + ["sample", rig, "--vertices", str(a.vertices), "--frames", str(a.frames)], check=True)
         subprocess.run(fp + ["bake", rig / "sample.toml", "--no-tune", "-o", model], check=True)
     takes = write_takes(rig / "take.csv", work / "takes", a.takes, a.frames)
-    serial_dir, batch_dir = work / "serial", work / "batch"
-    for d in (serial_dir, batch_dir):
+    serial_dir, batch_dir, one_dir = work / "serial", work / "batch", work / "one_process"
+    for d in (serial_dir, batch_dir, one_dir):
         subprocess.run(["rm", "-rf", str(d)], check=True)
     backend = ["--backend", a.backend]
     serial_seconds = sum(_run(fp + ["replay", t, "-m", model, "-o", serial_dir / t.stem] + backend) for t in takes)
     batch_seconds = _run(fp + ["batch", *takes, "-m", model, "-o", batch_dir, "--workers", str(a.workers)] + backend)
+    one_seconds = one_process(takes, model, one_dir, a.backend) if a.one_process else None
     identical = all(np.array_equal(np.load(serial_dir / t.stem / "positions.npy"),
                                    np.load(batch_dir / t.stem / "positions.npy")) for t in takes)
+    identical_one = None if one_seconds is None else all(
+        np.array_equal(np.load(serial_dir / t.stem / "positions.npy"), np.load(one_dir / t.stem / "positions.npy"))
+        for t in takes)
     report = json.loads((batch_dir / "batch.json").read_text())
     first = json.loads((serial_dir / takes[0].stem / "replay.json").read_text())
     result = {
@@ -94,6 +117,9 @@ def main(argv=None) -> dict:
         "throughput_ratio": serial_seconds / batch_seconds,
         "identical_outputs": bool(identical),
         "batch_ok": report["totals"]["ok"], "batch_failed": report["totals"]["failed"],
+        "one_process_seconds": one_seconds,
+        "ratio_to_one_process": None if one_seconds is None else one_seconds / batch_seconds,
+        "one_process_identical": identical_one,
     }
     Path(a.output).parent.mkdir(parents=True, exist_ok=True)
     Path(a.output).write_text(json.dumps(result, indent=2))

@@ -206,6 +206,19 @@ def test_scheduler_from_the_environment_and_model_read_once_per_worker(takes, cl
     # the workers of the earlier tests hold this model already: no worker reads it twice
     assert len(loads) == len(set(loads)) <= 2
 
+    # an export asked for later: the replays are kept, only the export is made, as `facepipe export` makes it
+    mtime = (out / paths[0].stem / "positions.npy").stat().st_mtime_ns
+    assert run_cli("--quiet", "batch", *paths[:2], "-m", model, "-o", out, "--backend", "numpy", "--export", "obj") == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert [(t["status"], t["replayed"]) for t in report["takes"]] == [("ok", False)] * 2
+    assert (out / paths[0].stem / "positions.npy").stat().st_mtime_ns == mtime
+    assert run_cli("--quiet", "export", root / "serial" / paths[0].stem, "--format", "obj", "-o", tmp_path / "obj") == 0
+    ours = sorted((out / paths[0].stem / "obj").iterdir())
+    assert [p.name for p in ours] == sorted(p.name for p in (tmp_path / "obj").iterdir())
+    assert all(p.read_bytes() == (tmp_path / "obj" / p.name).read_bytes() for p in ours)
+    assert run_cli("--quiet", "batch", *paths[:2], "-m", model, "-o", out, "--backend", "numpy", "--export", "obj") == 0
+    assert [t["status"] for t in json.loads((out / "batch.json").read_text())["takes"]] == ["skipped"] * 2
+
 
 @pytest.mark.slow
 def test_killed_worker_take_runs_elsewhere_and_the_batch_completes(takes, cluster, tmp_path):

@@ -37,9 +37,10 @@ from distributed.comm import get_address_host
 from facepipe import parallel
 from facepipe.errors import InputError
 from facepipe.export import registry as export_registry
-from facepipe.export.dispatch import export_replay
+from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_path
 from facepipe.io.model_file import load_model
+from facepipe.io.replay_folder import ReplayDir
 from facepipe.mocap import parse_frame_slice, read_take
 from facepipe.mocap import registry as take_registry
 from facepipe.mocap.cleaning import CleanOptions
@@ -348,9 +349,28 @@ def _start_attempt(out_dir: Path, worker: str) -> list[dict]:
     return attempts
 
 
-def _export_take(out_dir: Path, name: str, fmt: str, model_path: str) -> dict:
-    info = export_replay(out_dir, fmt, export_destination(out_dir, name, fmt), model_path=model_path, force=True)
-    return {"dest": str(Path(info["dest"]).relative_to(out_dir)), "files": info["files"], "bytes": info["bytes"]}
+class _ReplayWithModel(ReplayDir):
+    """A take's replay folder whose exporters use the worker's model already in memory rather
+    than reading the model file again for every take."""
+
+    def __init__(self, path, model):
+        super().__init__(path)
+        self._model = model
+
+    def load_model(self, override=None):
+        if self._model.n_vertices != self.positions.shape[1]:
+            raise InputError(f"the model has {self._model.n_vertices} vertices, the replay's positions "
+                             f"{self.positions.shape[1]}", path=self.path, hint="run the batch again with --force")
+        return self._model
+
+
+def _export_take(out_dir: Path, name: str, fmt: str, model, model_path: str) -> dict:
+    """Export a take's replay in ``fmt`` (as ``facepipe export --force`` would) with ``model``."""
+    dest = export_destination(out_dir, name, fmt)
+    paths, _ = export_registry.get_format(fmt).export(_ReplayWithModel(out_dir, model), dest,
+                                                       ExportOptions(model_path=model_path, force=True))
+    return {"dest": str(dest.relative_to(out_dir)), "files": len(paths),
+            "bytes": int(sum(Path(p).stat().st_size for p in paths if Path(p).is_file()))}
 
 
 def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, exports: tuple[str, ...] = (),
@@ -387,7 +407,9 @@ def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, 
             stamp = {"take": job.take, "take_digest": job.digest, "model": model_ref.path,
                      "model_digest": model_ref.digest, "options": options_key, "frames": record.frames}
         for fmt in (exports if record.replayed or force else _exports_left(stamp, job, exports)):
-            done_exports[fmt] = _export_take(out_dir, job.name, fmt, model_ref.path)
+            model, loaded = cached_model(model_ref)
+            record.model_loaded |= loaded
+            done_exports[fmt] = _export_take(out_dir, job.name, fmt, model, model_ref.path)
         record.exports = {fmt: done_exports[fmt] for fmt in exports}
         _write_stamp(out_dir, dict(stamp, exports=done_exports, completed=time.time()))
     except OSError:
