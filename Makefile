@@ -34,10 +34,13 @@ test: venv
 test-fast: venv
 	$(BIN)/python -m pytest -q -m "not ict and not slow"
 
-# the paper's configuration: ~530k vertices, 89 markers on the shell, 6 example poses (a few minutes)
+# the paper's configuration: ~530k vertices, 89 markers on the shell, 6 example poses (a few minutes);
+# then `facepipe batch` of 32 sample-rig takes on a LocalCluster of 2 workers against one
+# `facepipe replay` per take (bench/batch.json, several minutes)
 bench: venv
 	$(BIN)/python -m bench.paper_scale -o bench/results.json --vertices 530000 --markers 89 --examples 6 --frames 128
 	$(BIN)/python -m bench.point_caches_speed --json bench/point_caches_speed.json
+	$(BIN)/python -m bench.batch_speed -o bench/batch.json --takes 32 --frames 200 --workers 2
 
 clean:
-	rm -rf $(DEMO) bench/results.* bench/work .pytest_cache
+	rm -rf $(DEMO) bench/results.* bench/batch.json bench/work .pytest_cache

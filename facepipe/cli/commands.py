@@ -677,6 +677,14 @@ def edit(ctx, model_path, take, edits_path, port, host, truth_path, mode, backen
                  take_units)
 
 
+# ----------------------------------------------------------------------------- batch
+
+# (its module imports this one's option helpers, so it is registered once they exist)
+from facepipe.cli.batch import batch as _batch  # noqa: E402
+
+cli.add_command(_batch)
+
+
 def main(argv=None) -> None:
     """Console entry point: maps InputError to exit status 2, anything unexpected to 1."""
     try:

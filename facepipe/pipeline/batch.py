@@ -1,0 +1,560 @@
+"""Many takes replayed (and exported) against one model, one task per take on a Dask cluster.
+
+The client side (:func:`plan_batch`, :func:`run_batch`) finds the takes, fingerprints the model
+file, the takes and the options, skips takes whose folder already holds what this batch would
+write, submits the rest and gathers one record per take into ``OUT/batch.json``. The worker side
+(:func:`replay_take_task`) replays one take into ``OUT/<take stem>/`` exactly as ``facepipe
+replay`` does (the same reading, preparation and evaluator), then exports it.
+
+The model travels by path, never inside a task: every worker process loads it once from the
+shared file system, checks it has the client's digest, and keeps it (and its evaluator, whose
+OpenCL kernels are built once) for every later take with that digest.
+
+A take's folder is complete only once ``batch_take.json`` is written, last, atomically; the
+outputs before it are written atomically too. A worker killed mid-take leaves at most temporary
+``.NAME.part`` files (removed by the next attempt) and an attempt line in ``batch_attempts.jsonl``,
+which the attempt that completes the take reports (``attempts`` in ``batch.json``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import glob
+import hashlib
+import json
+import os
+import socket
+import threading
+import time
+import traceback
+import uuid
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from distributed import KilledWorker, as_completed, get_worker
+from distributed.comm import get_address_host
+
+from facepipe import parallel
+from facepipe.errors import InputError
+from facepipe.export import registry as export_registry
+from facepipe.export.registry import ExportOptions
+from facepipe.io.atomic import atomic_path
+from facepipe.io.model_file import load_model
+from facepipe.io.replay_folder import ReplayDir
+from facepipe.mocap import parse_frame_slice, read_take
+from facepipe.mocap import registry as take_registry
+from facepipe.mocap.cleaning import CleanOptions
+from facepipe.mocap.landmarks2d import is_landmark_take
+from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows
+from facepipe.pipeline.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
+from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
+
+STAMP_NAME = "batch_take.json"
+ATTEMPTS_NAME = "batch_attempts.jsonl"
+REPORT_NAME = "batch.json"
+# PoCL's CPU driver's threads per process (read when the driver starts): PoCL 3's pthread
+# device, and the name PoCL 4 and later read
+POCL_THREADS_ENV = ("POCL_MAX_PTHREAD_COUNT", "POCL_CPU_MAX_CU_COUNT")
+
+
+# ============================================================================= what a take's task gets
+
+
+@dataclass(frozen=True)
+class ReplayOptions:
+    """``facepipe replay``'s options for a marker take (their defaults are replay's)."""
+
+    backend: str = "auto"
+    device: str | None = None
+    frames: str | None = None
+    chunk: int = 32
+    head_motion: str = "keep"
+    save_large: bool = False
+    neutral_frame: int | None = None
+    neutral_take: str | None = None
+    take_units: str | None = None
+    subject: str | None = None
+    stabilise: bool = True
+    clean: bool = True
+    smooth: float = 0.0
+
+    def fingerprint(self) -> dict:
+        """What decides the outputs: every option but where the evaluation runs (the backend and
+        device give the same positions to rounding; chunk none at all), and the neutral take's
+        content rather than its path."""
+        key = {k: v for k, v in asdict(self).items() if k not in ("device", "chunk", "neutral_take")}
+        key["neutral_take_digest"] = file_digest(self.neutral_take) if self.neutral_take else None
+        return key
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    """A model by path on storage every worker sees, and the client's digest of that file."""
+
+    path: str
+    digest: str
+
+
+@dataclass(frozen=True)
+class TakeJob:
+    """One take of the batch: its file, digest and output folder."""
+
+    take: str
+    name: str
+    out_dir: str
+    digest: str
+
+
+@dataclass
+class TakeRecord:
+    """A take's line in ``batch.json``."""
+
+    take: str
+    name: str
+    output: str
+    status: str  # ok | skipped | failed
+    frames: int | None = None
+    seconds: float | None = None
+    worker: str | None = None
+    error: str | None = None
+    attempts: int = 0
+    attempt_workers: list = field(default_factory=list)
+    replayed: bool = False
+    model_loaded: bool = False  # this take's worker process read the model for it (once per process)
+    exports: dict = field(default_factory=dict)
+
+
+def file_digest(path, block: int = 1 << 22) -> str:
+    """SHA-256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+# ============================================================================= the takes and the plan
+
+
+def expand_takes(specs) -> list[Path]:
+    """Take files from files, folders (their take files, sorted) and glob patterns, each once."""
+    suffixes = {s for fmt in take_registry.FORMATS.values() for s in fmt.suffixes}
+    found: list[Path] = []
+    for spec in specs:
+        spec = str(spec)
+        path = Path(spec)
+        if path.is_dir():
+            matches = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+            if not matches:
+                raise InputError(f"no take files ({', '.join(sorted(suffixes))}) in this folder", path=path)
+        elif path.is_file():
+            matches = [path]
+        elif glob.has_magic(spec):
+            matches = sorted(Path(p) for p in glob.glob(spec, recursive=True) if Path(p).is_file())
+            if not matches:
+                raise InputError(f"the pattern {spec!r} matches no file")
+        else:
+            raise InputError("take not found", path=path)
+        found.extend(matches)
+    unique = list(dict.fromkeys(p.resolve() for p in found))
+    if not unique:
+        raise InputError("no takes given", hint="name take files, folders of takes or glob patterns")
+    return unique
+
+
+def plan_jobs(takes: list[Path], out: Path) -> list[TakeJob]:
+    """A job per take, its folder ``out/<stem>``; two takes of one stem are refused."""
+    by_name: dict[str, Path] = {}
+    for take in takes:
+        if take.stem in by_name:
+            raise InputError(f"two takes would write to {out / take.stem}: {by_name[take.stem]} and {take}",
+                             hint="batch them into different -o folders, or rename one")
+        by_name[take.stem] = take
+    return [TakeJob(str(take), take.stem, str(out / take.stem), file_digest(take)) for take in takes]
+
+
+def export_destination(out_dir: Path, name: str, fmt: str) -> Path:
+    """Where a take's export in ``fmt`` goes: a folder named after the format, or a file named
+    after the take with the format's first suffix."""
+    suffixes = export_registry.get_format(fmt).suffixes
+    return out_dir / fmt if not suffixes else out_dir / f"{name}{suffixes[0]}"
+
+
+def _read_stamp(out_dir: Path) -> dict | None:
+    try:
+        return json.loads((Path(out_dir) / STAMP_NAME).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _replay_matches(stamp: dict | None, job: TakeJob, model: ModelRef, options_key: dict) -> bool:
+    out_dir = Path(job.out_dir)
+    return (stamp is not None and stamp.get("model_digest") == model.digest and stamp.get("take_digest") == job.digest
+            and stamp.get("options") == options_key and (out_dir / "positions.npy").is_file()
+            and (out_dir / "replay.json").is_file())
+
+
+def _exports_left(stamp: dict | None, job: TakeJob, exports: tuple[str, ...]) -> list[str]:
+    done = (stamp or {}).get("exports", {})
+    out_dir = Path(job.out_dir)
+    return [fmt for fmt in exports
+            if fmt not in done or not export_destination(out_dir, job.name, fmt).exists()]
+
+
+def skipped_record(job: TakeJob, model: ModelRef, options_key: dict, exports: tuple[str, ...]) -> TakeRecord | None:
+    """The record of a take whose folder already holds this batch's outputs, else None."""
+    stamp = _read_stamp(Path(job.out_dir))
+    if not _replay_matches(stamp, job, model, options_key) or _exports_left(stamp, job, exports):
+        return None
+    return TakeRecord(job.take, job.name, job.out_dir, "skipped", frames=stamp.get("frames"),
+                      exports={fmt: stamp["exports"][fmt] for fmt in exports})
+
+
+# ============================================================================= on the worker
+
+_cache_lock = threading.Lock()
+_model_cache: dict = {}  # digest -> Model (one model at a time)
+_evaluator_cache: dict = {}  # (digest, backend, device, chunk) -> (evaluator, lock, note)
+
+
+def worker_threads(slots_by_host: dict[str, int] | None) -> int:
+    """Threads for one take on this worker: FACEPIPE_THREADS where set, else this host's CPUs
+    shared among the task slots (worker processes × their threads) the cluster has on it."""
+    if parallel._count_from_env(parallel.THREADS_ENV) is not None:
+        return parallel.thread_count()
+    slots = (slots_by_host or {}).get(_this_host())
+    if not slots:
+        return parallel.thread_count()
+    return max(1, parallel.available_cpus() // slots)
+
+
+def _this_host() -> str:
+    try:
+        return get_address_host(get_worker().address)
+    except ValueError:  # not on a worker
+        return socket.gethostname()
+
+
+def _worker_name() -> str:
+    try:
+        worker = get_worker()
+        return str(worker.name if worker.name is not None else worker.address)
+    except ValueError:  # not on a worker
+        return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def cached_model(ref: ModelRef):
+    """(model, whether it was read now): the model of ``ref``, read once per process; the file
+    this worker sees must be the client's (same digest), or the take fails saying so."""
+    with _cache_lock:
+        model = _model_cache.get(ref.digest)
+        if model is not None:
+            return model, False
+        digest = file_digest(ref.path) if Path(ref.path).is_file() else None
+        if digest != ref.digest:
+            raise InputError(f"the model file as worker {_worker_name()} sees it is not the client's "
+                             f"(digest {digest and digest[:12]} ≠ {ref.digest[:12]})", path=ref.path,
+                             hint="workers must read the model and write OUT on storage they share with "
+                                  "the client, at the same paths")
+        _model_cache.clear()  # one model per process: a batch with another model replaces it
+        _evaluator_cache.clear()
+        model = _model_cache[ref.digest] = load_model(ref.path)
+        return model, True
+
+
+def make_evaluator(model, backend: str, device: str | None, chunk: int):
+    """The replay evaluator as ``facepipe replay`` chooses it, and a note when auto fell back."""
+    if backend == "numpy":
+        return NumpyEvaluator(model), None
+    # imported here, once the take's task has put PoCL's thread count in the environment
+    from facepipe.opencl import OpenCLEvaluator, OpenCLUnavailable
+
+    try:
+        return OpenCLEvaluator(model, device=device, chunk=chunk), None
+    except InputError:
+        raise
+    except OpenCLUnavailable as exc:
+        if backend == "opencl":
+            raise
+        return NumpyEvaluator(model), f"{str(exc).splitlines()[0]}; replayed with the NumPy backend"
+    except Exception as exc:  # a driver that lists a device but cannot build or run the kernels
+        if backend == "opencl":
+            raise
+        return NumpyEvaluator(model), f"OpenCL failed ({exc.__class__.__name__}: {exc}); replayed with NumPy"
+
+
+def cached_evaluator(ref: ModelRef, model, options: ReplayOptions):
+    """(evaluator, lock, note): one per process and model, shared by the takes it runs (a take
+    holds the lock while it evaluates, so a worker with several threads never interleaves two)."""
+    key = (ref.digest, options.backend, options.device, options.chunk)
+    with _cache_lock:
+        entry = _evaluator_cache.get(key)
+        if entry is None:
+            evaluator, note = make_evaluator(model, options.backend, options.device, options.chunk)
+            entry = _evaluator_cache[key] = (evaluator, threading.Lock(), note)
+        return entry
+
+
+def _reset_counters(evaluator) -> None:
+    # the counters replay.json reports are per take; a shared evaluator would add them up
+    evaluator.stage_seconds = dict.fromkeys(evaluator.stage_seconds, 0.0)
+    for owner in (evaluator, getattr(evaluator, "details", None)):
+        gate = getattr(owner, "gate", None)
+        if gate is not None and hasattr(gate, "unconverged_fits"):
+            gate.unconverged_fits = 0
+
+
+def replay_into(take_path: str, out_dir: Path, model, evaluator, options: ReplayOptions, extra: dict) -> dict:
+    """Replay a marker take into ``out_dir`` as ``facepipe replay`` does; its replay.json report."""
+    if is_landmark_take(take_path):
+        raise InputError("a 2D landmark take: batch replays marker takes", path=take_path,
+                         hint="replay it with 'facepipe replay TAKE --camera … --landmarks …'")
+    read = dict(units=model.meta.get("units"), take_units=options.take_units, subject=options.subject,
+                absent="missing" if options.clean else "error", allow_empty_frames=True)
+    take = read_take(take_path, model.marker_names, **read)
+    neutral = read_take(options.neutral_take, model.marker_names, **read) if options.neutral_take else None
+    prepare = PrepareOptions(neutral_frame=options.neutral_frame, neutral_take=neutral, stabilise=options.stabilise,
+                             clean=options.clean, frames=parse_frame_slice(options.frames) if options.frames else None,
+                             clean_options=CleanOptions(smooth=options.smooth))
+    prepared = prepare_take_windows(take, model, prepare)
+    take = take if prepare.frames is None else take.select(prepare.frames)
+
+    def take_report():
+        gaps = prepared.report()
+        return {"take": str(take_path), "mocap": gaps, "markers": gaps["markers"],
+                "extra_markers": take.extra_markers, **extra}
+
+    _reset_counters(evaluator)
+    result = replay_windows(model, prepared.windows(), take.frames, take.times, out_dir, chunk=options.chunk,
+                            evaluator=evaluator, head_motion=options.head_motion, extra_report=take_report,
+                            save_large=options.save_large)
+    return result.report
+
+
+def _start_attempt(out_dir: Path, worker: str) -> list[dict]:
+    """Log this attempt, remove what a killed attempt left half-written; every attempt so far."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for part in out_dir.rglob(".*.part*"):
+        part.unlink(missing_ok=True)
+    line = json.dumps({"worker": worker, "host": socket.gethostname(), "pid": os.getpid(), "started": time.time()})
+    log = out_dir / ATTEMPTS_NAME
+    with open(log, "a", encoding="utf-8") as fh:  # one short O_APPEND write per attempt
+        fh.write(line + "\n")
+    attempts = []
+    for text in log.read_text(encoding="utf-8").splitlines():
+        try:
+            attempts.append(json.loads(text))
+        except ValueError:  # a line cut short by a kill
+            continue
+    return attempts
+
+
+class _ReplayWithModel(ReplayDir):
+    """A take's replay folder whose exporters use the worker's model already in memory rather
+    than reading the model file again for every take."""
+
+    def __init__(self, path, model):
+        super().__init__(path)
+        self._model = model
+
+    def load_model(self, override=None):
+        if self._model.n_vertices != self.positions.shape[1]:
+            raise InputError(f"the model has {self._model.n_vertices} vertices, the replay's positions "
+                             f"{self.positions.shape[1]}", path=self.path, hint="run the batch again with --force")
+        return self._model
+
+
+def _export_take(out_dir: Path, name: str, fmt: str, model, model_path: str) -> dict:
+    """Export a take's replay in ``fmt`` (as ``facepipe export --force`` would) with ``model``."""
+    dest = export_destination(out_dir, name, fmt)
+    paths, _ = export_registry.get_format(fmt).export(_ReplayWithModel(out_dir, model), dest,
+                                                       ExportOptions(model_path=model_path, force=True))
+    return {"dest": str(dest.relative_to(out_dir)), "files": len(paths),
+            "bytes": int(sum(Path(p).stat().st_size for p in paths if Path(p).is_file()))}
+
+
+def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, exports: tuple[str, ...] = (),
+                     force: bool = False, slots_by_host: dict | None = None) -> dict:
+    """One take on a worker: replay (unless its folder already holds this replay), export, stamp.
+
+    Returns the take's :class:`TakeRecord` as a dict; a bad take (InputError, or any error of its
+    own) is a ``failed`` record, not an exception, so the batch goes on and Dask does not retry
+    it. Errors of the storage (OSError) are raised: Dask retries them (``retries``)."""
+    t0 = time.perf_counter()
+    worker = _worker_name()
+    out_dir = Path(job.out_dir)
+    attempts = _start_attempt(out_dir, worker)
+    record = TakeRecord(job.take, job.name, job.out_dir, "ok", worker=worker, attempts=len(attempts),
+                        attempt_workers=[a.get("worker") for a in attempts])
+    try:
+        threads = worker_threads(slots_by_host)
+        parallel.set_thread_count(threads)
+        for name in POCL_THREADS_ENV:  # before this process's first OpenCL context
+            os.environ.setdefault(name, str(threads))
+        options_key = options.fingerprint()
+        stamp = None if force else _read_stamp(out_dir)
+        if _replay_matches(stamp, job, model_ref, options_key):
+            record.frames = stamp.get("frames")
+            done_exports = dict(stamp.get("exports", {}))
+        else:
+            (out_dir / STAMP_NAME).unlink(missing_ok=True)  # the folder is incomplete until the new stamp
+            model, record.model_loaded = cached_model(model_ref)
+            evaluator, lock, note = cached_evaluator(model_ref, model, options)
+            extra = {"batch": {"worker": worker, "threads": threads, "attempt": len(attempts), "note": note}}
+            with lock:
+                report = replay_into(job.take, out_dir, model, evaluator, options, extra)
+            record.frames, record.replayed, done_exports = report["frames"], True, {}
+            stamp = {"take": job.take, "take_digest": job.digest, "model": model_ref.path,
+                     "model_digest": model_ref.digest, "options": options_key, "frames": record.frames}
+        for fmt in (exports if record.replayed or force else _exports_left(stamp, job, exports)):
+            model, loaded = cached_model(model_ref)
+            record.model_loaded |= loaded
+            done_exports[fmt] = _export_take(out_dir, job.name, fmt, model, model_ref.path)
+        record.exports = {fmt: done_exports[fmt] for fmt in exports}
+        _write_stamp(out_dir, dict(stamp, exports=done_exports, completed=time.time()))
+    except OSError:
+        raise
+    except InputError as exc:
+        record.status, record.error = "failed", str(exc)
+    except Exception as exc:  # this take's own failure (a bug it exposes): reported with where it happened
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        record.status = "failed"
+        record.error = f"internal error {exc.__class__.__name__}: {exc} ({Path(where.filename).name}:{where.lineno})"
+    record.seconds = time.perf_counter() - t0
+    return asdict(record)
+
+
+def _write_stamp(out_dir: Path, stamp: dict) -> None:
+    with atomic_path(out_dir / STAMP_NAME) as tmp:
+        tmp.write_text(json.dumps(stamp, indent=2))
+
+
+# ============================================================================= on the client
+
+
+@dataclass
+class BatchResult:
+    records: list[TakeRecord]
+    report: dict
+    cluster_error: str | None = None
+
+    @property
+    def failed(self) -> list[TakeRecord]:
+        return [r for r in self.records if r.status == "failed"]
+
+    @property
+    def exit_status(self) -> int:
+        """0: every take done; 2: some takes failed; 1: the cluster failed."""
+        return 1 if self.cluster_error else 2 if self.failed else 0
+
+
+def _failed_record(job: TakeJob, error: str) -> TakeRecord:
+    attempts = []
+    log = Path(job.out_dir) / ATTEMPTS_NAME
+    if log.is_file():
+        for text in log.read_text(encoding="utf-8").splitlines():
+            try:
+                attempts.append(json.loads(text).get("worker"))
+            except ValueError:
+                continue
+    return TakeRecord(job.take, job.name, job.out_dir, "failed", error=error, attempts=len(attempts),
+                      attempt_workers=attempts)
+
+
+def _gather(client, futures: dict, on_done) -> tuple[dict[str, TakeRecord], str | None]:
+    """Records of the submitted takes as they complete; a cluster error ends the wait."""
+    records: dict[str, TakeRecord] = {}
+    try:
+        for future in as_completed(list(futures)):
+            job = futures[future]
+            try:
+                records[job.name] = TakeRecord(**future.result())
+            except KilledWorker as exc:
+                records[job.name] = _failed_record(
+                    job, f"workers died while running this take, {exc.last_worker and 'last ' + str(exc.last_worker.address)}"
+                         f" (too much memory for a worker? see the workers' logs)")
+            except OSError as exc:  # the storage, after Dask's retries
+                records[job.name] = _failed_record(job, f"{exc.__class__.__name__}: {exc}")
+            on_done(records[job.name])
+    except (Exception, asyncio.CancelledError) as exc:  # the scheduler lost, futures cancelled: the cluster failed
+        return records, f"{exc.__class__.__name__}: {exc}"
+    return records, None
+
+
+def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), force: bool = False,
+              cluster=None, retries: int = 2, progress=None, on_start=None) -> BatchResult:
+    """Replay (and export) every take on a Dask cluster; write ``out/batch.json``.
+
+    ``on_start(n_takes)`` is called once the takes are found, ``progress(record)`` as each take
+    ends (skipped ones first).
+    Bad input that concerns the whole batch (the model, the takes' names) raises InputError
+    before any cluster starts.
+    """
+    cluster = cluster or ClusterSpec()
+    out = Path(out).resolve()
+    exports = tuple(dict.fromkeys(exports))
+    for fmt in exports:
+        export_registry.get_format(fmt)
+    jobs = plan_jobs(expand_takes(take_specs), out)
+    load_model(model_path)  # a bad model is the user's to fix (exit 2), before any cluster starts
+    model_ref = ModelRef(str(Path(model_path).resolve()), file_digest(model_path))
+    options_key = options.fingerprint()
+    progress = progress or (lambda record: None)
+    if on_start:
+        on_start(len(jobs))
+    t0 = time.perf_counter()
+    records: dict[str, TakeRecord] = {}
+    to_run = []
+    for job in jobs:
+        skipped = None if force else skipped_record(job, model_ref, options_key, exports)
+        if skipped:
+            records[job.name] = skipped
+            progress(skipped)
+        else:
+            to_run.append(job)
+    cluster_error, cluster_info = None, {"cluster": cluster.describe()}
+    batch_id = uuid.uuid4().hex[:8]  # task keys unique on a long-lived cluster
+    if to_run:
+        out.mkdir(parents=True, exist_ok=True)
+        for job in to_run:  # this batch's attempts only
+            (Path(job.out_dir) / ATTEMPTS_NAME).unlink(missing_ok=True)
+        try:
+            with open_client(cluster) as client:
+                slots = slots_by_host(client)
+                cluster_info.update(scheduler=client.scheduler.address, workers=sum(1 for _ in client.nthreads()),
+                                    slots_by_host=slots, dashboard=client.dashboard_link)
+                futures = {client.submit(replay_take_task, job, model_ref, options, exports, force, slots,
+                                         key=f"facepipe-take-{job.name}-{batch_id}",
+                                         retries=retries, pure=False): job for job in to_run}
+                ran, cluster_error = _gather(client, futures, progress)
+                records.update(ran)
+        except ClusterError as exc:
+            cluster_error = str(exc)
+    ordered = [records.get(job.name) or _failed_record(job, f"not run: the cluster failed ({cluster_error})")
+               for job in jobs]
+    report = _report(ordered, model_ref, options_key, exports, cluster_info, time.perf_counter() - t0, cluster_error)
+    with atomic_path(out / REPORT_NAME) as tmp:
+        tmp.write_text(json.dumps(report, indent=2))
+    return BatchResult(ordered, report, cluster_error)
+
+
+def _report(records: list[TakeRecord], model: ModelRef, options_key: dict, exports, cluster_info: dict,
+            seconds: float, cluster_error: str | None) -> dict:
+    count = {status: sum(r.status == status for r in records) for status in ("ok", "skipped", "failed")}
+    done = [r for r in records if r.status == "ok" and r.replayed]
+    frames = sum(r.frames or 0 for r in done)
+    return {
+        "totals": {"takes": len(records), **count, "replayed": len(done), "frames_replayed": frames,
+                   "seconds": seconds, "takes_per_second": len(done) / seconds if seconds > 0 else None,
+                   "frames_per_second": frames / seconds if seconds > 0 else None,
+                   "retried": sum(r.attempts > 1 for r in records),
+                   "task_seconds": sum(r.seconds or 0.0 for r in records)},
+        "failed": [r.take for r in records if r.status == "failed"],
+        "cluster_error": cluster_error,
+        "model": model.path,
+        "model_digest": model.digest,
+        "options": options_key,
+        "exports": list(exports),
+        **cluster_info,
+        "takes": [asdict(r) for r in records],
+    }

@@ -1,0 +1,295 @@
+"""`facepipe batch` on a real Dask cluster: a scheduler and two workers started as processes on
+localhost with the ``dask`` command line, a worker killed mid-take, a corrupt take among good
+ones; every take's positions.npy compared with a serial `facepipe replay` of it, to the bit."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.batch_speed import write_takes
+from facepipe.errors import InputError
+from facepipe.pipeline.batch import ATTEMPTS_NAME, ReplayOptions, expand_takes, plan_jobs, worker_threads
+from tests.conftest import run_cli
+
+distributed = pytest.importorskip("distributed")
+
+ROOT = Path(__file__).resolve().parents[1]
+DASK = Path(sys.executable).with_name("dask")
+N_TAKES = 6
+N_FRAMES = 40
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def takes(tmp_path_factory):
+    """A small baked sample rig, takes of its motion and their serial replays (NumPy backend)."""
+    from facepipe.sample_rig import write_sample_rig
+
+    root = tmp_path_factory.mktemp("batch")
+    write_sample_rig(root / "rig", n_vertices=2000, n_frames=N_FRAMES)
+    model = root / "model.npz"
+    assert run_cli("--quiet", "bake", root / "rig" / "sample.toml", "--no-tune", "-o", model) == 0
+    paths = write_takes(root / "rig" / "take.csv", root / "takes", N_TAKES, N_FRAMES)
+    for take in paths:
+        assert run_cli("--quiet", "replay", take, "-m", model, "-o", root / "serial" / take.stem,
+                       "--backend", "numpy") == 0
+    return root, model, paths
+
+
+class Cluster:
+    """`dask scheduler` and `dask worker` processes, each in a process group of its own (a worker
+    is killed with its nanny)."""
+
+    def __init__(self, root: Path, workers=("wA", "wB")):
+        self.port = _free_port()
+        self.address = f"tcp://127.0.0.1:{self.port}"
+        self.logs = root / "logs"
+        self.logs.mkdir(exist_ok=True)
+        self.env = dict(os.environ, PYTHONPATH=str(ROOT), FACEPIPE_THREADS="1")
+        self.scheduler_file = self.logs / "scheduler.json"
+        self.procs = {"scheduler": self._start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port",
+                                                             str(self.port), "--no-dashboard", "--scheduler-file",
+                                                             str(self.scheduler_file)])}
+        for name in workers:
+            self.procs[name] = self._start(name, ["worker", self.address, "--name", name, "--nthreads", "1",
+                                                  "--no-dashboard", "--memory-limit", "2GB", "--death-timeout", "60"])
+        with distributed.Client(self.address, timeout=60) as client:
+            client.wait_for_workers(len(workers), timeout=120)
+
+    def _start(self, name, args):
+        log = open(self.logs / f"{name}.log", "w")
+        return subprocess.Popen([str(DASK), *args], stdout=log, stderr=subprocess.STDOUT, env=self.env,
+                                cwd=ROOT, start_new_session=True)
+
+    def kill(self, name: str) -> None:
+        proc = self.procs.pop(name)
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+
+    def close(self) -> None:
+        for name in list(self.procs):
+            proc = self.procs.pop(name)
+            try:
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(timeout=20)
+            except ProcessLookupError:
+                pass
+
+
+@pytest.fixture(scope="module")
+def cluster(takes):
+    if not DASK.is_file():
+        pytest.skip(f"no dask command beside {sys.executable}")
+    c = Cluster(takes[0])
+    try:
+        yield c
+    finally:
+        c.close()
+
+
+def _same_as_serial(root: Path, out: Path, take: Path) -> bool:
+    return np.array_equal(np.load(root / "serial" / take.stem / "positions.npy"),
+                          np.load(out / take.stem / "positions.npy"))
+
+
+# ----------------------------------------------------------------------------- without a cluster
+
+
+def test_takes_from_files_folders_and_patterns(tmp_path):
+    for name in ("a.csv", "b.c3d", "notes.md"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "c.trc").write_text("x")
+    found = expand_takes([tmp_path, str(tmp_path / "sub" / "*.trc"), tmp_path / "a.csv"])
+    assert [p.name for p in found] == ["a.csv", "b.c3d", "c.trc"]  # each once, notes.md is no take
+    with pytest.raises(InputError, match="matches no file"):
+        expand_takes([str(tmp_path / "*.xyz")])
+    with pytest.raises(InputError, match="not found"):
+        expand_takes([tmp_path / "missing.csv"])
+    (tmp_path / "sub" / "a.trc").write_text("x")
+    with pytest.raises(InputError, match="two takes would write"):
+        plan_jobs(expand_takes([tmp_path / "a.csv", tmp_path / "sub" / "a.trc"]), tmp_path / "out")
+
+
+def test_options_fingerprint_ignores_where_it_runs_only():
+    base = ReplayOptions().fingerprint()
+    assert ReplayOptions(device="gpu", chunk=64).fingerprint() == base
+    assert ReplayOptions(smooth=1.0).fingerprint() != base
+    assert ReplayOptions(head_motion="remove").fingerprint() != base
+
+
+def test_threads_share_the_host_among_its_slots(monkeypatch):
+    from facepipe import parallel
+
+    monkeypatch.delenv("FACEPIPE_THREADS", raising=False)
+    monkeypatch.setattr(parallel, "available_cpus", lambda: 16)
+    monkeypatch.setattr("facepipe.pipeline.batch._this_host", lambda: "10.0.0.7")
+    assert worker_threads({"10.0.0.7": 4, "10.0.0.8": 1}) == 4
+    assert worker_threads({"10.0.0.7": 32}) == 1
+    monkeypatch.setenv("FACEPIPE_THREADS", "3")
+    assert worker_threads({"10.0.0.7": 4}) == 3
+
+
+def test_unreachable_scheduler_is_a_cluster_failure(takes, tmp_path):
+    root, model, paths = takes
+    out = tmp_path / "out"
+    code = run_cli("--quiet", "batch", paths[0], "-m", model, "-o", out, "--scheduler",
+                   f"tcp://127.0.0.1:{_free_port()}", "--connect-timeout", "2")
+    assert code == 1
+    report = json.loads((out / "batch.json").read_text())
+    assert report["cluster_error"] and report["takes"][0]["status"] == "failed"
+
+
+# ----------------------------------------------------------------------------- on a real cluster
+
+
+@pytest.mark.slow
+def test_corrupt_take_is_reported_and_the_rest_go_on(takes, cluster, tmp_path):
+    root, model, paths = takes
+    bad = tmp_path / "takes" / "broken.csv"
+    bad.parent.mkdir()
+    bad.write_text(paths[0].read_text().splitlines()[0] + "\n0,0.0,not a number\n")
+    good = paths[:3]
+    out = tmp_path / "out"
+    args = ["--quiet", "batch", *good, bad, "-m", model, "-o", out, "--scheduler", cluster.address,
+            "--backend", "numpy"]
+    assert run_cli(*args) == 2
+    report = json.loads((out / "batch.json").read_text())
+    status = {t["name"]: t for t in report["takes"]}
+    assert report["failed"] == [str(bad)]
+    assert status["broken"]["status"] == "failed" and "broken.csv" in status["broken"]["error"]
+    assert all(status[t.stem]["status"] == "ok" and status[t.stem]["frames"] == N_FRAMES for t in good)
+    assert all(_same_as_serial(root, out, t) for t in good)
+
+    # again: the good takes are complete, so skipped untouched; --force replays them
+    mtime = (out / good[0].stem / "positions.npy").stat().st_mtime_ns
+    assert run_cli(*args) == 2
+    report = json.loads((out / "batch.json").read_text())
+    assert [t["status"] for t in report["takes"]] == ["skipped"] * 3 + ["failed"]
+    assert (out / good[0].stem / "positions.npy").stat().st_mtime_ns == mtime
+    assert run_cli("--quiet", "batch", *good, "-m", model, "-o", out, "--scheduler-file", cluster.scheduler_file,
+                   "--backend", "numpy", "--force") == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert [t["status"] for t in report["takes"]] == ["ok"] * 3 and all(_same_as_serial(root, out, t) for t in good)
+    assert report["scheduler"] == cluster.address
+
+
+@pytest.mark.slow
+def test_scheduler_from_the_environment_and_model_read_once_per_worker(takes, cluster, tmp_path, monkeypatch):
+    root, model, paths = takes
+    monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", cluster.address)
+    out = tmp_path / "out"
+    assert run_cli("--quiet", "batch", *paths, "-m", model, "-o", out, "--backend", "numpy") == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert report["cluster"] == f"scheduler {cluster.address}"
+    assert all(t["status"] == "ok" for t in report["takes"])
+    loads = [t["worker"] for t in report["takes"] if t["model_loaded"]]
+    # the workers of the earlier tests hold this model already: no worker reads it twice
+    assert len(loads) == len(set(loads)) <= 2
+
+    # an export asked for later: the replays are kept, only the export is made, as `facepipe export` makes it
+    mtime = (out / paths[0].stem / "positions.npy").stat().st_mtime_ns
+    assert run_cli("--quiet", "batch", *paths[:2], "-m", model, "-o", out, "--backend", "numpy", "--export", "obj") == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert [(t["status"], t["replayed"]) for t in report["takes"]] == [("ok", False)] * 2
+    assert (out / paths[0].stem / "positions.npy").stat().st_mtime_ns == mtime
+    assert run_cli("--quiet", "export", root / "serial" / paths[0].stem, "--format", "obj", "-o", tmp_path / "obj") == 0
+    ours = sorted((out / paths[0].stem / "obj").iterdir())
+    assert [p.name for p in ours] == sorted(p.name for p in (tmp_path / "obj").iterdir())
+    assert all(p.read_bytes() == (tmp_path / "obj" / p.name).read_bytes() for p in ours)
+    assert run_cli("--quiet", "batch", *paths[:2], "-m", model, "-o", out, "--backend", "numpy", "--export", "obj") == 0
+    assert [t["status"] for t in json.loads((out / "batch.json").read_text())["takes"]] == ["skipped"] * 2
+
+
+@pytest.mark.slow
+def test_killed_worker_take_runs_elsewhere_and_the_batch_completes(takes, cluster, tmp_path):
+    root, model, paths = takes
+    out = tmp_path / "out"
+    result = {}
+
+    def batch():
+        result["code"] = run_cli("--quiet", "batch", *paths, "-m", model, "-o", out, "--scheduler",
+                                 cluster.address, "--backend", "numpy", "--export", "pc2")
+
+    runner = threading.Thread(target=batch)
+    runner.start()
+    killed_take = None
+    deadline = time.monotonic() + 180
+    while killed_take is None and runner.is_alive() and time.monotonic() < deadline:
+        for log in out.glob(f"*/{ATTEMPTS_NAME}"):
+            lines = log.read_text().splitlines()
+            # wA's attempt is under way and positions.npy half-written: kill it mid-replay
+            if lines and '"worker": "wA"' in lines[-1] and list(log.parent.glob(".positions.npy.*")):
+                cluster.kill("wA")
+                killed_take = log.parent.name
+                break
+        time.sleep(0.005)
+    runner.join(timeout=300)
+    assert not runner.is_alive()
+    assert killed_take is not None, "worker wA never started a take"
+    assert result["code"] == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert report["totals"]["ok"] == N_TAKES and report["totals"]["retried"] >= 1
+    record = next(t for t in report["takes"] if t["name"] == killed_take)
+    assert record["attempts"] >= 2 and record["attempt_workers"][0] == "wA" and record["worker"] == "wB"
+    assert all(_same_as_serial(root, out, t) for t in paths)
+    assert all((out / t.stem / f"{t.stem}.pc2").is_file() for t in paths)
+    assert not list(out.rglob(".*.part*"))  # the killed attempt's temporary files are gone
+
+
+@pytest.mark.slow
+def test_local_cluster_by_default(takes, tmp_path, monkeypatch):
+    root, model, paths = takes
+    monkeypatch.delenv("DASK_SCHEDULER_ADDRESS", raising=False)
+    out = tmp_path / "out"
+    assert run_cli("--quiet", "batch", str(paths[0].parent / "take_00[01].csv"), "-m", model, "-o", out,
+                   "--workers", "2", "--backend", "numpy") == 0
+    report = json.loads((out / "batch.json").read_text())
+    assert report["cluster"] == "local cluster of 2 workers" and report["workers"] == 2
+    assert [t["status"] for t in report["takes"]] == ["ok", "ok"]
+    assert all(_same_as_serial(root, out, t) for t in paths[:2])
+
+
+@pytest.mark.slow
+def test_lost_scheduler_is_a_cluster_failure(takes, tmp_path):
+    root, model, paths = takes
+    if not DASK.is_file():
+        pytest.skip(f"no dask command beside {sys.executable}")
+    own = Cluster(tmp_path, workers=("wC",))
+    out = tmp_path / "out"
+    result = {}
+    try:
+        runner = threading.Thread(target=lambda: result.update(code=run_cli(
+            "--quiet", "batch", *paths, "-m", model, "-o", out, "--scheduler", own.address, "--backend", "numpy",
+            "--connect-timeout", "3")))
+        runner.start()
+        deadline = time.monotonic() + 120
+        while not list(out.glob(f"*/{ATTEMPTS_NAME}")) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        own.kill("scheduler")
+        runner.join(timeout=180)
+        assert not runner.is_alive()
+    finally:
+        own.close()
+    assert result["code"] == 1
+    report = json.loads((out / "batch.json").read_text())
+    assert report["cluster_error"] and report["totals"]["failed"] >= 1
