@@ -51,6 +51,7 @@ ROWS = [
     ("WPSD, examples (config's values)", {"examples.sequence": None, "psd.fit": "interpolate", "psd.max_poses": 12},
      False),
     ("WPSD, examples, validated", {"examples.sequence": None, "psd.fit": "interpolate", "psd.max_poses": 12}, True),
+    ("WPSD + performance (config's values)", {}, False),
     ("WPSD + performance, validated", {}, True),
 ]
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from facepipe.parallel import map_blocks
+from facepipe.parallel import map_blocks, serial_blas
 
 
 class GrowingRbfSystems:
@@ -70,7 +70,8 @@ class GrowingRbfSystems:
             self.abs_sum[b] += np.abs(k).sum(axis=1)
             self.rhs[b, j] = np.einsum("vt,vtc->vc", k[:, 1:], self.targets[b, 1:])
 
-        map_blocks(block, self._blocks())
+        with serial_blas():
+            map_blocks(block, self._blocks())
         self.columns = j + 1
 
     def solve(self, rcond: float, exact: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -94,7 +95,8 @@ class GrowingRbfSystems:
             mask = self.error_vertices[b]
             squared[i] = np.einsum("vtc,vtc->t", residual[mask], residual[mask])
 
-        map_blocks(block, range(len(blocks)))
+        with serial_blas():
+            map_blocks(block, range(len(blocks)))
         return weights, const, squared.sum(axis=0)
 
     def _solve_block(self, b: slice, P: int, rcond: float, exact: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -111,19 +113,25 @@ class GrowingRbfSystems:
         h = np.empty((n, P + 1, 3))
         h[:, :P] = self.rhs[b, :P]
         h[:, P] = s[:, None] * self.target_sum[b]
-        # the rest row a₀ = [Φ[0], s], met exactly: H a₀ = −sign·|a₀| e₀ (as constrained_svd_solve)
+        # the rest row a₀ = [Φ[0], s], met exactly: H a₀ = −sign·|a₀| e₀ (as constrained_svd_solve),
+        # H = I − t v vᵀ applied as the reflection it is (rank-one updates, not (P+1)³ products)
         a0 = np.concatenate([self.phi[b, 0, :P], s[:, None]], axis=1)
         norm = np.sqrt(np.einsum("np,np->n", a0, a0))
         sign = np.where(a0[:, 0] >= 0, 1.0, -1.0)
         v = a0.copy()
         v[:, 0] += sign * norm
-        H = np.eye(P + 1) - (2.0 / np.einsum("np,np->n", v, v))[:, None, None] * (v[:, :, None] * v[:, None, :])
+        t = 2.0 / np.einsum("np,np->n", v, v)
         y0 = self.targets[b, 0] / (-sign * norm)[:, None]  # (n, 3)
-        K = np.matmul(np.matmul(H, G), H)
-        g = np.matmul(H, h)
+        Gv = np.einsum("npq,nq->np", G, v)
+        vGv = np.einsum("np,np->n", v, Gv)
+        # H G H = G − t (v Gvᵀ + Gv vᵀ) + t² (vᵀGv) v vᵀ
+        K = G - t[:, None, None] * (v[:, :, None] * Gv[:, None, :] + Gv[:, :, None] * v[:, None, :])
+        K += (t * t * vGv)[:, None, None] * (v[:, :, None] * v[:, None, :])
+        g = h - t[:, None, None] * v[:, :, None] * np.einsum("np,npc->nc", v, h)[:, None, :]
         rhs1 = g[:, 1:] - K[:, 1:, :1] * y0[:, None, :]
-        y1 = (truncated_normal_solve if exact else tikhonov_normal_solve)(K[:, 1:, 1:], rhs1, rcond)
-        x = np.matmul(H, np.concatenate([y0[:, None], y1], axis=1))
+        y1 = (truncated_normal_solve if exact else tikhonov_normal_solve)(np.ascontiguousarray(K[:, 1:, 1:]), rhs1, rcond)
+        y = np.concatenate([y0[:, None], y1], axis=1)
+        x = y - t[:, None, None] * v[:, :, None] * np.einsum("np,npc->nc", v, y)[:, None, :]
         return x[:, :P], x[:, P] * s[:, None]
 
 
