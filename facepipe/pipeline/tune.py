@@ -39,7 +39,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from facepipe.errors import InputError
-from facepipe.parallel import map_blocks
+from facepipe.parallel import map_blocks, serial_blas
 from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
 from facepipe.core.shell import ShellParts, marker_spacing, shell_displacements
 from facepipe.core.tangent_frames import FramePatch, frame_neighbors, to_local
@@ -112,13 +112,15 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     details = {k: sampled_details[k] for k in {g[0] for g in grid}}
     # held-out error without details
     large = {k: rms_per_pose(np.zeros_like(details[k][1:]), details[k][1:]) for k in details}
-    errors, dropped = _cross_validate_details(
-        cfg.psd, features, details, alphas, splits, grid, tau_values, default, best_k, max_poses,
-        site_distance=edge_distances(distances[:, geo.handles], geo.edges),
-        radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)),
-        moves=poses[:, geo.handles] - geo.rest[geo.handles], marker_distance=distances[:, geo.handles],
-        edges=geo.edges, say=say,
-        drop_on=np.concatenate([h for _, h in time_splits]) - 1 if time_splits else None)
+    # thousands of small SVDs and solves per split, shared among facepipe's threads (serial_blas)
+    with serial_blas():
+        errors, dropped = _cross_validate_details(
+            cfg.psd, features, details, alphas, splits, grid, tau_values, default, best_k, max_poses,
+            site_distance=edge_distances(distances[:, geo.handles], geo.edges),
+            radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)),
+            moves=poses[:, geo.handles] - geo.rest[geo.handles], marker_distance=distances[:, geo.handles],
+            edges=geo.edges, say=say,
+            drop_on=np.concatenate([h for _, h in time_splits]) - 1 if time_splits else None)
     t_details = time.perf_counter() - t0 - t_shell
     default_key = (default["k_stretch"], default["beta_scale"], default["smoothing"], default["novelty_tau"])
     # a fold whose training set is smaller than P keeps its largest basis for the larger P
