@@ -7,6 +7,8 @@ handles move by w·ΔH_e plus an out-of-surface motion of the same size along th
 normal (which changes the feature edges' lengths only to second order), and the truth is the
 large-scale surface of those handles — so the large scale alone is right and any detail is harm.
 Prints, per novelty gate, the mean excess over the large scale and the worst frames.
+With a config that learns from a performance (``configs/ict_wrinkled.toml``) the take is built from
+the example meshes alone and the rig is the one fitted on the meshes and the performance.
 Usage: python -m bench.ict_resembling [CONFIG] [--no-tune] [--json PATH]
 """
 
@@ -24,19 +26,25 @@ from facepipe.pipeline.evaluate import frame_errors
 from facepipe.pipeline.fit import fit_rig
 from facepipe.pipeline.replay import NumpyEvaluator
 from facepipe.pipeline.rig import load_rig
-from facepipe.pipeline.tune import choose_parameters
+from facepipe.pipeline.tune import choose_parameters, sequence_pose_count
 
 ROOT = Path(__file__).resolve().parents[1]
 FACE = slice(0, 9409)
 WEIGHTS = (0.2, 0.4, 0.6)
 
 
+def example_meshes(rig) -> int:
+    """How many of the rig's examples are expression meshes (the frames of a training performance
+    come after them and are not expressions of their own)."""
+    return len(rig.example_names) - sequence_pose_count(rig.config, list(rig.example_names))
+
+
 def resembling_take(rig, geo):
-    """Handles (T, H, 3) and truth (T, V, 3): each example scaled, its handles also moved along the
-    rest normal by as much as they move, the truth the large scale of those handles."""
+    """Handles (T, H, 3) and truth (T, V, 3): each example mesh scaled, its handles also moved along
+    the rest normal by as much as they move, the truth the large scale of those handles."""
     rest = geo.rest
     normals = vertex_normals(rest, geo.faces)[geo.handles]
-    moves = rig.example_positions[:, geo.handles] - rest[geo.handles]  # (E, H, 3)
+    moves = rig.example_positions[:example_meshes(rig), geo.handles] - rest[geo.handles]  # (E, H, 3)
     frames = []
     for move in moves:
         for w in WEIGHTS:
@@ -68,7 +76,7 @@ def main():
     strain = dataclasses.replace(gate, motion_index=None, motion_weight=None, motion_examples=None, motion_scale=None)
     e_large = frame_errors(large, truth, FACE)[0]
     result = {"chosen": report.get("chosen"), "frames": len(head), "large_mean": float(e_large.mean())}
-    print(f"{len(head)} frames ({len(rig.example_names)} examples × weights {WEIGHTS}); large scale mean "
+    print(f"{len(head)} frames ({example_meshes(rig)} example meshes × weights {WEIGHTS}); large scale mean "
           f"{e_large.mean():.5f} cm; values {report.get('chosen', 'of the config')}")
     for name, confidence in (("no gate", np.ones(raw.shape[:2])), ("strain gate", strain.confidence(f)),
                              ("strain + motion gate", gate.confidence(f, u))):

@@ -139,7 +139,7 @@ def leave_expressions_out(rig, plain_rig, take_head, T, S, weights) -> dict:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--config", default=str(ROOT / "configs" / "ict_wrinkled.toml"))
+    ap.add_argument("--config", default=str(ROOT / "configs" / "ict_wrinkled_examples.toml"))
     ap.add_argument("--plain-config", default=str(ROOT / "configs" / "ict.toml"))
     ap.add_argument("--no-performance", action="store_true", help="skip the rows trained on the take's frames 0–79")
     ap.add_argument("--json", default=None)

@@ -16,7 +16,10 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor, wait
+from contextlib import contextmanager
 from typing import Callable, Iterable, TypeVar
+
+from threadpoolctl import threadpool_limits
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -121,3 +124,15 @@ def map_blocks(function: Callable[[T], R], items: Iterable[T]) -> list[R]:
             future.cancel()
         wait(futures)
         raise
+
+
+@contextmanager
+def serial_blas():
+    """BLAS and LAPACK on one thread of their own within the block, while :func:`map_blocks` shares
+    batched small-matrix work (thousands of per-vertex SVDs and solves) among facepipe's threads.
+
+    OpenBLAS splits even a 50 × 50 SVD over its threads; called from several threads at once, on
+    a busy machine, a batch then took 20× longer than on one thread each. The limit is the
+    library's, process-wide, for the duration of the block."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield

@@ -101,3 +101,45 @@ def test_sequence_stride_below_one_is_refused(sample, tmp_path):
     cfg = with_value(sample, tmp_path, "examples", "sequence_stride = 0")
     with pytest.raises(InputError, match=r"\[examples\] sequence_stride = 0 must be ≥ 1"):
         load_config(cfg)
+
+
+def with_sequence(sample, tmp_path, line: str) -> Path:
+    """The sample config with its take's truth as the example sequence and ``line`` after it."""
+    text = Path(sample["config"]).read_text(encoding="utf-8")
+    cfg = Path(sample["config"]).parent / f"seq_{tmp_path.name}.toml"
+    cfg.write_text(text.replace('sequence = ""', f'sequence = "take_truth.npz"\n{line}'), encoding="utf-8")
+    return cfg
+
+
+@pytest.mark.parametrize("line, fix", [
+    ('sequence_frames = "0:80"', "e.g. sequence_frames = [0, 80]"),  # a string for a list
+    ("sequence_frames = [0, 80.0]", "write sequence_frames = [0, 80]"),  # a float is no frame
+    ("sequence_frames = [80, 10]", "e.g. sequence_frames = [0, 80]"),  # first ≥ stop
+    ("sequence_frames = [-1, 10]", "e.g. sequence_frames = [0, 80]"),
+    ("sequence_frames = [0, 10, 20]", "e.g. sequence_frames = [0, 80]"),
+])
+def test_sequence_frames_must_be_a_frame_range(sample, tmp_path, line, fix):
+    cfg = with_sequence(sample, tmp_path, line)
+    with pytest.raises(InputError, match=r"\[examples\] sequence_frames") as err:
+        load_config(cfg)
+    assert fix in str(err.value)
+
+
+def test_sequence_frames_without_a_sequence_is_refused(sample, tmp_path):
+    cfg = with_value(sample, tmp_path, "examples", "sequence_frames = [0, 2]")
+    with pytest.raises(InputError, match=r"sequence_frames = \[0, 2\] without a sequence"):
+        load_config(cfg)
+
+
+def test_sequence_frames_select_the_training_rows(sample, tmp_path):
+    """Rows first … stop − 1 of the sequence file are the examples, named by their row; a stop
+    past the take's end names the take's length."""
+    from facepipe.pipeline.rig import load_rig
+
+    cfg = with_sequence(sample, tmp_path, "sequence_frames = [1, 3]")
+    rig = load_rig(cfg)
+    seq_names = [n for n in rig.example_names if n.startswith("take_truth:")]
+    assert seq_names == ["take_truth:1", "take_truth:2"]
+    cfg = with_sequence(sample, tmp_path, "sequence_frames = [1, 99]")
+    with pytest.raises(InputError, match=r"reaches past the sequence's 4 frames"):
+        load_rig(cfg)

@@ -169,3 +169,18 @@ def test_take_parsing_follows_the_thread_count(tmp_path, monkeypatch):
     one = read_csv_take(tmp_path / "t.csv", NAMES)
     assert seen == {threading.get_ident()}
     np.testing.assert_array_equal(one.positions, many.positions)
+
+
+def test_serial_blas_limits_blas_to_one_thread_and_restores_it():
+    import numpy as np  # noqa: F401 - loads the BLAS threadpoolctl reports on
+    from threadpoolctl import threadpool_info
+
+    from facepipe.parallel import serial_blas
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    with serial_blas():
+        assert all(n == 1 for n in blas_threads())
+    assert blas_threads() == before

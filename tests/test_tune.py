@@ -237,3 +237,66 @@ def test_fit_warns_and_keeps_the_defaults_when_the_examples_cannot_validate(samp
     assert "warning: parameters not validated" in out and "at least 3 example poses" in out
     report = json.loads((tmp_path / "fit.json").read_text())
     assert report["validation"]["validated"] is False and "tune" not in report
+
+
+def test_time_blocks_are_contiguous_cover_every_frame_once_and_keep_neighbours_out():
+    from facepipe.pipeline.tune import time_block_splits
+
+    n_meshes, n_frames = 4, 40
+    splits = time_block_splits(n_meshes, n_frames, 5)
+    held = np.concatenate([h for _, h in splits])
+    assert sorted(held.tolist()) == list(range(n_meshes + 1, n_meshes + 1 + n_frames))
+    for train, h in splits:
+        assert np.all(np.diff(h) == 1)  # one contiguous block
+        assert set(range(n_meshes + 1)) <= set(train.tolist())  # the rest pose and every mesh train
+        frames = train[train > n_meshes]
+        # no training frame within the margin (a quarter block, 2 frames) of the block
+        gap = np.min(np.abs(frames[:, None] - h[None, :]))
+        assert gap > 2 and not set(frames.tolist()) & set(h.tolist())
+
+
+def test_performance_choice_prefers_new_mixtures_under_the_no_harm_rule():
+    from facepipe.pipeline.tune import choose_for_performance, performance_table
+
+    frames, meshes = np.arange(3, 7), np.arange(3)
+    large = {0.0: np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 2.0])}
+
+    def errors(expr, frame):
+        e = np.full((3, 7), np.nan)
+        e[1:, :3], e[1:, 3:] = expr, frame
+        return e
+
+    table = {(0.0, 1.0, 0.0, 0.1): errors(1.0, 1.5),  # no harm, helps on mixtures
+             (0.0, 1.0, 0.0, 0.3): errors(1.2, 1.0),  # best on mixtures, harms a new expression
+             (0.0, 2.0, 0.0, 0.1): errors(0.9, 1.8)}  # best on expressions
+    rows, default = performance_table(table, large, frames, meshes, (0.0, 1.0, 0.0, 0.1), 2, 2, 1.01)
+    chosen = choose_for_performance(rows)
+    assert (chosen["novelty_tau"], chosen["beta_scale"], chosen["poses"]) == (0.1, 1.0, 2)
+    assert chosen["no_harm"] and chosen["cv_rms"] == 1.5 and chosen["large_cv_rms"] == 2.0
+    # every candidate harms: the least harmful, flagged, never the details switched off
+    harmful = {key: errors(1.5, e) for key, e in zip(table, (1.5, 1.0, 1.2))}
+    harmful[(0.0, 2.0, 0.0, 0.1)] = errors(1.1, 1.9)
+    rows, _ = performance_table(harmful, large, frames, meshes, (0.0, 1.0, 0.0, 0.1), 2, 2, 1.01)
+    chosen = choose_for_performance(rows)
+    assert not chosen["no_harm"] and chosen["beta_scale"] == 2.0
+
+
+def test_a_training_performance_is_validated_on_held_out_time_blocks(tmp_path, capsys):
+    """With [examples] sequence, fit validates on held-out blocks of its frames and on held-out
+    expressions, reports both, and prints and saves what it chose and why."""
+    rig_dir = tmp_path / "rig"
+    paths = write_sample_rig(rig_dir, n_vertices=2500, n_examples=6, n_frames=40)
+    cfg = Path(paths["config"])
+    text = cfg.read_text().replace('sequence = ""', 'sequence = "take_truth.npz"\nsequence_frames = [0, 30]')
+    text = text.replace('fit = "interpolate"', 'fit = "least-squares"')
+    cfg.write_text(text + "\n[tune]\nk_stretch = [0.0, 3.0]\nbeta_scale = [1.0]\nnovelty_tau = [0.15]\n"
+                   "max_poses = 8\nfolds = 3\n")
+    out = tmp_path / "fit.npz"
+    assert run_cli("fit", str(cfg), "-o", str(out)) == 0
+    text_out = capsys.readouterr().out
+    report = json.loads(out.with_suffix(".tune.json").read_text())
+    assert report["validation"] == "time blocks + expressions" and len(report["time_blocks"]) == 3
+    assert report["time_blocks"][0] == ["take_truth:0", "take_truth:9"]
+    c = report["chosen"]
+    assert {"cv_rms", "large_cv_rms", "expression_cv_rms", "worst_expression_vs_large"} <= set(c)
+    assert "held-out time blocks" in text_out and "new expressions" in text_out

@@ -96,7 +96,8 @@ def _run_fit(config, rep: Reporter, tune: bool = True):
 
 
 _TUNE_HELP = ("Choose k_stretch, the WPSD β, the RBF regularisation, the novelty gate's τ and the basis size by "
-              "validation on the examples (whole expressions held out; candidates in the config's [tune] table) — "
+              "validation on the examples (whole expressions held out, and time blocks of a training performance "
+              "([examples] sequence) where there is one; candidates in the config's [tune] table) — "
               "the default whenever the examples allow it; --no-tune fits with the config's values.")
 
 

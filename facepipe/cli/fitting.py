@@ -69,6 +69,9 @@ def say_choice(rep, report: dict, units: str) -> None:
         if report["reason"] != "disabled":
             rep.say(f"warning: parameters not validated ({report['reason']}); fitting with the config's values")
         return
+    if report.get("time_blocks"):
+        say_performance_choice(rep, report, units)
+        return
     c, d = report["chosen"], report["default"]
     rep.say(f"validated in {report['seconds']['total']:.1f} s on {len(report['folds'])} folds of held-out "
             f"expressions: k_stretch {c['k_stretch']:g}, β ×{c['beta_scale']:g}, λ {c['smoothing']:g}, "
@@ -84,6 +87,34 @@ def say_choice(rep, report: dict, units: str) -> None:
             "kept, as [tune] fallback = false"
         rep.say(f"warning: the validated error with details is above the large-scale-only error by more than "
                 f"{100 * report['max_regression']:g} %: the details would do harm on unseen expressions; {what}")
+
+
+def say_performance_choice(rep, report: dict, units: str) -> None:
+    """What validation on held-out time blocks of the training performance (and held-out
+    expressions) chose and why."""
+    c, d = report["chosen"], report["default"]
+    n_blocks, n_expr = len(report["time_blocks"]), report["expression_folds"]
+    rep.say(f"validated in {report['seconds']['total']:.1f} s on {n_blocks} held-out time blocks of the performance"
+            + (f" and {n_expr} folds of held-out expressions" if n_expr else "")
+            + f": k_stretch {c['k_stretch']:g}, β ×{c['beta_scale']:g}, λ {c['smoothing']:g}, "
+              f"τ {c['novelty_tau']:g}, P {c['poses']}")
+    rep.say(f"  new mixtures (held-out time blocks): RMS {c['cv_rms']:.4f} {units} against {d['cv_rms']:.4f} with "
+            f"the config's values and {c['large_cv_rms']:.4f} with the large scale alone")
+    if n_expr:
+        rep.say(f"  new expressions (held out whole): RMS {c['expression_cv_rms']:.4f} against "
+                f"{c['expression_large_rms']:.4f} with the large scale alone; worst held-out expression "
+                f"{100 * (c['worst_expression_vs_large'] - 1):+.1f} % against its large scale")
+    if not c.get("no_harm", True):
+        rep.say(f"warning: every candidate makes some held-out expression worse than its large scale alone by more "
+                f"than {100 * report['max_regression']:g} %; chose the one that does least harm")
+    rep.say("  why: the smallest error on held-out time blocks (new mixtures of the examples' expressions) among "
+            "the candidates that make no held-out expression worse than the large scale alone by more than "
+            f"{100 * report['max_regression']:g} %")
+    if report["harm"]:
+        what = "details turned off ([psd] method = none)" if report["fallback"] else \
+            "kept, as [tune] fallback = false"
+        rep.say(f"warning: on held-out time blocks the details are worse than the large scale alone by more than "
+                f"{100 * report['max_regression']:g} %; {what}")
 
 
 def solver_line(deformer: str, solver: str | None, passed_over: dict | None = None) -> str:

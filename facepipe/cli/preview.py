@@ -95,8 +95,13 @@ def plot_tuning(report: dict, path: str | os.PathLike, units: str = "", force: b
     right.plot([chosen["poses"]], [chosen["cv_rms"]], "k*", ms=12, label="chosen")
     right.axhline(chosen["large_cv_rms"], color="0.4", ls=":", label="large scale only")
     right.set_xlabel("basis poses")
-    right.set_ylabel(f"held-out RMS{unit}")
-    right.set_title(f"{report['method'].upper()} cross-validation ({len(report['folds'])} folds)")
+    if report.get("time_blocks"):  # chosen on the held-out time blocks of a performance
+        right.set_ylabel(f"held-out time blocks' RMS{unit}")
+        right.set_title(f"{report['method'].upper()} validation ({len(report['time_blocks'])} time blocks, "
+                        f"{report['expression_folds']} expression folds)")
+    else:
+        right.set_ylabel(f"held-out RMS{unit}")
+        right.set_title(f"{report['method'].upper()} cross-validation ({len(report['folds'])} folds)")
     right.grid(True, alpha=0.3)
     right.legend(fontsize=6, ncol=2)
     fig.tight_layout()

@@ -30,6 +30,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import nnls
 
+from facepipe.core.growing_lstsq import GrowingRbfSystems
 from facepipe.parallel import map_blocks
 
 logger = logging.getLogger(__name__)
@@ -450,6 +451,9 @@ def greedy_basis(method: str, features: np.ndarray, details: np.ndarray, fit: st
     E = features.shape[0]
     if candidates is None:
         candidates = np.arange(1, E)
+    if method == "wpsd" and fit == "least-squares" and E > min(max_poses, len(candidates)) + 1:
+        return _greedy_wpsd_least_squares(features, details, max_poses, tolerance, alpha, rcond, error_vertices,
+                                          candidates, progress, observe)
     basis = [0]
     curve = []
     model = fit_details(method, features, details, basis, fit, alpha, rcond, smoothing)
@@ -468,6 +472,39 @@ def greedy_basis(method: str, features: np.ndarray, details: np.ndarray, fit: st
         basis.append(worst)
         model = fit_details(method, features, details, basis, fit, alpha, rcond, smoothing)
     return model, basis, curve
+
+
+def _greedy_wpsd_least_squares(features, details, max_poses, tolerance, alpha, rcond, error_vertices, candidates,
+                               progress, observe) -> tuple[DetailModel, list[int], list[dict]]:
+    """:func:`greedy_basis` for WPSD fitted by least squares to more training poses than the basis
+    will hold, with each basis pose's kernel column computed once and the normal equations grown
+    (:class:`~facepipe.core.growing_lstsq.GrowingRbfSystems`). The poses are scored (and passed to
+    ``observe``) along the way by the Tikhonov counterpart of the truncated pseudo-inverse, a
+    batched LU rather than an SVD per vertex and step; the model returned is the exact one of
+    :func:`fit_details` for the chosen basis."""
+    E, V = features.shape[0], details.shape[1]
+    n_add = min(max_poses, len(candidates))
+    mask = np.zeros(V, dtype=bool)
+    mask[error_vertices] = True
+    systems = GrowingRbfSystems(details, n_add + 1, mask)
+    n_error = int(mask.sum())
+    basis, curve = [0], []
+    while True:
+        diff = features - features[basis[-1]]
+        systems.add_column(np.sqrt(np.maximum(np.asarray(alpha @ (diff * diff).T), 0.0)))  # (V, E)
+        weights, const, squared = systems.solve(rcond, exact=False)
+        if observe is not None:
+            observe(DetailModel("wpsd", features[basis], weights, const, alpha), list(basis))
+        err = np.sqrt(squared / max(n_error, 1))
+        curve.append({"poses": len(basis) - 1, "added": int(basis[-1]),
+                      "mean_rms": float(err[1:].mean()), "max_rms": float(err.max())})
+        if progress is not None:
+            progress(len(basis) - 1, curve[-1])
+        open_ = [int(c) for c in candidates if c not in basis]
+        if len(basis) - 1 >= n_add or not open_ or err.max() <= tolerance:
+            weights, const, _ = systems.solve(rcond, exact=True)
+            return DetailModel("wpsd", features[basis], weights, const, alpha), basis, curve
+        basis.append(open_[int(np.argmax(err[open_]))])
 
 
 # ----------------------------------------------------------------------------- novelty gate

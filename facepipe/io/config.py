@@ -115,6 +115,9 @@ class Config:
     example_meshes: list[str] = field(default_factory=list)
     sequence: Path | None = None
     sequence_stride: int = 1
+    # [first, stop): the rows of the sequence file used for training (None: all); the rest of the
+    # take can then serve as a test part
+    sequence_frames: list | None = None
     graph: str = "auto"
     shell: ShellConfig = field(default_factory=ShellConfig)
     psd: PsdConfig = field(default_factory=PsdConfig)
@@ -132,7 +135,7 @@ class Config:
 _PATHS = "paths"
 _TYPES: dict[str, dict[str, object]] = {
     "rig": {"mesh": str, "markers": str, "anchors": str, "units": str},
-    "examples": {"meshes": _PATHS, "sequence": str, "sequence_stride": int},
+    "examples": {"meshes": _PATHS, "sequence": str, "sequence_stride": int, "sequence_frames": list},
     "shell": {k: type(v) for k, v in asdict(ShellConfig()).items()},
     "features": {"graph": str},
     "psd": {k: type(v) for k, v in asdict(PsdConfig()).items()},
@@ -147,7 +150,8 @@ _REGION_TYPES = {"vertices": str, "template": list, "frames": list}
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm",
-             "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1, "graph": "auto",
+             "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1,
+             "sequence_frames": [0, 80], "graph": "auto",
              "landmarks": "landmarks68.csv"}
 
 
@@ -192,6 +196,10 @@ def load_config(path: str | Path) -> Config:
         meshes = [meshes]
     if examples.get("sequence_stride", 1) < 1:
         raise InputError(f"[examples] sequence_stride = {examples['sequence_stride']} must be ≥ 1", path=path)
+    frames = _frame_range(examples.get("sequence_frames"), path)
+    if frames is not None and not examples.get("sequence"):
+        raise InputError(f"[examples] sequence_frames = {_toml(frames)} without a sequence", path=path,
+                         hint="set [examples] sequence = \"take.npz\" or remove sequence_frames")
     features = _typed_table(raw, "features", path)
     video = _typed_table(raw, "video", path)
     shell = _section(ShellConfig, raw.get("shell", {}), path, "shell")
@@ -228,6 +236,7 @@ def load_config(path: str | Path) -> Config:
         example_meshes=[str(base / m) for m in meshes],
         sequence=rel(examples.get("sequence")),
         sequence_stride=examples.get("sequence_stride", 1),
+        sequence_frames=frames,
         graph=features.get("graph", "auto"),
         shell=shell,
         psd=psd,
@@ -235,6 +244,19 @@ def load_config(path: str | Path) -> Config:
         appearance=_appearance(raw, path) if "appearance" in raw else None,
         landmarks=rel(video.get("landmarks")),
     )
+
+
+def _frame_range(value, path: Path) -> list | None:
+    """``[examples] sequence_frames``: [first, stop), two integers with 0 ≤ first < stop, or None."""
+    if value is None:
+        return None
+    if len(value) != 2 or not all(isinstance(v, int) for v in value) or not 0 <= value[0] < value[1]:
+        fixed = [int(v) for v in value] if len(value) == 2 and all(float(v).is_integer() for v in value) else None
+        raise InputError(f"[examples] sequence_frames = {_toml(value)}, expected [first, stop): two integers with "
+                         "0 ≤ first < stop (the sequence's rows first … stop − 1)", path=path,
+                         hint=f"write sequence_frames = {_toml(fixed)}" if fixed and 0 <= fixed[0] < fixed[1]
+                         else "e.g. sequence_frames = [0, 80] trains on rows 0–79")
+    return list(value)
 
 
 def _appearance(raw: dict, path: Path) -> AppearanceConfig:

@@ -13,6 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from facepipe.errors import InputError
+from facepipe.parallel import serial_blas
 from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
 from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
 from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
@@ -273,10 +274,11 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
     alpha = edge_weight_matrix(edge_index, edge_weight, len(geo.edges))
     gate = None
     if cfg.novelty_tau > 0 and len(poses) > 1:
-        gate = novelty_gate(features[1:], edge_distances(handle_distances, geo.edges), alpha,
-                            cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)),
-                            example_displacements=poses[1:, handles] - rest[handles],
-                            marker_distance=handle_distances, edges=geo.edges)
+        with serial_blas():  # an SVD per site
+            gate = novelty_gate(features[1:], edge_distances(handle_distances, geo.edges), alpha,
+                                cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)),
+                                example_displacements=poses[1:, handles] - rest[handles],
+                                marker_distance=handle_distances, edges=geo.edges)
     large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
     lap("weights")
     methods = ["psd", "wpsd"] if len(poses) > 1 else []

@@ -213,9 +213,8 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         digest.update(file_digest)
     if load_examples:
         if config.sequence is not None:
-            seq = load_sequence(config.sequence, mesh, config.sequence_stride)
-            names += [f"{config.sequence.stem}:{i}" for i in range(0, seq.shape[0] * config.sequence_stride,
-                                                                     config.sequence_stride)]
+            seq, rows = load_sequence(config.sequence, mesh, config.sequence_stride, config.sequence_frames)
+            names += [f"{config.sequence.stem}:{i}" for i in rows]
             poses += list(seq)
             digest.update(Path(config.sequence).read_bytes())
         if not poses and config.psd.method != "none":
@@ -241,27 +240,37 @@ def _read_examples(paths: list[Path]) -> list:
     return out
 
 
-def load_sequence(path: Path, mesh: Mesh, stride: int = 1) -> np.ndarray:
-    """Frames of a captured take with truth (.npz with ``positions`` (T, V, 3)), in head space.
+def load_sequence(path: Path, mesh: Mesh, stride: int = 1, frames: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Frames of a captured take with truth (.npz with ``positions`` (T, V, 3)), in head space,
+    and their rows in the file.
 
-    Where the file has ``rotation``/``translation`` of the head, they are removed.
+    ``frames`` = [first, stop) keeps rows first … stop − 1 (then every ``stride``-th of them);
+    where the file has ``rotation``/``translation`` of the head, they are removed.
     """
     if not Path(path).is_file():
         raise InputError("[examples] sequence file not found", path=path)
     try:
         data = np.load(path)
-        positions = np.asarray(data["positions"], dtype=np.float64)[::stride]
+        n_rows = data["positions"].shape[0]
+        first, stop = frames if frames is not None else (0, n_rows)
+        if stop > n_rows:
+            raise InputError(f"[examples] sequence_frames = [{first}, {stop}] reaches past the sequence's "
+                             f"{n_rows} frames", path=path, hint=f"use a stop of at most {n_rows}")
+        rows = np.arange(first, stop, stride)
+        positions = np.asarray(data["positions"][first:stop:stride], dtype=np.float64)
     except KeyError:
         raise InputError("the sequence .npz has no 'positions' array", path=path) from None
+    except InputError:
+        raise
     except Exception as exc:
         raise InputError(f"cannot read the sequence: {exc}", path=path) from None
     if positions.ndim != 3 or positions.shape[1:] != (mesh.n_vertices, 3):
         raise InputError(f"positions have shape {positions.shape}, expected (frames, {mesh.n_vertices}, 3)",
                          path=path)
     if "rotation" in data and "translation" in data:
-        rot = np.asarray(data["rotation"], dtype=np.float64)[::stride]
-        trans = np.asarray(data["translation"], dtype=np.float64)[::stride]
+        rot = np.asarray(data["rotation"], dtype=np.float64)[rows]
+        trans = np.asarray(data["translation"], dtype=np.float64)[rows]
         positions = np.einsum("tvi,tij->tvj", positions - trans[:, None, :], rot)
-    for i, frame in enumerate(positions):
-        check_pose(mesh, frame, f"{path} (frame {i * stride})")
-    return positions
+    for i, frame in zip(rows, positions):
+        check_pose(mesh, frame, f"{path} (frame {i})")
+    return positions, rows

@@ -33,12 +33,13 @@ from __future__ import annotations
 import copy
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 
 from facepipe.errors import InputError
-from facepipe.parallel import map_blocks
+from facepipe.parallel import map_blocks, serial_blas
 from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
 from facepipe.core.shell import ShellParts, marker_spacing, shell_displacements
 from facepipe.core.tangent_frames import FramePatch, frame_neighbors, to_local
@@ -90,44 +91,68 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     shell_rows = shell_table(shell_errors, default["k_stretch"], limit)
     best_k = min((r for r in shell_rows if r["accepted"]), key=lambda r: (r["large_rms"], r["k_stretch"]))["k_stretch"]
 
-    # ---- stage 2: β, λ, τ and P by leaving whole expressions out
-    splits = expression_splits(names, tune.folds)
+    # ---- stage 2: β, λ, τ and P by leaving whole expressions out (and, with a training
+    # performance, blocks of its frames)
+    n_frames = sequence_pose_count(cfg, names)
+    mesh_names = names[:len(names) - n_frames]
+    time_splits = time_block_splits(len(mesh_names), n_frames, tune.folds) \
+        if n_frames >= MIN_FRAMES_PER_BLOCK * tune.folds else []
+    expression_ok = len(mesh_names) >= 3 and len(set(expression_groups(mesh_names).tolist())) >= 2
+    splits = time_splits + (expression_splits(mesh_names, tune.folds) if expression_ok else [])
     distances = geodesics.finish() if geodesics is not None else \
         geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
     max_poses = min(max(tune.max_poses, default["poses"]), len(names))
     # β shapes WPSD's per-vertex distances only; PSD has one distance per pose
     beta_values = _with_unique(tune.beta_scale if cfg.psd.method == "wpsd" else [], default["beta_scale"])
-    smooth_values = _with_unique(tune.smoothing, default["smoothing"])
+    # λ regularises square (interpolation) systems only: a least-squares fit does not depend on it
+    smooth_values = _with_unique(tune.smoothing if cfg.psd.fit == "interpolate" else [], default["smoothing"])
     tau_values = _with_unique(tune.novelty_tau, default["novelty_tau"])
     grid = detail_grid(best_k, default, beta_values, smooth_values)
     alphas = _sample_edge_weights(distances, geo, sample, beta_values, cfg.psd)
     details = {k: sampled_details[k] for k in {g[0] for g in grid}}
     # held-out error without details
     large = {k: rms_per_pose(np.zeros_like(details[k][1:]), details[k][1:]) for k in details}
-    errors, dropped = _cross_validate_details(
-        cfg.psd, features, details, alphas, splits, grid, tau_values, default, best_k, max_poses,
-        site_distance=edge_distances(distances[:, geo.handles], geo.edges),
-        radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)),
-        moves=poses[:, geo.handles] - geo.rest[geo.handles], marker_distance=distances[:, geo.handles],
-        edges=geo.edges, say=say)
+    # thousands of small SVDs and solves per split, shared among facepipe's threads (serial_blas)
+    with serial_blas():
+        errors, dropped = _cross_validate_details(
+            cfg.psd, features, details, alphas, splits, grid, tau_values, default, best_k, max_poses,
+            site_distance=edge_distances(distances[:, geo.handles], geo.edges),
+            radius=cfg.psd.novelty_radius * float(np.median(geo.rest_lengths)),
+            moves=poses[:, geo.handles] - geo.rest[geo.handles], marker_distance=distances[:, geo.handles],
+            edges=geo.edges, say=say,
+            drop_on=np.concatenate([h for _, h in time_splits]) - 1 if time_splits else None)
     t_details = time.perf_counter() - t0 - t_shell
     default_key = (default["k_stretch"], default["beta_scale"], default["smoothing"], default["novelty_tau"])
     # a fold whose training set is smaller than P keeps its largest basis for the larger P
     errors = {key: _fill_forward(e) for key, e in errors.items()}
-    rows, default_row = detail_table(errors, large, default_key, default["poses"], max_poses, limit)
-    chosen = choose_candidate(rows, errors, default_row)
-    chosen = dict(chosen, large_cv_rms=float(large[chosen["k_stretch"]].mean()))
+    mesh_cols = np.arange(len(mesh_names)) if expression_ok else np.zeros(0, dtype=np.int64)
+    if time_splits:
+        frame_cols = np.arange(len(mesh_names), len(names))
+        rows, default_row = performance_table(errors, large, frame_cols, mesh_cols, default_key, default["poses"],
+                                              max_poses, limit)
+        chosen = choose_for_performance(rows)
+        validation = "time blocks + expressions" if expression_ok else "time blocks"
+    else:
+        errors = {key: e[:, mesh_cols] for key, e in errors.items()}
+        large = {k: e[mesh_cols] for k, e in large.items()}
+        rows, default_row = detail_table(errors, large, default_key, default["poses"], max_poses, limit)
+        chosen = choose_candidate(rows, errors, default_row)
+        chosen = dict(chosen, large_cv_rms=float(large[chosen["k_stretch"]].mean()))
+        validation = "expressions"  # whole expressions left out: new expressions
     # harm only where the details validate worse than the large scale alone by more than a held-out
     # example may regress: where the novelty gate fades them on the held-out (new) expressions they
     # are neutral there, and they still carry the mixtures of the known expressions, which leaving
-    # whole expressions out does not measure
+    # whole expressions out does not measure (held-out time blocks of a performance do: with one,
+    # this is judged on them)
     harm = chosen["cv_rms"] > limit * chosen["large_cv_rms"]
     return {
         "method": cfg.psd.method,
         "vertices": tune.vertices or "all",
         "sample_vertices": int(len(sample)),
         "examples": names,
-        "validation": "expressions",  # whole expressions left out: new expressions
+        "validation": validation,
+        "time_blocks": [[names[h[0] - 1], names[h[-1] - 1]] for _, h in time_splits],
+        "expression_folds": len(splits) - len(time_splits),
         "folds": [[names[j - 1] for j in held] for _, held in splits],
         "stopped_early": [{"k_stretch": k, "beta_scale": b, "smoothing": s, "after_folds": n}
                           for (k, b, s), n in dropped.items()],
@@ -155,11 +180,53 @@ def validation_obstacle(cfg, names: list[str]) -> str | None:
         return "[psd] method is 'none': there are no details to validate"
     if cfg.psd.method == "local_strain":
         return "[psd] method is 'local_strain': its kernel width and ridge are not validated yet"
-    if len(names) < 3:
-        return f"validation needs at least 3 example poses to cross-validate, the rig has {len(names)}"
-    if len(set(expression_groups(names).tolist())) < 2:
+    n_frames = sequence_pose_count(cfg, names)
+    if n_frames >= MIN_FRAMES_PER_BLOCK * cfg.tune.folds:
+        return None  # held-out time blocks of the performance validate
+    meshes = names[:len(names) - n_frames]
+    if len(meshes) < 3:
+        return (f"validation needs at least 3 example meshes to cross-validate (the rig has {len(meshes)}) or a "
+                f"training performance of at least {MIN_FRAMES_PER_BLOCK * cfg.tune.folds} frames "
+                f"({cfg.tune.folds} time blocks of {MIN_FRAMES_PER_BLOCK})")
+    if len(set(expression_groups(meshes).tolist())) < 2:
         return "validation leaves whole expressions out and the examples are all one expression (left/right halves)"
     return None
+
+
+# a held-out time block has at least this many frames (else the performance is not held out in blocks)
+MIN_FRAMES_PER_BLOCK = 4
+
+
+def sequence_pose_count(cfg, names: list[str]) -> int:
+    """How many of the examples (the last ones) are frames of the config's ``[examples] sequence``."""
+    if cfg.sequence is None:
+        return 0
+    prefix = f"{Path(cfg.sequence).stem}:"
+    count = 0
+    for name in reversed(names):
+        if not name.startswith(prefix):
+            break
+        count += 1
+    return count
+
+
+def time_block_splits(n_meshes: int, n_frames: int, blocks: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(training, held-out) pose indices that hold out contiguous blocks of a performance's frames
+    (new mixtures of the known expressions). Poses: 0 the rest pose, 1 … n_meshes the example
+    meshes, then the frames in take order.
+
+    A block is held out whole, and the frames within a quarter of a block's length on either side
+    of it are left out of its training set too, so that no frame is validated by its neighbours
+    (consecutive frames of a take are nearly the same pose). Every frame is held out once."""
+    edges = np.linspace(0, n_frames, blocks + 1).round().astype(np.int64)
+    margin = max(1, int(n_frames // blocks) // 4)
+    frames = np.arange(n_frames)
+    splits = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        keep = frames[(frames < a - margin) | (frames >= b + margin)]
+        train = np.concatenate([np.arange(n_meshes + 1), n_meshes + 1 + keep])
+        splits.append((train, n_meshes + 1 + frames[a:b]))
+    return splits
 
 
 def check_tunable(cfg, n_examples: int, names: list[str] | None = None) -> None:
@@ -279,7 +346,8 @@ def expression_splits(names: list[str], folds: int) -> list[tuple[np.ndarray, np
 def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: dict, splits: list, grid: list,
                             tau_values: list[float], default: dict, best_k: float, max_poses: int, *,
                             site_distance: np.ndarray, radius: float, moves: np.ndarray,
-                            marker_distance: np.ndarray, edges: np.ndarray, say) -> tuple[dict, dict]:
+                            marker_distance: np.ndarray, edges: np.ndarray, say,
+                            drop_on: np.ndarray | None = None) -> tuple[dict, dict]:
     """The held-out error of every example per (k, β, λ, τ) and basis size.
 
     For each (training, held-out) split the greedy basis grows on the training poses and
@@ -290,7 +358,8 @@ def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: di
     The novelty gate depends on the poses' strain and handle motion alone (not on k, β or λ), and
     τ only rescales its output: its non-negative fits run once per split, and every β (how sites
     reach vertices) and τ is scored on them. ``moves`` (E + 1, H, 3): the poses' handle displacements, ``marker_distance``
-    (H, H) and ``edges`` (F, 2) for the gate's motion part.
+    (H, H) and ``edges`` (F, 2) for the gate's motion part. ``drop_on``: the examples (indices
+    into the E) whose errors decide the early drop (default: all).
     """
     n_poses = features.shape[0]
     errors: dict[tuple, np.ndarray] = {}
@@ -331,6 +400,8 @@ def _cross_validate_details(psd, features: np.ndarray, details: dict, alphas: di
         map_blocks(validate, list(live))
         count[1] = count[0]
         seen = np.concatenate([h for _, h in splits[:i + 1]]) - 1
+        if drop_on is not None:
+            seen = np.intersect1d(seen, drop_on)
         for candidate in _clearly_worse(errors, live, seen, keep=default_shell) if i + 1 < len(splits) else []:
             live.remove(candidate)
             dropped[candidate] = i + 1
@@ -411,6 +482,44 @@ def choose_candidate(rows: list[dict], errors: dict, default_row: dict) -> dict:
 
     return min((r for r in accepted if tied(r) and r["cv_rms"] <= default_row["cv_rms"]),
                key=lambda r: (-r["poses"], r["novelty_tau"], round(r["cv_rms"], 12)))
+
+
+def performance_table(errors: dict, large: dict, frame_cols: np.ndarray, mesh_cols: np.ndarray, default_key: tuple,
+                      default_poses: int, max_poses: int, limit: float) -> tuple[list[dict], dict]:
+    """A row per (k, β, λ, τ) and basis size when a performance's frames are held out in time blocks:
+    ``cv_rms`` is their mean error (new mixtures), ``expression_cv_rms`` the held-out expressions'
+    (new expressions) and ``worst_expression_vs_large`` the largest ratio of a held-out
+    expression's error to its large scale alone. Accepted (no harm) when that ratio is within
+    ``limit`` (every row, without expressions to hold out). Returns the rows and the defaults' row."""
+    rows = []
+    for (k, b, s, t), e in errors.items():
+        frame_large = large[k][frame_cols]
+        for P in range(1, max_poses + 1):
+            row = {"k_stretch": k, "beta_scale": b, "smoothing": s, "novelty_tau": t, "poses": P,
+                   "cv_rms": float(e[P, frame_cols].mean()), "large_cv_rms": float(frame_large.mean()),
+                   "worst_vs_large": float(np.max(e[P, frame_cols] / frame_large))}
+            if len(mesh_cols):
+                ratio = e[P, mesh_cols] / large[k][mesh_cols]
+                row.update(expression_cv_rms=float(e[P, mesh_cols].mean()),
+                           expression_large_rms=float(large[k][mesh_cols].mean()),
+                           worst_expression_vs_large=float(ratio.max()), worst_expression=int(mesh_cols[ratio.argmax()]))
+            row["accepted"] = bool(row.get("worst_expression_vs_large", 0.0) <= limit)
+            rows.append(row)
+    default_row = next(r for r in rows if _key(r) + (r["poses"],) == default_key + (default_poses,))
+    return rows, default_row
+
+
+def choose_for_performance(rows: list[dict]) -> dict:
+    """The row with the smallest error on the held-out time blocks (new mixtures of the known
+    expressions: the common use) among those that do no harm on held-out expressions; ties go to
+    the larger basis, then the stronger gate. Where no candidate does no harm, the one that does
+    least (``no_harm`` False in the row returned): details that help on new mixtures are never
+    switched off for failing to extrapolate."""
+    accepted = [r for r in rows if r["accepted"]]
+    if accepted:
+        best = min(accepted, key=lambda r: (round(r["cv_rms"], 12), -r["poses"], r["novelty_tau"]))
+        return dict(best, no_harm=True)
+    return dict(min(rows, key=lambda r: (r["worst_expression_vs_large"], r["cv_rms"])), no_harm=False)
 
 
 def _key(row: dict) -> tuple:
