@@ -153,7 +153,7 @@ def test_bad_caches_exit_2(rig, tmp_path, capsys):
     model = rig.models["wpsd"]
 
     def replay(path, *extra):
-        code = run_cli("replay", path, "-m", model, "-o", tmp_path / "out", "-q", *extra)
+        code = run_cli("replay", path, "-m", model, "-o", tmp_path / "out", "-q", "--force", *extra)
         return code, capsys.readouterr().err
 
     write_mdd(tmp_path / "fewer.mdd", large[:, :-3], times)

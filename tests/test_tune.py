@@ -138,7 +138,7 @@ def test_tune_refuses_what_it_cannot_validate(sample):
         tune_rig(rig, TuneConfig(**SMALL))
     rig = load_rig(sample["config"])
     rig.example_positions, rig.example_names = rig.example_positions[:2], rig.example_names[:2]
-    with pytest.raises(InputError, match="at least 3 example poses"):
+    with pytest.raises(InputError, match="at least 3 example meshes"):
         tune_rig(rig, TuneConfig(**SMALL))
 
 
@@ -234,7 +234,7 @@ def test_fit_warns_and_keeps_the_defaults_when_the_examples_cannot_validate(samp
     cfg.write_text(text.replace(pattern, "meshes = " + json.dumps(first_two)), encoding="utf-8")
     assert run_cli("fit", cfg, "-o", tmp_path / "fit.npz") == 0
     out = capsys.readouterr().out
-    assert "warning: parameters not validated" in out and "at least 3 example poses" in out
+    assert "warning: parameters not validated" in out and "at least 3 example meshes" in out
     report = json.loads((tmp_path / "fit.json").read_text())
     assert report["validation"]["validated"] is False and "tune" not in report
 

@@ -93,7 +93,7 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
             s["out_index"], out["final"], out.get("large", out["final"]),
             out["final"] if self._final_vc is None else self._final_vc,
-            np.int32(flags))
+            np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv))
         ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1),
                                                wait_for=uploads + [ev_large])
         return {"large_scale": ev_large, "frames_fine_scale": ev_detail, "last": ev_detail}
