@@ -61,7 +61,7 @@ def write_takes(take_csv: Path, out_dir: Path, count: int, frames: int | None = 
 def one_process(takes: list[Path], model_path: Path, out: Path, backend: str) -> None:
     """Replay every take in this process, loading the model and building the evaluator once."""
     from facepipe.io.model_file import load_model
-    from facepipe.pipeline.batch import ReplayOptions, make_evaluator, replay_into
+    from facepipe.batch.jobs import ReplayOptions, make_evaluator, replay_into
 
     options = ReplayOptions(backend=backend)
     model = load_model(model_path)

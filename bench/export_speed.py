@@ -70,12 +70,11 @@ def run_export_bench(work_dir: Path, mesh_path: Path | None = None, n_frames: in
     dict: mesh (name, vertices, polygons, tiles), per format {bytes, seconds, megabytes_per_second,
     ms_per_frame}, the raster set-up time, and ``obj_vs_trimesh`` (trimesh's time / ours).
     """
-    from facepipe.export.mdd import write_mdd
-    from facepipe.export.pc2 import write_pc2
-    from facepipe.export.usd import write_usd
     from facepipe.export.common import write_obj_sequence
     from facepipe.export.exr_maps import write_displacement_maps
     from facepipe.io.mesh_read import load_mesh
+    from facepipe.io.point_caches import write_mdd, write_pc2
+    from facepipe.io.usd_file import write_usd
     from facepipe.export.uv_raster import mesh_raster
 
     work_dir = Path(work_dir)
@@ -107,9 +106,9 @@ def run_export_bench(work_dir: Path, mesh_path: Path | None = None, n_frames: in
     record("obj_trimesh", trimesh_all, work_dir / "trimesh")
     out["obj_vs_trimesh"] = out["obj_trimesh"]["seconds"] / out["obj"]["seconds"]
     log(f"OBJ sequence: {out['obj_vs_trimesh']:.1f}x faster than trimesh")
-    record("mdd", lambda: write_mdd(work_dir / "a.mdd", pos, times, force=True), work_dir / "a.mdd")
-    record("pc2", lambda: write_pc2(work_dir / "a.pc2", pos, times, 30.0, force=True), work_dir / "a.pc2")
-    record("usd", lambda: write_usd(work_dir / "a.usdc", mesh, pos, times, 30.0, force=True), work_dir / "a.usdc")
+    record("mdd", lambda: write_mdd(work_dir / "a.mdd", pos, times), work_dir / "a.mdd")
+    record("pc2", lambda: write_pc2(work_dir / "a.pc2", pos, times, 30.0), work_dir / "a.pc2")
+    record("usd", lambda: write_usd(work_dir / "a.usdc", mesh, pos, times, 30.0), work_dir / "a.usdc")
 
     if mesh.uvs is not None:
         t0 = time.perf_counter()

@@ -55,8 +55,8 @@ def smoothed_displacements(rest: np.ndarray, faces: np.ndarray, positions: np.nd
 
 
 def ict_cases(work: Path, out: dict) -> None:
-    from facepipe.export.pc2 import write_pc2
     from facepipe.io.model_file import load_model
+    from facepipe.io.point_caches import write_pc2
 
     model_path = work / "ict.npz"
     if not model_path.is_file():
@@ -81,7 +81,7 @@ def ict_cases(work: Path, out: dict) -> None:
     tt = np.load(KIT / "train_truth.npz")
     truth = tt["positions"].astype(np.float64)
     smooth = smoothed_displacements(model.rest.astype(np.float64), model.triangles.astype(np.int64), truth)
-    write_pc2(work / "smooth.pc2", smooth.astype(np.float32), tt["time"], 30.0, force=True)
+    write_pc2(work / "smooth.pc2", smooth.astype(np.float32), tt["time"], 30.0)
     facepipe("replay", work / "smooth.pc2", "-m", model_path, "-o", work / "take_smooth", "-q")
     cache_err = face_rms(smooth, truth)
     take_err = face_rms(np.load(work / "take_smooth" / "positions.npy"), truth)
@@ -96,9 +96,9 @@ def ict_cases(work: Path, out: dict) -> None:
 def transfer_case(work: Path, out: dict, face: str = "face_a") -> None:
     """The kit's model transferred onto another identity, that face's own smoothed-truth cache replayed."""
     from facepipe.core.rbf_morph import farthest_point_subset
-    from facepipe.export.pc2 import write_pc2
     from facepipe.io.mesh_read import load_mesh
     from facepipe.io.model_file import load_model
+    from facepipe.io.point_caches import write_pc2
 
     source = load_model(work / "ict.npz")
     neutral = source.rest.astype(np.float64)
@@ -115,7 +115,7 @@ def transfer_case(work: Path, out: dict, face: str = "face_a") -> None:
     tt = np.load(KIT / "train_truth.npz")
     truth = X + (tt["positions"].astype(np.float64) - neutral)  # expressions do not depend on the identity
     smooth = smoothed_displacements(X, source.triangles.astype(np.int64), truth)
-    write_pc2(work / f"{face}_smooth.pc2", smooth.astype(np.float32), tt["time"], 30.0, force=True)
+    write_pc2(work / f"{face}_smooth.pc2", smooth.astype(np.float32), tt["time"], 30.0)
     facepipe("replay", work / f"{face}_smooth.pc2", "-m", model_path, "-o", work / f"take_{face}", "-q")
     cache_err = face_rms(smooth, truth)
     take_err = face_rms(np.load(work / f"take_{face}" / "positions.npy"), truth)
@@ -133,7 +133,7 @@ def sample_case(work: Path, out: dict) -> None:
     facepipe("bake", rig / "sample.toml", "-o", work / "sample.npz", "--no-tune", "-q")
     facepipe("replay", rig / "take_smooth.mdd", "-m", work / "sample.npz", "-o", work / "sample_take", "-q")
     truth = np.load(rig / "take_truth.npz")["positions"].astype(np.float64)
-    from facepipe.export.mdd import read_mdd
+    from facepipe.io.point_caches import read_mdd
 
     cache_err = face_rms(read_mdd(rig / "take_smooth.mdd")[1], truth)
     take_err = face_rms(np.load(work / "sample_take" / "positions.npy"), truth)

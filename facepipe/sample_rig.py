@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from facepipe.io.atomic import atomic_open, atomic_path
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
-from facepipe.export.mdd import write_mdd
+from facepipe.io.point_caches import write_mdd
 from facepipe.io.mesh_write import format_obj_faces, obj_bytes, save_obj
 
 # --- the surface: the front of an ellipsoid, in cm (+x subject's left, +y up, +z out) -------
@@ -663,7 +663,7 @@ def write_sample_rig(out_dir, n_vertices: int = 20000, n_examples: int = 8, n_fr
                  expressions=np.array(rig.example_names))
     # the take's motion without the wrinkles, as a rig would export it (replay it with the model to
     # add the details: facepipe replay take_smooth.mdd -m model.npz -o out)
-    write_mdd(paths["smooth_cache"], rig.take_smooth, rig.take_times, force=True)
+    write_mdd(paths["smooth_cache"], rig.take_smooth, rig.take_times)
     _write_text(paths["config"], _CONFIG.format(max_poses=len(rig.example_names)))
 
     info: dict = {k: str(v) for k, v in paths.items()}

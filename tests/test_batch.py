@@ -19,7 +19,7 @@ import pytest
 
 from bench.batch_speed import write_takes
 from facepipe.errors import InputError
-from facepipe.pipeline.batch import ATTEMPTS_NAME, ReplayOptions, expand_takes, plan_jobs, worker_threads
+from facepipe.batch.jobs import ATTEMPTS_NAME, ReplayOptions, expand_takes, plan_jobs, worker_threads
 from tests.conftest import run_cli
 
 distributed = pytest.importorskip("distributed")
@@ -142,7 +142,7 @@ def test_threads_share_the_host_among_its_slots(monkeypatch):
 
     monkeypatch.delenv("FACEPIPE_THREADS", raising=False)
     monkeypatch.setattr(parallel, "available_cpus", lambda: 16)
-    monkeypatch.setattr("facepipe.pipeline.batch._this_host", lambda: "10.0.0.7")
+    monkeypatch.setattr("facepipe.batch.jobs._this_host", lambda: "10.0.0.7")
     assert worker_threads({"10.0.0.7": 4, "10.0.0.8": 1}) == 4
     assert worker_threads({"10.0.0.7": 32}) == 1
     monkeypatch.setenv("FACEPIPE_THREADS", "3")

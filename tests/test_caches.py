@@ -8,12 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facepipe.export.mdd import write_mdd
-from facepipe.export.pc2 import write_pc2
-from facepipe.export.usd import write_usd
 from facepipe.errors import InputError
 from facepipe.io.model_file import load_model
+from facepipe.io.point_caches import write_mdd, write_pc2
 from facepipe.io.replay_folder import frame_rate, is_uniform, time_codes
+from facepipe.io.usd_file import write_usd
 from tests.test_export import rig_mesh, sequence
 from tests.conftest import run_cli as run
 

@@ -10,10 +10,9 @@ import pytest
 
 from facepipe.core.detail_bands import DetailBands, band_sums, bands_to_add
 from facepipe.errors import InputError
-from facepipe.export.mdd import read_mdd, write_mdd
-from facepipe.export.pc2 import read_pc2, write_pc2
 from facepipe.io.mesh_write import save_obj
 from facepipe.io.model_file import load_model
+from facepipe.io.point_caches import read_mdd, read_pc2, write_mdd, write_pc2
 from facepipe.mocap.mesh_cache import read_mesh_cache
 from facepipe.mocap.registry import mesh_cache_format
 from tests.conftest import grid, ict_or_skip, run_cli
@@ -126,7 +125,7 @@ def test_large_scale_cache_replays_to_the_marker_replay(rig, tmp_path):
 
 
 def test_usd_and_obj_sequence_match_mdd(rig, tmp_path):
-    from facepipe.export.usd import write_usd
+    from facepipe.io.usd_file import write_usd
 
     _, large, final, times = _replay_large(rig)
     model = load_model(rig.models["wpsd"])

@@ -1,6 +1,6 @@
 """``facepipe batch``: replay (and export) many takes against one model on a Dask cluster.
 
-The command parses, hands the takes to :func:`facepipe.pipeline.batch.run_batch` and reports;
+The command parses, hands the takes to :func:`facepipe.batch.jobs.run_batch` and reports;
 its exit status is 0 when every take is done (replayed now or already), 2 when some failed (they
 are listed), 1 when the cluster failed.
 """
@@ -64,8 +64,8 @@ def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler
     them); a take whose worker dies runs again elsewhere; a bad take is reported and the rest go on.
     Exit status: 0 every take done, 2 some failed (listed), 1 the cluster failed.
     """
-    from facepipe.pipeline.batch import ReplayOptions, run_batch
-    from facepipe.pipeline.cluster import ClusterSpec
+    from facepipe.batch.jobs import ReplayOptions, run_batch
+    from facepipe.batch.cluster import ClusterSpec
 
     rep = _reporter(ctx, quiet, verbose)
     checks = [(workers is None or workers >= 1, "--workers must be at least 1"), (chunk >= 1, "--chunk must be at least 1"),

@@ -1,9 +1,7 @@
-"""What the point caches of a replay share (USD, MDD, PC2: :mod:`facepipe.export.usd`,
-:mod:`facepipe.export.mdd`, :mod:`facepipe.export.pc2`).
-
-All three keep the rest mesh's vertex order, so they play back on the rest mesh (OBJ/FBX of
-the rig) in Maya, Houdini, Blender, 3ds Max or a USD viewer. Each file is written under a
-temporary name and renamed when complete.
+"""What the point cache exports of a replay share (USD, MDD, PC2: :mod:`facepipe.export.usd`,
+:mod:`facepipe.export.mdd`, :mod:`facepipe.export.pc2`): the file a destination names, the
+no-overwrite/resume decision, the progress bar and the report. The files themselves are written
+by :mod:`facepipe.io.point_caches` and :mod:`facepipe.io.usd_file`.
 """
 
 from __future__ import annotations
@@ -45,35 +43,6 @@ def prepare_cache(path: Path, force: bool, resume: bool) -> bool:
         remove_partial_files([path])
         return not path.exists()
     return True
-
-
-def check_positions(positions, n_vertices: int | None, path: Path) -> None:
-    """InputError unless ``positions`` is (frames ≥ 1, V, 3) (``n_vertices`` V, if given)."""
-    if getattr(positions, "ndim", None) != 3 or positions.shape[2] != 3 or (
-            n_vertices is not None and positions.shape[1] != n_vertices):
-        raise InputError(f"positions have shape {getattr(positions, 'shape', None)}, expected (frames, "
-                         f"{n_vertices if n_vertices is not None else 'V'}, 3)", path=path,
-                         hint="export positions replayed with this rig's model")
-    if positions.shape[0] == 0:
-        raise InputError("the replay has no frames", path=path)
-
-
-def cache_frame(positions, t: int, path: Path) -> np.ndarray:
-    """Frame ``t`` as float32; InputError naming the first vertex that is not finite."""
-    frame = np.asarray(positions[t], dtype=np.float32)
-    if not np.isfinite(frame).all():
-        bad = int(np.flatnonzero(~np.isfinite(frame).all(axis=1))[0])
-        raise InputError(f"frame index {t} has NaN or infinite positions, first vertex {bad}", path=path,
-                         hint="check the replay report for that frame (e.g. lost markers)")
-    return frame
-
-
-def write_frames(fh, positions, path: Path, dtype: str, progress=None) -> None:
-    """Every frame's positions as raw ``dtype`` values (the body of MDD and PC2 files), checked."""
-    for t in range(len(positions)):
-        fh.write(cache_frame(positions, t, path).astype(dtype).tobytes())
-        if progress is not None:
-            progress(1)
 
 
 #: ``write(path, positions, fps, progress) -> Path | None`` (None: ``resume`` kept the file).

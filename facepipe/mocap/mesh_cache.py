@@ -2,7 +2,7 @@
 
 A DCC's keyframed or blend-shape rig exported as a point cache is a dense moving mesh in the
 rest mesh's vertex order. The formats' byte layouts live beside their writers
-(:mod:`facepipe.export.mdd`, :mod:`facepipe.export.pc2`, :mod:`facepipe.export.usd`); this module
+(:mod:`facepipe.io.point_caches` for MDD and PC2, :mod:`facepipe.io.usd_file`); this module
 turns what they read into a :class:`MeshCache` and checks it against the model: the vertex count,
 finite values, the units (the file's, else the rig's, converted) and that the first frame (or
 ``rest_frame``) is the model's rest mesh up to a rigid motion and an expression — a cache of
@@ -24,6 +24,7 @@ import numpy as np
 from facepipe.core.rigid import similarity_fit
 from facepipe.errors import InputError
 from facepipe.io.mesh_read import load_vertices
+from facepipe.io.point_caches import read_mdd, read_pc2
 from facepipe.io.replay_folder import frame_rate
 from facepipe.mocap.markers import known_unit_ratios, normalise_units, unit_factor
 from facepipe.mocap.registry import MeshCacheFormat, mesh_cache_format, register_mesh_cache
@@ -95,8 +96,6 @@ def _frames_from_times(times: np.ndarray, path: Path) -> tuple[np.ndarray, float
 
 def read_mdd_cache(path: Path, fps: float | None = None) -> MeshCache:
     """An MDD file (per-frame times; no units)."""
-    from facepipe.export.mdd import read_mdd
-
     times, positions = read_mdd(path)
     if positions.shape[0] > 1 and not (np.diff(times) > 0).all():
         i = int(np.flatnonzero(~(np.diff(times) > 0))[0]) + 1
@@ -108,8 +107,6 @@ def read_mdd_cache(path: Path, fps: float | None = None) -> MeshCache:
 
 def read_pc2_cache(path: Path, fps: float | None = None) -> MeshCache:
     """A PC2 file (start frame and frames between samples; no rate in seconds, no units)."""
-    from facepipe.export.pc2 import read_pc2
-
     start, step, positions = read_pc2(path)
     numbers = start + step * np.arange(positions.shape[0])
     frames = np.round(numbers).astype(np.int64)
@@ -120,7 +117,8 @@ def read_pc2_cache(path: Path, fps: float | None = None) -> MeshCache:
 
 def read_usd_cache(path: Path, fps: float | None = None, n_vertices: int | None = None) -> MeshCache:
     """A USD layer's time-sampled mesh (rate and units from the stage's metadata)."""
-    from facepipe.export.usd import read_usd
+    # imported when a USD cache is read: pxr takes a while to load, and every take read imports this module
+    from facepipe.io.usd_file import read_usd
 
     data = read_usd(path, n_vertices)
     rate = float(fps or data["fps"])

@@ -46,7 +46,7 @@ from facepipe.mocap import registry as take_registry
 from facepipe.mocap.cleaning import CleanOptions
 from facepipe.mocap.landmarks2d import is_landmark_take
 from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows
-from facepipe.pipeline.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
+from facepipe.batch.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
 from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
 
 STAMP_NAME = "batch_take.json"
