@@ -9,7 +9,9 @@ large-scale surface of those handles — so the large scale alone is right and a
 Prints, per novelty gate, the mean excess over the large scale and the worst frames.
 With a config that learns from a performance (``configs/ict_wrinkled.toml``) the take is built from
 the example meshes alone and the rig is the one fitted on the meshes and the performance.
-Usage: python -m bench.ict_resembling [CONFIG] [--no-tune] [--json PATH]
+``--tau`` also scores the strain + motion gate at other thresholds (on the same non-negative fits:
+τ only rescales their output), to tell how much of the harm the chosen τ lets through.
+Usage: python -m bench.ict_resembling [CONFIG] [--no-tune] [--tau T ...] [--json PATH]
 """
 
 import argparse
@@ -60,6 +62,7 @@ def main():
     ap.add_argument("config", nargs="?", default=str(ROOT / "configs" / "ict.toml"))
     ap.add_argument("--no-tune", action="store_true")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--tau", type=float, nargs="*", default=[], help="also score the gate at these thresholds")
     args = ap.parse_args()
     rig = load_rig(args.config)
     report = choose_parameters(rig, not args.no_tune)
@@ -78,15 +81,18 @@ def main():
     result = {"chosen": report.get("chosen"), "frames": len(head), "large_mean": float(e_large.mean())}
     print(f"{len(head)} frames ({example_meshes(rig)} example meshes × weights {WEIGHTS}); large scale mean "
           f"{e_large.mean():.5f} cm; values {report.get('chosen', 'of the config')}")
-    for name, confidence in (("no gate", np.ones(raw.shape[:2])), ("strain gate", strain.confidence(f)),
-                             ("strain + motion gate", gate.confidence(f, u))):
+    rho = gate.novelty(f, u)
+    at_tau = [(f"strain + motion, τ {t:g}", np.asarray(gate.alpha @ gate.site_confidence(rho, t).T).T)
+              for t in args.tau]
+    for name, confidence in [("no gate", np.ones(raw.shape[:2])), ("strain gate", strain.confidence(f)),
+                             ("strain + motion gate", np.asarray(gate.alpha @ gate.site_confidence(rho).T).T)] + at_tau:
         e = frame_errors(large + to_world(frames, raw * confidence[..., None]), truth, FACE)[0]
         excess = e - e_large
         worst = np.argsort(-excess)[:3]
         result[name] = {"mean": float(e.mean()), "worst_excess": float(excess.max()),
                         "frames_worse_0.002": int((excess > 0.002).sum()),
                         "frames_worse_0.01": int((excess > 0.01).sum())}
-        print(f"  {name:22s} mean {e.mean():.5f}  worst +{excess.max():.4f} cm  frames worse by >0.002: "
+        print(f"  {name:26s} mean {e.mean():.5f}  worst +{excess.max():.4f} cm  frames worse by >0.002: "
               f"{(excess > 0.002).sum():3d}, >0.01: {(excess > 0.01).sum():3d}  worst frames: "
               + ", ".join(f"{rig.example_names[i // len(WEIGHTS)]}×{WEIGHTS[i % len(WEIGHTS)]} +{excess[i]:.4f}"
                           for i in worst))
