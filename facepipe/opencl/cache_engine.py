@@ -7,7 +7,8 @@ device's vertex order and layout) where the ``large_scale`` kernel would have wr
 the same fused kernel — the details in the local frames of the cache's surface, the strain of the
 cache's handle vertices, the head's motion put back. The band of the details the cache already
 carries (:mod:`facepipe.core.detail_bands`) is left out on the host afterwards, where the chosen
-bands need it (a solve per chunk); when every band is added nothing is done on the host.
+bands need it (one multi-right-hand-side solve per chunk and band edge, with a factor made once
+per replay, in single precision); when every band is added nothing is done on the host.
 """
 
 from __future__ import annotations
@@ -110,9 +111,10 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
 
         def banded(start, final, large, normals):
             t0 = time.perf_counter()
-            large = np.array(large)
-            final = large + self.details.bands.combine(np.asarray(final, dtype=np.float64) - large, keep)
+            # in float32, the device's precision: the band solve is single precision too (DetailBands)
+            large = np.asarray(large, dtype=np.float32)
+            final = large + self.details.bands.combine(np.asarray(final, dtype=np.float32) - large, keep)
             self.stage_seconds["bands"] += time.perf_counter() - t0
-            sink(start, final.astype(np.float32), large if with_large else None, normals)
+            sink(start, final, large if with_large else None, normals)
 
         super().stream(head, banded, R, t, with_large=True, with_normals=with_normals)

@@ -139,7 +139,8 @@ class CacheDetails:
         if model.method == "none":
             return {"method": "none", "note": "the model has no details: the cache is written as it is"}
         spacing = float(model.meta.get("marker_spacing") or marker_spacing(model.rest, model.handle_vertices))
-        self.bands = DetailBands(model.rest.astype(np.float64), self.faces, spacing)
+        # single precision: the details are float32 in every output (see DetailBands)
+        self.bands = DetailBands(model.rest.astype(np.float64), self.faces, spacing, single=True)
         index = np.unique(np.linspace(0, cache.n_frames - 1, min(frames, cache.n_frames)).round().astype(int))
         B = model.B.astype(np.float64)
         rest = model.rest.astype(np.float64)
