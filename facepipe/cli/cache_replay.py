@@ -82,22 +82,9 @@ def _take_evaluator(rep, model, cache, pose, details, backend: str, device: str 
     """The OpenCL cache engine when asked for or (auto) when a device works, else ``details`` (NumPy)."""
     if backend == "numpy" or model.method == "none" or (details.keep is not None and not details.keep.any()):
         return details  # (no band added: the cache is written as it is, nothing to evaluate)
-    from facepipe.opencl import OpenCLUnavailable
+    from facepipe.cli.backend import opencl_or_fallback
     from facepipe.opencl.cache_engine import OpenCLCacheEvaluator
 
-    try:
-        evaluator = OpenCLCacheEvaluator(model, cache, pose, details, device=device, chunk=chunk)
-    except OpenCLUnavailable as exc:
-        if backend == "opencl":
-            raise
-        rep.say(f"note: {str(exc).splitlines()[0]}; replaying with the NumPy backend")
-        return details
-    except InputError:
-        raise
-    except Exception as exc:  # a driver that lists a device but cannot build or run the kernels
-        if backend == "opencl":
-            raise
-        rep.say(f"note: OpenCL failed ({exc.__class__.__name__}: {exc}); replaying with the NumPy backend")
-        return details
-    rep.say(f"OpenCL device: {evaluator.device}")
-    return evaluator
+    return opencl_or_fallback(
+        rep, backend, lambda: OpenCLCacheEvaluator(model, cache, pose, details, device=device, chunk=chunk),
+        lambda: details)

@@ -142,24 +142,11 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
 
     if backend == "numpy":
         return NumpyEvaluator(model)
-    from facepipe.opencl import OpenCLEvaluator, OpenCLUnavailable
+    from facepipe.cli.backend import opencl_or_fallback
+    from facepipe.opencl import OpenCLEvaluator
 
-    try:
-        evaluator = OpenCLEvaluator(model, device=device, chunk=chunk)
-    except OpenCLUnavailable as exc:
-        if backend == "opencl":
-            raise
-        rep.say(f"note: {str(exc).splitlines()[0]}; replaying with the NumPy backend")
-        return NumpyEvaluator(model)
-    except InputError:
-        raise
-    except Exception as exc:  # a driver that lists a device but cannot build or run the kernels
-        if backend == "opencl":
-            raise
-        rep.say(f"note: OpenCL failed ({exc.__class__.__name__}: {exc}); replaying with the NumPy backend")
-        return NumpyEvaluator(model)
-    rep.say(f"OpenCL device: {evaluator.device}")
-    return evaluator
+    return opencl_or_fallback(rep, backend, lambda: OpenCLEvaluator(model, device=device, chunk=chunk),
+                              lambda: NumpyEvaluator(model))
 
 
 @cli.command()

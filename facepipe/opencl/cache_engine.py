@@ -76,7 +76,7 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
     def _enqueue(self, slot, head, R, t, with_large: bool, with_normals: bool) -> dict:
         """The chunk's tables and surface uploaded, then the fused kernel (no ``large_scale`` kernel)."""
         cl = _cl()
-        q, s, C, n = self.queue, self._static, self.chunk, head.shape[0]
+        q, n = self.queue, head.shape[0]
         t0 = time.perf_counter()
         tables = self._tables(head, R, t)
         surface = self._surface_table(self._cursor, n)
@@ -85,19 +85,9 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         uploads = [cl.enqueue_copy(q, slot.inputs[k], v, is_blocking=False) for k, v in tables.items()]
         ev_large = cl.enqueue_copy(q, self._large, surface, is_blocking=False)
         slot.host = dict(tables, surface=surface)  # must outlive the non-blocking uploads
-        lanes = C // self.vw
-        flags = (1 if with_large else 0) | (2 if with_normals else 0)
-        out = slot.outputs
-        self._k_detail.set_args(
-            self._large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
-            s["edge_count"], s["edge_index"], s["edge_weight"], s["basis"], slot.inputs["features"],
-            slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
-            s["out_index"], out["final"], out.get("large", out["final"]),
-            out["final"] if self._final_vc is None else self._final_vc,
-            np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv))
-        ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1),
-                                               wait_for=uploads + [ev_large])
-        return {"large_scale": ev_large, "frames_fine_scale": ev_detail, "last": ev_detail}
+        events = self._launch_fine_scale(slot, n, with_large, with_normals, wait_for=uploads + [ev_large])
+        events["large_scale"] = ev_large
+        return events
 
     def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False) -> None:
         """As :meth:`OpenCLEvaluator.stream` over the cache's frames (``head``: the pose's handles); the

@@ -372,6 +372,17 @@ class OpenCLEvaluator:
         self._k_large.set_args(s["B"], slot.inputs["U"], s["rest"], self._large, np.int32(C))
         ev_large = cl.enqueue_nd_range_kernel(q, self._k_large, (lanes, self.Vp // RV), (self.local0, self.local1),
                                               wait_for=uploads)
+        events = self._launch_fine_scale(slot, n, with_large, with_normals)
+        events["large_scale"] = ev_large
+        return events
+
+    def _launch_fine_scale(self, slot: _Slot, n: int, with_large: bool, with_normals: bool,
+                           wait_for=None) -> dict:
+        """Launch the frames + details kernel (and the normals') on the large-scale surface in
+        ``self._large``; returns their events (the large scale's is the caller's)."""
+        cl = _cl()
+        q, s, C = self.queue, self._static, self.chunk
+        lanes = C // self.vw
         flags = (1 if with_large else 0) | (2 if with_normals else 0)
         out = slot.outputs
         self._k_detail.set_args(
@@ -381,8 +392,9 @@ class OpenCLEvaluator:
             s["out_index"], out["final"], out.get("large", out["final"]),
             out["final"] if self._final_vc is None else self._final_vc,
             np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv))
-        ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1))
-        events = {"large_scale": ev_large, "frames_fine_scale": ev_detail, "last": ev_detail}
+        ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1),
+                                               wait_for=wait_for)
+        events = {"frames_fine_scale": ev_detail, "last": ev_detail}
         if with_normals:
             self._k_normals.set_args(self._final_vc, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"],
                                      s["ring"], slot.inputs["rigid"], s["out_index"], out["normals"])
