@@ -305,3 +305,21 @@ def test_replay_reports_novelty_fits_stopped_by_their_cap(pipeline, tmp_path, mo
             continue  # no OpenCL device here
         assert code == 0
         assert json.loads((out / "replay.json").read_text())["novelty_fits_at_cap"] > 0, backend
+
+
+def test_options_that_do_not_apply_to_the_take_are_refused(pipeline, tmp_path, capsys):
+    """Marker-take options on a mesh cache and 2D-take options on a marker take: exit 2 naming them,
+    nothing written (they used to be silently ignored)."""
+    d = pipeline
+    cache = d / "rig" / "take_smooth.mdd"
+    for options, named in ((["--neutral-frame", "0"], "--neutral-frame"),
+                           (["--no-stabilise", "--smooth", "2"], "--no-stabilise, --smooth")):
+        out = tmp_path / named.replace(",", "").replace(" ", "")
+        assert run("replay", cache, "-m", d / "model.npz", "-o", out, *options) == 2
+        err = capsys.readouterr().err
+        assert named in err and "mesh cache" in err and "take_smooth.mdd" in err
+        assert not (out / "positions.npy").exists()
+    out = tmp_path / "lift"
+    assert run("replay", d / "rig" / "take.csv", "-m", d / "model.npz", "-o", out, "--lift", "heuristic") == 2
+    assert "--lift does not apply to a marker take" in capsys.readouterr().err
+    assert not (out / "positions.npy").exists()

@@ -149,6 +149,14 @@ def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Re
                               lambda: NumpyEvaluator(model))
 
 
+def _refuse_options_not_for(kind, take, given):
+    """Options that do nothing for this kind of take are refused rather than silently ignored."""
+    ignored = [name for name, is_given in given.items() if is_given]
+    if ignored:
+        raise InputError(f"{', '.join(ignored)} {'does' if len(ignored) == 1 else 'do'} not apply to a {kind}; "
+                         "leave {} out".format("it" if len(ignored) == 1 else "them"), path=take)
+
+
 @cli.command()
 @click.argument("take", type=click.Path())
 @click.option("-m", "--model", "model_path", required=True, type=click.Path(dir_okay=False))
@@ -228,7 +236,19 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
                        or is_landmark_take(take)):
         raise InputError("--edits offsets the handles of a marker take; mesh caches and 2D takes are not edited",
                          path=edits_path)
-    if mesh_cache_format(take) is not None:
+    kind = ("mesh cache" if mesh_cache_format(take) is not None
+            else "2D landmark take" if camera_path or landmarks_path or is_landmark_take(take) else "marker take")
+    _refuse_options_not_for(kind, take, {
+        "--neutral-frame": neutral_frame is not None and kind != "marker take",
+        "--neutral-take": neutral_take is not None and kind != "marker take",
+        "--subject": subject is not None and kind != "marker take",
+        "--no-stabilise": no_stabilise and kind != "marker take",
+        "--no-clean": no_clean and kind != "marker take",
+        "--smooth": smooth != 0 and kind != "marker take",
+        "--lift": lift != "model" and kind != "2D landmark take",
+        "--min-confidence": min_confidence != 0.5 and kind != "2D landmark take",
+    })
+    if kind == "mesh cache":
         from facepipe.cli.cache_replay import replay_cache
 
         replay_cache(rep, take, model_path, output, large_scale=large_scale, rest_frame=rest_frame,
@@ -239,7 +259,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     if large_scale == "take" or rest_frame is not None or cache_fps is not None:
         raise InputError("--large-scale take, --rest-frame and --cache-fps are for mesh caches (USD, MDD, PC2, OBJ "
                          "sequences); a marker take always drives the shell", path=take)
-    if camera_path or landmarks_path or is_landmark_take(take):
+    if kind == "2D landmark take":
         from facepipe.cli.video import replay_video
 
         return replay_video(rep, take, model_path, output, camera_path=camera_path, landmarks_path=landmarks_path,
