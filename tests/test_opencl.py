@@ -25,7 +25,8 @@ TOL = 1e-4
 
 def _device_or_skip():
     if not opencl.opencl_available():
-        pytest.skip("no OpenCL device (pip install pocl-binary-distribution gives a CPU one)")
+        pytest.skip("no OpenCL device that compiles kernels (pip install pocl-binary-distribution gives a CPU one; "
+                    "where its LLVM does not know the CPU, a distribution's PoCL: apt install pocl-opencl-icd)")
 
 
 @pytest.fixture(scope="module")
@@ -228,6 +229,32 @@ def test_device_selection(monkeypatch):
     assert opencl.select_device() == dev
     with pytest.raises(InputError, match="matches no OpenCL device"):
         opencl.select_device("no-such-device-xyz")
+
+
+def test_devices_that_cannot_compile_are_passed_over(monkeypatch):
+    """A driver may list a device it cannot compile for (PoCL whose LLVM does not know the CPU):
+    the automatic choice takes the next device that compiles; with none left, a clear error that
+    carries the driver's reason. Simulated with stand-in devices, so it runs without a driver."""
+    from types import SimpleNamespace
+
+    pytest.importorskip("pyopencl")
+    import pyopencl as cl
+
+    def fake(ptr, name, version):
+        platform = SimpleNamespace(name="Portable Computing Language", version=version)
+        return SimpleNamespace(int_ptr=ptr, name=name, platform=platform, type=cl.device_type.CPU)
+
+    old, new = fake(101, "pthread-old", "PoCL 3.0 LLVM 14"), fake(102, "pthread-new", "PoCL 3.1 LLVM 15")
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+    monkeypatch.setattr(opencl.device, "list_devices", lambda: [(0, 0, old), (1, 0, new)])
+    monkeypatch.setattr(opencl.device, "_compile_errors",
+                        {101: "PoCL 3.0 LLVM 14: error: unknown target CPU 'generic'", 102: None})
+    assert opencl.select_device() is new
+    assert opencl.select_device("0:0") is old  # asked for by name: its own build error will say why
+    monkeypatch.setattr(opencl.device, "list_devices", lambda: [(0, 0, old)])
+    with pytest.raises(InputError, match="can compile kernels.*unknown target CPU 'generic'") as err:
+        opencl.select_device()
+    assert "--backend numpy" in str(err.value.hint)
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,10 @@ Device choice, first match wins:
 4. the first CPU device, PoCL's first (it ships with facepipe as a PyPI wheel, so a machine
    without any vendor driver still has it).
 
+Choices 3 and 4 pass over devices whose compiler cannot build a trivial kernel (:func:`compiles`):
+the PyPI PoCL's LLVM 14 does not know some newer CPUs; a distribution's PoCL (Debian's
+``pocl-opencl-icd``) beside it then serves.
+
 No platform at all (or no pyopencl) is an :class:`OpenCLUnavailable`, an ``InputError``: the
 CLI exits with status 2 and the hint to use ``--backend numpy``.
 """
@@ -22,7 +26,8 @@ from importlib import resources
 
 from facepipe.errors import InputError
 
-HINT = "use --backend numpy, or install an OpenCL driver (pip install pocl-binary-distribution)"
+HINT = ("use --backend numpy, or install an OpenCL driver (pip install pocl-binary-distribution; where its "
+        "LLVM does not know the CPU, your distribution's PoCL, e.g. apt install pocl-opencl-icd)")
 
 _lock = threading.Lock()
 _contexts: dict = {}
@@ -103,12 +108,36 @@ def select_device(spec: str | None = None):
                 raise InputError(f"{source} {value!r} matches no OpenCL device (found: {names})",
                                  hint="give P:D, gpu, cpu or part of a device name; or use --backend numpy")
             return dev
-    gpu = next((dev for _, _, dev in devices if dev.type & cl.device_type.GPU), None)
+    working = [(p, d, dev) for p, d, dev in devices if compiles(dev)]
+    if not working:
+        raise OpenCLUnavailable(f"no OpenCL device here can compile kernels (found: {names}; "
+                                f"{_compile_errors[devices[0][2].int_ptr]})")
+    gpu = next((dev for _, _, dev in working if dev.type & cl.device_type.GPU), None)
     if gpu is not None:
         return gpu
-    cpus = [dev for _, _, dev in devices if dev.type & cl.device_type.CPU]
+    cpus = [dev for _, _, dev in working if dev.type & cl.device_type.CPU]
     pocl = [dev for dev in cpus if "portable computing language" in dev.platform.name.lower()]
-    return (pocl or cpus or [devices[0][2]])[0]
+    return (pocl or cpus or [working[0][2]])[0]
+
+
+_compile_errors: dict = {}
+
+
+def compiles(device) -> bool:
+    """Whether ``device``'s compiler builds a trivial kernel (checked once per process). A driver
+    can list a device it cannot compile for: PoCL whose LLVM is older than the CPU names it
+    'generic' and refuses every kernel; the automatic choice passes such a device over (its
+    reason kept for the error when none is left), so another driver's device serves."""
+    cl = _cl()
+    with _lock:
+        if device.int_ptr not in _compile_errors:
+            try:
+                cl.Program(cl.Context([device]), "__kernel void probe(__global float *a) { a[0] = 1.0f; }").build()
+                _compile_errors[device.int_ptr] = None
+            except Exception as exc:  # a driver's build failure: its message is the reason
+                reason = " ".join(str(exc).split())[:300]
+                _compile_errors[device.int_ptr] = f"{device.platform.version.strip()}: {reason}"
+        return _compile_errors[device.int_ptr] is None
 
 
 def open_device(spec: str | None = None):
@@ -128,7 +157,7 @@ def device_context(device):
 
 
 def opencl_available(spec: str | None = None) -> bool:
-    """True when a device can be selected (without building anything)."""
+    """True when a device can be selected (one that compiles a trivial kernel, unless asked for by name)."""
     try:
         select_device(spec)
         return True
