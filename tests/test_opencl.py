@@ -17,7 +17,7 @@ from facepipe.io.model_file import model_from_fit
 from facepipe.pipeline.replay import NumpyEvaluator, NpyWriter, stream_chunks
 from facepipe.pipeline.rig import load_rig
 from facepipe.sample_rig import write_sample_rig
-from tests.conftest import ROOT, ict_or_skip
+from tests.conftest import ict_or_skip
 from tests.conftest import run_cli as run
 
 TOL = 1e-4
