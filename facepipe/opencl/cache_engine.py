@@ -6,9 +6,9 @@ cache the large scale is given: this evaluator uploads each chunk's surface (in 
 device's vertex order and layout) where the ``large_scale`` kernel would have written it, and runs
 the same fused kernel — the details in the local frames of the cache's surface, the strain of the
 cache's handle vertices, the head's motion put back. The band of the details the cache already
-carries (:mod:`facepipe.core.detail_bands`) is left out on the host afterwards, where the chosen
-bands need it (one multi-right-hand-side solve per chunk and band edge, with a factor made once
-per replay, in single precision); when every band is added nothing is done on the host.
+carries (:mod:`facepipe.core.detail_bands`) is left out of the RBF weights once, before the replay
+(``details.detail_weights``): the device then evaluates only the added bands, with no work per
+frame on the host beyond the surface's upload.
 """
 
 from __future__ import annotations
@@ -32,13 +32,14 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
     model : the baked model.
     cache : facepipe.mocap.mesh_cache.MeshCache (rig units).
     pose : facepipe.pipeline.cache_replay.CachePose of the cache.
-    details : facepipe.pipeline.cache_replay.CacheDetails after ``estimate()`` (its ``keep`` and
-        ``bands``), or None to add every band.
+    details : facepipe.pipeline.cache_replay.CacheDetails after ``estimate()`` (its
+        ``detail_weights``: the added bands' RBF weights), or None to add every band.
     device, chunk : as for :class:`OpenCLEvaluator`.
     """
 
     def __init__(self, model, cache, pose, details=None, device: str | None = None, chunk: int = 32):
-        super().__init__(model, device=device, chunk=chunk)
+        super().__init__(model, device=device, chunk=chunk,
+                         detail_weights=None if details is None else details.detail_weights)
         self.cache, self.pose, self.details = cache, pose, details
         order = self.perm if self.perm is not None else np.arange(self.V)
         self._order = order
@@ -46,7 +47,6 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         self._cursor = 0
         self._surface_buffers = [np.zeros((self.Vp, 3, self.chunk), dtype=np.float32) for _ in range(self.n_slots)]
         self.stage_seconds["upload_surface"] = 0.0
-        self.stage_seconds["bands"] = 0.0
 
     def _surface_table(self, start: int, n: int) -> np.ndarray:
         """(Vp, 3, C) float32 head-space surface of frames start..start+n in the device's layout.
@@ -90,21 +90,7 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         return events
 
     def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False) -> None:
-        """As :meth:`OpenCLEvaluator.stream` over the cache's frames (``head``: the pose's handles); the
-        bands the cache carries are taken out of the details on the host before ``sink``."""
+        """As :meth:`OpenCLEvaluator.stream` over the cache's frames from the first (``head``: the pose's
+        handles); the details are those of the added bands (the weights given at construction)."""
         self._cursor = 0
-        keep = None if self.details is None else self.details.keep
-        partial = keep is not None and not np.all(keep == 1.0)
-        if not partial:
-            super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
-            return
-
-        def banded(start, final, large, normals):
-            t0 = time.perf_counter()
-            # in float32, the device's precision: the band solve is single precision too (DetailBands)
-            large = np.asarray(large, dtype=np.float32)
-            final = large + self.details.bands.combine(np.asarray(final, dtype=np.float32) - large, keep)
-            self.stage_seconds["bands"] += time.perf_counter() - t0
-            sink(start, final, large if with_large else None, normals)
-
-        super().stream(head, banded, R, t, with_large=True, with_normals=with_normals)
+        super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
