@@ -110,6 +110,21 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
 
     def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False) -> None:
         """As :meth:`OpenCLEvaluator.stream` over the cache's frames from the first (``head``: the pose's
-        handles); the details are those of the added bands (the weights given at construction)."""
+        handles); the details are those of the added bands (the weights given at construction).
+
+        With the head motion kept the large scale is the cache's own surface: handed to ``sink``
+        from the cache (its file's rows, converted where the sink copies them), not stored by the
+        device and read back."""
         self._cursor = 0
-        super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
+        if not (with_large and R is not None):
+            super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
+            return
+        cache = self.cache
+
+        def with_cache_surface(start, final, large, normals):
+            surface = cache.positions[start:start + final.shape[0]]
+            if cache.scale != 1.0:
+                surface = np.asarray(surface, dtype=np.float32) * np.float32(cache.scale)
+            sink(start, final, surface, normals)
+
+        super().stream(head, with_cache_surface, R, t, with_large=False, with_normals=with_normals)
