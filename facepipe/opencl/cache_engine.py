@@ -26,6 +26,15 @@ from facepipe.opencl.engine import OpenCLEvaluator
 _BLOCK = 1024
 
 
+def _aligned_zeros(shape: tuple, align: int = 4096) -> np.ndarray:
+    """A zeroed float32 array starting on a page boundary (a buffer over host memory is used in
+    place only where the device's alignment allows)."""
+    size = int(np.prod(shape)) * 4
+    raw = np.zeros(size + align, dtype=np.uint8)
+    offset = (-raw.ctypes.data) % align
+    return raw[offset:offset + size].view(np.float32).reshape(shape)
+
+
 class OpenCLCacheEvaluator(OpenCLEvaluator):
     """OpenCL replay of a cache's own surface plus details.
 
@@ -47,23 +56,31 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         self._order = order
         self._rest_padding = model.rest[order].astype(np.float32)[:, :, None]
         self._cursor = 0
-        self._surface_buffers = [np.zeros((self.Vp, 3, self.chunk), dtype=np.float32) for _ in range(self.n_slots)]
+        self._surface_buffers = [_aligned_zeros((self.Vp, 3, self.chunk)) for _ in range(self.n_slots)]
+        # on a CPU device the kernel reads the host's tables where they are (buffers over them,
+        # mapped for writing on a queue of their own, so that filling the next chunk's table does
+        # not wait for the chunk in flight): no copy of the surface per chunk; on a GPU they are copied
+        self._zero_copy = self.on_host_cores
+        if self._zero_copy:
+            cl = _cl()
+            flags = cl.mem_flags.READ_ONLY | cl.mem_flags.USE_HOST_PTR
+            self._surface_cl = [cl.Buffer(self.context, flags, hostbuf=table) for table in self._surface_buffers]
+            self._map_queue = cl.CommandQueue(self.context, properties=cl.command_queue_properties.PROFILING_ENABLE)
+            self._large.release()  # (the base engine's large-scale buffer is not used)
+            self._large = None
         # host time per stage: the handles' tables (strain, gate) and the cache's frames laid out
         # for the device; the surface's copy to the device is the "large_scale" event
         self.stage_seconds["handle_tables"] = 0.0
         self.stage_seconds["surface_table"] = 0.0
 
-    def _surface_table(self, start: int, n: int, to_head: bool) -> np.ndarray:
+    def _surface_table(self, start: int, n: int, to_head: bool, table: np.ndarray) -> np.ndarray:
         """(Vp, 3, C) float32 surface of frames start..start+n in the device's layout: in the cache's
         space, or (``to_head``) in head space, Rᵀ (p − t).
 
         Block by block of vertices small enough that a block's frames and its table rows stay in
         the core's cache: the cache's frames (in its file's byte order) gathered into the device's
         vertex order, converted to float32 and transposed to vertices × coordinates × frames in
-        one copy. Two tables are used in turn (one per chunk in flight), so no chunk allocates
-        fresh memory."""
-        C = self.chunk
-        table = self._surface_buffers[self._cursor // C % len(self._surface_buffers)]
+        one copy, into ``table``."""
         frames = self.cache.positions[start:start + n]
         scale = np.float32(self.cache.scale)
         if to_head:
@@ -97,14 +114,26 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         t0 = time.perf_counter()
         tables = self._tables(head, None, None)
         t1 = time.perf_counter()
-        surface = self._surface_table(self._cursor, n, to_head=R is None)
+        # two tables in turn, one per chunk in flight: the one of the chunk before last, whose
+        # kernel has finished (the stream retires it before this chunk is enqueued)
+        k = self._cursor // self.chunk % len(self._surface_buffers)
+        if self._zero_copy:
+            table, _ = cl.enqueue_map_buffer(self._map_queue, self._surface_cl[k], cl.map_flags.WRITE, 0,
+                                             self._surface_buffers[k].shape, np.float32, is_blocking=True)
+            self._surface_table(self._cursor, n, R is None, table)
+            ev_large = table.base.release(self._map_queue)
+            large, surface = self._surface_cl[k], None
+        else:
+            surface = self._surface_table(self._cursor, n, R is None, self._surface_buffers[k])
+            ev_large = cl.enqueue_copy(q, self._large, surface, is_blocking=False)
+            large = self._large
         self._cursor += n
         self.stage_seconds["handle_tables"] += t1 - t0
         self.stage_seconds["surface_table"] += time.perf_counter() - t1
-        uploads = [cl.enqueue_copy(q, slot.inputs[k], v, is_blocking=False) for k, v in tables.items()]
-        ev_large = cl.enqueue_copy(q, self._large, surface, is_blocking=False)
+        uploads = [cl.enqueue_copy(q, slot.inputs[name], v, is_blocking=False) for name, v in tables.items()]
         slot.host = dict(tables, surface=surface)  # must outlive the non-blocking uploads
-        events = self._launch_fine_scale(slot, n, with_large, with_normals, wait_for=uploads + [ev_large])
+        events = self._launch_fine_scale(slot, n, with_large, with_normals, wait_for=uploads + [ev_large],
+                                         large=large)
         events["large_scale"] = ev_large
         return events
 

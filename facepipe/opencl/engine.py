@@ -382,16 +382,17 @@ class OpenCLEvaluator:
         return events
 
     def _launch_fine_scale(self, slot: _Slot, n: int, with_large: bool, with_normals: bool,
-                           wait_for=None) -> dict:
+                           wait_for=None, large=None) -> dict:
         """Launch the frames + details kernel (and the normals') on the large-scale surface in
-        ``self._large``; returns their events (the large scale's is the caller's)."""
+        ``large`` (default ``self._large``: a (Vp, 3, C) float32 buffer); returns their events (the
+        large scale's is the caller's)."""
         cl = _cl()
         q, s, C = self.queue, self._static, self.chunk
         lanes = C // self.vw
         flags = (1 if with_large else 0) | (2 if with_normals else 0)
         out = slot.outputs
         self._k_detail.set_args(
-            self._large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
+            self._large if large is None else large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
             s["edge_count"], s["edge_index"], s["edge_weight"], s["basis"], slot.inputs["features"],
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
             s["out_index"], out["final"], out.get("large", out["final"]),
