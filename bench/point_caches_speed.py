@@ -59,7 +59,7 @@ def main(argv=None) -> int:
             ("cache_take", rig / "take_smooth.mdd", []), ("cache_take_every_band", large, []),
             ("cache_shell", rig / "take_smooth.mdd", ["--large-scale", "shell"])]
     for name, take, extra in runs:
-        wall = facepipe("replay", take, "-m", model, "-o", work / name, "-q", *extra)
+        wall = facepipe("replay", take, "-m", model, "-o", work / name, "-q", "--force", *extra)
         info = json.loads((work / name / "replay.json").read_text())
         out[name] = {"frames_per_second": info["frames_per_second"], "backend": info["backend"],
                      "command_seconds": wall, "stage_seconds": info["stage_seconds"]}

@@ -8,17 +8,18 @@ D = Σ_b D_b are split into the same frequency bands, and per band the amplitude
 the cache's frames (:func:`bands_to_add`): where the cache's deviation has a good part of the
 details' amplitude, the rig has content of its own at that scale and the band is not added again;
 where the cache is as smooth as the shell (a rig without wrinkles, the fine bands), the band is
-added whole. A cache the shell itself made (e = 0) gets every band.
+added whole. A cache the shell itself made (e = 0) gets every band. The chosen bands are taken
+out of the detail model once (:func:`banded_detail_model`): a replay evaluates every frame as usual.
 
 The bands come from screened-Poisson low-passes L_ℓ D = (M + ℓ² K)⁻¹ M D (K the cotangent
 stiffness, M the lumped mass): a heat-kernel-like smoothing over the length ℓ, the same on any mesh
 resolution, so the bands are set by lengths (multiples of the marker spacing), not by vertex counts.
 
 The low-passes are factored once per :class:`DetailBands` (one factor per band edge, kept) and
-solved for all frames and coordinates of a chunk in one multi-right-hand-side call, in single
-precision where PARDISO is available (``single=True``, what a replay uses): the filtered details are float32 in the outputs, and the
-single-precision solve (to ~1e-6 of the details' amplitude) is several times quicker at the paper's
-mesh sizes, where the solve's memory traffic is what costs.
+solved for all frames and coordinates of a batch in one multi-right-hand-side call, in single
+precision where PARDISO is available (``single=True``, what a replay uses): the details are float32
+in the outputs, and the single-precision solve (to ~1e-6 of the details' amplitude) is several
+times quicker at the paper's mesh sizes, where the solve's memory traffic is what costs.
 """
 
 from __future__ import annotations
