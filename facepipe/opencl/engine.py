@@ -391,8 +391,9 @@ class OpenCLEvaluator:
         lanes = C // self.vw
         flags = (1 if with_large else 0) | (2 if with_normals else 0)
         out = slot.outputs
+        large = self._large if large is None else large
         self._k_detail.set_args(
-            self._large if large is None else large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
+            large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
             s["edge_count"], s["edge_index"], s["edge_weight"], s["basis"], slot.inputs["features"],
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
             s["out_index"], out["final"], out.get("large", out["final"]),
