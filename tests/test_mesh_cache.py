@@ -190,8 +190,8 @@ def test_banded_detail_model_filters_the_examples(method):
     between = np.abs(got[len(features):] - expected[len(features):]).max() / amplitude
     if method == "psd":
         assert between < 1e-9
-    else:  # the per-vertex kernel: close, not equal (and not the unfiltered details)
-        assert 1e-9 < between < 0.5 * np.abs(world - expected).max() / amplitude
+    else:  # the per-vertex kernel: close (far closer than the unfiltered details are)
+        assert between < 0.5 * np.abs(world - expected).max() / amplitude
     bands.close()
 
 
