@@ -4,9 +4,11 @@
 
 A sample rig of the paper's size (89 markers, 6 examples) is generated and baked (``--no-tune``); its
 take is replayed from markers (default backend: OpenCL where a device works); its smooth cache
-(``take_smooth.mdd``, written by ``facepipe sample``: some bands of the details added, a solve per
-chunk on the host) and the marker replay's own large scale as an MDD (every band added: the device
-alone) are replayed as takes. Frames per second are the
+(``take_smooth.mdd``, written by ``facepipe sample``: some bands of the details added, filtered once
+into the model's weights before the replay) and the marker replay's own large scale as an MDD
+(every band added) are replayed as takes. Per-stage seconds (``stage_seconds``) are the replay's:
+device kernels from profiling events, host stages (the cache's frames laid out for the device,
+the handles' tables, the sink's writing) from the clock. Frames per second are the
 replays' own (``replay.json``: the replay after the model is loaded and, for the cache, after the
 bands are chosen), and the whole command's wall time beside them.
 """
@@ -57,7 +59,7 @@ def main(argv=None) -> int:
             ("cache_take", rig / "take_smooth.mdd", []), ("cache_take_every_band", large, []),
             ("cache_shell", rig / "take_smooth.mdd", ["--large-scale", "shell"])]
     for name, take, extra in runs:
-        wall = facepipe("replay", take, "-m", model, "-o", work / name, "-q", *extra)
+        wall = facepipe("replay", take, "-m", model, "-o", work / name, "-q", "--force", *extra)
         info = json.loads((work / name / "replay.json").read_text())
         out[name] = {"frames_per_second": info["frames_per_second"], "backend": info["backend"],
                      "command_seconds": wall, "stage_seconds": info["stage_seconds"]}

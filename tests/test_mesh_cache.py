@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from facepipe.core.detail_bands import DetailBands, band_sums, bands_to_add
+from facepipe.core.detail_bands import DetailBands, band_sums, banded_detail_model, bands_to_add
 from facepipe.errors import InputError
 from facepipe.io.mesh_write import save_obj
 from facepipe.io.model_file import load_model
@@ -142,6 +142,57 @@ def test_bands_to_add():
     # a cache with only the coarse bands of its own: the fine ones are added
     own = [np.zeros_like(d) for d in D[:3]] + D[3:]
     assert bands_to_add(band_sums(D, own))["added"].tolist() == [1.0] * 3 + [0.0] * (len(D) - 3)
+
+
+def _detail_model(method, V, rng, P=5, F=12):
+    """A fitted PSD or WPSD detail model on the mesh V (rest pose first, its details zero)."""
+    import scipy.sparse as sp
+
+    from facepipe.core.psd import fit_details
+
+    features = np.vstack([np.zeros(F), rng.normal(scale=0.2, size=(P - 1, F))])
+    details = rng.normal(scale=0.05, size=(P, len(V), 3))
+    details[0] = 0.0
+    alpha = None
+    if method == "wpsd":  # every vertex weighs a few edges, the weights varying over the mesh
+        rows = np.repeat(np.arange(len(V)), 3)
+        cols = (rows + np.tile([0, 4, 7], len(V))) % F
+        w = 0.5 + 0.5 * np.sin(V[rows, 0] / 2.0 + cols) ** 2
+        alpha = sp.csr_matrix((w, (rows, cols)), shape=(len(V), F))
+    return fit_details(method, features, details, list(range(P)), "interpolate", alpha), features
+
+
+@pytest.mark.parametrize("method", ["psd", "wpsd"])
+def test_banded_detail_model_filters_the_examples(method):
+    """The model refitted to its examples' chosen bands gives, at every basis pose, exactly those
+    bands of the original details (world vectors in the frames used), none at the rest pose;
+    with every band added it is the original model; for PSD (one kernel for all vertices) the
+    filter commutes with the interpolation, so any pose's details are the original's bands."""
+    from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_world
+
+    V, F = grid(24, 20)
+    rng = np.random.default_rng(5)
+    model, features = _detail_model(method, V, rng)
+    frames = local_frames(V, F, frame_neighbors(F, len(V)))
+    bands = DetailBands(V, F, spacing=1.5)
+    same = banded_detail_model(bands, model, frames, np.ones(bands.n_bands))
+    np.testing.assert_allclose(same.weights, model.weights, atol=1e-8)
+    np.testing.assert_allclose(same.const, model.const, atol=1e-8)
+    added = np.array([1, 1, 1, 0, 0, 0, 0, 0.0])
+    banded = banded_detail_model(bands, model, frames, added)
+    poses = np.vstack([features, rng.normal(scale=0.2, size=(3, features.shape[1]))])
+    world = to_world(frames, model.evaluate(poses))
+    expected = bands.combine(world, added)
+    got = to_world(frames, banded.evaluate(poses))
+    amplitude = float(np.abs(expected).max())
+    np.testing.assert_allclose(got[:len(features)], expected[:len(features)], atol=1e-9 * amplitude)
+    assert np.abs(got[0]).max() < 1e-12  # the rest pose gets no details
+    between = np.abs(got[len(features):] - expected[len(features):]).max() / amplitude
+    if method == "psd":
+        assert between < 1e-9
+    else:  # the per-vertex kernel: close (far closer than the unfiltered details are)
+        assert between < 0.5 * np.abs(world - expected).max() / amplitude
+    bands.close()
 
 
 # ----------------------------------------------------------------------------- replays
@@ -285,6 +336,39 @@ def test_smooth_cache_bands_opencl_and_numpy_agree(rig, tmp_path):
         pytest.skip("no OpenCL device")
     a, b = np.load(tmp_path / "np" / "positions.npy"), np.load(tmp_path / "cl" / "positions.npy")
     assert np.abs(a - b).max() < 1e-5 * float(np.ptp(a, axis=(0, 1)).max())
+
+
+def test_head_moving_cache_opencl_and_numpy_agree(rig, tmp_path):
+    """A cache whose head turns (the smooth cache moved rigidly per frame), head motion kept and
+    removed: OpenCL (the cache's own surface used as it is when the motion is kept) and NumPy
+    agree, and the kept replay is the removed one moved by the head's motion."""
+    from scipy.spatial.transform import Rotation
+
+    _, positions = read_mdd(rig.root / "rig" / "take_smooth.mdd")
+    T = len(positions)
+    angles = np.stack([np.linspace(0, 12, T), np.linspace(0, -7, T), np.linspace(0, 4, T)], axis=1)
+    R = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
+    t = np.stack([np.linspace(0, 1.5, T), np.zeros(T), np.linspace(0, -2.0, T)], axis=1)
+    moved = np.einsum("tij,tvj->tvi", R, positions) + t[:, None]
+    write_mdd(tmp_path / "moved.mdd", moved.astype(np.float32), np.arange(T) / 30.0)
+    size = float(np.ptp(moved, axis=(0, 1)).max())
+    out = {}
+    for backend in ("numpy", "opencl"):
+        for motion in ("keep", "remove"):
+            code = run_cli("replay", tmp_path / "moved.mdd", "-m", rig.models["wpsd"], "-o",
+                           tmp_path / f"{backend}_{motion}", "--backend", backend, "--head-motion", motion, "-q")
+            if code == 2 and backend == "opencl":
+                pytest.skip("no OpenCL device")
+            assert code == 0
+            out[backend, motion] = {k: np.load(tmp_path / f"{backend}_{motion}" / f"{k}.npy")
+                                    for k in ("positions", "large_scale")}
+    for motion in ("keep", "remove"):
+        for k in ("positions", "large_scale"):
+            assert np.abs(out["opencl", motion][k] - out["numpy", motion][k]).max() < 1e-5 * size, (motion, k)
+    pose = np.load(tmp_path / "numpy_keep" / "handles.npz")
+    Rp, tp = pose["rotation"], pose["translation"]
+    turned = np.einsum("tij,tvj->tvi", Rp, out["numpy", "remove"]["positions"].astype(np.float64)) + tp[:, None]
+    assert np.abs(turned - out["numpy", "keep"]["positions"]).max() < 1e-5 * size
 
 
 def test_ict_large_scale_cache_reproduces_the_marker_replay(ict_rig_fit, tmp_path):

@@ -8,24 +8,28 @@ D = Σ_b D_b are split into the same frequency bands, and per band the amplitude
 the cache's frames (:func:`bands_to_add`): where the cache's deviation has a good part of the
 details' amplitude, the rig has content of its own at that scale and the band is not added again;
 where the cache is as smooth as the shell (a rig without wrinkles, the fine bands), the band is
-added whole. A cache the shell itself made (e = 0) gets every band.
+added whole. A cache the shell itself made (e = 0) gets every band. The chosen bands are taken
+out of the detail model once (:func:`banded_detail_model`): a replay evaluates every frame as usual.
 
 The bands come from screened-Poisson low-passes L_ℓ D = (M + ℓ² K)⁻¹ M D (K the cotangent
 stiffness, M the lumped mass): a heat-kernel-like smoothing over the length ℓ, the same on any mesh
 resolution, so the bands are set by lengths (multiples of the marker spacing), not by vertex counts.
 
 The low-passes are factored once per :class:`DetailBands` (one factor per band edge, kept) and
-solved for all frames and coordinates of a chunk in one multi-right-hand-side call, in single
-precision where PARDISO is available (``single=True``, what a replay uses): the filtered details are float32 in the outputs, and the
-single-precision solve (to ~1e-6 of the details' amplitude) is several times quicker at the paper's
-mesh sizes, where the solve's memory traffic is what costs.
+solved for all frames and coordinates of a batch in one multi-right-hand-side call, in single
+precision where PARDISO is available (``single=True``, what a replay uses): the details are float32
+in the outputs, and the single-precision solve (to ~1e-6 of the details' amplitude) is several
+times quicker at the paper's mesh sizes, where the solve's memory traffic is what costs.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import scipy.sparse as sp
 
+from facepipe.core.psd import DetailModel, kernel_matrix, solve_rbf
 from facepipe.core.shell import CholeskyFactor, cotmatrix, massmatrix
 
 #: Cut-off wavelengths of the band edges in marker spacings, half-octave steps up to two spacings
@@ -142,3 +146,40 @@ def bands_to_add(sums: np.ndarray, carried_ratio: float = CARRIED_RATIO) -> dict
     added = (live & (ratio < carried_ratio)).astype(np.float64)
     return {"ratio": ratio, "projection": np.where(live, ed / np.where(live, dd, 1.0), 0.0), "added": added,
             "added_energy": float((added * dd).sum() / max(float(dd.sum()), 1e-300))}
+
+
+
+def banded_detail_model(bands: DetailBands, model: DetailModel, frames: np.ndarray, added: np.ndarray) -> DetailModel:
+    """The detail model of the details' chosen bands, made once for a whole take.
+
+    The model is fixed by its details at its basis poses (P values and the side condition
+    Σ_p w_p = 0 determine the P weights and the constant of every vertex), and the fit is linear in
+    them. So the examples' details D_p (the model's own values at its basis poses, the novelty
+    gate left out) are split into bands once, Σ_b added_b (D_p)_b, and the model is fitted again
+    to them (:func:`facepipe.core.psd.solve_rbf`, interpolation on the same kernel): the new model
+    gives exactly the added bands at every basis pose — none at the rest pose, whose details are
+    zero — with no band filter per frame. The fields are filtered as world vectors in ``frames``
+    (world = F @ local; the rest surface's frames) and brought back to local coordinates.
+
+    Between the basis poses it interpolates the filtered examples, where the per-frame filter
+    would filter the interpolated details: the same for PSD (the kernel is shared by every vertex,
+    so the filter commutes with the interpolation), close to it for WPSD, whose kernel varies over
+    the vertices with the edge weights; the novelty gate scales the new model's details as it did
+    the old's.
+
+    Parameters
+    ----------
+    bands : the band decomposition of the mesh; model : the model (psd or wpsd);
+    frames : (V, 3, 3) local frames; added : (n_bands,) weight of each band (1: added, 0: left out).
+    """
+    basis = model.basis_features
+    examples = replace(model, gate=None).evaluate(basis)  # (P, V, 3) local
+    world = np.einsum("vij,pvj->pvi", frames, examples)
+    local = np.einsum("vji,pvj->pvi", frames, bands.combine(world, added))
+    local[0] = 0.0  # the rest pose's details are zero by construction (solve_rbf's row 0)
+    phi = kernel_matrix(model.method, basis, basis, model.alpha)
+    if phi.ndim == 3:
+        phi = np.moveaxis(phi, 1, 0)  # (V, P, P)
+    weights, const = solve_rbf(phi, local)
+    return replace(model, weights=weights.astype(model.weights.dtype, copy=False),
+                   const=const.astype(model.const.dtype, copy=False))

@@ -180,6 +180,9 @@ class OpenCLEvaluator:
     vector_width : frames per work-item; default 8 on a CPU (AVX2 lanes), 1 on a GPU (a warp
         covers 32 frames of one vertex).
     slots : chunks in flight (2: one computing while the previous one is written).
+    detail_weights : optional (weights (V, P, 3), const (V, 3)) replacing the model's RBF weights
+        and constant (PSD/WPSD): the band of the details a point cache lacks
+        (:func:`facepipe.core.detail_bands.banded_detail_model`).
     _stages : benchmark only: 3 (default) computes everything; 1 skips the fine scale, 2 the
         frames, 0 both (wrong results, used to time the stages by difference).
 
@@ -199,7 +202,8 @@ class OpenCLEvaluator:
     backend = "opencl"
 
     def __init__(self, model, device: str | None = None, chunk: int = 32, reorder="auto",
-                 vector_width: int | None = None, slots: int = 2, _stages: int = 3):
+                 vector_width: int | None = None, slots: int = 2, detail_weights: tuple | None = None,
+                 _stages: int = 3):
         cl = _cl()
         self.model = model
         self.context, self.cl_device = open_device(device)
@@ -273,8 +277,9 @@ class OpenCLEvaluator:
             basis = np.zeros((1, F), np.float32)
         else:
             ei, ew, count = compact_edges(model.edge_index[order], model.edge_weight[order])
-            rbf_w = np.ascontiguousarray(model.rbf_weights[order], dtype=np.float32)
-            rbf_c = np.ascontiguousarray(model.rbf_const[order], dtype=np.float32)
+            w, c = (model.rbf_weights, model.rbf_const) if detail_weights is None else detail_weights
+            rbf_w = np.ascontiguousarray(np.asarray(w)[order], dtype=np.float32)
+            rbf_c = np.ascontiguousarray(np.asarray(c)[order], dtype=np.float32)
             basis = np.ascontiguousarray(self.basis, dtype=np.float32)
         strain = self._local_strain_tables(model, order, inv)
         if method == "local_strain":
@@ -377,16 +382,18 @@ class OpenCLEvaluator:
         return events
 
     def _launch_fine_scale(self, slot: _Slot, n: int, with_large: bool, with_normals: bool,
-                           wait_for=None) -> dict:
+                           wait_for=None, large=None) -> dict:
         """Launch the frames + details kernel (and the normals') on the large-scale surface in
-        ``self._large``; returns their events (the large scale's is the caller's)."""
+        ``large`` (default ``self._large``: a (Vp, 3, C) float32 buffer); returns their events (the
+        large scale's is the caller's)."""
         cl = _cl()
         q, s, C = self.queue, self._static, self.chunk
         lanes = C // self.vw
         flags = (1 if with_large else 0) | (2 if with_normals else 0)
         out = slot.outputs
+        large = self._large if large is None else large
         self._k_detail.set_args(
-            self._large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
+            large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
             s["edge_count"], s["edge_index"], s["edge_weight"], s["basis"], slot.inputs["features"],
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
             s["out_index"], out["final"], out.get("large", out["final"]),

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facepipe.core.detail_bands import DetailBands, band_sums, bands_to_add
+from facepipe.core.detail_bands import DetailBands, band_sums, banded_detail_model, bands_to_add
 from facepipe.core.rigid import robust_rigid_fit, stable_marker_pose
 from facepipe.core.shell import marker_spacing
 from facepipe.core.strain import strain_features
@@ -109,6 +109,9 @@ class CacheDetails:
         self.details = model.detail_model(np.float64)
         self.keep = None  # (bands,) fraction of each band added; None: every band whole
         self.bands: DetailBands | None = None
+        #: (weights (V, P, 3), const (V, 3)) of the added bands when only some are (see
+        #: :func:`facepipe.core.detail_bands.banded_detail_model`), else None: the model's own
+        self.detail_weights: tuple | None = None
         self.stage_seconds = {"frames": 0.0, "fine_scale": 0.0, "bands": 0.0}
 
     @property
@@ -154,6 +157,8 @@ class CacheDetails:
             sums = sums + band_sums(self.bands.split(D), self.bands.split(surface - shell))
         choice = bands_to_add(sums)
         self.keep = choice["added"]
+        if self.keep.any() and not self.keep.all():
+            self._filter_weights()
         edges = list(self.bands.wavelengths)
         labels = [f"< {edges[0]:.3g}"] + [f"{a:.3g}–{b:.3g}" for a, b in zip(edges, edges[1:])] + [f"> {edges[-1]:.3g}"]
         return {
@@ -166,6 +171,17 @@ class CacheDetails:
             "added": [float(a) for a in choice["added"]],
             "added_fraction": choice["added_energy"],
         }
+
+    def _filter_weights(self) -> None:
+        """Replace the details by their added bands, once for the whole take: the examples' details
+        filtered in the rest surface's frames and the model fitted to them (no band filter per frame)."""
+        t0 = time.perf_counter()
+        rest = self.model.rest.astype(np.float64)
+        frames = local_frames(rest, self.faces, self.neighbors, self.incidence)
+        self.details = banded_detail_model(self.bands, self.details, frames, self.keep)
+        self.detail_weights = (self.details.weights, self.details.const)
+        self.bands.close()  # the factors are not needed again
+        self.stage_seconds["bands"] += time.perf_counter() - t0
 
     def stream(self, head, sink, R=None, t=None, with_large: bool = False) -> None:
         """Evaluate every frame and hand chunks to ``sink(start, final, large, None)`` in order
@@ -184,11 +200,8 @@ class CacheDetails:
                                         surface - self.pose.translation[s:e, None, :])
                 final = surface
                 if self.model.method != "none" and (self.keep is None or np.any(self.keep > 0)):
-                    D = self.world_details(surface, self.pose.head[s:e])
-                    t0 = time.perf_counter()
-                    add = D if self.keep is None else self.bands.combine(D, self.keep)
-                    self.stage_seconds["bands"] += time.perf_counter() - t0
-                    final = surface + add
+                    # (the details are those of the added bands already: _filter_weights)
+                    final = surface + self.world_details(surface, self.pose.head[s:e])
                 if pending is not None:
                     pending.result()
                 pending = pool.submit(sink, s, final, surface if with_large else None, None)
