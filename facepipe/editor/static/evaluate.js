@@ -123,21 +123,26 @@ export class BrowserEvaluator {
   }
 
   // area-weighted vertex normals of the large scale, unit length ((0, 0, 1) where undefined)
-  vertexNormals() {
-    const { tri, large, normal, V } = this;
-    normal.fill(0);
-    for (let f = 0; f < tri.length; f += 3) {
-      const a = 3 * tri[f], b = 3 * tri[f + 1], c = 3 * tri[f + 2];
-      const ux = large[b] - large[a], uy = large[b + 1] - large[a + 1], uz = large[b + 2] - large[a + 2];
-      const vx = large[c] - large[a], vy = large[c + 1] - large[a + 1], vz = large[c + 2] - large[a + 2];
-      const cx = uy * vz - uz * vy, cy = uz * vx - ux * vz, cz = ux * vy - uy * vx;
-      for (const i of [a, b, c]) { normal[i] += cx; normal[i + 1] += cy; normal[i + 2] += cz; }
-    }
-    for (let v = 0; v < V; v++) {
-      const x = normal[3 * v], y = normal[3 * v + 1], z = normal[3 * v + 2];
-      const l = Math.sqrt(x * x + y * y + z * z);
-      if (l > 1e-30) { normal[3 * v] = x / l; normal[3 * v + 1] = y / l; normal[3 * v + 2] = z / l; }
-      else { normal[3 * v] = 0; normal[3 * v + 1] = 0; normal[3 * v + 2] = 1; }
-    }
+  vertexNormals() { vertexNormals(this.tri, this.large, this.normal, this.V); }
+}
+
+// Area-weighted unit vertex normals of positions (V·3) over triangles into normal (V·3; (0, 0, 1)
+// where undefined): what three.js's computeVertexNormals draws with, and the replay's frames use.
+export function vertexNormals(tri, positions, normal, V) {
+  normal.fill(0);
+  for (let f = 0; f < tri.length; f += 3) {
+    const a = 3 * tri[f], b = 3 * tri[f + 1], c = 3 * tri[f + 2];
+    const ux = positions[b] - positions[a], uy = positions[b + 1] - positions[a + 1], uz = positions[b + 2] - positions[a + 2];
+    const vx = positions[c] - positions[a], vy = positions[c + 1] - positions[a + 1], vz = positions[c + 2] - positions[a + 2];
+    const cx = uy * vz - uz * vy, cy = uz * vx - ux * vz, cz = ux * vy - uy * vx;
+    normal[a] += cx; normal[a + 1] += cy; normal[a + 2] += cz;
+    normal[b] += cx; normal[b + 1] += cy; normal[b + 2] += cz;
+    normal[c] += cx; normal[c + 1] += cy; normal[c + 2] += cz;
+  }
+  for (let v = 0; v < V; v++) {
+    const x = normal[3 * v], y = normal[3 * v + 1], z = normal[3 * v + 2];
+    const l = Math.sqrt(x * x + y * y + z * z);
+    if (l > 1e-30) { normal[3 * v] = x / l; normal[3 * v + 1] = y / l; normal[3 * v + 2] = z / l; }
+    else { normal[3 * v] = 0; normal[3 * v + 1] = 0; normal[3 * v + 2] = 1; }
   }
 }
