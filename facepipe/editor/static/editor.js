@@ -9,7 +9,7 @@
 import * as THREE from 'three';
 import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
 import { unpackBundle } from '/static/evaluate.js';
-import { faceMaterial } from '/static/face_material.js';
+import { faceMaterial, markerMaterial } from '/static/materials.js';
 
 const $ = (id) => document.getElementById(id);
 const SKIN = [0.86, 0.72, 0.64];
@@ -17,8 +17,21 @@ const SKIN = [0.86, 0.72, 0.64];
 const state = {
   ready: false, frame: 0, layer: 'final', preview: null, inFlight: 0, pending: false, requestId: 0,
   playing: false, inFlightMax: 2, evaluations: 0, presented: 0, frameTimes: [], truth: null, truthRow: -1,
-  edits: [], workerBusy: false, timings: {},
+  edits: [], workerBusy: false, dragRequests: new Set(), timings: {}, stageSums: {}, stageCounts: {},
 };
+// where a frame's time goes (milliseconds): the latest, and sums and counts for averages
+function note(stage, ms) {
+  state.timings[stage] = ms;
+  state.stageSums[stage] = (state.stageSums[stage] || 0) + ms;
+  state.stageCounts[stage] = (state.stageCounts[stage] || 0) + 1;
+}
+
+// a draw at the next animation frame (see present)
+let scheduled = false, redraw = false;
+function schedule(again = true) {
+  if (again) redraw = true;
+  if (!scheduled) { scheduled = true; requestAnimationFrame(present); }
+}
 
 const modelBuffer = await (await fetch('/api/model.bin')).arrayBuffer();
 const bundle = unpackBundle(modelBuffer);
@@ -83,24 +96,28 @@ const material = faceMaterial(keyPosition.clone().sub(centre).normalize(), new T
 const face = new THREE.Mesh(geometry, material);
 scene.add(face);
 
-// the handles: one instanced draw (a software rasteriser pays per draw call)
-const markerGeometry = new THREE.SphereGeometry(meta.marker_size, 12, 8);
-const markers = new THREE.InstancedMesh(markerGeometry, new THREE.MeshBasicMaterial(), H);
-const markerColour = new THREE.Color(0x2f8cff), activeColour = new THREE.Color(0xffd23f);
-for (let h = 0; h < H; h++) markers.setColorAt(h, markerColour);
+// the handles: round points, one draw
+const markerGeometry = new THREE.BufferGeometry();
+const markerPositions = new THREE.BufferAttribute(new Float32Array(3 * H), 3);
+markerPositions.setUsage(THREE.DynamicDrawUsage);
+markerGeometry.setAttribute('position', markerPositions);
+const markerColours = new THREE.BufferAttribute(new Float32Array(3 * H), 3);
+markerGeometry.setAttribute('markerColour', markerColours);
+const markers = new THREE.Points(markerGeometry, markerMaterial(meta.marker_size));
+markers.frustumCulled = false;
 scene.add(markers);
-const markerMatrix = new THREE.Matrix4();
+const markerColour = new THREE.Color(0x2f8cff), activeColour = new THREE.Color(0xffd23f);
 function placeMarkers() {
-  for (let h = 0; h < H; h++) {
-    markers.setMatrixAt(h, markerMatrix.makeTranslation(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]));
-  }
-  markers.instanceMatrix.needsUpdate = true;
-  markers.computeBoundingSphere();
+  markerPositions.array.set(handles);
+  markerPositions.needsUpdate = true;
 }
 function markHandle(h, active) {
-  markers.setColorAt(h, active ? activeColour : markerColour);
-  markers.instanceColor.needsUpdate = true;
+  const c = active ? activeColour : markerColour;
+  markerColours.setXYZ(h, c.r, c.g, c.b);
+  markerColours.needsUpdate = true;
+  schedule();
 }
+for (let h = 0; h < H; h++) markHandle(h, false);
 placeMarkers();
 
 // ---------------------------------------------------------------- the worker
@@ -129,8 +146,8 @@ worker.onmessage = (event) => {
   if (workerNext) { const next = workerNext; workerNext = null; toWorker(next.job, next.transfer); }
   if (m.op !== 'frame') return;
   state.evaluations += 1;
-  state.timings.evaluate = m.timings.evaluate;
-  state.timings.normals = m.timings.normals;
+  note('worker_evaluate', m.timings.evaluate);
+  note('worker_normals', m.timings.normals);
   if (incoming) recycle(incoming.set);
   incoming = m;
   schedule();
@@ -138,11 +155,6 @@ worker.onmessage = (event) => {
 worker.onerror = (e) => { $('message').textContent = `evaluation failed: ${e.message}`; };
 
 // ---------------------------------------------------------------- drawing
-let scheduled = false, redraw = false;
-function schedule(again = true) {
-  if (again) redraw = true;
-  if (!scheduled) { scheduled = true; requestAnimationFrame(present); }
-}
 
 function heat(t) {  // 0..1 → dark blue, cyan, yellow, red
   t = Math.min(Math.max(t, 0), 1);
@@ -195,7 +207,7 @@ function present(now) {
     state.shownId = frame.id;
     state.exact = frame.exact;
     if (!drag && !state.playing && state.exact) setInteractive(false);
-    state.timings.upload = performance.now() - t0;
+    note('upload', performance.now() - t0);
     state.presented += 1;
     state.frameTimes.push(now);
     while (state.frameTimes.length && state.frameTimes[0] < now - 1000) state.frameTimes.shift();
@@ -204,8 +216,10 @@ function present(now) {
   if (!redraw || state.noRender) return;
   redraw = false;
   const t1 = performance.now();
+  markers.material.uniforms.pixelsPerUnit.value =
+    renderer.domElement.height / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2));
   renderer.render(scene, camera);
-  state.timings.render = performance.now() - t1;
+  note('render_submit', performance.now() - t1);
   showStatus();
 }
 
@@ -220,6 +234,7 @@ function requestEvaluation() {
   state.inFlight += 1;
   state.pending = false;
   state.sentAt = performance.now();
+  if (state.preview) state.dragRequests.add(state.requestId + 1);
   socket.send(JSON.stringify({ op: 'eval', id: ++state.requestId, frame: state.frame, preview: state.preview, layer: state.layer }));
 }
 
@@ -231,7 +246,9 @@ function easing() {
 function receive(buffer) {
   const head = new Float64Array(buffer, 0, 6);
   const [id, row, kind, layers, exact] = head;
-  const job = { id, row, exact: exact === 1, layer: state.layer };
+  // a drag's step may be evaluated from the last frame (evaluate.js); any other frame whole
+  const job = { id, row, exact: exact === 1, layer: state.layer, drag: state.dragRequests.has(id) };
+  for (const old of state.dragRequests) if (old <= id) state.dragRequests.delete(old);
   if (kind === 0) {  // pose terms: evaluated in the worker
     const terms = new Float64Array(buffer, 48);
     Object.assign(job, { op: 'pose', handles: terms.slice(0, 3 * H), features: terms.slice(3 * H, 3 * H + F),
@@ -295,7 +312,7 @@ socket.addEventListener('message', (event) => {
   const answers = head[2] !== 2;  // a patch's base comes ahead of the answer
   if (answers) {
     state.inFlight -= 1;
-    state.timings.roundTrip = performance.now() - state.sentAt;
+    note('round_trip', performance.now() - state.sentAt);
   }
   receive(event.data);
   if (!answers) return;
@@ -374,11 +391,27 @@ function handleNormal(h) {
   const v = handleVertices[h];
   return new THREE.Vector3(normalAttr.getX(v), normalAttr.getY(v), normalAttr.getZ(v)).normalize();
 }
+// the handle drawn under the pointer (its disc, grown by a few pixels to be easy to hit; the
+// nearest to the camera where discs overlap), or -1
+function pick(event) {
+  const r = renderer.domElement.getBoundingClientRect();
+  const pixelsPerUnit = r.height / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2));
+  const p = new THREE.Vector3();
+  let best = -1, bestDepth = Infinity;
+  for (let h = 0; h < H; h++) {
+    p.set(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]);
+    const depth = p.distanceTo(camera.position);
+    p.project(camera);
+    const x = r.left + (p.x + 1) / 2 * r.width, y = r.top + (1 - p.y) / 2 * r.height;
+    const reach = meta.marker_size * pixelsPerUnit / depth + 3;
+    if (p.z < 1 && Math.hypot(event.clientX - x, event.clientY - y) <= reach && depth < bestDepth) { best = h; bestDepth = depth; }
+  }
+  return best;
+}
 renderer.domElement.addEventListener('pointerdown', (event) => {
-  const hit = (ray(event), raycaster.intersectObject(markers, false))[0];
-  if (!hit) return;
+  const h = pick(event);
+  if (h < 0) return;
   event.stopImmediatePropagation();  // not an orbit
-  const h = hit.instanceId;
   const start = new THREE.Vector3(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]);
   const normal = camera.getWorldDirection(new THREE.Vector3());
   const perPixel = 2 * start.distanceTo(camera.position) * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)) / renderer.domElement.clientHeight;
@@ -443,6 +476,32 @@ window.facepipeEditor = {
   // what a drag of handle h by offset (rig units) shows, without committing it (scripts, benches)
   preview(h, offset) { state.preview = offset ? { handle: h, offset, ...easing() } : null; setInteractive(!!offset); requestEvaluation(); },
   handlePosition: (h) => Array.from(handles.slice(3 * h, 3 * h + 3)),
+  three: { THREE, renderer, scene, camera, face, markers, geometry },
+  // milliseconds a draw of the scene takes to finish in the GPU process, at
+  // the drag's resolution: alone, and with the positions and normals uploaded first
+  renderCost(n = 10) {
+    const gl = renderer.getContext();
+    const wasInteractive = interactive;
+    setInteractive(true);
+    const timed = (upload) => {
+      const pixel = new Uint8Array(4);
+      // a read of a pixel waits for the draw (Chromium's gl.finish is only a flush)
+      const finish = () => gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
+      renderer.render(scene, camera);
+      finish();
+      const t0 = performance.now();
+      for (let i = 0; i < n; i++) {
+        if (upload) { positionAttr.needsUpdate = true; normalAttr.needsUpdate = true; }
+        renderer.render(scene, camera);
+        finish();
+      }
+      return (performance.now() - t0) / n;
+    };
+    const result = { render: timed(false), upload_and_render: timed(true),
+                     pixels: renderer.domElement.width * renderer.domElement.height };
+    setInteractive(wasInteractive);
+    return result;
+  },
 };
 setFrame(0);
 showStatus();

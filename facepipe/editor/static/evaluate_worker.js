@@ -54,7 +54,7 @@ function shifted(out, base, column, offset) {
 // fill a set from a message; false when the message cannot be drawn (a step of a gone patch)
 function fill(m, set) {
   if (m.op === 'pose') {
-    evaluator.evaluate(m.handles, m.features, m.gate, set.final, set.large, set.detailN);
+    evaluator.evaluate(m.handles, m.features, m.gate, set.final, set.large, set.detailN, m.drag);
     return true;
   }
   if (m.op === 'positions') {

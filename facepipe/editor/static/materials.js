@@ -1,4 +1,8 @@
-// The face's material: Lambert shading of a hemisphere light and a key light, lit per vertex.
+// The editor's materials: the face (Lambert shading, lit per vertex) and the handle markers (round
+// points). Both are chosen for a software rasteriser (a machine without a GPU), which pays per
+// vertex, per triangle and per shaded pixel.
+//
+// The face: Lambert shading of a hemisphere light and a key light, lit per vertex.
 //
 // It draws what three.js's MeshLambertMaterial draws with the same lights (colour/π × (key × n·l
 // + the hemisphere's mix of ground and sky by n·up), in linear light, then the output's colour
@@ -49,5 +53,37 @@ export function faceMaterial(keyDirection, up, { key = 2.2, sky = 0xffffff, grou
       skyColour: { value: new THREE.Color(sky).multiplyScalar(hemisphere) },
       groundColour: { value: new THREE.Color(ground).multiplyScalar(hemisphere) },
     },
+  });
+}
+
+const markerVertexShader = /* glsl */ `
+uniform float radius;          // world units
+uniform float pixelsPerUnit;   // the drawing buffer's height / (2 tan(fov / 2)): pixels per unit at depth 1
+attribute vec3 markerColour;
+varying vec3 vColour;
+
+void main() {
+  vec4 view = modelViewMatrix * vec4(position, 1.0);
+  gl_Position = projectionMatrix * view;
+  gl_PointSize = max(2.0, 2.0 * radius * pixelsPerUnit / max(-view.z, 1e-6));
+  vColour = markerColour;
+}`;
+
+const markerFragmentShader = /* glsl */ `
+varying vec3 vColour;
+
+void main() {
+  vec2 p = 2.0 * gl_PointCoord - 1.0;
+  if (dot(p, p) > 1.0) discard;  // round
+  gl_FragColor = vec4(vColour, 1.0);
+  #include <colorspace_fragment>
+}`;
+
+// The handle markers as points (one vertex each, where spheres cost as many triangles as the
+// face): discs of ``radius`` world units, coloured per point by the attribute markerColour.
+export function markerMaterial(radius) {
+  return new THREE.ShaderMaterial({
+    vertexShader: markerVertexShader, fragmentShader: markerFragmentShader,
+    uniforms: { radius: { value: radius }, pixelsPerUnit: { value: 1 } },
   });
 }
