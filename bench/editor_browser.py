@@ -187,9 +187,9 @@ def _role(pid: int, server_pid: int | None, descends) -> str | None:
 
 
 def cpu_by_role(server_pid: int | None = None) -> dict[str, float]:
-    """CPU seconds used so far by the editor's server, Chromium's processes (the renderer split into
-    its main thread, its worker thread and the rest) and the test driver: differences of two of
-    these over a drag say where its time goes."""
+    """CPU seconds used so far by the editor's server, Chromium's processes (the renderer's and the
+    GPU process's by thread name) and the test driver: differences of two of these over a drag say
+    where its time goes."""
     stats = {int(p): _proc_stat(f"/proc/{p}/stat") for p in os.listdir("/proc") if p.isdigit()}
     parent = {pid: st[1] for pid, st in stats.items() if st}
 
@@ -207,17 +207,15 @@ def cpu_by_role(server_pid: int | None = None) -> dict[str, float]:
         role = st and _role(pid, server_pid, descends)
         if role is None:
             continue
-        if role != "chromium renderer":
+        if role not in ("chromium renderer", "chromium gpu process (SwiftShader)"):
             out[role] = out.get(role, 0.0) + st[2]
             continue
-        for tid in os.listdir(f"/proc/{pid}/task"):
+        for tid in os.listdir(f"/proc/{pid}/task"):  # by thread: the main thread, the worker, …
             thread = _proc_stat(f"/proc/{pid}/task/{tid}/stat")
             if thread is None:
                 continue
-            name = thread[0]
-            key = ("renderer main thread" if name == "CrRendererMain" else
-                   "renderer worker thread (evaluation)" if "Worker" in name else "renderer other threads")
-            out[key] = out.get(key, 0.0) + thread[2]
+            name = "main thread" if int(tid) == pid else "worker (evaluation)" if "Worker" in thread[0] else thread[0]
+            out[f"{role}: {name}"] = out.get(f"{role}: {name}", 0.0) + thread[2]
     return out
 
 
@@ -279,6 +277,8 @@ def mouse_drag_presented(page, start: dict, pixels: float, seconds: float, hz: f
     cpu1 = cpu_by_role(server_pid)
     after = page.evaluate(PAGE_COUNTERS_JS)
     page.mouse.up()
+    wait_idle(page)
+    page.keyboard.press("Control+z")  # the drag committed an edit: undone, the handle is back at start
     wait_idle(page)
     span = (after["t"] - before["t"]) / 1000
     stages = {k: (after["sums"][k] - before["sums"].get(k, 0)) / (after["counts"][k] - before["counts"].get(k, 0))

@@ -203,6 +203,7 @@ function present(now) {
     placeMarkers();
     if (shown) recycle(shown.set);
     shown = frame;
+    if (state.pending) requestEvaluation();
     state.shownRow = frame.row;
     state.shownId = frame.id;
     state.exact = frame.exact;
@@ -220,7 +221,8 @@ function present(now) {
     renderer.domElement.height / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2));
   renderer.render(scene, camera);
   note('render_submit', performance.now() - t1);
-  showStatus();
+  // the status line four times a second: a changed text costs a repaint of its layer every frame
+  if (now - (state.statusAt || 0) > 250) { state.statusAt = now; showStatus(); }
 }
 
 // ---------------------------------------------------------------- the server
@@ -229,8 +231,10 @@ socket.binaryType = 'arraybuffer';
 
 function requestEvaluation() {
   if (socket.readyState !== WebSocket.OPEN) return;
-  // two requests in flight: the server forms the next answer while the last one is evaluated and drawn
-  if (state.inFlight >= state.inFlightMax) { state.pending = true; return; }
+  // two requests in flight: the server forms the next answer while the last one is evaluated and
+  // drawn; none while a finished frame waits to be drawn (a frame made faster than the screen
+  // takes them would be dropped: its work is better left to the others on a busy machine)
+  if (state.inFlight >= state.inFlightMax || incoming || workerNext) { state.pending = true; return; }
   state.inFlight += 1;
   state.pending = false;
   state.sentAt = performance.now();

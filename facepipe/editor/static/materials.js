@@ -64,6 +64,8 @@ varying vec3 vColour;
 
 void main() {
   vec4 view = modelViewMatrix * vec4(position, 1.0);
+  // drawn at the front of the marker's sphere: the surface through its centre hides no part of it
+  view.xyz += normalize(-view.xyz) * radius;
   gl_Position = projectionMatrix * view;
   gl_PointSize = max(2.0, 2.0 * radius * pixelsPerUnit / max(-view.z, 1e-6));
   vColour = markerColour;
