@@ -144,7 +144,7 @@ def server_stages(model, take: Path | None, handle: int, amplitude: float, steps
     """Milliseconds of the server's share of a drag step at this size, in this process: the patch's
     evaluation (frames and details where B or the WPSD weights reach) and the message it makes."""
     from facepipe.cli.editor import _engine, prepared_take
-    from facepipe.editor.server import drag_messages
+    from facepipe.editor.server import drag_messages, evaluation_message
     from facepipe.editor.session import EditorSession, rest_take
 
     class Quiet:
@@ -155,9 +155,11 @@ def server_stages(model, take: Path | None, handle: int, amplitude: float, steps
                             mode="server")
     try:
         session.engine = _engine(model, "auto", Quiet())
+        evaluation_message(session, {"op": "eval", "frame": 0}, exact=True)  # the page's first frame: its gate
         clock = time.perf_counter()
         drag_messages(session, {"op": "eval", "frame": 0, "preview": {"handle": handle, "offset": [0, 1e-3, 0]}})
         first = time.perf_counter() - clock
+        known = session.patch_serial  # the page has the patch's base: steps only
         patch = session._patch[1]
         evaluate, message = [], []
         for k in range(steps):
@@ -166,7 +168,7 @@ def server_stages(model, take: Path | None, handle: int, amplitude: float, steps
             patch.evaluate_patch(offset)
             evaluate.append(time.perf_counter() - clock)
             clock = time.perf_counter()
-            drag_messages(session, {"op": "eval", "frame": 0, "preview": {"handle": handle, "offset": offset}})
+            drag_messages(session, {"op": "eval", "frame": 0, "preview": {"handle": handle, "offset": offset}}, known)
             message.append(time.perf_counter() - clock)
         return {"engine": str(getattr(session.engine, "device", "cpu (numpy)")), "patch_vertices": len(patch.patch),
                 "drag_start_s": first, "patch_evaluate_ms": 1000 * float(np.median(evaluate)),

@@ -11,7 +11,7 @@ import pytest
 
 from facepipe.core.edits import HandleEdit, apply_edits
 from facepipe.editor.drag_patch import DragPatch
-from facepipe.editor.server import evaluation_message, make_app
+from facepipe.editor.server import drag_messages, evaluation_message, make_app
 from facepipe.editor.session import EditorSession, pack_arrays
 from facepipe.io.model_file import load_model
 from facepipe.pipeline.replay import NumpyEvaluator
@@ -96,6 +96,41 @@ def test_drag_patch_matches_the_full_frame(editor_rig, tmp_path):
     assert outside < 1e-3 * np.linalg.norm(offset) + 1e-5
     assert inside.sum() < model.n_vertices  # a patch, not the whole mesh
     session.close()
+
+
+def test_server_drag_messages_rebuild_the_patch_evaluation(editor_rig, tmp_path):
+    """The drag's patch protocol: the page's rebuild (base + column × float32(offset), the patch's
+    positions over it; as evaluate_worker.js does it) is DragPatch.evaluate bit for bit, and a page
+    without the patch's base (a second connection) is sent it."""
+    _, _, model, take = editor_rig
+    session = EditorSession(model, take, tmp_path / "e.json", mode="server")
+    try:
+        h, row = brow_handle(model), 5
+        evaluation_message(session, {"op": "eval", "frame": row}, exact=True)  # the frame's gate, as the page's first
+        V, H = model.n_vertices, len(model.handle_vertices)
+        request = {"op": "eval", "id": 3, "frame": row, "preview": {"handle": h, "offset": [0.0, 0.2, 0.05]}}
+        base_message, step = drag_messages(session, request)
+        head = np.frombuffer(base_message, "<f8", 8)
+        assert head[2] == 2 and head[6] == session.patch_serial
+        n = int(head[7])
+        at = 64 + 24 * H
+        base = np.frombuffer(base_message, "<f4", 3 * V, at).reshape(V, 3)
+        column = np.frombuffer(base_message, "<f4", V, at + 24 * V)
+        vertices = np.frombuffer(base_message, "<u4", n, at + 28 * V)
+        for offset in ([0.0, 0.2, 0.05], [0.1, -0.3, 0.0]):
+            request["preview"]["offset"] = offset
+            messages = drag_messages(session, request, known_serial=session.patch_serial)
+            assert len(messages) == 1  # this page has the base: the step alone
+            step = messages[0]
+            assert np.frombuffer(step, "<f8", 8)[2] == 3
+            sent = np.frombuffer(step, "<f8", 3, at)
+            rebuilt = base + column[:, None] * sent.astype(np.float32)[None]
+            rebuilt[vertices] = np.frombuffer(step, "<f4", 3 * n, at + 24).reshape(n, 3)
+            want, _ = session._patch[1].evaluate(offset)
+            np.testing.assert_array_equal(rebuilt, want)
+        assert len(drag_messages(session, request, known_serial=-1)) == 2  # a new page: base and step
+    finally:
+        session.close()
 
 
 def test_provisional_gate_then_exact(editor_rig, tmp_path):

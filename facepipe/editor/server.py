@@ -82,9 +82,10 @@ def evaluation_message(session: EditorSession, request: dict, exact: bool = Fals
     return b"".join(out), is_exact
 
 
-def drag_messages(session: EditorSession, request: dict) -> list[bytes] | None:
+def drag_messages(session: EditorSession, request: dict, known_serial: int = -1) -> list[bytes] | None:
     """The answers to an ``eval`` request of a drag in server mode while the gate's exact fits
-    are not made — the patch's base when the patch is new, then the step — or None (answer it whole)."""
+    are not made — the patch's base unless the page has it (``known_serial``: the serial of the
+    last base sent to this page), then the step — or None (answer it whole)."""
     if session.mode != "server":
         return None
     row = int(request["frame"])
@@ -93,7 +94,8 @@ def drag_messages(session: EditorSession, request: dict) -> list[bytes] | None:
     drag = session.drag_patch(row, _preview(session, request), exact=False)
     if drag is None:
         return None
-    handles, patch, new, offset = drag
+    handles, patch, _, offset = drag
+    new = known_serial != session.patch_serial
     layers = 1 if request.get("layer", "final") == "final" else 2
     n = len(patch.patch)
     ident = [float(request.get("id", 0)), float(row)]
@@ -191,14 +193,17 @@ async def _socket(request: web.Request) -> web.WebSocketResponse:
     await ws.send_str(_state(session))
     # requests are answered one at a time, in order; an answer without the gate's exact fits is
     # followed by the exact one when they are made, unless a newer request came first
+    known_serial = -1  # the drag patch whose base this page has
     async for msg in ws:
         if msg.type != WSMsgType.TEXT:
             continue
         try:
             req = json.loads(msg.data)
             if req.get("op") == "eval":
-                messages = await asyncio.to_thread(drag_messages, session, req)
+                messages = await asyncio.to_thread(drag_messages, session, req, known_serial)
                 exact = False
+                if messages is not None:
+                    known_serial = session.patch_serial
                 if messages is None:
                     message, exact = await asyncio.to_thread(evaluation_message, session, req)
                     messages = [message]

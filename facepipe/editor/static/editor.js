@@ -223,6 +223,7 @@ function present(now) {
   note('render_submit', performance.now() - t1);
   // the status line four times a second: a changed text costs a repaint of its layer every frame
   if (now - (state.statusAt || 0) > 250) { state.statusAt = now; showStatus(); }
+  else if (!state.statusTimer) state.statusTimer = setTimeout(() => { state.statusTimer = null; showStatus(); }, 260);
 }
 
 // ---------------------------------------------------------------- the server
