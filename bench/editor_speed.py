@@ -144,8 +144,15 @@ def server_stages(model, take: Path | None, handle: int, amplitude: float, steps
     """Milliseconds of the server's share of a drag step at this size, in this process: the patch's
     evaluation (frames and details where B or the WPSD weights reach) and the message it makes."""
     from facepipe.cli.editor import _engine, prepared_take
-    from facepipe.editor.server import drag_messages, evaluation_message
+    from facepipe.editor import server
     from facepipe.editor.session import EditorSession, rest_take
+
+    evaluation_message = server.evaluation_message
+    if hasattr(server, "drag_messages"):
+        drag_messages = server.drag_messages
+    else:  # an editor that sends whole frames while dragging (to compare with)
+        def drag_messages(session, request, known=-1):
+            return [evaluation_message(session, request)[0]]
 
     class Quiet:
         def __getattr__(self, name):
@@ -159,13 +166,13 @@ def server_stages(model, take: Path | None, handle: int, amplitude: float, steps
         clock = time.perf_counter()
         drag_messages(session, {"op": "eval", "frame": 0, "preview": {"handle": handle, "offset": [0, 1e-3, 0]}})
         first = time.perf_counter() - clock
-        known = session.patch_serial  # the page has the patch's base: steps only
+        known = getattr(session, "patch_serial", -1)  # the page has the patch's base: steps only
         patch = session._patch[1]
         evaluate, message = [], []
         for k in range(steps):
             offset = [0.0, amplitude * (k + 1) / steps, 0.0]
             clock = time.perf_counter()
-            patch.evaluate_patch(offset)
+            patch.evaluate_patch(offset) if hasattr(patch, "evaluate_patch") else patch.evaluate(offset)
             evaluate.append(time.perf_counter() - clock)
             clock = time.perf_counter()
             drag_messages(session, {"op": "eval", "frame": 0, "preview": {"handle": handle, "offset": offset}}, known)

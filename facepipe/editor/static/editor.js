@@ -481,7 +481,7 @@ window.facepipeEditor = {
   // what a drag of handle h by offset (rig units) shows, without committing it (scripts, benches)
   preview(h, offset) { state.preview = offset ? { handle: h, offset, ...easing() } : null; setInteractive(!!offset); requestEvaluation(); },
   handlePosition: (h) => Array.from(handles.slice(3 * h, 3 * h + 3)),
-  three: { THREE, renderer, scene, camera, face, markers, geometry },
+  three: { THREE, renderer, scene, camera, face, markers, geometry },  // for experiments on the drawing
   // milliseconds a draw of the scene takes to finish in the GPU process, at
   // the drag's resolution: alone, and with the positions and normals uploaded first
   renderCost(n = 10) {
