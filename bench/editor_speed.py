@@ -3,14 +3,19 @@
     python -m bench.editor_speed --browser-model ict_model.npz --browser-take ict/train_mocap.csv \\
         --server-model model_530k.npz --server-take rig/take.csv --shots bench/editor -o bench/editor_speed.json
 
-Browser mode (a model whose B fits the page): a brow handle is dragged with real mouse events
-(Playwright), then the pointer's work is taken off the clock by moving the handle from the page
-itself once per animation frame for a few seconds; the page's evaluations per second are the
-frames/s. Screenshots before and after the drag (final and details layers) go to ``--shots``, and
-the dragged frame's positions from the page are compared with ``replay --edits``.
+Frames/s are what a user sees: a brow handle is held and moved up and down with real mouse events
+(DevTools Input events at 100 Hz, :func:`bench.editor_browser.mouse_drag_presented`) and the page's
+animation frames that drew are counted. With them: the page's own stage timings (server round trip,
+the worker's evaluation and normals, upload, render submission), the CPU each process and thread
+used per presented frame (the machine's cores are shared: CPU per frame is what the stages cost,
+frames/s what was left for them), and the time a draw of the scene takes in the GPU process.
 
-Server mode (the paper's 530k): a WebSocket client drags a handle with two requests in flight,
-as the page does, and counts the streamed frames per second; then the page itself in Chromium.
+Browser mode (a model whose B fits the page): screenshots before and after a drag (final and
+details layers) go to ``--shots``, and the dragged frame's positions from the page are compared
+with ``replay --edits``. Server mode (the paper's 530k): a WebSocket client drags a handle with two
+requests in flight, as the page does, and counts the streamed frames per second; then the page.
+
+``--label`` files the results under that key of the output JSON, keeping the others (before/after).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -26,18 +32,21 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.editor_browser import (browser_page, chromium_or_reason, drag, editor_server, save_edits, screenshot,
-                                  wait_settled)
+from bench.editor_browser import (browser_page, chromium_or_reason, drag, editor_server, mouse_drag_presented,
+                                  save_edits, screenshot, wait_settled)
 
-SUSTAIN_JS = """async ([h, seconds, amplitude]) => {
-  const ed = window.facepipeEditor, n0 = ed.state.evaluations, t0 = performance.now();
-  await new Promise(done => { const step = () => { const t = performance.now() - t0;
-    ed.preview(h, [0, amplitude * (1 - Math.cos(t / 250)) / 2, 0]);
-    if (t < seconds * 1000) requestAnimationFrame(step); else done(); }; step(); });
-  const fps = (ed.state.evaluations - n0) / ((performance.now() - t0) / 1000);
-  ed.preview(h, null);
-  return { fps, timings: ed.state.timings };
-}"""
+def page_measures(page, handle: int, pixels: float, server_pid: int | None, seconds: float = 8.0) -> dict:
+    """Frames presented while the handle is dragged with the mouse (and where the time goes), then
+    the same without drawing (what evaluation alone reaches), and a draw's cost in the GPU process."""
+    start = page.evaluate(f"window.facepipeEditor.handleScreen({handle})")
+    out = {"mouse_drag": mouse_drag_presented(page, start, pixels, seconds, server_pid=server_pid)}
+    page.evaluate("window.facepipeEditor.state.noRender = true")
+    without = mouse_drag_presented(page, start, pixels, seconds / 2, server_pid=server_pid)
+    page.evaluate("window.facepipeEditor.state.noRender = false")
+    out["mouse_drag_without_drawing"] = {k: without[k] for k in ("evaluations_per_s", "stage_ms", "load_average_1min")}
+    if page.evaluate("typeof window.facepipeEditor.renderCost === 'function'"):
+        out["draw_in_gpu_process_ms"] = page.evaluate("window.facepipeEditor.renderCost(10)")
+    return out
 
 
 def brow_handle(rest_handles: np.ndarray, names: list[str], up: np.ndarray) -> int:
@@ -68,7 +77,7 @@ def browser_mode(chromium: str, model_path: Path, take: Path, shots: Path, row: 
         wait_settled(page)
         screenshot(page, shots / "browser_before.png")
         start = page.evaluate(f"window.facepipeEditor.handleScreen({h})")
-        mouse_fps = drag(page, start, 0, -pixels, steps=60)
+        drag(page, start, 0, -pixels, steps=60)
         wait_settled(page)
         screenshot(page, shots / "browser_after.png")
         page.select_option("#layer", "details")
@@ -77,13 +86,12 @@ def browser_mode(chromium: str, model_path: Path, take: Path, shots: Path, row: 
         page.select_option("#layer", "final")
         shown = np.array(page.evaluate("window.facepipeEditor.positions()")).reshape(-1, 3)
         save_edits(page)
-        sustained = page.evaluate(SUSTAIN_JS, [h, 5, float(np.median(model.rest_lengths)) * 0.5])
+        dragging = page_measures(page, h, pixels, server_pid=url.pid)
     out = work / "replay"
     subprocess.run([sys.executable, "-m", "facepipe", "replay", str(take), "-m", str(model_path), "-o", str(out),
                     "--edits", str(edits), "--backend", "numpy", "--head-motion", "remove", "-q"], check=True)
     replayed = np.load(out / "positions.npy")[row]
-    return {"vertices": model.n_vertices, "handle": meta["handle_names"][h], "frame_row": row,
-            "mouse_drag_fps": mouse_fps, "sustained_drag_fps": sustained["fps"], "page_timings_ms": sustained["timings"],
+    return {"vertices": model.n_vertices, "handle": meta["handle_names"][h], "frame_row": row, **dragging,
             "page_vs_replay_max_abs": float(np.abs(shown - replayed).max()),
             "edits": json.loads(edits.read_text())["edits"]}
 
@@ -98,7 +106,7 @@ async def stream_drag(url: str, handle: int, seconds: float, amplitude: float) -
         await ws.send_str(json.dumps({"op": "eval", "id": 0, "frame": 0}))
         await ws.receive()
         sent = answered = 0
-        nbytes = 0
+        nbytes = base_bytes = 0
         clock = time.perf_counter()
 
         async def send():
@@ -115,8 +123,12 @@ async def stream_drag(url: str, handle: int, seconds: float, amplitude: float) -
         while time.perf_counter() - clock < seconds:
             msg = await ws.receive()
             data = msg.data
-            if np.frombuffer(data, "<f8", 6)[5] == 1:
+            head = np.frombuffer(data, "<f8", 6)
+            if head[5] == 1:
                 continue  # an unasked exact refinement
+            if head[2] == 2:  # a new drag patch's base, ahead of its first step
+                base_bytes = len(data)
+                continue
             answered += 1
             nbytes += len(data)
             if first is None:  # the first answer builds the drag's patch: timed apart
@@ -124,7 +136,53 @@ async def stream_drag(url: str, handle: int, seconds: float, amplitude: float) -
                 answered, nbytes, clock = 0, 0, time.perf_counter()
             await send()
         seconds = time.perf_counter() - clock
-    return {"streamed_fps": answered / seconds, "first_answer_s": first, "megabytes_per_frame": nbytes / max(answered, 1) / 1e6}
+    return {"streamed_fps": answered / seconds, "first_answer_s": first,
+            "megabytes_per_frame": nbytes / max(answered, 1) / 1e6, "patch_base_megabytes": base_bytes / 1e6}
+
+
+def server_stages(model, take: Path | None, handle: int, amplitude: float, steps: int = 10) -> dict:
+    """Milliseconds of the server's share of a drag step at this size, in this process: the patch's
+    evaluation (frames and details where B or the WPSD weights reach) and the message it makes."""
+    from facepipe.cli.editor import _engine, prepared_take
+    from facepipe.editor import server
+    from facepipe.editor.session import EditorSession, rest_take
+
+    evaluation_message = server.evaluation_message
+    if hasattr(server, "drag_messages"):
+        drag_messages = server.drag_messages
+    else:  # an editor that sends whole frames while dragging (to compare with)
+        def drag_messages(session, request, known=-1):
+            return [evaluation_message(session, request)[0]]
+
+    class Quiet:
+        def __getattr__(self, name):
+            return lambda *args, **kwargs: None
+
+    session = EditorSession(model, prepared_take(take, model) if take else rest_take(model), Path("unused.json"),
+                            mode="server")
+    try:
+        session.engine = _engine(model, "auto", Quiet())
+        evaluation_message(session, {"op": "eval", "frame": 0}, exact=True)  # the page's first frame: its gate
+        clock = time.perf_counter()
+        drag_messages(session, {"op": "eval", "frame": 0, "preview": {"handle": handle, "offset": [0, 1e-3, 0]}})
+        first = time.perf_counter() - clock
+        known = getattr(session, "patch_serial", -1)  # the page has the patch's base: steps only
+        patch = session._patch[1]
+        evaluate, message = [], []
+        for k in range(steps):
+            offset = [0.0, amplitude * (k + 1) / steps, 0.0]
+            clock = time.perf_counter()
+            patch.evaluate_patch(offset) if hasattr(patch, "evaluate_patch") else patch.evaluate(offset)
+            evaluate.append(time.perf_counter() - clock)
+            clock = time.perf_counter()
+            drag_messages(session, {"op": "eval", "frame": 0, "preview": {"handle": handle, "offset": offset}}, known)
+            message.append(time.perf_counter() - clock)
+        return {"engine": str(getattr(session.engine, "device", "cpu (numpy)")), "patch_vertices": len(patch.patch),
+                "drag_start_s": first, "patch_evaluate_ms": 1000 * float(np.median(evaluate)),
+                "step_message_ms": 1000 * float(np.median(message)),
+                "load_average_1min": os.getloadavg()[0]}
+    finally:
+        session.close()
 
 
 def server_mode(chromium: str | None, model_path: Path, take: Path | None, work: Path) -> dict:
@@ -136,14 +194,14 @@ def server_mode(chromium: str | None, model_path: Path, take: Path | None, work:
     amplitude = float(np.median(model.rest_lengths)) * 0.5
     args = [model_path] + ([take] if take else []) + ["--edits", work / "edits530.json", "--evaluate", "server"]
     result = {"vertices": model.n_vertices, "handle": model.marker_names[h]}
+    result["server_stages"] = server_stages(model, take, h, amplitude)
+    print(json.dumps(result, indent=1), flush=True)
     with editor_server(*args, timeout=600) as url:
         result.update(asyncio.run(stream_drag(url, h, 8.0, amplitude)))
         if chromium:
             with browser_page(chromium, url) as page:
                 wait_settled(page, timeout=600_000)
-                start = page.evaluate(f"window.facepipeEditor.handleScreen({h})")
-                result["page_mouse_drag_fps"] = drag(page, start, 0, -20, steps=30)
-                result["page_sustained_drag_fps"] = page.evaluate(SUSTAIN_JS, [h, 6, amplitude])["fps"]
+                result["page"] = page_measures(page, h, 20, server_pid=url.pid, seconds=15.0)
     return result
 
 
@@ -159,9 +217,10 @@ def main():
     ap.add_argument("--server-take", type=Path)
     ap.add_argument("--shots", type=Path, default=Path("bench/editor"))
     ap.add_argument("-o", "--output", type=Path, default=Path("bench/editor_speed.json"))
+    ap.add_argument("--label", default=None, help="file the results under this key of the output, keeping the rest")
     a = ap.parse_args()
     chromium, reason = chromium_or_reason()
-    results = {"chromium": chromium or reason}
+    results = {"chromium": chromium or reason, "cores": os.cpu_count(), "load_average_at_start": os.getloadavg()}
     a.shots.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="editor-bench-") as work:
         if a.browser_model:
@@ -173,6 +232,9 @@ def main():
         if a.server_model:
             results["server"] = server_mode(chromium, a.server_model, a.server_take, Path(work))
             print(json.dumps(results["server"], indent=1), flush=True)
+    if a.label:
+        kept = json.loads(a.output.read_text()) if a.output.is_file() else {}
+        results = {**kept, a.label: results}
     a.output.write_text(json.dumps(results, indent=2, default=str))
 
 

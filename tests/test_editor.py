@@ -11,7 +11,7 @@ import pytest
 
 from facepipe.core.edits import HandleEdit, apply_edits
 from facepipe.editor.drag_patch import DragPatch
-from facepipe.editor.server import evaluation_message, make_app
+from facepipe.editor.server import drag_messages, evaluation_message, make_app
 from facepipe.editor.session import EditorSession, pack_arrays
 from facepipe.io.model_file import load_model
 from facepipe.pipeline.replay import NumpyEvaluator
@@ -96,6 +96,41 @@ def test_drag_patch_matches_the_full_frame(editor_rig, tmp_path):
     assert outside < 1e-3 * np.linalg.norm(offset) + 1e-5
     assert inside.sum() < model.n_vertices  # a patch, not the whole mesh
     session.close()
+
+
+def test_server_drag_messages_rebuild_the_patch_evaluation(editor_rig, tmp_path):
+    """The drag's patch protocol: the page's rebuild (base + column × float32(offset), the patch's
+    positions over it; as evaluate_worker.js does it) is DragPatch.evaluate bit for bit, and a page
+    without the patch's base (a second connection) is sent it."""
+    _, _, model, take = editor_rig
+    session = EditorSession(model, take, tmp_path / "e.json", mode="server")
+    try:
+        h, row = brow_handle(model), 5
+        evaluation_message(session, {"op": "eval", "frame": row}, exact=True)  # the frame's gate, as the page's first
+        V, H = model.n_vertices, len(model.handle_vertices)
+        request = {"op": "eval", "id": 3, "frame": row, "preview": {"handle": h, "offset": [0.0, 0.2, 0.05]}}
+        base_message, step = drag_messages(session, request)
+        head = np.frombuffer(base_message, "<f8", 8)
+        assert head[2] == 2 and head[6] == session.patch_serial
+        n = int(head[7])
+        at = 64 + 24 * H
+        base = np.frombuffer(base_message, "<f4", 3 * V, at).reshape(V, 3)
+        column = np.frombuffer(base_message, "<f4", V, at + 24 * V)
+        vertices = np.frombuffer(base_message, "<u4", n, at + 28 * V)
+        for offset in ([0.0, 0.2, 0.05], [0.1, -0.3, 0.0]):
+            request["preview"]["offset"] = offset
+            messages = drag_messages(session, request, known_serial=session.patch_serial)
+            assert len(messages) == 1  # this page has the base: the step alone
+            step = messages[0]
+            assert np.frombuffer(step, "<f8", 8)[2] == 3
+            sent = np.frombuffer(step, "<f8", 3, at)
+            rebuilt = base + column[:, None] * sent.astype(np.float32)[None]
+            rebuilt[vertices] = np.frombuffer(step, "<f4", 3 * n, at + 24).reshape(n, 3)
+            want, _ = session._patch[1].evaluate(offset)
+            np.testing.assert_array_equal(rebuilt, want)
+        assert len(drag_messages(session, request, known_serial=-1)) == 2  # a new page: base and step
+    finally:
+        session.close()
 
 
 def test_provisional_gate_then_exact(editor_rig, tmp_path):
@@ -215,3 +250,56 @@ def test_page_drag_replays_identically(editor_rig, tmp_path, mode):
     assert run_cli("replay", root / "rig" / "take.csv", "-m", model_path, "-o", plain, "--backend", "numpy",
                    "--head-motion", "remove", "--frames", f"{row}:{row + 1}", "-q") == 0
     assert np.abs(np.load(plain / "positions.npy")[0] - replayed).max() > 0.1
+
+
+INCREMENTAL_JS = """async () => {
+  const { unpackBundle, BrowserEvaluator } = await import('/static/evaluate.js');
+  const bundle = unpackBundle(await (await fetch('/api/model.bin')).arrayBuffer());
+  const { vertices: V, handles: H, features: F } = bundle.meta;
+  let seed = 7;
+  const random = () => ((seed = (seed * 16807) % 2147483647) / 2147483647);
+  const rest = bundle.arrays.rest, hv = bundle.arrays.handle_vertices, basis = bundle.arrays.basis_features;
+  // a pose, features and gate made up: the evaluator takes the pose terms as given
+  const handles = Float64Array.from({ length: 3 * H }, (_, i) => rest[3 * hv[Math.floor(i / 3)] + i % 3] + 0.2 * (random() - 0.5));
+  const features = Float64Array.from({ length: F }, (_, f) => basis[f] + 0.1 * (random() - 0.5));
+  const gate = Float64Array.from({ length: F }, () => 0.5 + 0.5 * random());
+  const out = () => [new Float32Array(3 * V), new Float32Array(3 * V), new Float32Array(V)];
+  const stepped = new BrowserEvaluator(bundle), whole = new BrowserEvaluator(bundle);
+  const [f0, l0, n0] = out();
+  stepped.evaluate(handles, features, gate, f0, l0, n0, true);  // nothing to update: whole
+  const results = [];
+  // a drag: one handle moves and the features of a few edges change; then the gate changes too
+  for (const [moveGate, h] of [[false, 3], [false, 3], [true, 5]]) {
+    for (let x = 0; x < 3; x++) handles[3 * h + x] += 0.3 * (random() - 0.5);
+    for (const f of [h % F, (7 * h + 1) % F]) features[f] += 0.05;
+    if (moveGate) gate[h % F] *= 0.5;
+    const [f1, l1, n1] = out(), [f2, l2, n2] = out();
+    stepped.evaluate(handles, features, gate, f1, l1, n1, true);
+    whole.evaluate(handles, features, gate, f2, l2, n2, false);
+    let final = 0, large = 0, moved = 0;
+    for (let i = 0; i < 3 * V; i++) {
+      final = Math.max(final, Math.abs(f1[i] - f2[i])); large = Math.max(large, Math.abs(l1[i] - l2[i]));
+      moved = Math.max(moved, Math.abs(f1[i] - f0[i]));
+    }
+    results.push({ final, large, moved });
+  }
+  return results;
+}"""
+
+
+@pytest.mark.slow
+def test_page_drag_step_evaluation_equals_whole(editor_rig, tmp_path):
+    """The page's incremental drag evaluation (evaluate.js) against its whole evaluation of the
+    same pose terms: the same surface up to float32 rounding, after a handle, features and the gate move."""
+    chromium, reason = chromium_or_reason()
+    if chromium is None:
+        pytest.skip(reason)
+    root, model_path, model, _ = editor_rig
+    with editor_server(model_path, "--edits", tmp_path / "e.json", "--evaluate", "browser") as url, \
+            browser_page(chromium, url) as page:
+        results = page.evaluate(INCREMENTAL_JS)
+        assert not page.errors
+    scale = float(np.ptp(model.rest))
+    for step in results:
+        assert step["moved"] > 1e-3 * scale  # the pose moved the face: the comparison is not of two rest faces
+        assert step["final"] < 1e-6 * scale and step["large"] < 1e-6 * scale, step

@@ -78,19 +78,22 @@ class DragPatch:
         self.basis = model.basis_features.astype(np.float64)
         self.confidence = None if site is None else np.asarray(self.alpha @ site).ravel().astype(np.float32)
 
-    def evaluate(self, offset) -> tuple[np.ndarray, np.ndarray]:
-        """Final and large-scale positions (V, 3) float32 with the handle moved by ``offset`` from the base."""
+    def shift(self, offset) -> np.ndarray:
+        """B[:, h] δ (V, 3) float32: the large scale's change everywhere (also the page's to add,
+        :meth:`evaluate_patch` answers the rest)."""
+        return self.column[:, None] * np.asarray(offset, dtype=np.float64).astype(np.float32)[None]
+
+    def evaluate_patch(self, offset) -> np.ndarray:
+        """Final positions (n, 3) float32 of the patch's vertices (:attr:`patch`) with the handle
+        moved by ``offset``; outside the patch the final surface is ``base_final`` + :meth:`shift`."""
         offset = np.asarray(offset, dtype=np.float64)
-        delta = self.column[:, None] * offset.astype(np.float32)[None]
-        large = self.base_large + delta
-        final = self.base_final + delta
+        sub = self.base_large[self.used] + self.column[self.used, None] * offset.astype(np.float32)[None]
         if self.method == "none":
-            return final, large
+            return sub[self.patch_local]
         handles = self.base_handles.copy()
         handles[self.handle] += offset
         features = strain_features(handles, self.edges, self.rest_lengths)
         # float32 on the patch: this is what the pointer sees, the exact frame follows
-        sub = large[self.used]
         frames = local_frames(sub, self.sub_faces, self.sub_neighbours, self.sub_incidence)[self.patch_local]
         sq = (features[None, :] - self.basis) ** 2  # (P, F)
         if self.method == "wpsd":
@@ -100,5 +103,12 @@ class DragPatch:
         d = np.einsum("vp,vpc->vc", phi, self.weights) + self.const
         if self.confidence is not None:
             d *= self.confidence[:, None]
-        final[self.patch] = (sub[self.patch_local] + to_world(frames, d)).astype(np.float32)
+        return (sub[self.patch_local] + to_world(frames, d)).astype(np.float32)
+
+    def evaluate(self, offset) -> tuple[np.ndarray, np.ndarray]:
+        """Final and large-scale positions (V, 3) float32 with the handle moved by ``offset`` from the base."""
+        delta = self.shift(offset)
+        large = self.base_large + delta
+        final = self.base_final + delta
+        final[self.patch] = self.evaluate_patch(offset)
         return final, large

@@ -10,9 +10,15 @@ and answers evaluations in binary (little-endian):
   float32 final (V·3) and, when ``layers`` is 2, the large scale (V·3).
 
 ``exact`` is 0 while the novelty gate's fits for a new pose are still running (the latest exact
-gate stands in; in server mode a drag is then evaluated on its patch, see
-:mod:`facepipe.editor.drag_patch`); an answer with ``refine`` 1 follows, unasked, with the exact
-evaluation of the page's latest request once they are made.
+gate stands in); an answer with ``refine`` 1 follows, unasked, with the exact evaluation of the
+page's latest request once they are made. In server mode a drag meanwhile is evaluated on its
+patch (:mod:`facepipe.editor.drag_patch`) and only the patch travels:
+
+* a new patch: float64 ``[id, row, 2, layers, 0, 0, serial, n, handles (H·3)]``, then float32
+  base final (V·3), base large (V·3), B's column of the handle (V), then uint32 patch vertices (n);
+* each drag step: float64 ``[id, row, 3, layers, 0, 0, serial, n, handles (H·3), offset (3)]``,
+  then float32 final of the patch's vertices (n·3); the page adds column × float32(offset) to the
+  base everywhere (float32 arithmetic, as the server does) and puts the patch's positions over it.
 """
 
 from __future__ import annotations
@@ -74,6 +80,35 @@ def evaluation_message(session: EditorSession, request: dict, exact: bool = Fals
     if layers == 2:
         out.append(large.astype("<f4").tobytes())
     return b"".join(out), is_exact
+
+
+def drag_messages(session: EditorSession, request: dict, known_serial: int = -1) -> list[bytes] | None:
+    """The answers to an ``eval`` request of a drag in server mode while the gate's exact fits
+    are not made — the patch's base unless the page has it (``known_serial``: the serial of the
+    last base sent to this page), then the step — or None (answer it whole)."""
+    if session.mode != "server":
+        return None
+    row = int(request["frame"])
+    if not 0 <= row < len(session.take.frames):
+        raise ValueError(f"no frame row {row}")
+    drag = session.drag_patch(row, _preview(session, request), exact=False)
+    if drag is None:
+        return None
+    handles, patch, _, offset = drag
+    new = known_serial != session.patch_serial
+    layers = 1 if request.get("layer", "final") == "final" else 2
+    n = len(patch.patch)
+    ident = [float(request.get("id", 0)), float(row)]
+    out = []
+    if new:
+        head = np.array(ident + [2.0, float(layers), 0.0, 0.0, float(session.patch_serial), float(n)], "<f8")
+        out.append(b"".join([head.tobytes(), patch.base_handles.astype("<f8").tobytes(),
+                             patch.base_final.astype("<f4").tobytes(), patch.base_large.astype("<f4").tobytes(),
+                             patch.column.astype("<f4").tobytes(), patch.patch.astype("<u4").tobytes()]))
+    head = np.array(ident + [3.0, float(layers), 0.0, 0.0, float(session.patch_serial), float(n)], "<f8")
+    out.append(b"".join([head.tobytes(), handles.astype("<f8").tobytes(), np.asarray(offset, "<f8").tobytes(),
+                         patch.evaluate_patch(offset).astype("<f4").tobytes()]))
+    return out
 
 
 class Refiner:
@@ -158,15 +193,23 @@ async def _socket(request: web.Request) -> web.WebSocketResponse:
     await ws.send_str(_state(session))
     # requests are answered one at a time, in order; an answer without the gate's exact fits is
     # followed by the exact one when they are made, unless a newer request came first
+    known_serial = -1  # the drag patch whose base this page has
     async for msg in ws:
         if msg.type != WSMsgType.TEXT:
             continue
         try:
             req = json.loads(msg.data)
             if req.get("op") == "eval":
-                message, exact = await asyncio.to_thread(evaluation_message, session, req)
+                messages = await asyncio.to_thread(drag_messages, session, req, known_serial)
+                exact = False
+                if messages is not None:
+                    known_serial = session.patch_serial
+                if messages is None:
+                    message, exact = await asyncio.to_thread(evaluation_message, session, req)
+                    messages = [message]
                 async with lock:
-                    await ws.send_bytes(message)
+                    for message in messages:
+                        await ws.send_bytes(message)
                 refiner.seen(req) if exact else refiner.request(req)
             else:
                 text = await asyncio.to_thread(_edit_op, session, req)

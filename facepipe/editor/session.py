@@ -179,6 +179,7 @@ class EditorSession:
         self.gates = GateCache(gate, self.rest_handles) if gate is not None and gate.tau > 0 else None
         self.alpha = edge_weight_matrix(model.edge_index, model.edge_weight, len(model.edges))  # the gate's α
         self._patch: tuple[tuple, DragPatch] | None = None
+        self.patch_serial = 0  # names the current patch in the page's messages
         self.truth = None
         if truth_path is not None:
             self.truth = load_truth(truth_path, take.frames, model.n_vertices)
@@ -233,22 +234,37 @@ class EditorSession:
             final, large = engine.evaluate(handles[None], with_large=True)
         return np.asarray(final[0], dtype=np.float32), np.asarray(large[0], dtype=np.float32)
 
-    def positions(self, row: int, preview: HandleEdit | None, exact: bool):
-        """Handles, final and large positions of a frame row (with a drag's preview), and whether
-        they are exact: a drag without the gate's exact fits yet is evaluated by a
-        :class:`DragPatch` from the frame without it."""
+    def drag_patch(self, row: int, preview: HandleEdit | None, exact: bool):
+        """A drag of one handle whose gate's exact fits are not yet made is evaluated on a
+        :class:`DragPatch` from the frame without it: (handles, the patch, whether the patch is new,
+        offset); None when the frame is to be evaluated whole."""
+        if preview is None or len(preview.offsets) != 1:
+            return None
         handles = self.handles(row, preview)
         features, site, is_exact = self.pose_terms(handles, exact)
-        if preview is not None and not is_exact and len(preview.offsets) == 1:
-            (handle, offset), = preview.offsets.items()
-            key = (row, handle, id(self.history.edits))
-            if self._patch is None or self._patch[0] != key:
-                base = self.handles(row)
-                base_final, base_large = self.evaluate(base, site)
-                self._patch = (key, DragPatch(self.model, handle, base, base_final, base_large, site,
-                                              incidence=self.reference.incidence))
-            final, large = self._patch[1].evaluate(offset)
+        if is_exact:
+            return None
+        (handle, offset), = preview.offsets.items()
+        key = (row, handle, id(self.history.edits))
+        new = self._patch is None or self._patch[0] != key
+        if new:
+            base = self.handles(row)
+            base_final, base_large = self.evaluate(base, site)
+            self._patch = (key, DragPatch(self.model, handle, base, base_final, base_large, site,
+                                          incidence=self.reference.incidence))
+            self.patch_serial += 1
+        return handles, self._patch[1], new, offset
+
+    def positions(self, row: int, preview: HandleEdit | None, exact: bool):
+        """Handles, final and large positions of a frame row (with a drag's preview), and whether
+        they are exact (see :meth:`drag_patch` for a drag without the gate's exact fits)."""
+        drag = self.drag_patch(row, preview, exact)
+        if drag is not None:
+            handles, patch, _, offset = drag
+            final, large = patch.evaluate(offset)
             return handles, final, large, False
+        handles = self.handles(row, preview)
+        features, site, is_exact = self.pose_terms(handles, exact)
         final, large = self.evaluate(handles, site)
         return handles, final, large, is_exact
 

@@ -1,30 +1,53 @@
 // facepipe edit: the page. Shows the face, its handles and the timeline; a drag of a handle
-// sends the uncommitted edit with every move and draws the answer (pose terms evaluated here in
-// browser mode, positions from the server in server mode); releasing commits the edit.
+// sends the uncommitted edit with every move and draws the answer; releasing commits the edit.
+//
+// Three stages overlap, so a frame costs the slowest of them rather than their sum: the server
+// forms the pose terms (browser mode) or positions (server mode) of the latest request; a worker
+// thread (evaluate_worker.js) evaluates the vertices and their normals; this thread uploads and
+// draws the newest finished frame once per animation frame (requestAnimationFrame), dropping any
+// it had no time to show.
 import * as THREE from 'three';
 import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
-import { unpackBundle, BrowserEvaluator } from '/static/evaluate.js';
+import { unpackBundle } from '/static/evaluate.js';
+import { faceMaterial, markerMaterial } from '/static/materials.js';
 
 const $ = (id) => document.getElementById(id);
 const SKIN = [0.86, 0.72, 0.64];
 
 const state = {
   ready: false, frame: 0, layer: 'final', preview: null, inFlight: 0, pending: false, requestId: 0,
-  playing: false, inFlightMax: 2, evaluations: 0, frameTimes: [], truth: null, truthRow: -1, edits: [],
+  playing: false, inFlightMax: 2, evaluations: 0, presented: 0, frameTimes: [], truth: null, truthRow: -1,
+  edits: [], workerBusy: false, dragRequests: new Set(), timings: {}, stageSums: {}, stageCounts: {},
 };
+// where a frame's time goes (milliseconds): the latest, and sums and counts for averages
+function note(stage, ms) {
+  state.timings[stage] = ms;
+  state.stageSums[stage] = (state.stageSums[stage] || 0) + ms;
+  state.stageCounts[stage] = (state.stageCounts[stage] || 0) + 1;
+}
 
-const bundle = unpackBundle(await (await fetch('/api/model.bin')).arrayBuffer());
+// a draw at the next animation frame (see present)
+let scheduled = false, redraw = false;
+function schedule(again = true) {
+  if (again) redraw = true;
+  if (!scheduled) { scheduled = true; requestAnimationFrame(present); }
+}
+
+const modelBuffer = await (await fetch('/api/model.bin')).arrayBuffer();
+const bundle = unpackBundle(modelBuffer);
 const meta = bundle.meta;
 const V = meta.vertices, H = meta.handles, F = meta.features;
-const evaluator = meta.mode === 'browser' ? new BrowserEvaluator(bundle) : null;
-const final = new Float32Array(bundle.arrays.rest);
-const large = new Float32Array(bundle.arrays.rest);
-const detailN = new Float32Array(V);
+// this thread keeps its own copies of the mesh: the bundle (with B) moves to the worker
+const rest = bundle.arrays.rest.slice();
+const triangles = bundle.arrays.triangles.slice();
+const handleVertices = bundle.arrays.handle_vertices.slice();
 let handles = new Float64Array(H * 3);
-for (let h = 0; h < H; h++) for (let x = 0; x < 3; x++) handles[3 * h + x] = bundle.arrays.rest[3 * bundle.arrays.handle_vertices[h] + x];
+for (let h = 0; h < H; h++) for (let x = 0; x < 3; x++) handles[3 * h + x] = rest[3 * handleVertices[h] + x];
+let shown = null;     // the frame on screen: the worker's set of arrays (final, large, normal, …)
+let incoming = null;  // the newest finished frame not yet drawn
 
 // ---------------------------------------------------------------- scene
-const renderer = new THREE.WebGLRenderer({ antialias: false });
+const renderer = new THREE.WebGLRenderer({ antialias: false, powerPreference: 'high-performance' });
 // while a handle is dragged or the take plays the canvas renders at half resolution: a software
 // rasteriser (a machine without a GPU) is bound by the pixels it shades; full resolution once settled
 const fullRatio = window.devicePixelRatio;
@@ -34,6 +57,7 @@ function setInteractive(on) {
   interactive = on;
   renderer.setPixelRatio(on ? fullRatio / 2 : fullRatio);
   renderer.setSize(window.innerWidth, window.innerHeight);
+  schedule();
 }
 renderer.setPixelRatio(fullRatio);
 renderer.setSize(window.innerWidth, window.innerHeight);
@@ -41,22 +65,24 @@ document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x303338);
 const geometry = new THREE.BufferGeometry();
-const positionAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
+const positionAttr = new THREE.BufferAttribute(rest.slice(), 3);
 positionAttr.setUsage(THREE.DynamicDrawUsage);
 geometry.setAttribute('position', positionAttr);
+const normalAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
+normalAttr.setUsage(THREE.DynamicDrawUsage);
+geometry.setAttribute('normal', normalAttr);
+geometry.computeVertexNormals();
 const colorAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
 geometry.setAttribute('color', colorAttr);
-geometry.setIndex(new THREE.BufferAttribute(bundle.arrays.triangles, 1));
-const material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide });
-const face = new THREE.Mesh(geometry, material);
-scene.add(face);
-scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 0.6));
+geometry.setIndex(new THREE.BufferAttribute(triangles, 1));
+geometry.computeBoundingSphere();
 
 // frame the rest face: look along its mean normal at the markers, y up unless that is the view
-const rest = bundle.arrays.rest;
 const box = new THREE.Box3().setFromBufferAttribute(new THREE.BufferAttribute(rest, 3));
 const centre = box.getCenter(new THREE.Vector3());
 const radius = box.getSize(new THREE.Vector3()).length() / 2;
+// the face moves by centimetres about a head's size: the rest's bounds, grown, never cull it
+geometry.boundingSphere.radius *= 2;
 const view = new THREE.Vector3(...meta.view).normalize();
 const camera = new THREE.PerspectiveCamera(30, window.innerWidth / window.innerHeight, radius / 100, radius * 100);
 camera.up.set(0, 1, 0);
@@ -64,42 +90,84 @@ if (Math.abs(view.y) > 0.9) camera.up.set(0, 0, 1);
 camera.position.copy(centre).addScaledVector(view, radius * 3.2);
 camera.lookAt(centre);
 // a key light from above and the side at a grazing angle: wrinkles show as shading
-const key = new THREE.DirectionalLight(0xffffff, 2.2);
 const side = new THREE.Vector3().crossVectors(camera.up, view).normalize();
-key.position.copy(centre).addScaledVector(view, radius * 0.8).addScaledVector(camera.up, radius * 2.5).addScaledVector(side, radius * 0.5);
-key.target.position.copy(centre);
-scene.add(key, key.target);
+const keyPosition = centre.clone().addScaledVector(view, radius * 0.8).addScaledVector(camera.up, radius * 2.5).addScaledVector(side, radius * 0.5);
+const material = faceMaterial(keyPosition.clone().sub(centre).normalize(), new THREE.Vector3(0, 1, 0));
+const face = new THREE.Mesh(geometry, material);
+scene.add(face);
 
-const markerGeometry = new THREE.SphereGeometry(meta.marker_size, 12, 8);
-const markerMaterial = new THREE.MeshBasicMaterial({ color: 0x2f8cff });
-const activeMaterial = new THREE.MeshBasicMaterial({ color: 0xffd23f });
-const markers = [];
-for (let h = 0; h < H; h++) {
-  const m = new THREE.Mesh(markerGeometry, markerMaterial);
-  m.userData.handle = h;
-  markers.push(m);
-  scene.add(m);
+// the handles: round points, one draw
+const markerGeometry = new THREE.BufferGeometry();
+const markerPositions = new THREE.BufferAttribute(new Float32Array(3 * H), 3);
+markerPositions.setUsage(THREE.DynamicDrawUsage);
+markerGeometry.setAttribute('position', markerPositions);
+const markerColours = new THREE.BufferAttribute(new Float32Array(3 * H), 3);
+markerGeometry.setAttribute('markerColour', markerColours);
+const markers = new THREE.Points(markerGeometry, markerMaterial(meta.marker_size));
+markers.frustumCulled = false;
+scene.add(markers);
+const markerColour = new THREE.Color(0x2f8cff), activeColour = new THREE.Color(0xffd23f);
+function placeMarkers() {
+  markerPositions.array.set(handles);
+  markerPositions.needsUpdate = true;
 }
+function markHandle(h, active) {
+  const c = active ? activeColour : markerColour;
+  markerColours.setXYZ(h, c.r, c.g, c.b);
+  markerColours.needsUpdate = true;
+  schedule();
+}
+for (let h = 0; h < H; h++) markHandle(h, false);
+placeMarkers();
+
+// ---------------------------------------------------------------- the worker
+const worker = new Worker('/static/evaluate_worker.js', { type: 'module' });
+await new Promise((resolve, reject) => {
+  worker.onmessage = (e) => e.data.op === 'ready' && resolve();
+  worker.onerror = (e) => reject(new Error(`the evaluation worker failed: ${e.message}`));
+  worker.postMessage({ op: 'init', buffer: modelBuffer }, [modelBuffer]);
+});
+let workerNext = null;  // the newest job waiting for the worker (older ones are dropped)
+function toWorker(job, transfer = []) {
+  if (state.workerBusy) {
+    workerNext = { job, transfer };
+    return;
+  }
+  state.workerBusy = true;
+  worker.postMessage(job, transfer);
+}
+function recycle(set) {
+  worker.postMessage({ op: 'recycle', set }, [set.final.buffer, set.large.buffer, set.normal.buffer, set.detailN.buffer,
+                                               set.color.buffer]);
+}
+worker.onmessage = (event) => {
+  const m = event.data;
+  state.workerBusy = false;
+  if (workerNext) { const next = workerNext; workerNext = null; toWorker(next.job, next.transfer); }
+  if (m.op !== 'frame') return;
+  state.evaluations += 1;
+  note('worker_evaluate', m.timings.evaluate);
+  note('worker_normals', m.timings.normals);
+  if (incoming) recycle(incoming.set);
+  incoming = m;
+  schedule();
+};
+worker.onerror = (e) => { $('message').textContent = `evaluation failed: ${e.message}`; };
 
 // ---------------------------------------------------------------- drawing
+
 function heat(t) {  // 0..1 → dark blue, cyan, yellow, red
   t = Math.min(Math.max(t, 0), 1);
   return [Math.min(1, Math.max(0, 1.5 * t * 2 - 1)), Math.min(1, Math.max(0, 2 - Math.abs(4 * t - 2))), Math.min(1, Math.max(0, 1.5 - 3 * t))];
 }
 
-function colour() {
+let colouredAs = null;
+function colour(frame) {
   const c = colorAttr.array;
-  if (state.layer === 'details') {
-    // scaled by the 95th percentile over the vertices: a few large details (a sparse neck) would
-    // otherwise wash out the face's wrinkles
-    const sorted = Float32Array.from(detailN, Math.abs).sort();
-    const top = Math.max(sorted[Math.floor(0.95 * (V - 1))], 1e-12);
-    for (let v = 0; v < V; v++) {  // blue in, white none, red out
-      const s = Math.max(-1, Math.min(1, detailN[v] / top));
-      c[3 * v] = s > 0 ? 1 : 1 + s; c[3 * v + 1] = 1 - Math.abs(s); c[3 * v + 2] = s < 0 ? 1 : 1 - s;
-    }
-  } else if (state.layer === 'error' && state.truth) {
-    const e = new Float32Array(V);
+  if (frame.layer === 'details') {
+    c.set(frame.set.color);
+  } else if (frame.layer === 'error' && state.truth) {
+    const final = frame.set.final, e = new Float32Array(V);
     let top = 1e-12;
     for (let v = 0; v < V; v++) {
       const dx = final[3 * v] - state.truth[3 * v], dy = final[3 * v + 1] - state.truth[3 * v + 1], dz = final[3 * v + 2] - state.truth[3 * v + 2];
@@ -109,19 +177,53 @@ function colour() {
     for (let v = 0; v < V; v++) { const [r, g, b] = heat(e[v] / top); c[3 * v] = r; c[3 * v + 1] = g; c[3 * v + 2] = b; }
     $('message').textContent = `error up to ${top.toFixed(3)} ${meta.units || ''}`;
   } else {
+    if (colouredAs === 'skin') return;  // unchanged: no upload
     for (let v = 0; v < V; v++) { c[3 * v] = SKIN[0]; c[3 * v + 1] = SKIN[1]; c[3 * v + 2] = SKIN[2]; }
+    colouredAs = 'skin';
+    colorAttr.needsUpdate = true;
+    return;
   }
+  colouredAs = frame.layer;
   colorAttr.needsUpdate = true;
 }
 
-function draw() {
-  positionAttr.array.set(state.layer === 'large' ? large : final);
-  positionAttr.needsUpdate = true;
-  geometry.computeVertexNormals();
-  geometry.computeBoundingSphere();
-  colour();
-  for (let h = 0; h < H; h++) markers[h].position.set(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]);
-  if (!state.noRender) renderer.render(scene, camera);
+// once per animation frame: the newest finished frame (if any) is uploaded and the scene drawn
+function present(now) {
+  scheduled = false;
+  if (incoming) {
+    const t0 = performance.now();
+    const frame = incoming;
+    incoming = null;
+    positionAttr.array.set(frame.layer === 'large' && frame.layered ? frame.set.large : frame.set.final);
+    positionAttr.needsUpdate = true;
+    normalAttr.array.set(frame.set.normal);
+    normalAttr.needsUpdate = true;
+    colour(frame);
+    handles = frame.handles;
+    placeMarkers();
+    if (shown) recycle(shown.set);
+    shown = frame;
+    if (state.pending) requestEvaluation();
+    state.shownRow = frame.row;
+    state.shownId = frame.id;
+    state.exact = frame.exact;
+    if (!drag && !state.playing && state.exact) setInteractive(false);
+    note('upload', performance.now() - t0);
+    state.presented += 1;
+    state.frameTimes.push(now);
+    while (state.frameTimes.length && state.frameTimes[0] < now - 1000) state.frameTimes.shift();
+    redraw = true;
+  }
+  if (!redraw || state.noRender) return;
+  redraw = false;
+  const t1 = performance.now();
+  markers.material.uniforms.pixelsPerUnit.value =
+    renderer.domElement.height / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2));
+  renderer.render(scene, camera);
+  note('render_submit', performance.now() - t1);
+  // the status line four times a second: a changed text costs a repaint of its layer every frame
+  if (now - (state.statusAt || 0) > 250) { state.statusAt = now; showStatus(); }
+  else if (!state.statusTimer) state.statusTimer = setTimeout(() => { state.statusTimer = null; showStatus(); }, 260);
 }
 
 // ---------------------------------------------------------------- the server
@@ -130,11 +232,14 @@ socket.binaryType = 'arraybuffer';
 
 function requestEvaluation() {
   if (socket.readyState !== WebSocket.OPEN) return;
-  // two requests in flight: the server forms the next pose terms while this page draws the last
-  if (state.inFlight >= state.inFlightMax) { state.pending = true; return; }
+  // two requests in flight: the server forms the next answer while the last one is evaluated and
+  // drawn; none while a finished frame waits to be drawn (a frame made faster than the screen
+  // takes them would be dropped: its work is better left to the others on a busy machine)
+  if (state.inFlight >= state.inFlightMax || incoming || workerNext) { state.pending = true; return; }
   state.inFlight += 1;
   state.pending = false;
   state.sentAt = performance.now();
+  if (state.preview) state.dragRequests.add(state.requestId + 1);
   socket.send(JSON.stringify({ op: 'eval', id: ++state.requestId, frame: state.frame, preview: state.preview, layer: state.layer }));
 }
 
@@ -142,50 +247,37 @@ function easing() {
   return { ease_in: Math.max(0, Number($('easeIn').value) || 0), ease_out: Math.max(0, Number($('easeOut').value) || 0) };
 }
 
+// an answer of the server (see facepipe/editor/server.py) to the worker
 function receive(buffer) {
-  const t0 = performance.now();
   const head = new Float64Array(buffer, 0, 6);
-  const row = head[1];
-  if (head[2] === 0) {  // pose terms: evaluate here
+  const [id, row, kind, layers, exact] = head;
+  // a drag's step may be evaluated from the last frame (evaluate.js); any other frame whole
+  const job = { id, row, exact: exact === 1, layer: state.layer, drag: state.dragRequests.has(id) };
+  for (const old of state.dragRequests) if (old <= id) state.dragRequests.delete(old);
+  if (kind === 0) {  // pose terms: evaluated in the worker
     const terms = new Float64Array(buffer, 48);
-    handles = terms.slice(0, 3 * H);
-    const features = terms.subarray(3 * H, 3 * H + F);
-    const gate = meta.gate ? terms.subarray(3 * H + F, 3 * H + 2 * F) : null;
-    evaluator.evaluate(handles, features, gate, final, large, detailN);
-  } else {  // positions from the server
-    handles = new Float64Array(buffer, 48, 3 * H).slice();
+    Object.assign(job, { op: 'pose', handles: terms.slice(0, 3 * H), features: terms.slice(3 * H, 3 * H + F),
+                         gate: meta.gate ? terms.slice(3 * H + F, 3 * H + 2 * F) : null });
+    toWorker(job);
+  } else if (kind === 1) {  // whole positions
     const offset = 48 + 24 * H;
-    final.set(new Float32Array(buffer, offset, 3 * V));
-    if (head[3] === 2) {
-      large.set(new Float32Array(buffer, offset + 12 * V, 3 * V));
-      // the details along the large scale's normal, for the details view
-      const n = geometryNormals(large);
-      for (let v = 0; v < V; v++) {
-        detailN[v] = (final[3 * v] - large[3 * v]) * n[3 * v] + (final[3 * v + 1] - large[3 * v + 1]) * n[3 * v + 1] + (final[3 * v + 2] - large[3 * v + 2]) * n[3 * v + 2];
-      }
+    Object.assign(job, { op: 'positions', handles: new Float64Array(buffer, 48, 3 * H).slice(),
+                         final: new Float32Array(buffer, offset, 3 * V),
+                         large: layers === 2 ? new Float32Array(buffer, offset + 12 * V, 3 * V) : null });
+    toWorker(job, [buffer]);
+  } else {  // a drag's patch (2: its base, 3: a step)
+    const h8 = new Float64Array(buffer, 0, 8), serial = h8[6], n = h8[7], base = 64 + 24 * H;
+    if (kind === 2) {  // never dropped: posted ahead of any waiting step
+      worker.postMessage({ op: 'patch', serial, final: new Float32Array(buffer, base, 3 * V),
+                           large: new Float32Array(buffer, base + 12 * V, 3 * V),
+                           column: new Float32Array(buffer, base + 24 * V, V),
+                           vertices: new Uint32Array(buffer, base + 28 * V, n) }, [buffer]);
+      return;
     }
+    Object.assign(job, { op: 'step', serial, handles: new Float64Array(buffer, 64, 3 * H).slice(),
+                         offset: Array.from(new Float64Array(buffer, base, 3)), values: new Float32Array(buffer, base + 24, 3 * n) });
+    toWorker(job, [buffer]);
   }
-  state.shownRow = row;
-  state.shownId = head[0];
-  state.exact = head[4] === 1;
-  if (!drag && !state.playing && state.exact) setInteractive(false);
-  const t1 = performance.now();
-  draw();
-  // where the time goes (the server's share is the rest of the round trip)
-  state.timings = { evaluate: t1 - t0, draw: performance.now() - t1, roundTrip: t0 - state.sentAt };
-  state.evaluations += 1;
-  const now = performance.now();
-  state.frameTimes.push(now);
-  while (state.frameTimes.length && state.frameTimes[0] < now - 1000) state.frameTimes.shift();
-  showStatus();
-}
-
-function geometryNormals(positions) {
-  const g = new THREE.BufferGeometry();
-  g.setAttribute('position', new THREE.BufferAttribute(positions, 3));
-  g.setIndex(geometry.index);
-  g.computeVertexNormals();
-  return g.getAttribute('normal').array;
 }
 
 function fps() {
@@ -194,7 +286,7 @@ function fps() {
 }
 
 function showStatus() {
-  const where = meta.mode === 'browser' ? 'evaluated in the browser (JavaScript)' : `evaluated on the server (${meta.engine}), streamed`;
+  const where = meta.mode === 'browser' ? 'evaluated in the browser (JavaScript, worker)' : `evaluated on the server (${meta.engine}), streamed`;
   const gate = meta.gate ? (state.exact ? ' · gate exact' : ' · gate updating') : '';
   $('status').textContent = `${V} vertices · ${where} · ${fps().toFixed(1)} frames/s${gate}`;
 }
@@ -217,13 +309,18 @@ socket.addEventListener('message', (event) => {
     else if (message.type === 'error') { $('message').textContent = message.message; state.inFlight = Math.max(0, state.inFlight - 1); }
     return;
   }
-  const refine = new Float64Array(event.data, 0, 6);
-  if (refine[5] === 1) {  // the exact evaluation of an earlier request, sent when the gate's fits were made
-    if (refine[0] === state.requestId && state.inFlight === 0) receive(event.data);
+  const head = new Float64Array(event.data, 0, 6);
+  if (head[5] === 1) {  // the exact evaluation of an earlier request, sent when the gate's fits were made
+    if (head[0] === state.requestId && state.inFlight === 0) receive(event.data);
     return;
   }
-  state.inFlight -= 1;
+  const answers = head[2] !== 2;  // a patch's base comes ahead of the answer
+  if (answers) {
+    state.inFlight -= 1;
+    note('round_trip', performance.now() - state.sentAt);
+  }
   receive(event.data);
+  if (!answers) return;
   if (state.pending) requestEvaluation();
   else if (state.playing) requestAnimationFrame(advance);
   state.ready = true;
@@ -296,21 +393,36 @@ function ray(event) {
   return raycaster.ray;
 }
 function handleNormal(h) {
-  const n = geometry.getAttribute('normal');
-  const v = bundle.arrays.handle_vertices[h];
-  return new THREE.Vector3(n.getX(v), n.getY(v), n.getZ(v)).normalize();
+  const v = handleVertices[h];
+  return new THREE.Vector3(normalAttr.getX(v), normalAttr.getY(v), normalAttr.getZ(v)).normalize();
+}
+// the handle drawn under the pointer (its disc, grown by a few pixels to be easy to hit; the
+// nearest to the camera where discs overlap), or -1
+function pick(event) {
+  const r = renderer.domElement.getBoundingClientRect();
+  const pixelsPerUnit = r.height / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2));
+  const p = new THREE.Vector3();
+  let best = -1, bestDepth = Infinity;
+  for (let h = 0; h < H; h++) {
+    p.set(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]);
+    const depth = p.distanceTo(camera.position);
+    p.project(camera);
+    const x = r.left + (p.x + 1) / 2 * r.width, y = r.top + (1 - p.y) / 2 * r.height;
+    const reach = meta.marker_size * pixelsPerUnit / depth + 3;
+    if (p.z < 1 && Math.hypot(event.clientX - x, event.clientY - y) <= reach && depth < bestDepth) { best = h; bestDepth = depth; }
+  }
+  return best;
 }
 renderer.domElement.addEventListener('pointerdown', (event) => {
-  const hit = (ray(event), raycaster.intersectObjects(markers, false))[0];
-  if (!hit) return;
+  const h = pick(event);
+  if (h < 0) return;
   event.stopImmediatePropagation();  // not an orbit
-  const h = hit.object.userData.handle;
-  const start = hit.object.position.clone();
+  const start = new THREE.Vector3(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]);
   const normal = camera.getWorldDirection(new THREE.Vector3());
   const perPixel = 2 * start.distanceTo(camera.position) * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)) / renderer.domElement.clientHeight;
   drag = { h, start, plane: new THREE.Plane().setFromNormalAndCoplanarPoint(normal, start), y0: event.clientY,
            surfaceNormal: handleNormal(h), perPixel, pointerId: event.pointerId };
-  hit.object.material = activeMaterial;
+  markHandle(h, true);
   setInteractive(true);
   renderer.domElement.setPointerCapture(event.pointerId);
 }, { capture: true });
@@ -329,7 +441,7 @@ renderer.domElement.addEventListener('pointermove', (event) => {
 });
 function endDrag() {
   if (!drag) return;
-  markers[drag.h].material = markerMaterial;
+  markHandle(drag.h, false);
   if (state.preview) send({ op: 'commit', frame: state.frame, preview: state.preview });
   state.preview = null;
   drag = null;
@@ -341,34 +453,60 @@ renderer.domElement.addEventListener('pointercancel', endDrag);
 const controls = new OrbitControls(camera, renderer.domElement);
 controls.target.copy(centre);
 controls.update();
-controls.addEventListener('change', () => renderer.render(scene, camera));
+controls.addEventListener('change', () => schedule());
 window.addEventListener('resize', () => {
   camera.aspect = window.innerWidth / window.innerHeight;
   camera.updateProjectionMatrix();
   renderer.setSize(window.innerWidth, window.innerHeight);
-  renderer.render(scene, camera);
+  schedule();
 });
 
 // ---------------------------------------------------------------- for tests and scripts
 window.facepipeEditor = {
   meta, state,
   get ready() { return state.ready; },
-  get idle() { return state.inFlight === 0 && !state.pending; },
+  get idle() { return state.inFlight === 0 && !state.pending && !state.workerBusy && !incoming; },
   // the shown frame is the exact evaluation of the latest request (the gate's fits included)
-  get settled() { return state.inFlight === 0 && !state.pending && state.exact && state.shownId === state.requestId; },
+  get settled() { return this.idle && state.exact && state.shownId === state.requestId; },
   fps,
   setFrame,
   // the positions shown for the current frame (final layer), as a plain array
-  positions: () => Array.from(final),
+  positions: () => Array.from(shown.set.final),
   // where handle h is drawn, in CSS pixels of the page
   handleScreen(h) {
-    const p = markers[h].position.clone().project(camera);
+    const p = new THREE.Vector3(handles[3 * h], handles[3 * h + 1], handles[3 * h + 2]).project(camera);
     const r = renderer.domElement.getBoundingClientRect();
     return { x: r.left + (p.x + 1) / 2 * r.width, y: r.top + (1 - p.y) / 2 * r.height };
   },
   // what a drag of handle h by offset (rig units) shows, without committing it (scripts, benches)
   preview(h, offset) { state.preview = offset ? { handle: h, offset, ...easing() } : null; setInteractive(!!offset); requestEvaluation(); },
   handlePosition: (h) => Array.from(handles.slice(3 * h, 3 * h + 3)),
+  three: { THREE, renderer, scene, camera, face, markers, geometry },  // for experiments on the drawing
+  // milliseconds a draw of the scene takes to finish in the GPU process, at
+  // the drag's resolution: alone, and with the positions and normals uploaded first
+  renderCost(n = 10) {
+    const gl = renderer.getContext();
+    const wasInteractive = interactive;
+    setInteractive(true);
+    const timed = (upload) => {
+      const pixel = new Uint8Array(4);
+      // a read of a pixel waits for the draw (Chromium's gl.finish is only a flush)
+      const finish = () => gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, pixel);
+      renderer.render(scene, camera);
+      finish();
+      const t0 = performance.now();
+      for (let i = 0; i < n; i++) {
+        if (upload) { positionAttr.needsUpdate = true; normalAttr.needsUpdate = true; }
+        renderer.render(scene, camera);
+        finish();
+      }
+      return (performance.now() - t0) / n;
+    };
+    const result = { render: timed(false), upload_and_render: timed(true),
+                     pixels: renderer.domElement.width * renderer.domElement.height };
+    setInteractive(wasInteractive);
+    return result;
+  },
 };
 setFrame(0);
 showStatus();
