@@ -56,8 +56,15 @@ def whittaker(y: np.ndarray, lam: float) -> np.ndarray:
     return solveh_banded(ab, y.reshape(T, -1)).reshape(y.shape)
 
 
-def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.ndarray = LAMBDAS):
+def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.ndarray = LAMBDAS,
+                  noise_var: np.ndarray | None = None):
     """Whittaker-smooth the columns of y (T, n), λ chosen per group by generalised cross-validation.
+
+    With ``noise_var`` (the known variance of each column's white noise, (n,) or a scalar), λ is
+    chosen instead by the unbiased risk estimate (Mallows' C_p: rss / T − σ² + 2 σ² tr(H) / T),
+    with λ = 0 (no smoothing) among the candidates: a series whose noise is small next to its
+    own jumps and kinks is left as it is, which GCV (whose smallest λ still rounds a jump off)
+    cannot choose.
 
     Parameters
     ----------
@@ -79,17 +86,25 @@ def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.n
     if T < 4:
         return y.copy(), np.zeros(G), np.ones(G)
     mu = eigvals_banded(_penalty_bands(T), select="a")  # eigenvalues of DᵀD: tr H = Σ 1 / (1 + λ μ)
-    best = np.full(G, np.inf)
+    count = np.bincount(g, minlength=G).astype(np.float64)
     z = y.copy()
     lam_out = np.zeros(G)
     share = np.ones(G)
-    count = np.bincount(g, minlength=G).astype(np.float64)
+    if noise_var is not None:  # C_p of λ = 0: rss = 0, tr H = T
+        s2 = np.bincount(g, weights=np.broadcast_to(np.asarray(noise_var, dtype=np.float64), (n,)),
+                         minlength=G) / count
+        best = s2.copy()
+    else:
+        best = np.full(G, np.inf)
     for lam in lambdas:
         zl = whittaker(y, lam)
         rss = np.bincount(g, weights=((y - zl) ** 2).mean(axis=0), minlength=G)
         trace = float(np.sum(1.0 / (1.0 + lam * mu)))
-        gcv = rss / count / (1.0 - trace / T) ** 2
-        better = gcv < best * (1 - 1e-12)
+        if noise_var is not None:
+            gcv = rss / count - s2 + 2.0 * s2 * trace / T
+        else:
+            gcv = rss / count / (1.0 - trace / T) ** 2
+        better = (gcv < best) & ~np.isclose(gcv, best, rtol=1e-12, atol=0.0)
         if better.any():
             best[better] = gcv[better]
             cols = better[g]

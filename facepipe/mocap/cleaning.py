@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from facepipe.mocap.gaps import fill_gaps
-from facepipe.core.rigid import interpolate_poses, rotation_from_vector, stable_marker_pose
+from facepipe.core.rigid import interpolate_poses, rigid_fit, rotation_from_vector, stable_marker_pose
 from facepipe.core.temporal import smooth_series
 
 __all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
@@ -606,15 +606,8 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     # noise-free input (σ at its floor) is left exactly as the fit gives it
     temporal = opt.temporal and T >= 4 and noise.sigma > sigma_floor
     if temporal and not fix_pose:
-        # the head moves smoothly: its pose is smoothed over the take, and the expression refitted
-        # under that pose (whatever the pose's noise moved into the expression goes back out)
-        R, t = _smooth_poses(R, t, reference.mean(axis=0))
-        R2, t2 = R[rows], t[rows]
-        posed = replace(frames, fix_pose=True)
-        C2 = _sparse_fit(posed, W_kept, R2, t2, C2, robust, opt.sparsity)[2]
-        if K and opt.sparsity > 0:
-            C2 = _relaxed_refit(posed, W_kept, R2, t2, C2, robust, opt.sparsity)[2]
-        C[rows] = C2
+        R, t, C = _refit_over_time(frames, W_kept, R, t, C, usable, times, robust, opt.sparsity)
+        R2, t2, C2 = R[rows], t[rows], C[rows]
     outlier = np.zeros((T, H), dtype=bool)
     outlier[rows] = outlier_rows
     known = visible & ~outlier
@@ -773,6 +766,47 @@ def _smooth_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray):
     z, _, _ = smooth_series(np.concatenate([v, moved], axis=1), groups=np.array([0, 0, 0, 1, 1, 1]))
     Rs = (mean * Rotation.from_rotvec(z[:, :3])).as_matrix()
     return Rs, z[:, 3:] - np.einsum("tij,j->ti", Rs, centre)
+
+
+def _refit_over_time(frames: _UsableFrames, W, R, t, C, usable: np.ndarray, times: np.ndarray, robust_scale,
+                     sparsity: float):
+    """Pose and expression weights of all frames (R, t, C over the take) refitted with the take's
+    smoothness, from the per-frame fit's R, t, C.
+
+    1. Pose from the expression over time: each frame's head is placed by a weighted rigid fit of
+       the handles of the weights smoothed over the take (Whittaker, strength by the unbiased risk
+       of each weight's known noise), not of the frame's own weights, which trade against its pose
+       under noise — most at a take's first and last frames, which have no neighbours on one side
+       to average that out. The poses are then smoothed over the take (:func:`_smooth_poses`).
+    2. The expression refitted under the smoothed pose (whatever the pose's noise moved into the
+       expression goes back out): L1 prior, then the relaxed refit of :func:`_relaxed_refit`.
+    """
+    rows = np.flatnonzero(usable)
+    reference, basis = frames.reference, frames.basis
+    K = basis.shape[0]
+    if K:
+        smoothed = np.maximum(smooth_series(C, noise_var=_weight_variance(W, basis))[0][rows], 0.0)
+        handles = reference + np.einsum("nk,khc->nhc", smoothed, basis)
+        R_rows, t_rows = rigid_fit(handles, np.where(frames.visible[..., None], frames.world, 0.0), W)
+        R, t, _ = _every_frame(R_rows, t_rows, C[rows], usable, times)
+    R, t = _smooth_poses(R, t, reference.mean(axis=0))
+    posed = replace(frames, fix_pose=True)
+    C_rows = _sparse_fit(posed, W, R[rows], t[rows], C[rows], robust_scale, sparsity)[2]
+    if K and sparsity > 0:
+        C_rows = _relaxed_refit(posed, W, R[rows], t[rows], C_rows, robust_scale, sparsity)[2]
+    C = C.copy()
+    C[rows] = C_rows
+    return R, t, C
+
+
+def _weight_variance(W: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """(K,) each expression weight's noise variance, averaged over the frames: the diagonal of
+    (Dᵀ W_f D)⁻¹ (W (n, H) the markers' inverse noise variances, D the basis (K, H, 3)), so examples
+    that move the markers alike share the noise between them."""
+    K = basis.shape[0]
+    G = np.einsum("nh,khc,lhc->nkl", W, basis, basis)
+    G += np.eye(K) * (1e-9 * np.einsum("nkk->nk", G).max(axis=1, initial=0.0) + 1e-300)[:, None, None]
+    return np.einsum("nkk->nk", np.linalg.inv(G)).mean(axis=0)
 
 
 def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, noise: "_NoiseModel",
