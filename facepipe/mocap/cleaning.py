@@ -670,7 +670,8 @@ class _NoiseModel:
                 outlier: float, jump: float) -> "_NoiseModel":
         """From a first fit's residual (n, H, 3; NaN where missing); ``absorbed``: the share of the
         noise the fit absorbs (parameters / equations); ``outlier``, ``jump``: as in CleanOptions."""
-        sigma = max(noise_sigma(np.nan_to_num(residual), visible), sigma_floor)
+        # the residual keeps the share 1 - absorbed of the capture noise (the fit took the rest)
+        sigma = max(noise_sigma(np.nan_to_num(residual), visible) / np.sqrt(1.0 - absorbed), sigma_floor)
         r2 = np.sum(residual**2, axis=-1)  # (n, H), NaN where missing
         # per marker, per coordinate: first robustly (median |r|² / median of χ²(3)), so that a
         # marker that jumps or slides for a while cannot hide its bad samples by inflating its
