@@ -639,3 +639,13 @@ def test_noise_sigma_is_the_capture_noise_not_what_the_fit_leaves():
         noisy = world + np.random.default_rng(20 + seed).normal(scale=0.02, size=world.shape)
         sigmas.append(clean_take(noisy, rest, basis, stable, np.arange(T) / 30.0, spacing=2.0).report["noise"]["sigma"])
     assert np.mean(sigmas) == pytest.approx(0.02, rel=0.03)
+
+
+@pytest.mark.parametrize("T, lam", [(3, 1.0), (4, 0.5), (37, 3.0), (60, 1e7), (50, 0.01)])
+def test_hat_diagonal_matches_the_dense_inverse(T, lam):
+    from facepipe.core.temporal import hat_diagonal
+
+    D = np.diff(np.eye(T), 2, axis=0)
+    dense = np.diag(np.linalg.inv(np.eye(T) + lam * D.T @ D))
+    np.testing.assert_allclose(hat_diagonal(T, lam), dense, rtol=1e-8, atol=1e-12)
+    assert hat_diagonal(T, lam)[0] > hat_diagonal(T, lam)[T // 2]  # an end keeps more noise than the middle

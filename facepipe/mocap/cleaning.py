@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from facepipe.mocap.gaps import fill_gaps
 from facepipe.core.rigid import interpolate_poses, rigid_fit, rotation_from_vector, stable_marker_pose
-from facepipe.core.temporal import smooth_series
+from facepipe.core.temporal import hat_diagonal, smooth_series
 
 __all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
            "noise_sigma", "rotation_from_vector"]
@@ -819,7 +819,8 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
     With ``temporal``, each marker's residual is first smoothed over the take
     (:func:`facepipe.core.temporal.smooth_series`: the off-span expression is smooth, the noise
     white), and the Wiener shrink then weighs the off-span variance τ² against the noise that
-    passes that smoother (its share of σ²) rather than against all of σ².
+    passes that smoother at each frame (the diagonal of its hat matrix times σ², larger at the take's
+    ends) rather than against all of σ².
     """
     never = ~known.any(axis=0)
     res_known = np.where(never[None, :, None], 0.0, residual)
@@ -827,11 +828,16 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
     keep = noise.keep
     if temporal:
         T, H, _ = res_filled.shape
-        smoothed, _, share = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
+        smoothed, lam, _ = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
         res_filled = smoothed.reshape(T, H, 3)
+        # per frame: the first and last frames keep more of the noise than the middle
+        passed = {value: hat_diagonal(T, value) for value in np.unique(lam)}
+        share = np.stack([passed[value] for value in lam], axis=1)  # (T, H)
         keep = noise.tau2 / np.maximum(noise.tau2 + share * noise.sigma**2, 1e-300)
+    else:
+        keep = np.broadcast_to(keep, known.shape)
     fade = np.exp(-_distance_to_visible(known) / max(opt.decay * fps, 1e-9))
-    clean = model + keep[None, :, None] * fade[..., None] * res_filled
+    clean = model + (keep * fade)[..., None] * res_filled
     if opt.smooth and opt.smooth > 0 and len(clean) > 1:
         from scipy.ndimage import gaussian_filter1d  # lazy: the CLI starts without scipy
 
