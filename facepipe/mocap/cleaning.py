@@ -26,6 +26,10 @@ measured rather than hand-picked). Then:
   the prior and, where nothing is known, decays to neutral;
 - **frames without markers**: pose and weights are interpolated from the nearest fitted
   frames;
+- **over time** (a noisy take): each frame's pose is refitted from the expression smoothed over
+  the take (its own weights trade against its pose under noise, worst at the take's ends), the
+  poses smoothed and the expression refitted under them; each marker's residual is smoothed and
+  shrunk against the noise that passes the smoother at each frame;
 - optional temporal smoothing of the result (Gaussian, in frames).
 
 Everything is arrays in, arrays and a JSON-serialisable report out.
@@ -780,7 +784,8 @@ def _refit_over_time(frames: _UsableFrames, W, R, t, C, usable: np.ndarray, time
        under noise — most at a take's first and last frames, which have no neighbours on one side
        to average that out. The poses are then smoothed over the take (:func:`_smooth_poses`).
     2. The expression refitted under the smoothed pose (whatever the pose's noise moved into the
-       expression goes back out): L1 prior, then the relaxed refit of :func:`_relaxed_refit`.
+       expression goes back out): L1 prior, then the relaxed refit of :func:`_relaxed_refit`. Not
+       smoothed: that helps the middle of a take but biases its ends wherever a weight curves there.
     """
     rows = np.flatnonzero(usable)
     reference, basis = frames.reference, frames.basis
