@@ -19,9 +19,9 @@ Pure arrays; a banded solve per λ, O(T) per column.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import eigvals_banded, solveh_banded
+from scipy.linalg import cholesky_banded, eigvals_banded, solveh_banded
 
-__all__ = ["LAMBDAS", "smooth_series", "whittaker"]
+__all__ = ["LAMBDAS", "hat_diagonal", "smooth_series", "whittaker"]
 
 #: λ candidates for the cross-validation (frames⁴: λ ≈ (smoothing length in frames)⁴ / 16)
 LAMBDAS = np.logspace(-2, 7, 37)
@@ -56,8 +56,44 @@ def whittaker(y: np.ndarray, lam: float) -> np.ndarray:
     return solveh_banded(ab, y.reshape(T, -1)).reshape(y.shape)
 
 
-def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.ndarray = LAMBDAS):
+def hat_diagonal(T: int, lam: float) -> np.ndarray:
+    """(T,) the diagonal of the Whittaker smoother's hat matrix (I + λ DᵀD)⁻¹: the share of a frame's
+    white noise that stays in that frame's smoothed value — larger at a take's first and last
+    frames, which have neighbours on one side only.
+
+    The band of the inverse from the banded Cholesky factor (Takahashi's recursion), O(T); the
+    inverse itself is never formed.
+    """
+    if T < 3 or lam <= 0:
+        return np.ones(T)
+    ab = lam * _penalty_bands(T)
+    ab[2] += 1.0
+    U = cholesky_banded(ab)  # upper form: U[2 - k, j] = U_{j-k, j}; A = UᵀU
+    d = U[2] ** 2  # A = L diag(d) Lᵀ with L = Uᵀ / diag(U), unit lower
+    L1 = np.zeros(T)  # L_{i+1, i}
+    L2 = np.zeros(T)  # L_{i+2, i}
+    L1[:-1] = U[1, 1:] / U[2, :-1]
+    L2[:-2] = U[0, 2:] / U[2, :-2]
+    z0 = np.zeros(T + 2)  # Z_ii
+    z1 = np.zeros(T + 2)  # Z_{i, i+1}
+    z2 = np.zeros(T + 2)  # Z_{i, i+2}
+    for i in range(T - 1, -1, -1):
+        # Z_{i, j} = -Σ_k L_ki Z_kj over k = i+1, i+2 (j > i); Z_ii = 1/d_i - Σ_k L_ki Z_ki
+        z2[i] = -(L1[i] * z1[i + 1] + L2[i] * z0[i + 2])
+        z1[i] = -(L1[i] * z0[i + 1] + L2[i] * z1[i + 1])
+        z0[i] = 1.0 / d[i] - L1[i] * z1[i] - L2[i] * z2[i]
+    return z0[:T]
+
+
+def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.ndarray = LAMBDAS,
+                  noise_var: np.ndarray | None = None):
     """Whittaker-smooth the columns of y (T, n), λ chosen per group by generalised cross-validation.
+
+    With ``noise_var`` (the known variance of each column's white noise, (n,) or a scalar), λ is
+    chosen instead by the unbiased risk estimate (Mallows' C_p: rss / T − σ² + 2 σ² tr(H) / T),
+    with λ = 0 (no smoothing) among the candidates: a series whose noise is small next to its
+    own jumps and kinks is left as it is, which GCV (whose smallest λ still rounds a jump off)
+    cannot choose.
 
     Parameters
     ----------
@@ -79,17 +115,25 @@ def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.n
     if T < 4:
         return y.copy(), np.zeros(G), np.ones(G)
     mu = eigvals_banded(_penalty_bands(T), select="a")  # eigenvalues of DᵀD: tr H = Σ 1 / (1 + λ μ)
-    best = np.full(G, np.inf)
+    count = np.bincount(g, minlength=G).astype(np.float64)
     z = y.copy()
     lam_out = np.zeros(G)
     share = np.ones(G)
-    count = np.bincount(g, minlength=G).astype(np.float64)
+    if noise_var is not None:  # C_p of λ = 0: rss = 0, tr H = T
+        s2 = np.bincount(g, weights=np.broadcast_to(np.asarray(noise_var, dtype=np.float64), (n,)),
+                         minlength=G) / count
+        best = s2.copy()
+    else:
+        best = np.full(G, np.inf)
     for lam in lambdas:
         zl = whittaker(y, lam)
         rss = np.bincount(g, weights=((y - zl) ** 2).mean(axis=0), minlength=G)
         trace = float(np.sum(1.0 / (1.0 + lam * mu)))
-        gcv = rss / count / (1.0 - trace / T) ** 2
-        better = gcv < best * (1 - 1e-12)
+        if noise_var is not None:
+            gcv = rss / count - s2 + 2.0 * s2 * trace / T
+        else:
+            gcv = rss / count / (1.0 - trace / T) ** 2
+        better = (gcv < best) & ~np.isclose(gcv, best, rtol=1e-12, atol=0.0)
         if better.any():
             best[better] = gcv[better]
             cols = better[g]

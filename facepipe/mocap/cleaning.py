@@ -26,6 +26,10 @@ measured rather than hand-picked). Then:
   the prior and, where nothing is known, decays to neutral;
 - **frames without markers**: pose and weights are interpolated from the nearest fitted
   frames;
+- **over time** (a noisy take): each frame's pose is refitted from the expression smoothed over
+  the take (its own weights trade against its pose under noise, worst at the take's ends), the
+  poses smoothed and the expression refitted under them; each marker's residual is smoothed and
+  shrunk against the noise that passes the smoother at each frame;
 - optional temporal smoothing of the result (Gaussian, in frames).
 
 Everything is arrays in, arrays and a JSON-serialisable report out.
@@ -39,8 +43,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from facepipe.mocap.gaps import fill_gaps
-from facepipe.core.rigid import interpolate_poses, rotation_from_vector, stable_marker_pose
-from facepipe.core.temporal import smooth_series
+from facepipe.core.rigid import interpolate_poses, rigid_fit, rotation_from_vector, stable_marker_pose
+from facepipe.core.temporal import hat_diagonal, smooth_series
 
 __all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
            "noise_sigma", "rotation_from_vector"]
@@ -606,15 +610,8 @@ def clean_take(world: np.ndarray, reference: np.ndarray, basis: np.ndarray, stab
     # noise-free input (σ at its floor) is left exactly as the fit gives it
     temporal = opt.temporal and T >= 4 and noise.sigma > sigma_floor
     if temporal and not fix_pose:
-        # the head moves smoothly: its pose is smoothed over the take, and the expression refitted
-        # under that pose (whatever the pose's noise moved into the expression goes back out)
-        R, t = _smooth_poses(R, t, reference.mean(axis=0))
-        R2, t2 = R[rows], t[rows]
-        posed = replace(frames, fix_pose=True)
-        C2 = _sparse_fit(posed, W_kept, R2, t2, C2, robust, opt.sparsity)[2]
-        if K and opt.sparsity > 0:
-            C2 = _relaxed_refit(posed, W_kept, R2, t2, C2, robust, opt.sparsity)[2]
-        C[rows] = C2
+        R, t, C = _refit_over_time(frames, W_kept, R, t, C, usable, times, robust, opt.sparsity)
+        R2, t2, C2 = R[rows], t[rows], C[rows]
     outlier = np.zeros((T, H), dtype=bool)
     outlier[rows] = outlier_rows
     known = visible & ~outlier
@@ -677,7 +674,8 @@ class _NoiseModel:
                 outlier: float, jump: float) -> "_NoiseModel":
         """From a first fit's residual (n, H, 3; NaN where missing); ``absorbed``: the share of the
         noise the fit absorbs (parameters / equations); ``outlier``, ``jump``: as in CleanOptions."""
-        sigma = max(noise_sigma(np.nan_to_num(residual), visible), sigma_floor)
+        # the residual keeps the share 1 - absorbed of the capture noise (the fit took the rest)
+        sigma = max(noise_sigma(np.nan_to_num(residual), visible) / np.sqrt(1.0 - absorbed), sigma_floor)
         r2 = np.sum(residual**2, axis=-1)  # (n, H), NaN where missing
         # per marker, per coordinate: first robustly (median |r|² / median of χ²(3)), so that a
         # marker that jumps or slides for a while cannot hide its bad samples by inflating its
@@ -775,6 +773,48 @@ def _smooth_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray):
     return Rs, z[:, 3:] - np.einsum("tij,j->ti", Rs, centre)
 
 
+def _refit_over_time(frames: _UsableFrames, W, R, t, C, usable: np.ndarray, times: np.ndarray, robust_scale,
+                     sparsity: float):
+    """Pose and expression weights of all frames (R, t, C over the take) refitted with the take's
+    smoothness, from the per-frame fit's R, t, C.
+
+    1. Pose from the expression over time: each frame's head is placed by a weighted rigid fit of
+       the handles of the weights smoothed over the take (Whittaker, strength by the unbiased risk
+       of each weight's known noise), not of the frame's own weights, which trade against its pose
+       under noise — most at a take's first and last frames, which have no neighbours on one side
+       to average that out. The poses are then smoothed over the take (:func:`_smooth_poses`).
+    2. The expression refitted under the smoothed pose (whatever the pose's noise moved into the
+       expression goes back out): L1 prior, then the relaxed refit of :func:`_relaxed_refit`. Not
+       smoothed: that helps the middle of a take but biases its ends wherever a weight curves there.
+    """
+    rows = np.flatnonzero(usable)
+    reference, basis = frames.reference, frames.basis
+    K = basis.shape[0]
+    if K:
+        smoothed = np.maximum(smooth_series(C, noise_var=_weight_variance(W, basis))[0][rows], 0.0)
+        handles = reference + np.einsum("nk,khc->nhc", smoothed, basis)
+        R_rows, t_rows = rigid_fit(handles, np.where(frames.visible[..., None], frames.world, 0.0), W)
+        R, t, _ = _every_frame(R_rows, t_rows, C[rows], usable, times)
+    R, t = _smooth_poses(R, t, reference.mean(axis=0))
+    posed = replace(frames, fix_pose=True)
+    C_rows = _sparse_fit(posed, W, R[rows], t[rows], C[rows], robust_scale, sparsity)[2]
+    if K and sparsity > 0:
+        C_rows = _relaxed_refit(posed, W, R[rows], t[rows], C_rows, robust_scale, sparsity)[2]
+    C = C.copy()
+    C[rows] = C_rows
+    return R, t, C
+
+
+def _weight_variance(W: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """(K,) each expression weight's noise variance, averaged over the frames: the diagonal of
+    (Dᵀ W_f D)⁻¹ (W (n, H) the markers' inverse noise variances, D the basis (K, H, 3)), so examples
+    that move the markers alike share the noise between them."""
+    K = basis.shape[0]
+    G = np.einsum("nh,khc,lhc->nkl", W, basis, basis)
+    G += np.eye(K) * (1e-9 * np.einsum("nkk->nk", G).max(axis=1, initial=0.0) + 1e-300)[:, None, None]
+    return np.einsum("nkk->nk", np.linalg.inv(G)).mean(axis=0)
+
+
 def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, noise: "_NoiseModel",
                    times: np.ndarray, fps: float, names, opt: CleanOptions, temporal: bool = False) -> np.ndarray:
     """(T, H, 3) the prior's handles ``model`` plus the kept share of each marker's off-span
@@ -784,7 +824,8 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
     With ``temporal``, each marker's residual is first smoothed over the take
     (:func:`facepipe.core.temporal.smooth_series`: the off-span expression is smooth, the noise
     white), and the Wiener shrink then weighs the off-span variance τ² against the noise that
-    passes that smoother (its share of σ²) rather than against all of σ².
+    passes that smoother at each frame (the diagonal of its hat matrix times σ², larger at the take's
+    ends) rather than against all of σ².
     """
     never = ~known.any(axis=0)
     res_known = np.where(never[None, :, None], 0.0, residual)
@@ -792,11 +833,16 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
     keep = noise.keep
     if temporal:
         T, H, _ = res_filled.shape
-        smoothed, _, share = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
+        smoothed, lam, _ = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
         res_filled = smoothed.reshape(T, H, 3)
+        # per frame: the first and last frames keep more of the noise than the middle
+        passed = {value: hat_diagonal(T, value) for value in np.unique(lam)}
+        share = np.stack([passed[value] for value in lam], axis=1)  # (T, H)
         keep = noise.tau2 / np.maximum(noise.tau2 + share * noise.sigma**2, 1e-300)
+    else:
+        keep = np.broadcast_to(keep, known.shape)
     fade = np.exp(-_distance_to_visible(known) / max(opt.decay * fps, 1e-9))
-    clean = model + keep[None, :, None] * fade[..., None] * res_filled
+    clean = model + (keep * fade)[..., None] * res_filled
     if opt.smooth and opt.smooth > 0 and len(clean) > 1:
         from scipy.ndimage import gaussian_filter1d  # lazy: the CLI starts without scipy
 
