@@ -89,14 +89,16 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         events["large_scale"] = ev_large
         return events
 
-    def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False) -> None:
+    def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False,
+               destination=None) -> None:
         """As :meth:`OpenCLEvaluator.stream` over the cache's frames (``head``: the pose's handles); the
         bands the cache carries are taken out of the details on the host before ``sink``."""
         self._cursor = 0
         keep = None if self.details is None else self.details.keep
         partial = keep is not None and not np.all(keep == 1.0)
         if not partial:
-            super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
+            super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals,
+                           destination=destination)
             return
 
         def banded(start, final, large, normals):
@@ -104,6 +106,9 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
             # in float32, the device's precision: the band solve is single precision too (DetailBands)
             large = np.asarray(large, dtype=np.float32)
             final = large + self.details.bands.combine(np.asarray(final, dtype=np.float32) - large, keep)
+            if destination is not None:
+                destination[start:start + final.shape[0]] = final
+                final = destination[start:start + final.shape[0]]
             self.stage_seconds["bands"] += time.perf_counter() - t0
             sink(start, final, large if with_large else None, normals)
 

@@ -164,6 +164,7 @@ class _Slot:
         self.inputs = {}
         self.outputs = {}
         self.host = ()
+        self.final = None  # this chunk's final-positions buffer: outputs["final"], or one over the caller's array
 
 
 class OpenCLEvaluator:
@@ -177,8 +178,9 @@ class OpenCLEvaluator:
     chunk : frames per launch (rounded up to the vector width); B is read once per chunk.
     reorder : vertex order for locality, see :func:`locality_order` (output is always in the
         rest mesh's order).
-    vector_width : frames per work-item; default 8 on a CPU (AVX2 lanes), 1 on a GPU (a warp
-        covers 32 frames of one vertex).
+    vector_width : frames per work-item; default on a CPU the device's preferred float vector
+        width when it is 16 (AVX-512), else 8 (AVX2 lanes); 1 on a GPU (a warp covers 32 frames of
+        one vertex).
     slots : chunks in flight (2: one computing while the previous one is written).
     _stages : benchmark only: 3 (default) computes everything; 1 skips the fine scale, 2 the
         frames, 0 both (wrong results, used to time the stages by difference).
@@ -209,7 +211,9 @@ class OpenCLEvaluator:
         # whether evaluating takes the host's own cores (a CPU device): work overlapped with it
         # then only competes for them
         self.on_host_cores = not gpu
-        self.vw = int(vector_width or (1 if gpu else 8))
+        # a CPU's widest vector (PoCL reports 16 floats where it compiles for AVX-512, 8 for AVX2):
+        # the B product runs at that width's FMA rate
+        self.vw = int(vector_width or (1 if gpu else 16 if dev.preferred_vector_width_float >= 16 else 8))
         if self.vw not in (1, 2, 4, 8, 16):
             raise ValueError(f"vector_width {self.vw} is not 1, 2, 4, 8 or 16")
         self.chunk = max(self.vw, -(-int(chunk) // self.vw) * self.vw)
@@ -363,18 +367,22 @@ class OpenCLEvaluator:
 
     def _enqueue(self, slot: _Slot, head, R, t, with_large: bool, with_normals: bool) -> dict:
         """Upload a chunk's tables and launch its kernels; returns the kernels' events."""
+        ev_large = self._launch_large_scale(slot, self._tables(head, R, t))
+        events = self._launch_fine_scale(slot, head.shape[0], with_large, with_normals)
+        events["large_scale"] = ev_large
+        return events
+
+    def _launch_large_scale(self, slot: _Slot, tables: dict):
+        """Upload a chunk's host tables (:meth:`_tables`) and launch ``large_scale`` into
+        ``self._large``; returns its event."""
         cl = _cl()
-        q, s, C, n = self.queue, self._static, self.chunk, head.shape[0]
-        tables = self._tables(head, R, t)
+        q, s, C = self.queue, self._static, self.chunk
         uploads = [cl.enqueue_copy(q, slot.inputs[k], v, is_blocking=False) for k, v in tables.items()]
         slot.host = tables  # must outlive the non-blocking uploads
         lanes = C // self.vw
         self._k_large.set_args(s["B"], slot.inputs["U"], s["rest"], self._large, np.int32(C))
-        ev_large = cl.enqueue_nd_range_kernel(q, self._k_large, (lanes, self.Vp // RV), (self.local0, self.local1),
-                                              wait_for=uploads)
-        events = self._launch_fine_scale(slot, n, with_large, with_normals)
-        events["large_scale"] = ev_large
-        return events
+        return cl.enqueue_nd_range_kernel(q, self._k_large, (lanes, self.Vp // RV), (self.local0, self.local1),
+                                          wait_for=uploads)
 
     def _launch_fine_scale(self, slot: _Slot, n: int, with_large: bool, with_normals: bool,
                            wait_for=None) -> dict:
@@ -385,12 +393,13 @@ class OpenCLEvaluator:
         lanes = C // self.vw
         flags = (1 if with_large else 0) | (2 if with_normals else 0)
         out = slot.outputs
+        final = out["final"] if slot.final is None else slot.final
         self._k_detail.set_args(
             self._large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
             s["edge_count"], s["edge_index"], s["edge_weight"], s["basis"], slot.inputs["features"],
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
-            s["out_index"], out["final"], out.get("large", out["final"]),
-            out["final"] if self._final_vc is None else self._final_vc,
+            s["out_index"], final, out.get("large", final),
+            final if self._final_vc is None else self._final_vc,
             np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv))
         ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1),
                                                wait_for=wait_for)
@@ -410,8 +419,18 @@ class OpenCLEvaluator:
 
     # ------------------------------------------------------------------ public API
 
+    def _host_output(self, destination: np.ndarray | None, start: int, stop: int):
+        """A buffer the kernel writes frames start:stop into in place: ``destination[start:stop]``
+        itself (CL_MEM_USE_HOST_PTR) on a device that runs on the host's cores, so the positions
+        need no copy from device memory; None where there is no destination or it is a GPU's."""
+        if destination is None or not self.on_host_cores:
+            return None
+        cl = _cl()
+        return cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR,
+                         hostbuf=destination[start:stop])
+
     def stream(self, head: np.ndarray, sink, R: np.ndarray | None = None, t: np.ndarray | None = None,
-               with_large: bool = False, with_normals: bool = False) -> None:
+               with_large: bool = False, with_normals: bool = False, destination: np.ndarray | None = None) -> None:
         """Evaluate a whole take chunk by chunk, pipelined; hand every chunk to ``sink`` in order.
 
         Parameters
@@ -423,10 +442,18 @@ class OpenCLEvaluator:
             for. The arrays are views of device memory, valid only during the call: copy or
             write them.
         R, t : optional (T, 3, 3), (T, 3) head motion applied to the output (world = R p + t).
+        destination : optional (T, V, 3) float32 C-ordered array for the final positions. On a
+            CPU device the kernel writes them there in place (no copy from device memory); on a
+            GPU they are copied there. Either way ``final`` handed to ``sink`` is then
+            ``destination[start:start+n]``, already filled.
         """
         cl = _cl()
         head = np.asarray(head, dtype=np.float64)
         T, C, V = head.shape[0], self.chunk, self.V
+        if destination is not None and (destination.shape != (T, V, 3) or destination.dtype != np.float32
+                                        or not destination.flags.c_contiguous):
+            raise ValueError(f"destination: a C-ordered float32 array of shape {(T, V, 3)} is needed, "
+                             f"not {destination.dtype} {destination.shape}")
 
         def deliver(start, maps, events):
             for _, ev in maps:
@@ -434,7 +461,13 @@ class OpenCLEvaluator:
             self._account(events)
             t0 = time.perf_counter()
             arrays = {name: arr for name, (arr, _) in zip(("final", "large", "normals"), maps)}
-            sink(start, arrays["final"], arrays.get("large") if with_large else None,
+            final = arrays["final"]
+            if destination is not None:
+                place = destination[start:start + final.shape[0]]
+                if final.ctypes.data != place.ctypes.data:  # a GPU's (or a driver that copied): copy
+                    place[...] = final
+                final = place
+            sink(start, final, arrays.get("large") if with_large else None,
                  arrays.get("normals") if with_normals else None)
             self.stage_seconds["output"] += time.perf_counter() - t0
 
@@ -458,12 +491,15 @@ class OpenCLEvaluator:
                         retire(inflight.popleft())
                     slot = self._slots[k % self.n_slots]
                     self._slot_buffers(slot, with_large, with_normals)
+                    slot.final = self._host_output(destination, s, e)
                     events = self._enqueue(slot, head[s:e], None if R is None else R[s:e],
                                            None if t is None else t[s:e], with_large, with_normals)
-                    names = ["final"] + (["large"] if with_large else []) + (["normals"] if with_normals else [])
+                    buffers = [slot.outputs["final"] if slot.final is None else slot.final] \
+                        + ([slot.outputs["large"]] if with_large else []) \
+                        + ([slot.outputs["normals"]] if with_normals else [])
                     maps = []
-                    for name in names:
-                        arr, ev = cl.enqueue_map_buffer(self.queue, slot.outputs[name], cl.map_flags.READ, 0,
+                    for buffer in buffers:
+                        arr, ev = cl.enqueue_map_buffer(self.queue, buffer, cl.map_flags.READ, 0,
                                                         (e - s, V, 3), np.float32, wait_for=[events["last"]],
                                                         is_blocking=False)
                         maps.append((arr, ev))
@@ -487,7 +523,7 @@ class OpenCLEvaluator:
         return None if self.gate is None else self.gate.unconverged_fits
 
     def evaluate(self, handle_positions: np.ndarray, with_large: bool = False, rigid=None,
-                 with_normals: bool = False):
+                 with_normals: bool = False, out: np.ndarray | None = None):
         """Final positions (C, V, 3) float32 for head-space handle positions (C, H, 3).
 
         Parameters
@@ -495,6 +531,8 @@ class OpenCLEvaluator:
         with_large : also return the large-scale positions.
         rigid : optional (R (C, 3, 3), t (C, 3)) head motion applied to the outputs.
         with_normals : also return the final surface's unit normals (C, V, 3).
+        out : optional (C, V, 3) float32 C-ordered array for the final positions (on a CPU
+            device the kernels write into it in place).
 
         Returns
         -------
@@ -502,19 +540,18 @@ class OpenCLEvaluator:
         """
         head = np.asarray(handle_positions, dtype=np.float64)
         T = head.shape[0]
-        final = np.empty((T, self.V, 3), dtype=np.float32)
+        final = np.empty((T, self.V, 3), dtype=np.float32) if out is None else out
         large = np.empty_like(final) if with_large else None
         normals = np.empty_like(final) if with_normals else None
 
         def sink(start, f, l, n):
             stop = start + f.shape[0]
-            final[start:stop] = f
             if large is not None:
                 large[start:stop] = l
             if normals is not None:
                 normals[start:stop] = n
 
         R, t = (None, None) if rigid is None else rigid
-        self.stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
+        self.stream(head, sink, R, t, with_large=with_large, with_normals=with_normals, destination=final)
         out = (final,) + ((large,) if with_large else ()) + ((normals,) if with_normals else ())
         return out[0] if len(out) == 1 else out

@@ -15,7 +15,7 @@
  *   large  (Vp, 3, C)   large-scale positions (head space), the hand-over between the kernels
  *   out    (C, V, 3)    final positions in the rest mesh's vertex order (out_index), world space
  *
- * Compile-time constants: VW (frames per work-item: 1, 4, 8 or 16), H (handles), RV (vertices
+ * Compile-time constants: VW (frames per work-item: 1, 2, 4, 8 or 16), H (handles), RV (vertices
  * per work-item in the B product), METHOD (0 none, 1 PSD, 2 WPSD, 3 local strain), P (basis poses, or
  * the local-strain model's training poses), K (WPSD
  * edges per vertex), F (feature edges), GATE (1: scale the details by the novelty gate's per-vertex
@@ -58,7 +58,9 @@ typedef CAT(int, VW) vint;
 #define MAX(a, b) ((a) > (b) ? (a) : (b))
 /* sqrt() too is a call on PoCL; on x86 the instruction is reached through the compiler builtin.
  * Other devices (GPUs) use the standard sqrt(), which they inline. */
-#if VW == 8 && defined(__AVX__)
+#if VW == 16 && defined(__AVX512F__)
+#define VSQRT(x) __builtin_ia32_sqrtps512((x), 4) /* 4: the current rounding mode */
+#elif VW == 8 && defined(__AVX__)
 #define VSQRT(x) __builtin_ia32_sqrtps256(x)
 #elif VW == 4 && defined(__SSE__)
 #define VSQRT(x) __builtin_ia32_sqrtps(x)
