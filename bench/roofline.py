@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -55,30 +56,49 @@ __kernel void fma_peak(__global float *out, const int iterations, const float a,
 """
 
 
+def _cpu_seconds() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def fma_kernel(context, vector_width: int):
+    """The FMA-chain kernel: ``fma_peak(out, iterations, a, b)`` leaves in out[i] the sum over the
+    chains c of lanes 0 and 1 of ``iterations`` steps x ← a·x + b from x = i + c."""
+    import pyopencl as cl
+
+    program = cl.Program(context, _FMA_SOURCE).build(
+        options=[f"-DVW={int(vector_width)}", f"-DCHAINS={_CHAINS}", "-cl-mad-enable"])
+    return cl.Kernel(program, "fma_peak")
+
+
 def opencl_fma_peak_gflops(context, device, vector_width: int = 8, iterations: int = 20000,
-                           repeats: int = 5) -> float:
-    """FLOP/s (GFLOP/s) of independent FMA chains on ``device``: the best of ``repeats`` launches.
+                           repeats: int = 5) -> dict:
+    """FLOP/s (GFLOP/s) of independent FMA chains on ``device``, the best of ``repeats`` launches:
+    {"wall": by the kernel's own time, "busy": by this process's CPU time ÷ compute units (a CPU
+    device; the time were its threads never descheduled — see bench/replay_stages.py)}.
 
     Each work-item runs ``_CHAINS`` independent vectors of ``vector_width`` floats through
     ``iterations`` multiply-adds (2 FLOP each); the work covers every compute unit several times.
     """
     import pyopencl as cl
 
-    program = cl.Program(context, _FMA_SOURCE).build(
-        options=[f"-DVW={int(vector_width)}", f"-DCHAINS={_CHAINS}", "-cl-mad-enable"])
-    kernel = cl.Kernel(program, "fma_peak")
+    kernel = fma_kernel(context, vector_width)
     queue = cl.CommandQueue(context, properties=cl.command_queue_properties.PROFILING_ENABLE)
     gpu = bool(device.type & cl.device_type.GPU)
     items = int(device.max_compute_units) * (2048 if gpu else 8)
     out = cl.Buffer(context, cl.mem_flags.WRITE_ONLY, size=4 * items)
     kernel.set_args(out, np.int32(iterations), np.float32(0.999), np.float32(1e-3))
-    best = 0.0
+    flop = 2.0 * vector_width * _CHAINS * iterations * items
+    wall = busy = 0.0
     for _ in range(repeats + 1):  # the first launch warms up (thread pool, page faults)
+        c0 = _cpu_seconds()
         ev = cl.enqueue_nd_range_kernel(queue, kernel, (items,), None)
         ev.wait()
-        seconds = (ev.profile.end - ev.profile.start) * 1e-9
-        best = max(best, 2.0 * vector_width * _CHAINS * iterations * items / seconds / 1e9)
-    return best
+        cpu = (_cpu_seconds() - c0) / max(1, int(device.max_compute_units))
+        wall = max(wall, flop / ((ev.profile.end - ev.profile.start) * 1e-9) / 1e9)
+        if not gpu and cpu > 0:
+            busy = max(busy, flop / cpu / 1e9)
+    return {"wall": wall, "busy": busy if not gpu else wall}
 
 
 def numpy_fma_peak_gflops(n: int = 1024, repeats: int = 5) -> float:
@@ -114,12 +134,18 @@ def computed_fma_peak_gflops() -> dict:
             "gflops": cores * 2 * lanes * 2 * mhz / 1e3}
 
 
-def copy_rate_gbs(megabytes: int = 256, repeats: int = 5) -> float:
-    """This machine's memory bandwidth as seen by a large copy: (read + written) bytes / s, GB/s."""
+def copy_rate_gbs(megabytes: int = 256, repeats: int = 5) -> dict:
+    """This machine's memory bandwidth as seen by a large single-threaded copy, (read + written)
+    bytes / s in GB/s, the best of ``repeats``: {"wall", "busy" (by CPU time)}."""
     a = np.ones(megabytes * 2**20 // 4, dtype=np.float32)
     b = np.empty_like(a)
-    t = min(median_time(lambda: np.copyto(b, a), 1) for _ in range(repeats))
-    return 2 * a.nbytes / t / 1e9
+    np.copyto(b, a)
+    wall = busy = float("inf")
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), _cpu_seconds()
+        np.copyto(b, a)
+        wall, busy = min(wall, time.perf_counter() - t0), min(busy, max(_cpu_seconds() - c0, 1e-6))
+    return {"wall": 2 * a.nbytes / wall / 1e9, "busy": 2 * a.nbytes / busy / 1e9}
 
 
 def direct_write_rate_gbs(folder: Path, megabytes: int = 256, block: int = 16 << 20) -> float | None:

@@ -179,8 +179,8 @@ class OpenCLEvaluator:
     reorder : vertex order for locality, see :func:`locality_order` (output is always in the
         rest mesh's order).
     vector_width : frames per work-item; default on a CPU the device's preferred float vector
-        width when it is 16 (AVX-512), else 8 (AVX2 lanes); 1 on a GPU (a warp covers 32 frames of
-        one vertex).
+        width when it is 16 (AVX-512) and the chunk has 16 frames or more, else 8 (AVX2 lanes); 1 on
+        a GPU (a warp covers 32 frames of one vertex).
     slots : chunks in flight (2: one computing while the previous one is written).
     _stages : benchmark only: 3 (default) computes everything; 1 skips the fine scale, 2 the
         frames, 0 both (wrong results, used to time the stages by difference).
@@ -212,8 +212,9 @@ class OpenCLEvaluator:
         # then only competes for them
         self.on_host_cores = not gpu
         # a CPU's widest vector (PoCL reports 16 floats where it compiles for AVX-512, 8 for AVX2):
-        # the B product runs at that width's FMA rate
-        self.vw = int(vector_width or (1 if gpu else 16 if dev.preferred_vector_width_float >= 16 else 8))
+        # the B product runs at that width's FMA rate; never wider than the chunk asked for
+        self.vw = int(vector_width or (1 if gpu else 16 if dev.preferred_vector_width_float >= 16
+                                       and int(chunk) >= 16 else 8))
         if self.vw not in (1, 2, 4, 8, 16):
             raise ValueError(f"vector_width {self.vw} is not 1, 2, 4, 8 or 16")
         self.chunk = max(self.vw, -(-int(chunk) // self.vw) * self.vw)
