@@ -346,6 +346,17 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
     t_write = median_time(write, repeats)
     log(f"opencl replay, writing positions.npy: {T / t_write:.1f} frames/s ({t_write / T * 1e3:.2f} ms/frame)")
 
+    # before this session's changes, in the same run: 8-frame vectors, positions copied out of
+    # device memory (in memory), and copied into the writer's buffer (written)
+    old_ev = OpenCLEvaluator(model, device=device, chunk=chunk, vector_width=8)
+    old_ev.takes_placement = False
+    old_ev.stream(head[:chunk], keep, R[:chunk], t[:chunk])
+    t_old_mem = median_time(lambda: old_ev.stream(head, keep, R, t), repeats)
+    t_old_write = median_time(lambda: replay(model, head, R, t, frames, times, work_dir / "replay_opencl",
+                                             evaluator=old_ev, chunk=chunk), repeats)
+    log(f"  before (8-frame vectors, copies): {T / t_old_mem:.1f} frames/s in memory, {T / t_old_write:.1f} "
+        "writing positions.npy")
+
     tables = _roofline_tables(model, head, R, t, work_dir, repeats, chunk, device, limits, K_used, ev, in_place,
                               log)
     return {"device": ev.device, "setup_seconds": setup, "vector_width": ev.vw,
@@ -353,13 +364,17 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
                           "written_in_place": in_place},
             "in_memory_copied_by_sink": {"frames_per_second": T / t_copy, "ms_per_frame": t_copy / T * 1e3},
             "writing_positions": {"frames_per_second": T / t_write, "ms_per_frame": t_write / T * 1e3},
+            "before": {"vector_width": 8, "in_memory_frames_per_second": T / t_old_mem,
+                       "writing_positions_frames_per_second": T / t_old_write},
             "pipeline_device_ms_per_frame": device_stages, "roofline": tables}
 
 
 def _roofline_tables(model, head, R, t, work_dir: Path, repeats: int, chunk: int, device, limits: dict,
                      K_used: float, ev, in_place: bool, log) -> dict:
     """The per-stage roofline tables, before (8-frame vectors, positions copied out of device
-    memory) and after (the device's widest vectors, written in place), by both clocks."""
+    memory, and copied again into the writer's buffer) and after (the device's widest vectors,
+    positions written in place: into the caller's array, or into the writer's memory), by both
+    clocks."""
     from bench.replay_stages import measure_stages
     from bench.roofline import format_table, stage_flops, stage_table
 
@@ -368,10 +383,9 @@ def _roofline_tables(model, head, R, t, work_dir: Path, repeats: int, chunk: int
     ring = 3.0 * len(model.triangles) / V
     flops = stage_flops(V, H, P, K_used, ring, model.method)
     tables = {}
-    widths = [("before", 8), ("after", None)] if ev.vw != 8 else [("after", None)]
-    for name, width in widths:
+    for name, width in (("before", 8), ("after", None)):
         m = measure_stages(model, head, R, t, work_dir, device=device, chunk=chunk, vector_width=width,
-                           repeats=repeats)
+                           repeats=repeats, placed=name == "after")
         nbytes = stage_bytes(V, H, P, K_used, chunk, model.method)
         nbytes.update(host_tables=0.0, host_copy=2 * V * 3 * 4.0, positions_write=V * 3 * 4.0)
         entry = {"vector_width": m["vector_width"], "threads": m["threads"],

@@ -47,9 +47,12 @@ def _kernel(clock: _Clock, stage: str, event, cpu0: float, threads: int) -> None
     clock.add(stage, (event.profile.end - event.profile.start) * 1e-9, (_cpu_seconds() - cpu0) / threads)
 
 
-def _pass(ev, head, R, t, out: np.ndarray | None, writer_path: Path | None, threads: int) -> _Clock:
+def _pass(ev, head, R, t, out: np.ndarray | None, writer_path: Path | None, threads: int,
+          placed: bool = False) -> _Clock:
     """One pass over the take, stage after stage; ``out`` and ``writer_path`` add the host copy
-    and the write (only for the full kernel)."""
+    and the write (only for the full kernel). ``placed``: the kernel writes the positions into
+    the writer's own memory (:meth:`NpyWriter.placement`), as a replay does, else into device
+    memory that the writer copies from."""
     import pyopencl as cl
 
     from facepipe.io.npy_stream import NpyWriter
@@ -68,11 +71,14 @@ def _pass(ev, head, R, t, out: np.ndarray | None, writer_path: Path | None, thre
             clock.add("host_tables", time.perf_counter() - w0, _cpu_seconds() - c0)
             c0 = _cpu_seconds()
             _kernel(clock, "large_scale", ev._launch_large_scale(slot, tables), c0, threads)
+            if placed and writer is not None:
+                slot.final, slot.final_offset = ev._host_output(None, writer.placement, s, e, 0)
             c0 = _cpu_seconds()
             _kernel(clock, "fused", ev._launch_fine_scale(slot, e - s, False, False)["last"], c0, threads)
             if out is None and writer is None:
                 continue
-            arr, map_ev = cl.enqueue_map_buffer(ev.queue, slot.outputs["final"], cl.map_flags.READ, 0,
+            buffer, offset = (slot.outputs["final"], 0) if slot.final is None else (slot.final, slot.final_offset)
+            arr, map_ev = cl.enqueue_map_buffer(ev.queue, buffer, cl.map_flags.READ, 4 * offset,
                                                 (e - s, V, 3), np.float32, is_blocking=True)
             try:
                 if out is not None:
@@ -92,11 +98,12 @@ def _pass(ev, head, R, t, out: np.ndarray | None, writer_path: Path | None, thre
 
 
 def measure_stages(model, head, R, t, work_dir: Path, device=None, chunk: int = 32, vector_width=None,
-                   repeats: int = 3) -> dict:
+                   repeats: int = 3, placed: bool = True) -> dict:
     """Per-stage wall and busy milliseconds per frame: {"wall": {stage: ms}, "busy": {...},
     "vector_width", "threads"}.
 
     Stages: host_tables, large_scale, frames, fine_scale, output, host_copy, positions_write.
+    ``placed``: positions written from the writer's own memory (see :func:`_pass`).
     """
     from facepipe.opencl import OpenCLEvaluator
 
@@ -111,7 +118,8 @@ def measure_stages(model, head, R, t, work_dir: Path, device=None, chunk: int = 
         full = stages == 3
         _pass(ev, head[:ev.chunk], R, t, None, None, threads)  # compiles for this shape, warms the buffers
         for _ in range(repeats):
-            clock = _pass(ev, head, R, t, out if full else None, work_dir / "stages.npy" if full else None, threads)
+            clock = _pass(ev, head, R, t, out if full else None, work_dir / "stages.npy" if full else None, threads,
+                          placed)
             for kind in ("wall", "busy"):
                 for stage, sec in getattr(clock, kind).items():
                     key = (kind, stages, stage)

@@ -90,7 +90,7 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         return events
 
     def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False,
-               destination=None) -> None:
+               destination=None, placement=None) -> None:
         """As :meth:`OpenCLEvaluator.stream` over the cache's frames (``head``: the pose's handles); the
         bands the cache carries are taken out of the details on the host before ``sink``."""
         self._cursor = 0
@@ -98,8 +98,9 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         partial = keep is not None and not np.all(keep == 1.0)
         if not partial:
             super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals,
-                           destination=destination)
+                           destination=destination, placement=placement)
             return
+        # (with bands to take out, the final positions are made on the host: no placement)
 
         def banded(start, final, large, normals):
             t0 = time.perf_counter()

@@ -164,7 +164,10 @@ class _Slot:
         self.inputs = {}
         self.outputs = {}
         self.host = ()
-        self.final = None  # this chunk's final-positions buffer: outputs["final"], or one over the caller's array
+        # this chunk's final-positions buffer: outputs["final"], or one over the caller's memory,
+        # and where in it (floats) the positions start
+        self.final = None
+        self.final_offset = 0
 
 
 class OpenCLEvaluator:
@@ -199,6 +202,7 @@ class OpenCLEvaluator:
     """
 
     backend = "opencl"
+    takes_placement = True  # stream(placement=): final positions produced in the caller's memory
 
     def __init__(self, model, device: str | None = None, chunk: int = 32, reorder="auto",
                  vector_width: int | None = None, slots: int = 2, _stages: int = 3):
@@ -401,7 +405,8 @@ class OpenCLEvaluator:
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
             s["out_index"], final, out.get("large", final),
             final if self._final_vc is None else self._final_vc,
-            np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv))
+            np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv),
+            np.int32(slot.final_offset if slot.final is not None else 0))
         ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1),
                                                wait_for=wait_for)
         events = {"frames_fine_scale": ev_detail, "last": ev_detail}
@@ -420,18 +425,26 @@ class OpenCLEvaluator:
 
     # ------------------------------------------------------------------ public API
 
-    def _host_output(self, destination: np.ndarray | None, start: int, stop: int):
-        """A buffer the kernel writes frames start:stop into in place: ``destination[start:stop]``
-        itself (CL_MEM_USE_HOST_PTR) on a device that runs on the host's cores, so the positions
-        need no copy from device memory; None where there is no destination or it is a GPU's."""
-        if destination is None or not self.on_host_cores:
-            return None
+    def _host_output(self, destination: np.ndarray | None, placement, start: int, stop: int, index: int):
+        """(buffer, offset in floats) the kernel writes frames start:stop into in place, on a
+        device that runs on the host's cores (CL_MEM_USE_HOST_PTR: the positions need no copy from
+        device memory): ``destination[start:stop]``, or the memory ``placement(start, n, index)``
+        gives; (None, 0) otherwise (a GPU; no destination; the placement declines)."""
+        if not self.on_host_cores:
+            return None, 0
         cl = _cl()
-        return cl.Buffer(self.context, cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR,
-                         hostbuf=destination[start:stop])
+        flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
+        if destination is not None:
+            return cl.Buffer(self.context, flags, hostbuf=destination[start:stop]), 0
+        placed = placement(start, stop - start, index) if placement is not None else None
+        if placed is None:
+            return None, 0
+        memory, offset = placed
+        return cl.Buffer(self.context, flags, hostbuf=memory), int(offset)
 
     def stream(self, head: np.ndarray, sink, R: np.ndarray | None = None, t: np.ndarray | None = None,
-               with_large: bool = False, with_normals: bool = False, destination: np.ndarray | None = None) -> None:
+               with_large: bool = False, with_normals: bool = False, destination: np.ndarray | None = None,
+               placement=None) -> None:
         """Evaluate a whole take chunk by chunk, pipelined; hand every chunk to ``sink`` in order.
 
         Parameters
@@ -447,6 +460,12 @@ class OpenCLEvaluator:
             CPU device the kernel writes them there in place (no copy from device memory); on a
             GPU they are copied there. Either way ``final`` handed to ``sink`` is then
             ``destination[start:start+n]``, already filled.
+        placement : optional callable(start, n, index) → (memory, offset) or None: on a CPU device,
+            frames start:start+n are written in place into ``memory`` (a 1-D float32 array)
+            from ``offset`` floats on, and ``final`` is that view of it (how
+            :meth:`facepipe.io.npy_stream.NpyWriter.placement` lets a chunk go to disk with no
+            copy). ``index`` (0 … slots − 1) names the chunk's slot: the memory given for one
+            index is not written again before the sink has had the chunk.
         """
         cl = _cl()
         head = np.asarray(head, dtype=np.float64)
@@ -492,15 +511,16 @@ class OpenCLEvaluator:
                         retire(inflight.popleft())
                     slot = self._slots[k % self.n_slots]
                     self._slot_buffers(slot, with_large, with_normals)
-                    slot.final = self._host_output(destination, s, e)
+                    slot.final, slot.final_offset = self._host_output(destination, placement, s, e,
+                                                                      k % self.n_slots)
                     events = self._enqueue(slot, head[s:e], None if R is None else R[s:e],
                                            None if t is None else t[s:e], with_large, with_normals)
-                    buffers = [slot.outputs["final"] if slot.final is None else slot.final] \
-                        + ([slot.outputs["large"]] if with_large else []) \
-                        + ([slot.outputs["normals"]] if with_normals else [])
+                    buffers = [(slot.outputs["final"], 0) if slot.final is None else (slot.final, slot.final_offset)] \
+                        + ([(slot.outputs["large"], 0)] if with_large else []) \
+                        + ([(slot.outputs["normals"], 0)] if with_normals else [])
                     maps = []
-                    for buffer in buffers:
-                        arr, ev = cl.enqueue_map_buffer(self.queue, buffer, cl.map_flags.READ, 0,
+                    for buffer, offset in buffers:
+                        arr, ev = cl.enqueue_map_buffer(self.queue, buffer, cl.map_flags.READ, 4 * offset,
                                                         (e - s, V, 3), np.float32, wait_for=[events["last"]],
                                                         is_blocking=False)
                         maps.append((arr, ev))

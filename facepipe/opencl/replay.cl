@@ -13,7 +13,8 @@
  *   U      (H, 3, C)    handle displacements of the chunk (head space), C = padded chunk
  *   rest   (Vp, 3)      rest positions
  *   large  (Vp, 3, C)   large-scale positions (head space), the hand-over between the kernels
- *   out    (C, V, 3)    final positions in the rest mesh's vertex order (out_index), world space
+ *   out    (C, V, 3)    final positions in the rest mesh's vertex order (out_index), world space,
+ *                       from out_offset floats into the buffer
  *
  * Compile-time constants: VW (frames per work-item: 1, 2, 4, 8 or 16), H (handles), RV (vertices
  * per work-item in the B product), METHOD (0 none, 1 PSD, 2 WPSD, 3 local strain), P (basis poses, or
@@ -208,12 +209,16 @@ __kernel void detail(__global const float *restrict large, const int C, const in
                      __global float *restrict out, __global float *restrict out_large,
                      __global float *restrict final_vc, const int flags,
                      __global const float *restrict strain_coeff, __global const float *restrict strain_const,
-                     __global const float *restrict strain_samples, const float strain_inv)
+                     __global const float *restrict strain_samples, const float strain_inv,
+                     const int out_offset)
 {
     const int c0 = get_global_id(0) * VW;
     const int v = get_global_id(1);
     if (v >= V)
         return;
+    /* the final positions start out_offset floats into out: a host buffer laid out for the
+     * file the positions go to (direct writes start on a disk block, the data need not) */
+    out += out_offset;
     __global const float *p = large + (size_t)v * 3 * C + c0;
     const vfloat px = VLOAD(p), py = VLOAD(p + C), pz = VLOAD(p + 2 * C);
     vfloat fx = px, fy = py, fz = pz;
