@@ -8,12 +8,11 @@ paper replaced: factor the shell once, back-substitute u_H every frame. All figu
 one run on one machine, so the ratios compare like with like; timings are medians of
 ``repeats`` runs. Tests never assert times.
 
-Per-stage OpenCL times come from the kernels' profiling events: ``large_scale`` is its own
-kernel; frames and fine scale share one fused kernel, so they are timed by building variants
-of it without one or both stages and taking differences ("output" is the variant with
-neither: reading the large-scale positions, the head motion and the stores). Each stage's
-bytes moved (the data it must read and write at least once, per frame) divided by its time
-is set against a copy rate measured on the same machine.
+Per stage (bench/replay_stages.py: every stage waited for and timed alone, by the wall clock and
+by CPU time ÷ the device's threads), each stage's FLOP and bytes per frame are set against this
+machine's limits measured in the same run (bench/roofline.py: FMA peak, copy rates, disk), before
+(8-frame vectors, positions copied) and after (the device's own width, positions written in
+place), as a table printed and kept in the JSON.
 """
 
 from __future__ import annotations
@@ -118,7 +117,7 @@ def _sample(rig_dir: Path, params: dict, log) -> None:
 def machine_limits(work_dir: Path, device, log) -> dict:
     """The rooflines of this run: FMA peak (OpenCL on the replay's device at its vector width,
     NumPy's BLAS, computed), memory copy rate, direct-write disk rate (bench/roofline.py)."""
-    from bench.roofline import (computed_fma_peak_gflops, copy_rate_gbs, direct_write_rate_gbs,
+    from bench.roofline import (computed_fma_peak_gflops, copy_rate_gbs, device_copy_rate_gbs, direct_write_rate_gbs,
                                 numpy_fma_peak_gflops, opencl_fma_peak_gflops)
     from facepipe.opencl.device import open_device
 
@@ -128,14 +127,16 @@ def machine_limits(work_dir: Path, device, log) -> dict:
     fma = opencl_fma_peak_gflops(context, dev, max(width, 4) if not gpu else 4)
     limits = {"fma_gflops": fma, "fma_vector_width": width, "numpy_matmul_gflops": numpy_fma_peak_gflops(),
               "computed_fma_peak": computed_fma_peak_gflops(), "copy_gbs": copy_rate_gbs(),
-              "disk_write_gbs": direct_write_rate_gbs(work_dir)}
+              "device_copy_gbs": device_copy_rate_gbs(context, dev), "disk_write_gbs": direct_write_rate_gbs(work_dir)}
     c = limits["computed_fma_peak"]
     log(f"FMA peak: {fma['busy']:.0f} GFLOP/s by CPU time, {fma['wall']:.0f} by the wall clock (OpenCL, "
         f"{max(width, 4)}-float vectors); NumPy float32 matmul {limits['numpy_matmul_gflops']:.0f}; computed "
         f"{c['gflops']:.0f} ({c['cores']} cores × 2 FMA × {c['float_lanes']} lanes × {c['mhz']:.0f} MHz)")
     disk = limits["disk_write_gbs"]
-    log(f"memory copy rate: {limits['copy_gbs']['busy']:.1f} GB/s by CPU time, {limits['copy_gbs']['wall']:.1f} "
-        f"by the wall clock (read + write); direct writes to disk: "
+    d = limits["device_copy_gbs"]
+    log(f"memory copy rate (read + write): host memcpy {limits['copy_gbs']['busy']:.1f} GB/s by CPU time, "
+        f"{limits['copy_gbs']['wall']:.1f} by the wall clock; device buffer copy {d['busy']:.1f} GB/s by CPU time, "
+        f"{d['wall']:.1f} by the wall clock; direct writes to disk: "
         + (f"{disk:.2f} GB/s" if disk else "not available"))
     return limits
 
@@ -395,11 +396,16 @@ def _roofline_tables(model, head, R, t, work_dir: Path, repeats: int, chunk: int
             if name == "after" and in_place:
                 stage_ms["host_copy"] = 0.0  # the kernels write the caller's array themselves
             entry[clock] = stage_table(stage_ms, flops, nbytes, limits["fma_gflops"][clock],
-                                       limits["copy_gbs"][clock], limits.get("disk_write_gbs"))
+                                       limits["copy_gbs"][clock], limits.get("disk_write_gbs"),
+                                       limits["device_copy_gbs"][clock])
         tables[name] = entry
+        busy = "a GPU's kernels by their own time, host stages by CPU time" if m["gpu"] else \
+            f"CPU time ÷ {m['threads']} device threads"
         log(format_table(entry["busy"], f"replay stages, {name} ({m['vector_width']}-frame vectors; busy clock: "
-                                        f"CPU time ÷ {m['threads']} device threads, least of {repeats})"))
+                                        f"{busy}; least of {repeats})"))
         log(format_table(entry["wall"], f"replay stages, {name} (wall clock)"))
+        log(f"  (frames, fine_scale and output are one fused kernel, split by building it without one or both: "
+            f"the whole kernel {m['busy']['fused_kernel']:.3f} ms/frame busy, {m['wall']['fused_kernel']:.3f} wall)")
     return tables
 
 

@@ -42,12 +42,14 @@ class _Clock:
         self.busy[stage] = self.busy.get(stage, 0.0) + busy
 
 
-def _kernel(clock: _Clock, stage: str, event, cpu0: float, threads: int) -> None:
+def _kernel(clock: _Clock, stage: str, event, cpu0: float, threads: int | None) -> None:
+    """A kernel's wall and busy time; ``threads`` None: a GPU's kernel, busy is its wall time."""
     event.wait()
-    clock.add(stage, (event.profile.end - event.profile.start) * 1e-9, (_cpu_seconds() - cpu0) / threads)
+    wall = (event.profile.end - event.profile.start) * 1e-9
+    clock.add(stage, wall, wall if threads is None else (_cpu_seconds() - cpu0) / threads)
 
 
-def _pass(ev, head, R, t, out: np.ndarray | None, writer_path: Path | None, threads: int,
+def _pass(ev, head, R, t, out: np.ndarray | None, writer_path: Path | None, threads: int | None,
           placed: bool = False) -> _Clock:
     """One pass over the take, stage after stage; ``out`` and ``writer_path`` add the host copy
     and the write (only for the full kernel). ``placed``: the kernel writes the positions into
@@ -113,8 +115,8 @@ def measure_stages(model, head, R, t, work_dir: Path, device=None, chunk: int = 
     info = {}
     for stages in (3, 0, 1, 2):
         ev = OpenCLEvaluator(model, device=device, chunk=chunk, vector_width=vector_width, _stages=stages)
-        threads = max(1, int(ev.cl_device.max_compute_units)) if ev.on_host_cores else 1
-        info = {"vector_width": ev.vw, "threads": threads, "device": ev.device}
+        threads = max(1, int(ev.cl_device.max_compute_units)) if ev.on_host_cores else None
+        info = {"vector_width": ev.vw, "threads": threads or 1, "device": ev.device, "gpu": threads is None}
         full = stages == 3
         _pass(ev, head[:ev.chunk], R, t, None, None, threads)  # compiles for this shape, warms the buffers
         for _ in range(repeats):

@@ -148,6 +148,30 @@ def copy_rate_gbs(megabytes: int = 256, repeats: int = 5) -> dict:
     return {"wall": 2 * a.nbytes / wall / 1e9, "busy": 2 * a.nbytes / busy / 1e9}
 
 
+def device_copy_rate_gbs(context, device, megabytes: int = 256, repeats: int = 5) -> dict:
+    """The device's own memory bandwidth, a buffer-to-buffer copy on it, (read + written) bytes
+    / s in GB/s, the best of ``repeats``: {"wall", "busy"} (busy: by this process's CPU time ÷
+    compute units on a CPU device; the wall figure on a GPU)."""
+    import pyopencl as cl
+
+    queue = cl.CommandQueue(context, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    nbytes = megabytes * 2**20
+    a = cl.Buffer(context, cl.mem_flags.READ_WRITE, size=nbytes)
+    b = cl.Buffer(context, cl.mem_flags.READ_WRITE, size=nbytes)
+    cl.enqueue_fill_buffer(queue, a, np.float32(1.0), 0, nbytes).wait()
+    gpu = bool(device.type & cl.device_type.GPU)
+    wall = busy = float("inf")
+    for _ in range(repeats + 1):
+        c0 = _cpu_seconds()
+        ev = cl.enqueue_copy(queue, b, a)
+        ev.wait()
+        cpu = (_cpu_seconds() - c0) / max(1, int(device.max_compute_units))
+        wall = min(wall, (ev.profile.end - ev.profile.start) * 1e-9)
+        busy = min(busy, max(cpu, 1e-6))
+    wall_gbs = 2 * nbytes / wall / 1e9
+    return {"wall": wall_gbs, "busy": wall_gbs if gpu else 2 * nbytes / busy / 1e9}
+
+
 def direct_write_rate_gbs(folder: Path, megabytes: int = 256, block: int = 16 << 20) -> float | None:
     """The disk's rate (GB/s) for direct writes (O_DIRECT) from one aligned buffer, no copy; None
     where the file system refuses direct I/O."""
@@ -202,19 +226,29 @@ def stage_flops(V: int, H: int, P: int, K: float, ring: float, method: str) -> d
             "host_copy": 0.0, "positions_write": 0.0}
 
 
+#: stages that run on the host's CPU (their memory limit is the host's copy rate, not the device's)
+HOST_STAGES = ("host_tables", "host_copy", "positions_write")
+
+
 def stage_table(stage_ms: dict, flops: dict, nbytes: dict, peak_gflops: float, copy_gbs: float,
-                write_gbs: float | None = None) -> dict:
+                write_gbs: float | None = None, device_copy_gbs: float | None = None) -> dict:
     """Each stage against its roofline: {stage: {ms, gflop, mb, limit_ms, bound, ratio}}.
 
-    ``limit_ms`` = max(FLOP / peak, bytes / copy rate) (bytes / disk rate for
-    ``positions_write`` when ``write_gbs`` is known); ``bound`` names the larger term;
-    ``ratio`` = measured / limit (1: at the roofline).
+    ``limit_ms`` = max(FLOP / peak, bytes / rate): the rate is the device's copy rate for a
+    kernel (``device_copy_gbs``, when known), the host's (``copy_gbs``) for the host stages,
+    the disk's for ``positions_write`` when ``write_gbs`` is known; ``bound`` names the larger
+    term; ``ratio`` = measured / limit (1: at the roofline).
     """
     table = {}
     for stage, ms in stage_ms.items():
         f = float(flops.get(stage, 0.0))
         b = float(nbytes.get(stage, 0.0))
-        rate = write_gbs if stage == "positions_write" and write_gbs else copy_gbs
+        if stage == "positions_write" and write_gbs:
+            rate = write_gbs
+        elif stage in HOST_STAGES or not device_copy_gbs:
+            rate = copy_gbs
+        else:
+            rate = device_copy_gbs
         compute_ms = f / (peak_gflops * 1e9) * 1e3 if peak_gflops else 0.0
         memory_ms = b / (rate * 1e9) * 1e3 if rate else 0.0
         limit = max(compute_ms, memory_ms)

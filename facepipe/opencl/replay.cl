@@ -156,20 +156,35 @@ FP_INLINE void normalize_or(vfloat *x, vfloat *y, vfloat *z, const float fx, con
     *z = SELECT((vfloat)(fz), *z * inv, len > 1e-30f);
 }
 
-/* Store VW frames of one value to out[(c * V + o) * 3 + x] (the output's frame-major layout);
- * lanes past n_frames are padding and are dropped. */
-FP_INLINE void store_lanes(__global float *restrict out, const vfloat val, const int c0, const int n_frames,
-                        const int V, const int o, const int x)
+/* Store VW frames of one point (x, y, z) to out[(c * V + o) * 3 + 0..2]: per frame the three
+ * coordinates together (one cache line touched once, not once per coordinate); lanes past
+ * n_frames are padding and are dropped. */
+FP_INLINE void store_point(__global float *restrict out, const vfloat x, const vfloat y, const vfloat z,
+                           const int c0, const int n_frames, const int V, const int o)
 {
     union {
         vfloat v;
         float s[VW];
-    } lane;
-    lane.v = val;
+    } lx, ly, lz;
+    lx.v = x;
+    ly.v = y;
+    lz.v = z;
+    __global float *q = out + ((size_t)c0 * V + o) * 3;
+    const size_t stride = (size_t)V * 3;
+    if (c0 + VW <= n_frames) {
 #pragma unroll
-    for (int j = 0; j < VW; ++j)
-        if (c0 + j < n_frames)
-            out[((size_t)(c0 + j) * V + o) * 3 + x] = lane.s[j];
+        for (int j = 0; j < VW; ++j) {
+            q[j * stride + 0] = lx.s[j];
+            q[j * stride + 1] = ly.s[j];
+            q[j * stride + 2] = lz.s[j];
+        }
+    } else {
+        for (int j = 0; j < VW && c0 + j < n_frames; ++j) {
+            q[j * stride + 0] = lx.s[j];
+            q[j * stride + 1] = ly.s[j];
+            q[j * stride + 2] = lz.s[j];
+        }
+    }
 }
 
 /* world = R · p + t with the per-frame head motion rigid (12, C): R row-major, then t. */
@@ -357,15 +372,11 @@ __kernel void detail(__global const float *restrict large, const int C, const in
     }
     const int o = out_index[v];
     to_world(rigid, C, c0, &fx, &fy, &fz, 1);
-    store_lanes(out, fx, c0, n_frames, V, o, 0);
-    store_lanes(out, fy, c0, n_frames, V, o, 1);
-    store_lanes(out, fz, c0, n_frames, V, o, 2);
+    store_point(out, fx, fy, fz, c0, n_frames, V, o);
     if (flags & WRITE_LARGE) {
         vfloat lx = px, ly = py, lz = pz;
         to_world(rigid, C, c0, &lx, &ly, &lz, 1);
-        store_lanes(out_large, lx, c0, n_frames, V, o, 0);
-        store_lanes(out_large, ly, c0, n_frames, V, o, 1);
-        store_lanes(out_large, lz, c0, n_frames, V, o, 2);
+        store_point(out_large, lx, ly, lz, c0, n_frames, V, o);
     }
 }
 
@@ -388,7 +399,5 @@ __kernel void final_normals(__global const float *restrict final_vc, const int C
     normalize_or(&nx, &ny, &nz, 0.0f, 0.0f, 1.0f);
     to_world(rigid, C, c0, &nx, &ny, &nz, 0);
     const int o = out_index[v];
-    store_lanes(normals, nx, c0, n_frames, V, o, 0);
-    store_lanes(normals, ny, c0, n_frames, V, o, 1);
-    store_lanes(normals, nz, c0, n_frames, V, o, 2);
+    store_point(normals, nx, ny, nz, c0, n_frames, V, o);
 }
