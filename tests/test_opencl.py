@@ -313,6 +313,25 @@ def test_cli_without_opencl_platform(baked, monkeypatch, capsys):
     assert json.loads((d / "auto" / "replay.json").read_text())["backend"] == "numpy"
 
 
+def test_driver_that_cannot_compile_for_this_cpu_is_unavailable(monkeypatch):
+    """A PoCL whose LLVM does not know the CPU fails every build with 'unknown target CPU': that is
+    OpenCLUnavailable (an InputError: exit status 2 with --backend opencl, NumPy with auto)."""
+    _device_or_skip()
+    import pyopencl as cl
+
+    class Refusing:
+        def __init__(self, *args):
+            pass
+
+        def build(self, options=()):
+            raise cl.RuntimeError("clBuildProgram failed: BUILD_PROGRAM_FAILURE\nerror: unknown target CPU 'generic'")
+
+    context, _ = opencl.device.open_device(None)
+    monkeypatch.setattr(cl, "Program", Refusing)
+    with pytest.raises(opencl.OpenCLUnavailable, match="cannot compile kernels for this CPU"):
+        opencl.device.build_program(context, {"FOR_THIS_TEST": 1})
+
+
 def test_cli_bad_device_is_input_error(baked, capsys):
     _device_or_skip()
     d = baked
