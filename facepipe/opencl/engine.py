@@ -330,14 +330,15 @@ class OpenCLEvaluator:
             flags |= cl.mem_flags.ALLOC_HOST_PTR
         return cl.Buffer(self.context, flags, size=max(4, int(nbytes)))
 
-    def _slot_buffers(self, slot: _Slot, with_large: bool, with_normals: bool) -> None:
+    def _slot_buffers(self, slot: _Slot, with_large: bool, with_normals: bool, with_final: bool = True) -> None:
         C, V = self.chunk, self.V
         if not slot.inputs:
             sizes = {"U": self.H * 3 * C, "features": self.F * C, "psd_r": self.P * C, "site": self.F * C,
                      "rigid": 12 * C}
             slot.inputs = {k: self._buffer(4 * n) for k, n in sizes.items()}
         frame_bytes = C * V * 3 * 4
-        for name, wanted in (("final", True), ("large", with_large), ("normals", with_normals)):
+        # (no device-side final buffer while the kernel writes the positions into host memory)
+        for name, wanted in (("final", with_final), ("large", with_large), ("normals", with_normals)):
             if wanted and name not in slot.outputs:
                 slot.outputs[name] = self._buffer(frame_bytes, host=True)
         if with_normals and self._final_vc is None:
@@ -510,9 +511,9 @@ class OpenCLEvaluator:
                     if len(inflight) == self.n_slots:
                         retire(inflight.popleft())
                     slot = self._slots[k % self.n_slots]
-                    self._slot_buffers(slot, with_large, with_normals)
                     slot.final, slot.final_offset = self._host_output(destination, placement, s, e,
                                                                       k % self.n_slots)
+                    self._slot_buffers(slot, with_large, with_normals, with_final=slot.final is None)
                     events = self._enqueue(slot, head[s:e], None if R is None else R[s:e],
                                            None if t is None else t[s:e], with_large, with_normals)
                     buffers = [(slot.outputs["final"], 0) if slot.final is None else (slot.final, slot.final_offset)] \
