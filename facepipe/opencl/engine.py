@@ -154,6 +154,13 @@ def _largest_divisor(n: int, limit: int) -> int:
     return 1
 
 
+def _check_destination(destination: np.ndarray | None, shape: tuple) -> None:
+    if destination is not None and (destination.shape != shape or destination.dtype != np.float32
+                                    or not destination.flags.c_contiguous):
+        raise ValueError(f"destination: a C-ordered float32 array of shape {shape} is needed, "
+                         f"not {destination.dtype} {destination.shape}")
+
+
 # ----------------------------------------------------------------------------- the engine
 
 
@@ -471,10 +478,7 @@ class OpenCLEvaluator:
         cl = _cl()
         head = np.asarray(head, dtype=np.float64)
         T, C, V = head.shape[0], self.chunk, self.V
-        if destination is not None and (destination.shape != (T, V, 3) or destination.dtype != np.float32
-                                        or not destination.flags.c_contiguous):
-            raise ValueError(f"destination: a C-ordered float32 array of shape {(T, V, 3)} is needed, "
-                             f"not {destination.dtype} {destination.shape}")
+        _check_destination(destination, (T, V, 3))
 
         def deliver(start, maps, events):
             for _, ev in maps:
