@@ -21,6 +21,7 @@ import json
 import os
 import platform
 import resource
+import statistics
 import subprocess
 import sys
 import time
@@ -305,6 +306,26 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
     return results
 
 
+def _timed(fn, repeats: int) -> tuple[float, float]:
+    """(median wall seconds, least busy seconds) of ``repeats`` calls of ``fn()``; busy: this
+    process's CPU seconds ÷ the machine's cores — the time the run would take were the cores
+    its own and always busy (a bound: it does not count what waits on what)."""
+    walls, busy = [], float("inf")
+    cores = os.cpu_count() or 1
+    for _ in range(repeats):
+        r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        fn()
+        walls.append(time.perf_counter() - t0)
+        r1 = resource.getrusage(resource.RUSAGE_SELF)
+        busy = min(busy, (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime) / cores)
+    return statistics.median(walls), busy
+
+
+def _rates(T: int, wall: float, busy: float) -> dict:
+    return {"frames_per_second": T / wall, "ms_per_frame": wall / T * 1e3,
+            "busy_frames_per_second": T / busy if busy > 0 else None}
+
+
 def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, device, limits: dict,
                   K_used: float, log) -> dict:
     from facepipe.opencl import OpenCLEvaluator
@@ -330,13 +351,14 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
               R[:chunk], t[:chunk], destination=out[:chunk])
     in_place = bool(in_place) and all(in_place)
     ev.stage_seconds = dict.fromkeys(ev.stage_seconds, 0.0)
-    t_mem = median_time(lambda: ev.stream(head, lambda *a: None, R, t, destination=out), repeats)
+    t_mem, b_mem = _timed(lambda: ev.stream(head, lambda *a: None, R, t, destination=out), repeats)
     device_stages = {k: v / repeats / T * 1e3 for k, v in ev.stage_seconds.items()}
     log(f"opencl replay, positions kept in memory: {T / t_mem:.1f} frames/s ({t_mem / T * 1e3:.2f} ms/frame; "
+        f"busy clock {T / b_mem:.1f} frames/s; "
         + ("written in place by the kernels)" if in_place else "copied out of device memory)"))
-    t_copy = median_time(lambda: ev.stream(head, keep, R, t), repeats)
+    t_copy, b_copy = _timed(lambda: ev.stream(head, keep, R, t), repeats)
     log(f"  the same, copied out of device memory by the sink: {T / t_copy:.1f} frames/s "
-        f"({t_copy / T * 1e3:.2f} ms/frame)")
+        f"({t_copy / T * 1e3:.2f} ms/frame; busy clock {T / b_copy:.1f} frames/s)")
 
     frames = np.arange(T)
     times = frames / 30.0
@@ -344,29 +366,29 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
     def write():
         replay(model, head, R, t, frames, times, work_dir / "replay_opencl", evaluator=ev, chunk=chunk)
 
-    t_write = median_time(write, repeats)
-    log(f"opencl replay, writing positions.npy: {T / t_write:.1f} frames/s ({t_write / T * 1e3:.2f} ms/frame)")
+    t_write, b_write = _timed(write, repeats)
+    log(f"opencl replay, writing positions.npy: {T / t_write:.1f} frames/s ({t_write / T * 1e3:.2f} ms/frame; "
+        f"busy clock {T / b_write:.1f} frames/s)")
 
     # before this session's changes, in the same run: 8-frame vectors, positions copied out of
     # device memory (in memory), and copied into the writer's buffer (written)
     old_ev = OpenCLEvaluator(model, device=device, chunk=chunk, vector_width=8)
     old_ev.takes_placement = False
     old_ev.stream(head[:chunk], keep, R[:chunk], t[:chunk])
-    t_old_mem = median_time(lambda: old_ev.stream(head, keep, R, t), repeats)
-    t_old_write = median_time(lambda: replay(model, head, R, t, frames, times, work_dir / "replay_opencl",
-                                             evaluator=old_ev, chunk=chunk), repeats)
-    log(f"  before (8-frame vectors, copies): {T / t_old_mem:.1f} frames/s in memory, {T / t_old_write:.1f} "
-        "writing positions.npy")
+    t_old_mem, b_old_mem = _timed(lambda: old_ev.stream(head, keep, R, t), repeats)
+    t_old_write, b_old_write = _timed(lambda: replay(model, head, R, t, frames, times, work_dir / "replay_opencl",
+                                                     evaluator=old_ev, chunk=chunk), repeats)
+    log(f"  before (8-frame vectors, copies): {T / t_old_mem:.1f} frames/s in memory (busy clock "
+        f"{T / b_old_mem:.1f}), {T / t_old_write:.1f} writing positions.npy (busy clock {T / b_old_write:.1f})")
 
     tables = _roofline_tables(model, head, R, t, work_dir, repeats, chunk, device, limits, K_used, ev, in_place,
                               log)
     return {"device": ev.device, "setup_seconds": setup, "vector_width": ev.vw,
-            "in_memory": {"frames_per_second": T / t_mem, "ms_per_frame": t_mem / T * 1e3,
-                          "written_in_place": in_place},
-            "in_memory_copied_by_sink": {"frames_per_second": T / t_copy, "ms_per_frame": t_copy / T * 1e3},
-            "writing_positions": {"frames_per_second": T / t_write, "ms_per_frame": t_write / T * 1e3},
-            "before": {"vector_width": 8, "in_memory_frames_per_second": T / t_old_mem,
-                       "writing_positions_frames_per_second": T / t_old_write},
+            "in_memory": dict(_rates(T, t_mem, b_mem), written_in_place=in_place),
+            "in_memory_copied_by_sink": _rates(T, t_copy, b_copy),
+            "writing_positions": _rates(T, t_write, b_write),
+            "before": {"vector_width": 8, "in_memory": _rates(T, t_old_mem, b_old_mem),
+                       "writing_positions": _rates(T, t_old_write, b_old_write)},
             "pipeline_device_ms_per_frame": device_stages, "roofline": tables}
 
 

@@ -64,7 +64,7 @@ def _pass(ev, head, R, t, out: np.ndarray | None, writer_path: Path | None, thre
     slot = ev._slots[0]
     ev._slot_buffers(slot, False, False)
     slot.final = None
-    writer = NpyWriter(writer_path, (T, V, 3)) if writer_path is not None else None
+    writer = NpyWriter(writer_path, (T, V, 3), regions=ev.placement_regions) if writer_path is not None else None
     try:
         for s in range(0, T, C):
             e = min(T, s + C)

@@ -106,3 +106,23 @@ def test_rows_produced_where_placement_says_go_out_without_a_copy(tmp_path, monk
     assert placed == [n * 4044 for n in (5, 3, 7, 7)]
     assert np.array_equal(np.load(path), data)
     assert NpyWriter(tmp_path / "b.npy", shape, direct=False).placement(0, 5) is None
+
+
+def test_placement_memory_is_kept_in_the_callers_dict(tmp_path):
+    """Writers given one ``regions`` dict reuse its memory (no fresh pages per file) and leave it
+    open; each file is still whole."""
+    regions = {}
+    shape = (6, 101, 3)
+    data = np.arange(np.prod(shape), dtype=np.float32).reshape(shape)
+    addresses = []
+    for name in ("a.npy", "b.npy"):
+        with NpyWriter(tmp_path / name, shape, regions=regions) as w:
+            if not w.direct:
+                pytest.skip("no direct I/O on this file system")
+            memory, offset = w.placement(0, 6, 0)
+            addresses.append(memory.ctypes.data)
+            rows = memory[offset:offset + data.size].reshape(shape)
+            rows[...] = data
+            w.write(rows)
+        assert np.array_equal(np.load(tmp_path / name), data)
+    assert addresses[0] == addresses[1] and not regions[0].closed

@@ -43,7 +43,8 @@ class NpyWriter:
     Memory stays bounded for any take length (nothing is mapped); ``close`` checks that every
     row was written. ``path=None`` makes a writer that accepts nothing (an absent output).
     ``direct``: try ``O_DIRECT`` (default: where the system has it); ``self.direct`` says
-    whether it is in use.
+    whether it is in use. ``regions``: a dict in which :meth:`placement` keeps its memory, to be
+    reused by the next writer given the same dict (one producer, one file at a time).
 
     Example
     -------
@@ -51,14 +52,17 @@ class NpyWriter:
     ...     w.write(chunk)                                  # (n, V, 3), any float dtype
     """
 
-    def __init__(self, path, shape: tuple, dtype=np.float32, direct: bool | None = None):
+    def __init__(self, path, shape: tuple, dtype=np.float32, direct: bool | None = None, regions: dict | None = None):
         self.shape = tuple(int(n) for n in shape)
         self.dtype = np.dtype(dtype)
         self.rows = 0
+        # placement memory: the caller's dict when given (kept and reused by later writers, so a
+        # producer that writes file after file does not fault fresh pages in for each), else ours
+        self._own_regions = regions is None
+        self._regions: dict = {} if regions is None else regions
         self.direct = False
         self._fd = None
         self._staged = 0  # bytes waiting in the buffer (direct I/O)
-        self._regions: dict = {}  # placement index → page-aligned memory a producer writes rows into
         if path is None:
             return
         header = npy_header(self.shape, self.dtype)
@@ -206,12 +210,13 @@ class NpyWriter:
         if self.direct:
             self._view = None
             self._buf.close()
-        for region in self._regions.values():
-            try:
-                region.close()
-            except BufferError:  # still viewed by a producer; freed with it
-                pass
-        self._regions = {}
+        if self._own_regions:
+            for region in self._regions.values():
+                try:
+                    region.close()
+                except BufferError:  # still viewed by a producer; freed with it
+                    pass
+            self._regions = {}
 
     def __del__(self):
         try:

@@ -304,6 +304,9 @@ class OpenCLEvaluator:
         self._final_vc = None
         self._slots = [_Slot() for _ in range(self.n_slots)]
         self.static_bytes = int(sum(b.size for b in self._static.values()))
+        # a writer's placement memory, kept between replays (NpyWriter(regions=)): pages faulted
+        # in once per evaluator, not once per file
+        self.placement_regions: dict = {}
 
     def _local_strain_tables(self, model, order: np.ndarray, inv: np.ndarray) -> dict:
         """The local-strain model's tables in the engine's vertex order (placeholders for the other

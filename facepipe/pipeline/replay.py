@@ -218,7 +218,9 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
     # no temporary large-scale file unless it is asked for (an interrupted replay leaves none)
     with atomic_path(final_path) as tmp, (atomic_path(large_path) if save_large else nullcontext()) as tmp_large:
         # positions stream to disk in frame order while the next chunk is evaluated
-        with NpyWriter(tmp, (T, V, 3)) as out, NpyWriter(tmp_large if save_large else None, (T, V, 3)) as out_large:
+        regions = getattr(evaluator, "placement_regions", None)
+        with NpyWriter(tmp, (T, V, 3), regions=regions) as out, \
+                NpyWriter(tmp_large if save_large else None, (T, V, 3)) as out_large:
             def sink(start, final, large=None, normals=None):
                 out.write(final)
                 if save_large:
