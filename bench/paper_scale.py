@@ -8,12 +8,11 @@ paper replaced: factor the shell once, back-substitute u_H every frame. All figu
 one run on one machine, so the ratios compare like with like; timings are medians of
 ``repeats`` runs. Tests never assert times.
 
-Per-stage OpenCL times come from the kernels' profiling events: ``large_scale`` is its own
-kernel; frames and fine scale share one fused kernel, so they are timed by building variants
-of it without one or both stages and taking differences ("output" is the variant with
-neither: reading the large-scale positions, the head motion and the stores). Each stage's
-bytes moved (the data it must read and write at least once, per frame) divided by its time
-is set against a copy rate measured on the same machine.
+Per stage (bench/replay_stages.py: every stage waited for and timed alone, by the wall clock and
+by CPU time ÷ the device's threads), each stage's FLOP and bytes per frame are set against this
+machine's limits measured in the same run (bench/roofline.py: FMA peak, copy rates, disk), before
+(8-frame vectors, positions copied) and after (the device's own width, positions written in
+place), as a table printed and kept in the JSON.
 """
 
 from __future__ import annotations
@@ -116,12 +115,31 @@ def _sample(rig_dir: Path, params: dict, log) -> None:
 # ----------------------------------------------------------------------------- bandwidth
 
 
-def copy_rate_gbs(megabytes: int = 256, repeats: int = 5) -> float:
-    """This machine's memory bandwidth as seen by a large copy: (read + written) bytes / s, GB/s."""
-    a = np.ones(megabytes * 2**20 // 4, dtype=np.float32)
-    b = np.empty_like(a)
-    t = min(median_time(lambda: np.copyto(b, a), 1) for _ in range(repeats))
-    return 2 * a.nbytes / t / 1e9
+def machine_limits(work_dir: Path, device, log) -> dict:
+    """The rooflines of this run: FMA peak (OpenCL on the replay's device at its vector width,
+    NumPy's BLAS, computed), memory copy rate, direct-write disk rate (bench/roofline.py)."""
+    from bench.roofline import (computed_fma_peak_gflops, copy_rate_gbs, device_copy_rate_gbs, direct_write_rate_gbs,
+                                numpy_fma_peak_gflops, opencl_fma_peak_gflops)
+    from facepipe.opencl.device import open_device
+
+    context, dev = open_device(device)
+    gpu = bool(dev.type & 4)  # CL_DEVICE_TYPE_GPU
+    width = 1 if gpu else (16 if dev.preferred_vector_width_float >= 16 else 8)
+    fma = opencl_fma_peak_gflops(context, dev, max(width, 4) if not gpu else 4)
+    limits = {"fma_gflops": fma, "fma_vector_width": width, "numpy_matmul_gflops": numpy_fma_peak_gflops(),
+              "computed_fma_peak": computed_fma_peak_gflops(), "copy_gbs": copy_rate_gbs(),
+              "device_copy_gbs": device_copy_rate_gbs(context, dev), "disk_write_gbs": direct_write_rate_gbs(work_dir)}
+    c = limits["computed_fma_peak"]
+    log(f"FMA peak: {fma['busy']:.0f} GFLOP/s by CPU time, {fma['wall']:.0f} by the wall clock (OpenCL, "
+        f"{max(width, 4)}-float vectors); NumPy float32 matmul {limits['numpy_matmul_gflops']:.0f}; computed "
+        f"{c['gflops']:.0f} ({c['cores']} cores × 2 FMA × {c['float_lanes']} lanes × {c['mhz']:.0f} MHz)")
+    disk = limits["disk_write_gbs"]
+    d = limits["device_copy_gbs"]
+    log(f"memory copy rate (read + write): host memcpy {limits['copy_gbs']['busy']:.1f} GB/s by CPU time, "
+        f"{limits['copy_gbs']['wall']:.1f} by the wall clock; device buffer copy {d['busy']:.1f} GB/s by CPU time, "
+        f"{d['wall']:.1f} by the wall clock; direct writes to disk: "
+        + (f"{disk:.2f} GB/s" if disk else "not available"))
+    return limits
 
 
 def stage_bytes(V: int, H: int, P: int, K: float, chunk: int, method: str) -> dict:
@@ -194,9 +212,14 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
     phases = bake["fit_phases"]
     log("  fit: " + ", ".join(f"{k} {v:.1f}" for k, v in phases.items() if k not in ("total", "load")
                               and not k.endswith("_sources")) + " s"
-        + (f"; the handles' geodesics ran on the OpenCL CPU device" if bake.get("geodesics") == "opencl" else
+        + ("; the handles' geodesics ran on the OpenCL CPU device" if bake.get("geodesics") == "opencl" else
            f"; a second process took {phases['geodesics_child_sources']:.0f} of the handles' geodesics"
            if bake.get("geodesics") == "process" else ""))
+
+    bake_phases = {"load": bake["load"], **{k: v for k, v in phases.items() if k not in ("total", "load")
+                                             and not k.endswith("_sources")}, "save": bake["save"]}
+    log("bake phases (the median bake):\n" + "\n".join(f"  {k:16s} {v:6.2f} s" for k, v in bake_phases.items())
+        + f"\n  {'total':16s} {bake['total']:6.2f} s ({bake['cpu_seconds']:.1f} s of CPU)")
 
     model = load_model(model_path)
     V, H = model.n_vertices, int(len(model.handle_vertices))
@@ -215,7 +238,8 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
 
     results = {"config": config, "bake": {"seconds": bake["total"], "load_seconds": bake["load"],
                                           "fit_seconds": bake["fit"], "save_seconds": bake["save"],
-                                          "fit_phases": bake["fit_phases"], "geodesics": bake.get("geodesics"),
+                                          "fit_phases": bake["fit_phases"], "phases_seconds": bake_phases,
+                                          "geodesics": bake.get("geodesics"),
                                           "runs_seconds": bake["runs"], "cpu_seconds": bake["cpu_seconds"],
                                           "peak_rss_mb": bake["peak_rss_mb"],
                                           "helper_peak_rss_mb": bake["helper_peak_rss_mb"]},
@@ -224,12 +248,12 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
                                   "validation_stages": v["stages"], "validated": v["validated"],
                                   "chosen": v["chosen"], "reason": v["reason"],
                                   "peak_rss_mb": validated["peak_rss_mb"]}}
-    copy_gbs = copy_rate_gbs()
-    results["memory_copy_rate_gbs"] = copy_gbs
-    log(f"memory copy rate: {copy_gbs:.1f} GB/s (read + write)")
+    limits = machine_limits(work_dir, device, log)
+    results["limits"] = limits
+    results["memory_copy_rate_gbs"] = limits["copy_gbs"]["wall"]
 
     # ---- OpenCL
-    results["replay_opencl"] = _bench_opencl(model, head, R, t, work_dir, repeats, chunk, device, copy_gbs, K_used,
+    results["replay_opencl"] = _bench_opencl(model, head, R, t, work_dir, repeats, chunk, device, limits, K_used,
                                              log)
 
     # ---- NumPy reference
@@ -282,7 +306,27 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
     return results
 
 
-def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, device, copy_gbs: float,
+def _timed(fn, repeats: int) -> tuple[float, float]:
+    """(median wall seconds, least busy seconds) of ``repeats`` calls of ``fn()``; busy: this
+    process's CPU seconds ÷ the machine's cores — the time the run would take were the cores
+    its own and always busy (a bound: it does not count what waits on what)."""
+    walls, busy = [], float("inf")
+    cores = os.cpu_count() or 1
+    for _ in range(repeats):
+        r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        fn()
+        walls.append(time.perf_counter() - t0)
+        r1 = resource.getrusage(resource.RUSAGE_SELF)
+        busy = min(busy, (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime) / cores)
+    return statistics.median(walls), busy
+
+
+def _rates(T: int, wall: float, busy: float) -> dict:
+    return {"frames_per_second": T / wall, "ms_per_frame": wall / T * 1e3,
+            "busy_frames_per_second": T / busy if busy > 0 else None}
+
+
+def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, device, limits: dict,
                   K_used: float, log) -> dict:
     from facepipe.opencl import OpenCLEvaluator
     from facepipe.pipeline.replay import replay
@@ -300,12 +344,21 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
 
     ev.stream(head[:chunk], keep, R[:chunk], t[:chunk])  # first launch: the kernels are compiled for this shape
     setup = time.perf_counter() - t0
-    log(f"opencl: {ev.device}; setup {setup:.1f} s")
+    log(f"opencl: {ev.device}; {ev.vw} frames per vector; setup {setup:.1f} s")
 
+    in_place = []
+    ev.stream(head[:chunk], lambda s, f, l, n: in_place.append(f.ctypes.data == out[s:].ctypes.data),
+              R[:chunk], t[:chunk], destination=out[:chunk])
+    in_place = bool(in_place) and all(in_place)
     ev.stage_seconds = dict.fromkeys(ev.stage_seconds, 0.0)
-    t_mem = median_time(lambda: ev.stream(head, keep, R, t), repeats)
+    t_mem, b_mem = _timed(lambda: ev.stream(head, lambda *a: None, R, t, destination=out), repeats)
     device_stages = {k: v / repeats / T * 1e3 for k, v in ev.stage_seconds.items()}
-    log(f"opencl replay, positions kept in memory: {T / t_mem:.1f} frames/s ({t_mem / T * 1e3:.2f} ms/frame)")
+    log(f"opencl replay, positions kept in memory: {T / t_mem:.1f} frames/s ({t_mem / T * 1e3:.2f} ms/frame; "
+        f"busy clock {T / b_mem:.1f} frames/s; "
+        + ("written in place by the kernels)" if in_place else "copied out of device memory)"))
+    t_copy, b_copy = _timed(lambda: ev.stream(head, keep, R, t), repeats)
+    log(f"  the same, copied out of device memory by the sink: {T / t_copy:.1f} frames/s "
+        f"({t_copy / T * 1e3:.2f} ms/frame; busy clock {T / b_copy:.1f} frames/s)")
 
     frames = np.arange(T)
     times = frames / 30.0
@@ -313,48 +366,69 @@ def _bench_opencl(model, head, R, t, work_dir: Path, repeats: int, chunk: int, d
     def write():
         replay(model, head, R, t, frames, times, work_dir / "replay_opencl", evaluator=ev, chunk=chunk)
 
-    t_write = median_time(write, repeats)
-    log(f"opencl replay, writing positions.npy: {T / t_write:.1f} frames/s ({t_write / T * 1e3:.2f} ms/frame)")
+    t_write, b_write = _timed(write, repeats)
+    log(f"opencl replay, writing positions.npy: {T / t_write:.1f} frames/s ({t_write / T * 1e3:.2f} ms/frame; "
+        f"busy clock {T / b_write:.1f} frames/s)")
 
-    # per stage: kernel variants, device time from profiling events, medians over repeats
-    def kernel_ms(stages: int) -> tuple[float, float]:
-        var = ev if stages == 3 else OpenCLEvaluator(model, device=device, chunk=chunk, _stages=stages)
-        var.stream(head[:chunk], lambda *a: None, R[:chunk], t[:chunk])
-        runs = []
-        for _ in range(repeats):
-            var.stage_seconds = dict.fromkeys(var.stage_seconds, 0.0)
-            var.stream(head, lambda *a: None, R, t)
-            runs.append((var.stage_seconds["large_scale"], var.stage_seconds["frames_fine_scale"]))
-        return (statistics.median(r[0] for r in runs) / T * 1e3, statistics.median(r[1] for r in runs) / T * 1e3)
+    # before this session's changes, in the same run: 8-frame vectors, positions copied out of
+    # device memory (in memory), and copied into the writer's buffer (written)
+    old_ev = OpenCLEvaluator(model, device=device, chunk=chunk, vector_width=8)
+    old_ev.takes_placement = False
+    old_ev.stream(head[:chunk], keep, R[:chunk], t[:chunk])
+    t_old_mem, b_old_mem = _timed(lambda: old_ev.stream(head, keep, R, t), repeats)
+    t_old_write, b_old_write = _timed(lambda: replay(model, head, R, t, frames, times, work_dir / "replay_opencl",
+                                                     evaluator=old_ev, chunk=chunk), repeats)
+    log(f"  before (8-frame vectors, copies): {T / t_old_mem:.1f} frames/s in memory (busy clock "
+        f"{T / b_old_mem:.1f}), {T / t_old_write:.1f} writing positions.npy (busy clock {T / b_old_write:.1f})")
 
-    large_ms, full_ms = kernel_ms(3)
-    none_ms = kernel_ms(0)[1]
-    frames_ms = kernel_ms(1)[1] - none_ms
-    fine_ms = kernel_ms(2)[1] - none_ms
-    sink_ms = device_stages.get("output", 0.0)
-    stage_ms = {"large_scale": large_ms, "frames": max(frames_ms, 0.0), "fine_scale": max(fine_ms, 0.0),
-                "output": none_ms, "host_copy": sink_ms}
-    P = int(model.basis_features.shape[0])
-    nbytes = stage_bytes(V, int(len(model.handle_vertices)), P, K_used, ev.chunk, model.method)
-    nbytes["host_copy"] = 2 * V * 3 * 4
-    bandwidth = {}
-    for k, ms in stage_ms.items():
-        gbs = nbytes[k] / (ms * 1e-3) / 1e9 if ms > 0 else None
-        bandwidth[k] = {"mb_per_frame": nbytes[k] / 1e6, "gb_per_s": gbs,
-                        "fraction_of_copy_rate": gbs / copy_gbs if gbs else None}
-    # the B product is bound by arithmetic, not memory: 2·H multiply-adds per coordinate and vertex
-    H = int(len(model.handle_vertices))
-    bandwidth["large_scale"]["gflop_per_s"] = V * H * 3 * 2 / (large_ms * 1e-3) / 1e9 if large_ms > 0 else None
-    for k in stage_ms:
-        b = bandwidth[k]
-        extra = f", {b['gflop_per_s']:.0f} GFLOP/s" if b.get("gflop_per_s") else ""
-        log(f"  {k:12s} {stage_ms[k]:6.2f} ms/frame  {b['mb_per_frame']:6.2f} MB/frame  "
-            f"{(b['gb_per_s'] or 0):6.1f} GB/s  ({100 * (b['fraction_of_copy_rate'] or 0):.0f} % of copy rate{extra})")
+    tables = _roofline_tables(model, head, R, t, work_dir, repeats, chunk, device, limits, K_used, ev, in_place,
+                              log)
     return {"device": ev.device, "setup_seconds": setup, "vector_width": ev.vw,
-            "in_memory": {"frames_per_second": T / t_mem, "ms_per_frame": t_mem / T * 1e3},
-            "writing_positions": {"frames_per_second": T / t_write, "ms_per_frame": t_write / T * 1e3},
-            "stage_ms_per_frame": stage_ms, "fused_kernel_ms_per_frame": full_ms,
-            "stage_bandwidth": bandwidth, "pipeline_device_ms_per_frame": device_stages}
+            "in_memory": dict(_rates(T, t_mem, b_mem), written_in_place=in_place),
+            "in_memory_copied_by_sink": _rates(T, t_copy, b_copy),
+            "writing_positions": _rates(T, t_write, b_write),
+            "before": {"vector_width": 8, "in_memory": _rates(T, t_old_mem, b_old_mem),
+                       "writing_positions": _rates(T, t_old_write, b_old_write)},
+            "pipeline_device_ms_per_frame": device_stages, "roofline": tables}
+
+
+def _roofline_tables(model, head, R, t, work_dir: Path, repeats: int, chunk: int, device, limits: dict,
+                     K_used: float, ev, in_place: bool, log) -> dict:
+    """The per-stage roofline tables, before (8-frame vectors, positions copied out of device
+    memory, and copied again into the writer's buffer) and after (the device's widest vectors,
+    positions written in place: into the caller's array, or into the writer's memory), by both
+    clocks."""
+    from bench.replay_stages import measure_stages
+    from bench.roofline import format_table, stage_flops, stage_table
+
+    V, H = model.n_vertices, int(len(model.handle_vertices))
+    P = int(model.basis_features.shape[0])
+    ring = 3.0 * len(model.triangles) / V
+    flops = stage_flops(V, H, P, K_used, ring, model.method)
+    tables = {}
+    for name, width in (("before", 8), ("after", None)):
+        m = measure_stages(model, head, R, t, work_dir, device=device, chunk=chunk, vector_width=width,
+                           repeats=repeats, placed=name == "after")
+        nbytes = stage_bytes(V, H, P, K_used, chunk, model.method)
+        nbytes.update(host_tables=0.0, host_copy=2 * V * 3 * 4.0, positions_write=V * 3 * 4.0)
+        entry = {"vector_width": m["vector_width"], "threads": m["threads"],
+                 "fused_kernel_ms_per_frame": {k: m[k]["fused_kernel"] for k in ("wall", "busy")}}
+        for clock in ("busy", "wall"):
+            stage_ms = {k: v for k, v in m[clock].items() if k != "fused_kernel"}
+            if name == "after" and in_place:
+                stage_ms["host_copy"] = 0.0  # the kernels write the caller's array themselves
+            entry[clock] = stage_table(stage_ms, flops, nbytes, limits["fma_gflops"][clock],
+                                       limits["copy_gbs"][clock], limits.get("disk_write_gbs"),
+                                       limits["device_copy_gbs"][clock])
+        tables[name] = entry
+        busy = "a GPU's kernels by their own time, host stages by CPU time" if m["gpu"] else \
+            f"CPU time ÷ {m['threads']} device threads"
+        log(format_table(entry["busy"], f"replay stages, {name} ({m['vector_width']}-frame vectors; busy clock: "
+                                        f"{busy}; least of {repeats})"))
+        log(format_table(entry["wall"], f"replay stages, {name} (wall clock)"))
+        log(f"  (frames, fine_scale and output are one fused kernel, split by building it without one or both: "
+            f"the whole kernel {m['busy']['fused_kernel']:.3f} ms/frame busy, {m['wall']['fused_kernel']:.3f} wall)")
+    return tables
 
 
 def _bench_baseline(model, head, repeats: int, log) -> dict:

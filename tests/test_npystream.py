@@ -75,3 +75,54 @@ def test_refuses_incomplete_files_and_wrong_rows(tmp_path, direct):
             w.write(np.zeros((3, 3)))
     with pytest.raises(ValueError, match="no open file"):
         NpyWriter(None, (2, 3)).write(np.zeros((1, 3)))
+
+
+def test_rows_produced_where_placement_says_go_out_without_a_copy(tmp_path, monkeypatch):
+    """Rows made in placement()'s memory at its offset are written from there (the staged partial
+    block put in front of them); the file is the same as with ordinary writes, whatever mix of
+    placed, unplaced and odd-sized chunks, in two alternating regions."""
+    shape = (23, 337, 3)  # a row of 4044 bytes: chunks never end on a block
+    data = np.random.default_rng(4).normal(size=shape).astype(np.float32)
+    placed = []
+    real = NpyWriter._write_placed
+    monkeypatch.setattr(NpyWriter, "_write_placed", lambda self, region, n: (placed.append(n), real(self, region, n)))
+    path = tmp_path / "p.npy"
+    with NpyWriter(path, shape) as w:
+        if not w.direct:
+            pytest.skip("no direct I/O on this file system")
+        start = 0
+        for k, n in enumerate([5, 3, 7, 1, 7]):
+            spot = w.placement(start, n, k % 2)
+            assert spot is not None
+            memory, offset = spot
+            assert memory.ctypes.data % BLOCK == 0 and (BLOCK + start * 4044) % BLOCK == offset * 4
+            if k == 3:  # a chunk made elsewhere: the ordinary, copying write
+                w.write(data[start:start + n])
+            else:
+                rows = memory[offset:offset + n * 337 * 3].reshape(n, 337, 3)
+                rows[...] = data[start:start + n]
+                w.write(rows)
+            start += n
+    assert placed == [n * 4044 for n in (5, 3, 7, 7)]
+    assert np.array_equal(np.load(path), data)
+    assert NpyWriter(tmp_path / "b.npy", shape, direct=False).placement(0, 5) is None
+
+
+def test_placement_memory_is_kept_in_the_callers_dict(tmp_path):
+    """Writers given one ``regions`` dict reuse its memory (no fresh pages per file) and leave it
+    open; each file is still whole."""
+    regions = {}
+    shape = (6, 101, 3)
+    data = np.arange(np.prod(shape), dtype=np.float32).reshape(shape)
+    addresses = []
+    for name in ("a.npy", "b.npy"):
+        with NpyWriter(tmp_path / name, shape, regions=regions) as w:
+            if not w.direct:
+                pytest.skip("no direct I/O on this file system")
+            memory, offset = w.placement(0, 6, 0)
+            addresses.append(memory.ctypes.data)
+            rows = memory[offset:offset + data.size].reshape(shape)
+            rows[...] = data
+            w.write(rows)
+        assert np.array_equal(np.load(tmp_path / name), data)
+    assert addresses[0] == addresses[1] and not regions[0].closed

@@ -89,7 +89,7 @@ def test_compact_edges_moves_dropped_edges_last():
 
 @pytest.mark.parametrize("method", ["wpsd", "psd", "none"])
 @pytest.mark.parametrize("options", [{}, {"vector_width": 1, "chunk": 16}, {"vector_width": 4, "chunk": 12},
-                                     {"reorder": "rcm", "chunk": 8}])
+                                     {"vector_width": 16, "chunk": 32}, {"reorder": "rcm", "chunk": 8}])
 def test_matches_numpy_reference(sample, method, options):
     _device_or_skip()
     _, rig, fit, head, diag = sample
@@ -139,6 +139,29 @@ def test_stream_delivers_chunks_in_order_and_propagates_sink_errors(sample):
     with pytest.raises(OSError, match="disk full"):
         ev.stream(head, broken)
     ev.stream(head[:4], lambda *a: None)  # still usable afterwards
+
+
+def test_kernels_write_a_callers_array_in_place(sample):
+    """``evaluate(out=)`` / ``stream(destination=)``: the same positions as without; on a CPU device
+    the chunks handed to the sink are the destination's own memory (no copy out of the device)."""
+    _device_or_skip()
+    _, rig, fit, head, _ = sample
+    model = model_from_fit(fit, rig, "wpsd")
+    R, t = _motion(len(head), seed=7)
+    ev = opencl.OpenCLEvaluator(model, chunk=16)
+    expected = ev.evaluate(head, rigid=(R, t))
+    dest = np.full((len(head), model.n_vertices, 3), np.nan, dtype=np.float32)
+    seen = []
+    ev.stream(head, lambda s, f, l, n: seen.append((s, f.ctypes.data == dest[s:].ctypes.data,
+                                                     np.array_equal(f, dest[s:s + len(f)]))), R, t, destination=dest)
+    assert np.array_equal(dest, expected)
+    assert [s for s, _, _ in seen] == [0, 16, 32] and all(same for _, _, same in seen)
+    if ev.on_host_cores:
+        assert all(in_place for _, in_place, _ in seen)
+    out = np.empty_like(dest)
+    assert ev.evaluate(head, rigid=(R, t), out=out) is out and np.array_equal(out, expected)
+    with pytest.raises(ValueError, match="destination"):
+        ev.stream(head, lambda *a: None, destination=dest[:, :10])
 
 
 def test_stream_chunks_drives_numpy_and_opencl_alike(sample, tmp_path):
@@ -317,6 +340,25 @@ def test_cli_without_opencl_platform(baked, monkeypatch, capsys):
     assert json.loads((d / "auto" / "replay.json").read_text())["backend"] == "numpy"
 
 
+def test_driver_that_cannot_compile_for_this_cpu_is_unavailable(monkeypatch):
+    """A PoCL whose LLVM does not know the CPU fails every build with 'unknown target CPU': that is
+    OpenCLUnavailable (an InputError: exit status 2 with --backend opencl, NumPy with auto)."""
+    _device_or_skip()
+    import pyopencl as cl
+
+    class Refusing:
+        def __init__(self, *args):
+            pass
+
+        def build(self, options=()):
+            raise cl.RuntimeError("clBuildProgram failed: BUILD_PROGRAM_FAILURE\nerror: unknown target CPU 'generic'")
+
+    context, _ = opencl.device.open_device(None)
+    monkeypatch.setattr(cl, "Program", Refusing)
+    with pytest.raises(opencl.OpenCLUnavailable, match="cannot compile kernels for this CPU"):
+        opencl.device.build_program(context, {"FOR_THIS_TEST": 1})
+
+
 def test_cli_bad_device_is_input_error(baked, capsys):
     _device_or_skip()
     d = baked
@@ -361,4 +403,11 @@ def test_bench_end_to_end_on_a_small_rig(tmp_path):
         assert res[section], section
     assert res["baseline_sparse_solve"]["frames_per_second"] > 0
     assert res["replay_opencl"]["in_memory"]["frames_per_second"] > 0
+    after = res["replay_opencl"]["roofline"]["after"]
+    for clock in ("busy", "wall"):
+        assert set(after[clock]) == {"host_tables", "large_scale", "frames", "fine_scale", "output", "host_copy",
+                                     "positions_write"}
+    assert after["busy"]["large_scale"]["ratio_to_limit"] > 0
+    assert res["limits"]["fma_gflops"]["wall"] > 0 and res["limits"]["copy_gbs"]["wall"] > 0
+    assert set(res["bake"]["phases_seconds"]) >= {"load", "geometry", "details", "greedy", "save"}
     assert res["video_lift"]["frames_per_second"] > 0 and res["video_lift"]["landmarks"] == 68

@@ -43,7 +43,8 @@ class NpyWriter:
     Memory stays bounded for any take length (nothing is mapped); ``close`` checks that every
     row was written. ``path=None`` makes a writer that accepts nothing (an absent output).
     ``direct``: try ``O_DIRECT`` (default: where the system has it); ``self.direct`` says
-    whether it is in use.
+    whether it is in use. ``regions``: a dict in which :meth:`placement` keeps its memory, to be
+    reused by the next writer given the same dict (one producer, one file at a time).
 
     Example
     -------
@@ -51,10 +52,14 @@ class NpyWriter:
     ...     w.write(chunk)                                  # (n, V, 3), any float dtype
     """
 
-    def __init__(self, path, shape: tuple, dtype=np.float32, direct: bool | None = None):
+    def __init__(self, path, shape: tuple, dtype=np.float32, direct: bool | None = None, regions: dict | None = None):
         self.shape = tuple(int(n) for n in shape)
         self.dtype = np.dtype(dtype)
         self.rows = 0
+        # placement memory: the caller's dict when given (kept and reused by later writers, so a
+        # producer that writes file after file does not fault fresh pages in for each), else ours
+        self._own_regions = regions is None
+        self._regions: dict = {} if regions is None else regions
         self.direct = False
         self._fd = None
         self._staged = 0  # bytes waiting in the buffer (direct I/O)
@@ -93,12 +98,66 @@ class NpyWriter:
             return
         self.direct = True
 
+    def placement(self, start: int, n: int, index: int = 0):
+        """Memory to produce rows start:start+n in so that :meth:`write` sends them to the disk with
+        no copy: (memory, offset) — a page-aligned 1-D array of this writer's dtype and the
+        element offset where row ``start`` must begin, so that the rows sit on the file's block
+        grid — or None where the writer is not direct. ``index`` names one of several regions in
+        use at once (a producer fills one while the writer writes another); each is reused by
+        later calls with the same index. Rows produced there are written by ``write(rows)`` with
+        ``rows`` that view of the memory, in the file's order as always.
+        """
+        if not self.direct:
+            return None
+        row_bytes = int(np.prod(self.shape[1:])) * self.dtype.itemsize
+        lead = (BLOCK + start * row_bytes) % BLOCK  # where the rows fall within their first block
+        need = -(-(lead + n * row_bytes) // BLOCK) * BLOCK
+        region = self._regions.get(index)
+        if region is None or len(region) < need:
+            if region is not None:
+                try:
+                    region.close()
+                except BufferError:  # still viewed by a producer; freed with it
+                    pass
+            region = self._regions[index] = mmap.mmap(-1, need)
+        if lead % self.dtype.itemsize:
+            return None
+        return np.frombuffer(region, dtype=self.dtype), lead // self.dtype.itemsize
+
+    def _placed_region(self, rows: np.ndarray):
+        """The region ``rows`` were produced in at the offset :meth:`placement` gave for this
+        writer's position, or None."""
+        address = rows.ctypes.data
+        for region in self._regions.values():
+            base = np.frombuffer(region, dtype=np.uint8).ctypes.data
+            if base + self._staged == address and self._staged + rows.nbytes <= len(region):
+                return region
+        return None
+
+    def _write_placed(self, region, nbytes: int) -> None:
+        """Rows already in ``region`` after the staged partial block: that block goes in front,
+        the whole blocks to the disk straight from the region, the last partial one is staged."""
+        view = np.frombuffer(region, dtype=np.uint8)
+        staged = self._staged
+        view[:staged] = self._view[:staged]
+        end = staged + nbytes
+        whole = end - end % BLOCK
+        if whole:
+            self._write_all(memoryview(region)[:whole])
+        self._view[:end - whole] = view[whole:end]
+        self._staged = end - whole
+
     def write(self, rows: np.ndarray) -> None:
         rows = np.ascontiguousarray(rows, dtype=self.dtype)
         if rows.shape[1:] != self.shape[1:] or self.rows + rows.shape[0] > self.shape[0]:
             raise ValueError(f"rows {rows.shape} do not fit {self.shape} after {self.rows} rows")
         if self._fd is None:
             raise ValueError("this writer has no open file (no path, or closed)")
+        region = self._placed_region(rows) if self.direct and self._regions else None
+        if region is not None:  # produced where placement() said: no copy
+            self._write_placed(region, rows.nbytes)
+            self.rows += rows.shape[0]
+            return
         data = memoryview(rows.reshape(-1)).cast("B")
         if not self.direct:
             self._write_all(data)
@@ -151,6 +210,13 @@ class NpyWriter:
         if self.direct:
             self._view = None
             self._buf.close()
+        if self._own_regions:
+            for region in self._regions.values():
+                try:
+                    region.close()
+                except BufferError:  # still viewed by a producer; freed with it
+                    pass
+            self._regions = {}
 
     def __del__(self):
         try:

@@ -137,7 +137,8 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         events["large_scale"] = ev_large
         return events
 
-    def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False) -> None:
+    def stream(self, head, sink, R=None, t=None, with_large: bool = False, with_normals: bool = False,
+               destination=None, placement=None) -> None:
         """As :meth:`OpenCLEvaluator.stream` over the cache's frames from the first (``head``: the pose's
         handles); the details are those of the added bands (the weights given at construction).
 
@@ -146,7 +147,8 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
         device and read back."""
         self._cursor = 0
         if not (with_large and R is not None):
-            super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
+            super().stream(head, sink, R, t, with_large=with_large, with_normals=with_normals,
+                           destination=destination, placement=placement)
             return
         cache = self.cache
 
@@ -156,4 +158,5 @@ class OpenCLCacheEvaluator(OpenCLEvaluator):
                 surface = np.asarray(surface, dtype=np.float32) * np.float32(cache.scale)
             sink(start, final, surface, normals)
 
-        super().stream(head, with_cache_surface, R, t, with_large=False, with_normals=with_normals)
+        super().stream(head, with_cache_surface, R, t, with_large=False, with_normals=with_normals,
+                       destination=destination, placement=placement)

@@ -178,6 +178,18 @@ def build_program(context, defines: dict, name: str = "replay.cl"):
     with _lock:
         program = _programs.get(key)
         if program is None:
-            program = cl.Program(context, kernel_source(name)).build(options=list(options))
+            try:
+                program = cl.Program(context, kernel_source(name)).build(options=list(options))
+            except cl.RuntimeError as exc:
+                if "unknown target CPU" not in str(exc):
+                    raise
+                # PoCL's LLVM is older than the CPU (e.g. LLVM 14 on AMD Zen 5): it names it
+                # "generic", which its own compiler then refuses. Every kernel fails alike.
+                device = context.devices[0]
+                raise OpenCLUnavailable(
+                    f"the OpenCL driver {device.platform.version.strip()!r} cannot compile kernels for this CPU "
+                    "(its LLVM does not know it: 'unknown target CPU'); a PoCL built on a newer LLVM, or one "
+                    "that picks its target from the CPU's features (Debian's pocl-opencl-icd 3.1 does), works"
+                ) from None
             _programs[key] = program
         return program

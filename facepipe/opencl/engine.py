@@ -154,6 +154,13 @@ def _largest_divisor(n: int, limit: int) -> int:
     return 1
 
 
+def _check_destination(destination: np.ndarray | None, shape: tuple) -> None:
+    if destination is not None and (destination.shape != shape or destination.dtype != np.float32
+                                    or not destination.flags.c_contiguous):
+        raise ValueError(f"destination: a C-ordered float32 array of shape {shape} is needed, "
+                         f"not {destination.dtype} {destination.shape}")
+
+
 # ----------------------------------------------------------------------------- the engine
 
 
@@ -164,6 +171,10 @@ class _Slot:
         self.inputs = {}
         self.outputs = {}
         self.host = ()
+        # this chunk's final-positions buffer: outputs["final"], or one over the caller's memory,
+        # and where in it (floats) the positions start
+        self.final = None
+        self.final_offset = 0
 
 
 class OpenCLEvaluator:
@@ -177,8 +188,9 @@ class OpenCLEvaluator:
     chunk : frames per launch (rounded up to the vector width); B is read once per chunk.
     reorder : vertex order for locality, see :func:`locality_order` (output is always in the
         rest mesh's order).
-    vector_width : frames per work-item; default 8 on a CPU (AVX2 lanes), 1 on a GPU (a warp
-        covers 32 frames of one vertex).
+    vector_width : frames per work-item; default on a CPU the device's preferred float vector
+        width when it is 16 (AVX-512) and the chunk has 16 frames or more, else 8 (AVX2 lanes); 1 on
+        a GPU (a warp covers 32 frames of one vertex).
     slots : chunks in flight (2: one computing while the previous one is written).
     detail_weights : optional (weights (V, P, 3), const (V, 3)) replacing the model's RBF weights
         and constant (PSD/WPSD): the band of the details a point cache lacks
@@ -200,6 +212,7 @@ class OpenCLEvaluator:
     """
 
     backend = "opencl"
+    takes_placement = True  # stream(placement=): final positions produced in the caller's memory
 
     def __init__(self, model, device: str | None = None, chunk: int = 32, reorder="auto",
                  vector_width: int | None = None, slots: int = 2, detail_weights: tuple | None = None,
@@ -213,7 +226,10 @@ class OpenCLEvaluator:
         # whether evaluating takes the host's own cores (a CPU device): work overlapped with it
         # then only competes for them
         self.on_host_cores = not gpu
-        self.vw = int(vector_width or (1 if gpu else 8))
+        # a CPU's widest vector (PoCL reports 16 floats where it compiles for AVX-512, 8 for AVX2):
+        # the B product runs at that width's FMA rate; never wider than the chunk asked for
+        self.vw = int(vector_width or (1 if gpu else 16 if dev.preferred_vector_width_float >= 16
+                                       and int(chunk) >= 16 else 8))
         if self.vw not in (1, 2, 4, 8, 16):
             raise ValueError(f"vector_width {self.vw} is not 1, 2, 4, 8 or 16")
         self.chunk = max(self.vw, -(-int(chunk) // self.vw) * self.vw)
@@ -293,6 +309,9 @@ class OpenCLEvaluator:
         self._final_vc = None
         self._slots = [_Slot() for _ in range(self.n_slots)]
         self.static_bytes = int(sum(b.size for b in self._static.values()))
+        # a writer's placement memory, kept between replays (NpyWriter(regions=)): pages faulted
+        # in once per evaluator, not once per file
+        self.placement_regions: dict = {}
 
     def _local_strain_tables(self, model, order: np.ndarray, inv: np.ndarray) -> dict:
         """The local-strain model's tables in the engine's vertex order (placeholders for the other
@@ -326,14 +345,15 @@ class OpenCLEvaluator:
             flags |= cl.mem_flags.ALLOC_HOST_PTR
         return cl.Buffer(self.context, flags, size=max(4, int(nbytes)))
 
-    def _slot_buffers(self, slot: _Slot, with_large: bool, with_normals: bool) -> None:
+    def _slot_buffers(self, slot: _Slot, with_large: bool, with_normals: bool, with_final: bool = True) -> None:
         C, V = self.chunk, self.V
         if not slot.inputs:
             sizes = {"U": self.H * 3 * C, "features": self.F * C, "psd_r": self.P * C, "site": self.F * C,
                      "rigid": 12 * C}
             slot.inputs = {k: self._buffer(4 * n) for k, n in sizes.items()}
         frame_bytes = C * V * 3 * 4
-        for name, wanted in (("final", True), ("large", with_large), ("normals", with_normals)):
+        # (no device-side final buffer while the kernel writes the positions into host memory)
+        for name, wanted in (("final", with_final), ("large", with_large), ("normals", with_normals)):
             if wanted and name not in slot.outputs:
                 slot.outputs[name] = self._buffer(frame_bytes, host=True)
         if with_normals and self._final_vc is None:
@@ -368,18 +388,22 @@ class OpenCLEvaluator:
 
     def _enqueue(self, slot: _Slot, head, R, t, with_large: bool, with_normals: bool) -> dict:
         """Upload a chunk's tables and launch its kernels; returns the kernels' events."""
+        ev_large = self._launch_large_scale(slot, self._tables(head, R, t))
+        events = self._launch_fine_scale(slot, head.shape[0], with_large, with_normals)
+        events["large_scale"] = ev_large
+        return events
+
+    def _launch_large_scale(self, slot: _Slot, tables: dict):
+        """Upload a chunk's host tables (:meth:`_tables`) and launch ``large_scale`` into
+        ``self._large``; returns its event."""
         cl = _cl()
-        q, s, C, n = self.queue, self._static, self.chunk, head.shape[0]
-        tables = self._tables(head, R, t)
+        q, s, C = self.queue, self._static, self.chunk
         uploads = [cl.enqueue_copy(q, slot.inputs[k], v, is_blocking=False) for k, v in tables.items()]
         slot.host = tables  # must outlive the non-blocking uploads
         lanes = C // self.vw
         self._k_large.set_args(s["B"], slot.inputs["U"], s["rest"], self._large, np.int32(C))
-        ev_large = cl.enqueue_nd_range_kernel(q, self._k_large, (lanes, self.Vp // RV), (self.local0, self.local1),
-                                              wait_for=uploads)
-        events = self._launch_fine_scale(slot, n, with_large, with_normals)
-        events["large_scale"] = ev_large
-        return events
+        return cl.enqueue_nd_range_kernel(q, self._k_large, (lanes, self.Vp // RV), (self.local0, self.local1),
+                                          wait_for=uploads)
 
     def _launch_fine_scale(self, slot: _Slot, n: int, with_large: bool, with_normals: bool,
                            wait_for=None, large=None) -> dict:
@@ -392,13 +416,15 @@ class OpenCLEvaluator:
         flags = (1 if with_large else 0) | (2 if with_normals else 0)
         out = slot.outputs
         large = self._large if large is None else large
+        final = out["final"] if slot.final is None else slot.final
         self._k_detail.set_args(
             large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
             s["edge_count"], s["edge_index"], s["edge_weight"], s["basis"], slot.inputs["features"],
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
-            s["out_index"], out["final"], out.get("large", out["final"]),
-            out["final"] if self._final_vc is None else self._final_vc,
-            np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv))
+            s["out_index"], final, out.get("large", final),
+            final if self._final_vc is None else self._final_vc,
+            np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv),
+            np.int32(slot.final_offset if slot.final is not None else 0))
         ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1),
                                                wait_for=wait_for)
         events = {"frames_fine_scale": ev_detail, "last": ev_detail}
@@ -417,8 +443,26 @@ class OpenCLEvaluator:
 
     # ------------------------------------------------------------------ public API
 
+    def _host_output(self, destination: np.ndarray | None, placement, start: int, stop: int, index: int):
+        """(buffer, offset in floats) the kernel writes frames start:stop into in place, on a
+        device that runs on the host's cores (CL_MEM_USE_HOST_PTR: the positions need no copy from
+        device memory): ``destination[start:stop]``, or the memory ``placement(start, n, index)``
+        gives; (None, 0) otherwise (a GPU; no destination; the placement declines)."""
+        if not self.on_host_cores:
+            return None, 0
+        cl = _cl()
+        flags = cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR
+        if destination is not None:
+            return cl.Buffer(self.context, flags, hostbuf=destination[start:stop]), 0
+        placed = placement(start, stop - start, index) if placement is not None else None
+        if placed is None:
+            return None, 0
+        memory, offset = placed
+        return cl.Buffer(self.context, flags, hostbuf=memory), int(offset)
+
     def stream(self, head: np.ndarray, sink, R: np.ndarray | None = None, t: np.ndarray | None = None,
-               with_large: bool = False, with_normals: bool = False) -> None:
+               with_large: bool = False, with_normals: bool = False, destination: np.ndarray | None = None,
+               placement=None) -> None:
         """Evaluate a whole take chunk by chunk, pipelined; hand every chunk to ``sink`` in order.
 
         Parameters
@@ -430,10 +474,21 @@ class OpenCLEvaluator:
             for. The arrays are views of device memory, valid only during the call: copy or
             write them.
         R, t : optional (T, 3, 3), (T, 3) head motion applied to the output (world = R p + t).
+        destination : optional (T, V, 3) float32 C-ordered array for the final positions. On a
+            CPU device the kernel writes them there in place (no copy from device memory); on a
+            GPU they are copied there. Either way ``final`` handed to ``sink`` is then
+            ``destination[start:start+n]``, already filled.
+        placement : optional callable(start, n, index) → (memory, offset) or None: on a CPU device,
+            frames start:start+n are written in place into ``memory`` (a 1-D float32 array)
+            from ``offset`` floats on, and ``final`` is that view of it (how
+            :meth:`facepipe.io.npy_stream.NpyWriter.placement` lets a chunk go to disk with no
+            copy). ``index`` (0 … slots − 1) names the chunk's slot: the memory given for one
+            index is not written again before the sink has had the chunk.
         """
         cl = _cl()
         head = np.asarray(head, dtype=np.float64)
         T, C, V = head.shape[0], self.chunk, self.V
+        _check_destination(destination, (T, V, 3))
 
         def deliver(start, maps, events):
             for _, ev in maps:
@@ -441,7 +496,13 @@ class OpenCLEvaluator:
             self._account(events)
             t0 = time.perf_counter()
             arrays = {name: arr for name, (arr, _) in zip(("final", "large", "normals"), maps)}
-            sink(start, arrays["final"], arrays.get("large") if with_large else None,
+            final = arrays["final"]
+            if destination is not None:
+                place = destination[start:start + final.shape[0]]
+                if final.ctypes.data != place.ctypes.data:  # a GPU's (or a driver that copied): copy
+                    place[...] = final
+                final = place
+            sink(start, final, arrays.get("large") if with_large else None,
                  arrays.get("normals") if with_normals else None)
             self.stage_seconds["output"] += time.perf_counter() - t0
 
@@ -464,13 +525,17 @@ class OpenCLEvaluator:
                     if len(inflight) == self.n_slots:
                         retire(inflight.popleft())
                     slot = self._slots[k % self.n_slots]
-                    self._slot_buffers(slot, with_large, with_normals)
+                    slot.final, slot.final_offset = self._host_output(destination, placement, s, e,
+                                                                      k % self.n_slots)
+                    self._slot_buffers(slot, with_large, with_normals, with_final=slot.final is None)
                     events = self._enqueue(slot, head[s:e], None if R is None else R[s:e],
                                            None if t is None else t[s:e], with_large, with_normals)
-                    names = ["final"] + (["large"] if with_large else []) + (["normals"] if with_normals else [])
+                    buffers = [(slot.outputs["final"], 0) if slot.final is None else (slot.final, slot.final_offset)] \
+                        + ([(slot.outputs["large"], 0)] if with_large else []) \
+                        + ([(slot.outputs["normals"], 0)] if with_normals else [])
                     maps = []
-                    for name in names:
-                        arr, ev = cl.enqueue_map_buffer(self.queue, slot.outputs[name], cl.map_flags.READ, 0,
+                    for buffer, offset in buffers:
+                        arr, ev = cl.enqueue_map_buffer(self.queue, buffer, cl.map_flags.READ, 4 * offset,
                                                         (e - s, V, 3), np.float32, wait_for=[events["last"]],
                                                         is_blocking=False)
                         maps.append((arr, ev))
@@ -494,7 +559,7 @@ class OpenCLEvaluator:
         return None if self.gate is None else self.gate.unconverged_fits
 
     def evaluate(self, handle_positions: np.ndarray, with_large: bool = False, rigid=None,
-                 with_normals: bool = False):
+                 with_normals: bool = False, out: np.ndarray | None = None):
         """Final positions (C, V, 3) float32 for head-space handle positions (C, H, 3).
 
         Parameters
@@ -502,6 +567,8 @@ class OpenCLEvaluator:
         with_large : also return the large-scale positions.
         rigid : optional (R (C, 3, 3), t (C, 3)) head motion applied to the outputs.
         with_normals : also return the final surface's unit normals (C, V, 3).
+        out : optional (C, V, 3) float32 C-ordered array for the final positions (on a CPU
+            device the kernels write into it in place).
 
         Returns
         -------
@@ -509,19 +576,18 @@ class OpenCLEvaluator:
         """
         head = np.asarray(handle_positions, dtype=np.float64)
         T = head.shape[0]
-        final = np.empty((T, self.V, 3), dtype=np.float32)
+        final = np.empty((T, self.V, 3), dtype=np.float32) if out is None else out
         large = np.empty_like(final) if with_large else None
         normals = np.empty_like(final) if with_normals else None
 
         def sink(start, f, l, n):
             stop = start + f.shape[0]
-            final[start:stop] = f
             if large is not None:
                 large[start:stop] = l
             if normals is not None:
                 normals[start:stop] = n
 
         R, t = (None, None) if rigid is None else rigid
-        self.stream(head, sink, R, t, with_large=with_large, with_normals=with_normals)
+        self.stream(head, sink, R, t, with_large=with_large, with_normals=with_normals, destination=final)
         out = (final,) + ((large,) if with_large else ()) + ((normals,) if with_normals else ())
         return out[0] if len(out) == 1 else out

@@ -13,9 +13,10 @@
  *   U      (H, 3, C)    handle displacements of the chunk (head space), C = padded chunk
  *   rest   (Vp, 3)      rest positions
  *   large  (Vp, 3, C)   large-scale positions (head space), the hand-over between the kernels
- *   out    (C, V, 3)    final positions in the rest mesh's vertex order (out_index), world space
+ *   out    (C, V, 3)    final positions in the rest mesh's vertex order (out_index), world space,
+ *                       from out_offset floats into the buffer
  *
- * Compile-time constants: VW (frames per work-item: 1, 4, 8 or 16), H (handles), RV (vertices
+ * Compile-time constants: VW (frames per work-item: 1, 2, 4, 8 or 16), H (handles), RV (vertices
  * per work-item in the B product), METHOD (0 none, 1 PSD, 2 WPSD, 3 local strain), P (basis poses, or
  * the local-strain model's training poses), K (WPSD
  * edges per vertex), F (feature edges), GATE (1: scale the details by the novelty gate's per-vertex
@@ -58,7 +59,9 @@ typedef CAT(int, VW) vint;
 #define MAX(a, b) ((a) > (b) ? (a) : (b))
 /* sqrt() too is a call on PoCL; on x86 the instruction is reached through the compiler builtin.
  * Other devices (GPUs) use the standard sqrt(), which they inline. */
-#if VW == 8 && defined(__AVX__)
+#if VW == 16 && defined(__AVX512F__)
+#define VSQRT(x) __builtin_ia32_sqrtps512((x), 4) /* 4: the current rounding mode */
+#elif VW == 8 && defined(__AVX__)
 #define VSQRT(x) __builtin_ia32_sqrtps256(x)
 #elif VW == 4 && defined(__SSE__)
 #define VSQRT(x) __builtin_ia32_sqrtps(x)
@@ -153,20 +156,35 @@ FP_INLINE void normalize_or(vfloat *x, vfloat *y, vfloat *z, const float fx, con
     *z = SELECT((vfloat)(fz), *z * inv, len > 1e-30f);
 }
 
-/* Store VW frames of one value to out[(c * V + o) * 3 + x] (the output's frame-major layout);
- * lanes past n_frames are padding and are dropped. */
-FP_INLINE void store_lanes(__global float *restrict out, const vfloat val, const int c0, const int n_frames,
-                        const int V, const int o, const int x)
+/* Store VW frames of one point (x, y, z) to out[(c * V + o) * 3 + 0..2]: per frame the three
+ * coordinates together (one cache line touched once, not once per coordinate); lanes past
+ * n_frames are padding and are dropped. */
+FP_INLINE void store_point(__global float *restrict out, const vfloat x, const vfloat y, const vfloat z,
+                           const int c0, const int n_frames, const int V, const int o)
 {
     union {
         vfloat v;
         float s[VW];
-    } lane;
-    lane.v = val;
+    } lx, ly, lz;
+    lx.v = x;
+    ly.v = y;
+    lz.v = z;
+    __global float *q = out + ((size_t)c0 * V + o) * 3;
+    const size_t stride = (size_t)V * 3;
+    if (c0 + VW <= n_frames) {
 #pragma unroll
-    for (int j = 0; j < VW; ++j)
-        if (c0 + j < n_frames)
-            out[((size_t)(c0 + j) * V + o) * 3 + x] = lane.s[j];
+        for (int j = 0; j < VW; ++j) {
+            q[j * stride + 0] = lx.s[j];
+            q[j * stride + 1] = ly.s[j];
+            q[j * stride + 2] = lz.s[j];
+        }
+    } else {
+        for (int j = 0; j < VW && c0 + j < n_frames; ++j) {
+            q[j * stride + 0] = lx.s[j];
+            q[j * stride + 1] = ly.s[j];
+            q[j * stride + 2] = lz.s[j];
+        }
+    }
 }
 
 /* world = R · p + t with the per-frame head motion rigid (12, C): R row-major, then t. */
@@ -206,12 +224,16 @@ __kernel void detail(__global const float *restrict large, const int C, const in
                      __global float *restrict out, __global float *restrict out_large,
                      __global float *restrict final_vc, const int flags,
                      __global const float *restrict strain_coeff, __global const float *restrict strain_const,
-                     __global const float *restrict strain_samples, const float strain_inv)
+                     __global const float *restrict strain_samples, const float strain_inv,
+                     const int out_offset)
 {
     const int c0 = get_global_id(0) * VW;
     const int v = get_global_id(1);
     if (v >= V)
         return;
+    /* the final positions start out_offset floats into out: a host buffer laid out for the
+     * file the positions go to (direct writes start on a disk block, the data need not) */
+    out += out_offset;
     __global const float *p = large + (size_t)v * 3 * C + c0;
     const vfloat px = VLOAD(p), py = VLOAD(p + C), pz = VLOAD(p + 2 * C);
     vfloat fx = px, fy = py, fz = pz;
@@ -350,15 +372,11 @@ __kernel void detail(__global const float *restrict large, const int C, const in
     }
     const int o = out_index[v];
     to_world(rigid, C, c0, &fx, &fy, &fz, 1);
-    store_lanes(out, fx, c0, n_frames, V, o, 0);
-    store_lanes(out, fy, c0, n_frames, V, o, 1);
-    store_lanes(out, fz, c0, n_frames, V, o, 2);
+    store_point(out, fx, fy, fz, c0, n_frames, V, o);
     if (flags & WRITE_LARGE) {
         vfloat lx = px, ly = py, lz = pz;
         to_world(rigid, C, c0, &lx, &ly, &lz, 1);
-        store_lanes(out_large, lx, c0, n_frames, V, o, 0);
-        store_lanes(out_large, ly, c0, n_frames, V, o, 1);
-        store_lanes(out_large, lz, c0, n_frames, V, o, 2);
+        store_point(out_large, lx, ly, lz, c0, n_frames, V, o);
     }
 }
 
@@ -381,7 +399,5 @@ __kernel void final_normals(__global const float *restrict final_vc, const int C
     normalize_or(&nx, &ny, &nz, 0.0f, 0.0f, 1.0f);
     to_world(rigid, C, c0, &nx, &ny, &nz, 0);
     const int o = out_index[v];
-    store_lanes(normals, nx, c0, n_frames, V, o, 0);
-    store_lanes(normals, ny, c0, n_frames, V, o, 1);
-    store_lanes(normals, nz, c0, n_frames, V, o, 2);
+    store_point(normals, nx, ny, nz, c0, n_frames, V, o);
 }

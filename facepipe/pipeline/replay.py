@@ -120,7 +120,7 @@ def prefetched(items):
 
 
 def stream_chunks(evaluator, head: np.ndarray, sink, R: np.ndarray | None = None, t: np.ndarray | None = None,
-                  chunk: int = 32, with_large: bool = False) -> None:
+                  chunk: int = 32, with_large: bool = False, placement=None) -> None:
     """Evaluate a take chunk by chunk and hand each chunk to ``sink`` in frame order, pipelined.
 
     An evaluator with a ``stream`` method (the OpenCL one) runs its own pipeline, head motion
@@ -133,9 +133,15 @@ def stream_chunks(evaluator, head: np.ndarray, sink, R: np.ndarray | None = None
     sink : callable(start, final (n, V, 3), large (n, V, 3) or None, normals None).
     R, t : optional (T, 3, 3), (T, 3) head motion applied to the outputs (world = R p + t).
     chunk : frames per evaluate() call (the OpenCL evaluator uses the chunk it was built with).
+    placement : optional callable(start, n, index) → (memory, offset) or None, where an
+        evaluator whose ``takes_placement`` is true may produce the final positions in place
+        (see :meth:`facepipe.opencl.engine.OpenCLEvaluator.stream`); others ignore it.
     """
     if hasattr(evaluator, "stream"):
-        evaluator.stream(head, sink, R, t, with_large=with_large)
+        if placement is not None and getattr(evaluator, "takes_placement", False):
+            evaluator.stream(head, sink, R, t, with_large=with_large, placement=placement)
+        else:
+            evaluator.stream(head, sink, R, t, with_large=with_large)
         return
 
     T = head.shape[0]
@@ -212,7 +218,9 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
     # no temporary large-scale file unless it is asked for (an interrupted replay leaves none)
     with atomic_path(final_path) as tmp, (atomic_path(large_path) if save_large else nullcontext()) as tmp_large:
         # positions stream to disk in frame order while the next chunk is evaluated
-        with NpyWriter(tmp, (T, V, 3)) as out, NpyWriter(tmp_large if save_large else None, (T, V, 3)) as out_large:
+        regions = getattr(evaluator, "placement_regions", None)
+        with NpyWriter(tmp, (T, V, 3), regions=regions) as out, \
+                NpyWriter(tmp_large if save_large else None, (T, V, 3)) as out_large:
             def sink(start, final, large=None, normals=None):
                 out.write(final)
                 if save_large:
@@ -222,9 +230,14 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
 
             keep = head_motion == "keep"
             overlap = not getattr(evaluator, "on_host_cores", True)
+            done = 0
             for head, R, t in (prefetched(windows) if overlap else windows):
+                # where the evaluator can, it writes the positions into the writer's own aligned
+                # memory, which goes to disk with no copy
                 stream_chunks(evaluator, head, sink, R if keep else None, t if keep else None, chunk=chunk,
-                              with_large=save_large)
+                              with_large=save_large,
+                              placement=lambda s, n, i, first=done: out.placement(first + s, n, i))
+                done += len(head)
                 heads.append(head.astype(np.float32))
                 rotations.append(R)
                 translations.append(t)
