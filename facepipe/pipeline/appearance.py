@@ -27,6 +27,7 @@ import numpy as np
 
 from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
+from facepipe.core.occlusion import occluded_points
 from facepipe.core.raster import triangle_pixels
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
@@ -121,30 +122,57 @@ def template_points(rect, size: int) -> np.ndarray:
 
 
 def sample_templates(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's template samples (R, 5, size, size) and each region's visibility (R,)."""
-    patches, visible = sample_template_frames(gray[None], camera_positions[None], model)
-    return patches[0], visible[0]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A frame's template samples (R, 5, size, size), each region's visibility (R,) and which
+    template points the camera sees (R, 5, size, size)."""
+    patches, visible, seen = sample_template_frames(gray[None], camera_positions[None], model)
+    return patches[0], visible[0], seen[0]
 
 
 def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
-                           ) -> tuple[np.ndarray, np.ndarray]:
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Template samples (F, R, 5, size, size) of frames (F, H, W) with their geometry (F, V, 3) in
-    camera space, and each region's visibility (F, R): every frame's points projected at once."""
+    camera space, each region's visibility (F, R) and which template points the camera sees
+    (F, R, 5, size, size): every frame's points projected at once.
+
+    A point is seen when it projects into the image in front of the camera and (the model's
+    ``occlusion``) no part of the face lies in front of it (its ray cast against the animated
+    mesh, :func:`facepipe.core.occlusion.occluded_points`: a lowered brow over an eyelid, the
+    nose over the far cheek of a turned head). A region is visible when it faces the camera and
+    at least ``min_seen`` of its points are seen."""
     F = len(grays)
     X = np.einsum("rsnk,frsnkc->frsnc", model.template_bary,
                   camera_positions[:, model.faces[model.template_face]])  # (F, R, 5, N, 3)
     pixels = project_distorted_fast(model.camera, X)
     values = np.empty(X.shape[:-1])
-    inside = np.empty(X.shape[:-1], dtype=bool)
+    seen = np.empty(X.shape[:-1], dtype=bool)
     for f in range(F):
-        values[f], inside[f] = ap.bilinear_sample(grays[f], pixels[f])
+        values[f], seen[f] = ap.bilinear_sample(grays[f], pixels[f])
+    seen &= X[..., 2] > 0
+    if model.occlusion:
+        seen &= ~template_points_hidden(X, camera_positions, model)
     corners = camera_positions[:, model.faces[model.template_face[:, 0]]]  # (F, R, N, 3, 3)
     normal = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]).sum(axis=2)
     cos = model.normal_sign * ap.facing(normal, X[:, :, 0].mean(axis=2))
-    visible = (cos > model.min_facing) & inside.all(axis=(2, 3)) & (X[..., 2] > 0).all(axis=(2, 3))
+    visible = (cos > model.min_facing) & (seen.mean(axis=(2, 3)) >= model.min_seen)
     s = model.template_size
-    return values.reshape(values.shape[:3] + (s, s)), visible
+    return values.reshape(values.shape[:3] + (s, s)), visible, seen.reshape(seen.shape[:3] + (s, s))
+
+
+def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """Which template points (F, R, 5, N) at camera-space positions X (F, R, 5, N, 3) the face
+    hides. A surface hides a point when it crosses the point's ray nearer by more than the
+    template's grid step there (the point's own surface, curving, stays within it)."""
+    F, R, S, N = X.shape[:4]
+    s = model.template_size
+    grid = X[:, :, 0].reshape(F, R, s, s, 3)
+    step = np.linalg.norm(np.diff(grid, axis=3), axis=-1).mean(axis=(2, 3))  # (F, R)
+    tolerance = np.broadcast_to(step[:, :, None, None], (F, R, S, N)).reshape(F, -1)
+    flat = X.reshape(F, -1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spacing = np.nanmedian(np.linalg.norm(np.diff(grid[..., :2] / grid[..., 2:], axis=3), axis=-1))
+    return occluded_points(flat, camera_positions, model.faces, tolerance,
+                           cell=2.0 * spacing if np.isfinite(spacing) and spacing > 0 else None).reshape(F, R, S, N)
 
 
 def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -256,7 +284,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             indices, weights, cfg.template_size, cfg.min_facing, cfg.decay,
                             neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64),
                             cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
-                            corner_uv.astype(np.float32))
+                            corner_uv.astype(np.float32), cfg.min_seen, cfg.occlusion)
     return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
 
 
@@ -451,11 +479,12 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
     """Q (F, R) of frames' luminance (F, H, W) with their geometry in camera space (F, V, 3), NaN
     where a region is hidden, and each region's visibility (F, R)."""
     bank = ap.RegionBank(model.templates, model.indices, model.weights) if bank is None else bank
-    patches, seen = sample_template_frames(grays, camera_positions, model)
+    patches, visible, seen = sample_template_frames(grays, camera_positions, model)
     if model.light_face is not None:
         patches = patches / frame_shading(grays, camera_positions, model)
-    q, _ = ap.classify_regions(patches, bank, model.shading)
-    return np.where(seen, q, np.nan), seen
+    q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen)
+    visible &= np.isfinite(q)
+    return np.where(visible, q, np.nan), visible
 
 
 def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
