@@ -53,29 +53,33 @@ def occluded_points(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
     tol = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (F, P))
     with np.errstate(divide="ignore", invalid="ignore"):
         proj = points[..., :2] / z[..., None]
-    grid = _point_grid(proj, valid, cell, max_cells)
-    candidates = _candidate_triangles(vertices, faces, grid, np.where(valid, z, -np.inf).max(axis=1))
+    grid = _point_grid(proj, valid, z - tol, cell, max_cells)
+    candidates = _candidate_triangles(vertices, faces, grid)
     if candidates is None:
         return hidden
-    frame, tri, tp, tz = candidates
-    pair_tri, pair_point = _pairs(frame, tp, grid)
+    pair_tri, pair_point = _pairs(candidates, grid)
     if len(pair_tri) == 0:
         return hidden
-    b = _barycentric(tp[pair_tri], grid["proj"][pair_point])
-    inside = (b >= -1e-12).all(axis=-1)
-    with np.errstate(divide="ignore"):
-        z_hit = 1.0 / (b * (1.0 / tz[pair_tri])).sum(axis=-1)
-    flat_z, flat_tol = z[valid], tol[valid]
-    hit = inside & (z_hit < flat_z[pair_point] - flat_tol[pair_point])
-    flat_hidden = np.zeros(len(flat_z), dtype=bool)
+    # barycentric coordinates and inverse depth are affine in the projected position
+    x, y = grid["proj"][pair_point, 0], grid["proj"][pair_point, 1]
+    c = candidates["affine"]
+    b1 = c[0][pair_tri] * x + c[1][pair_tri] * y + c[2][pair_tri]
+    b2 = c[3][pair_tri] * x + c[4][pair_tri] * y + c[5][pair_tri]
+    inverse_depth = c[6][pair_tri] * x + c[7][pair_tri] * y + c[8][pair_tri]
+    eps = -1e-12
+    # nearer than the point less its tolerance: 1/z_hit > 1/(z − tol)
+    hit = (b1 >= eps) & (b2 >= eps) & (1.0 - b1 - b2 >= eps) & (inverse_depth * grid["near"][pair_point] > 1.0)
+    flat_hidden = np.zeros(len(grid["proj"]), dtype=bool)
     flat_hidden[pair_point[hit]] = True
     hidden[valid] = flat_hidden
     return hidden
 
 
-def _point_grid(proj: np.ndarray, valid: np.ndarray, cell, max_cells: int) -> dict:
+def _point_grid(proj: np.ndarray, valid: np.ndarray, near: np.ndarray, cell, max_cells: int) -> dict:
     """The valid points binned in a grid over their projections (every frame the same grid):
-    cell of each, the points sorted by cell, and where each cell's points start."""
+    their cells, the points sorted by cell, where each cell's points start, how near a surface
+    must come in each cell to hide one of them, and a summed-area table of the occupied cells.
+    ``near``: (F, P) the depth a surface must be nearer than to hide each point."""
     F = proj.shape[0]
     frame = np.broadcast_to(np.arange(F)[:, None], valid.shape)[valid]
     p = proj[valid]
@@ -92,70 +96,93 @@ def _point_grid(proj: np.ndarray, valid: np.ndarray, cell, max_cells: int) -> di
     key = (frame * ny + cy) * nx + cx
     order = np.argsort(key, kind="stable")
     counts = np.bincount(key, minlength=F * ny * nx)
+    start = np.cumsum(counts) - counts
+    near_p = near[valid]
+    farthest = np.full(F * ny * nx, -np.inf)  # the farthest such depth in each cell
+    filled = np.flatnonzero(counts)
+    farthest[filled] = np.maximum.reduceat(near_p[order], start[filled])
     occupied = np.zeros((F, ny + 1, nx + 1), dtype=np.int64)
     occupied[:, 1:, 1:] = (counts.reshape(F, ny, nx) > 0).cumsum(axis=1).cumsum(axis=2)
-    return {"proj": p, "lo": lo, "cell": cell, "nx": nx, "ny": ny, "order": order, "counts": counts,
-            "start": np.cumsum(counts) - counts, "occupied": occupied}
+    return {"proj": p, "near": near_p, "lo": lo, "cell": cell, "nx": nx,
+            "ny": ny, "order": order, "counts": counts, "start": start, "farthest": farthest,
+            "occupied": occupied, "farthest_of_frame": farthest.reshape(F, -1).max(axis=1)}
 
 
-def _cell_box(tp: np.ndarray, grid: dict) -> tuple:
-    """Each projected triangle's bounding box in cells, clipped to the grid, and whether it meets it."""
-    lo, cell, nx, ny = grid["lo"], grid["cell"], grid["nx"], grid["ny"]
-    x0 = np.floor((tp[..., 0].min(axis=-1) - lo[0]) / cell)
-    x1 = np.floor((tp[..., 0].max(axis=-1) - lo[0]) / cell)
-    y0 = np.floor((tp[..., 1].min(axis=-1) - lo[1]) / cell)
-    y1 = np.floor((tp[..., 1].max(axis=-1) - lo[1]) / cell)
-    meets = (x1 >= 0) & (x0 <= nx - 1) & (y1 >= 0) & (y0 <= ny - 1)
-    clip = lambda a, n: np.clip(a, 0, n - 1).astype(np.int64)  # noqa: E731
-    return clip(x0, nx), clip(x1, nx), clip(y0, ny), clip(y1, ny), meets
-
-
-def _candidate_triangles(vertices, faces, grid: dict, farthest: np.ndarray):
-    """Triangles (in front of the camera, nearer somewhere than the frame's farthest point, over an
-    occupied cell): their frame, index, projected corners (K, 3, 2) and corner depths (K, 3)."""
-    corners = vertices[:, faces]  # (F, T, 3, 3)
-    cz = corners[..., 2]
-    front = (cz > 1e-12 * np.abs(cz).max()).all(axis=-1) & (cz.min(axis=-1) < farthest[:, None])
+def _candidate_triangles(vertices, faces, grid: dict):
+    """Triangles in front of the camera, nearer somewhere than the frame's farthest point and over
+    an occupied cell: their frame, nearest depth, bounding box of cells and the affine maps from a
+    projected position to their barycentric coordinates b1, b2 and inverse depth (9 arrays)."""
+    vz = vertices[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        tp = corners[..., :2] / cz[..., None]
-    tp = np.where(front[..., None, None], tp, 0.0)
-    x0, x1, y0, y1, meets = _cell_box(tp, grid)
-    S = grid["occupied"]
-    f = np.arange(len(vertices))[:, None]
-    occupied = S[f, y1 + 1, x1 + 1] - S[f, y0, x1 + 1] - S[f, y1 + 1, x0] + S[f, y0, x0]
-    keep = front & meets & (occupied > 0)
-    if not keep.any():
-        return None
+        vx, vy = vertices[..., 0] / vz, vertices[..., 1] / vz
+    lo, cell, nx, ny = grid["lo"], grid["cell"], grid["nx"], grid["ny"]
+    # the culling in single precision (a cell's bounds need no more), the tests in double
+    gx = ((vx - lo[0]) / cell).astype(np.float32)       # (F, V) in cells
+    gy = ((vy - lo[1]) / cell).astype(np.float32)
+    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+    z32 = vz.astype(np.float32)
+    za, zb, zc = z32[:, a], z32[:, b], z32[:, c]        # (F, T)
+    z_near = np.minimum(np.minimum(za, zb), zc)
+    xa, xb, xc, ya, yb, yc = gx[:, a], gx[:, b], gx[:, c], gy[:, a], gy[:, b], gy[:, c]
+    with np.errstate(invalid="ignore"):
+        x0 = np.floor(np.minimum(np.minimum(xa, xb), xc))
+        x1 = np.floor(np.maximum(np.maximum(xa, xb), xc))
+        y0 = np.floor(np.minimum(np.minimum(ya, yb), yc))
+        y1 = np.floor(np.maximum(np.maximum(ya, yb), yc))
+        keep = ((z_near > 0) & (z_near < np.float32(1.0 + 1e-6) * grid["farthest_of_frame"][:, None])
+                & (x1 >= 0) & (x0 <= nx - 1) & (y1 >= 0) & (y0 <= ny - 1))
     frame, tri = np.nonzero(keep)
-    return frame, tri, tp[frame, tri], cz[frame, tri]
+    x0, x1 = np.clip(x0[keep], 0, nx - 1).astype(np.int64), np.clip(x1[keep], 0, nx - 1).astype(np.int64)
+    y0, y1 = np.clip(y0[keep], 0, ny - 1).astype(np.int64), np.clip(y1[keep], 0, ny - 1).astype(np.int64)
+    S = grid["occupied"]
+    occupied = S[frame, y1 + 1, x1 + 1] - S[frame, y0, x1 + 1] - S[frame, y1 + 1, x0] + S[frame, y0, x0]
+    over = occupied > 0
+    if not over.any():
+        return None
+    frame, tri = frame[over], tri[over]
+    A, B, C = a[tri], b[tri], c[tri]
+    px = np.stack([vx[frame, A], vx[frame, B], vx[frame, C]])
+    py = np.stack([vy[frame, A], vy[frame, B], vy[frame, C]])
+    iz = 1.0 / np.stack([vz[frame, A], vz[frame, B], vz[frame, C]])
+    z_near = np.minimum(np.minimum(vz[frame, A], vz[frame, B]), vz[frame, C])
+    return {"frame": frame, "z_near": z_near, "x0": x0[over], "x1": x1[over], "y0": y0[over],
+            "y1": y1[over], "affine": _affine_maps(px, py, iz)}
 
 
-def _pairs(frame: np.ndarray, tp: np.ndarray, grid: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Every (candidate triangle, point) whose cells meet: the triangle's bounding box of cells
+def _affine_maps(px: np.ndarray, py: np.ndarray, iz: np.ndarray) -> list:
+    """Per triangle (corners (3, K) in the projection, inverse depths (3, K)): the coefficients
+    (a, b, c) of b1 = a x + b y + c, of b2, and of the inverse depth b0/z0 + b1/z1 + b2/z2;
+    degenerate (edge-on) triangles get b1 = NaN (they hide nothing)."""
+    e1x, e1y, e2x, e2y = px[1] - px[0], py[1] - py[0], px[2] - px[0], py[2] - py[0]
+    det = e1x * e2y - e1y * e2x
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(det != 0, 1.0 / det, np.nan)
+    a1, b1 = e2y * inv, -e2x * inv
+    a2, b2 = -e1y * inv, e1x * inv
+    c1 = -(a1 * px[0] + b1 * py[0])
+    c2 = -(a2 * px[0] + b2 * py[0])
+    d1, d2 = iz[1] - iz[0], iz[2] - iz[0]  # 1/z = iz0 + b1 d1 + b2 d2
+    return [a1, b1, c1, a2, b2, c2, a1 * d1 + a2 * d2, b1 * d1 + b2 * d2, iz[0] + c1 * d1 + c2 * d2]
+
+
+def _pairs(candidates: dict, grid: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Every (candidate triangle, point) whose cells meet and where the triangle comes nearer
+    than some point of the cell could be hidden: the triangle's bounding box of cells
     enumerated, each cell's points looked up."""
-    x0, x1, y0, y1, _ = _cell_box(tp, grid)
-    w, h = x1 - x0 + 1, y1 - y0 + 1
+    x0, y0 = candidates["x0"], candidates["y0"]
+    w, h = candidates["x1"] - x0 + 1, candidates["y1"] - y0 + 1
     n = w * h
-    tri = np.repeat(np.arange(len(tp)), n)
+    tri = np.repeat(np.arange(len(n)), n)
     local = np.arange(len(tri)) - np.repeat(np.cumsum(n) - n, n)
     dy, dx = np.divmod(local, w[tri])
-    key = (frame[tri] * grid["ny"] + y0[tri] + dy) * grid["nx"] + x0[tri] + dx
+    key = (candidates["frame"][tri] * grid["ny"] + y0[tri] + dy) * grid["nx"] + x0[tri] + dx
+    useful = candidates["z_near"][tri] < grid["farthest"][key]
+    tri, key = tri[useful], key[useful]
     count = grid["counts"][key]
-    tri, key, count = tri[count > 0], key[count > 0], count[count > 0]
     pair_tri = np.repeat(tri, count)
     offset = np.arange(len(pair_tri)) - np.repeat(np.cumsum(count) - count, count)
     pair_point = grid["order"][np.repeat(grid["start"][key], count) + offset]
     return pair_tri, pair_point
-
-
-def _barycentric(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (N, 3) of 2D points (N, 2) in triangles (N, 3, 2); NaN where degenerate."""
-    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        b1 = (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / det
-        b2 = (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / det
-    return np.stack([1.0 - b1 - b2, b1, b2], axis=1)
 
 
 def segment_hits(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, tolerance) -> np.ndarray:

@@ -162,17 +162,19 @@ def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, mode
 def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
     """Which template points (F, R, 5, N) at camera-space positions X (F, R, 5, N, 3) the face
     hides. A surface hides a point when it crosses the point's ray nearer by more than the
-    template's grid step there (the point's own surface, curving, stays within it)."""
+    template's grid step there (the point's own surface, curving, stays within it). The rays
+    are cast for the template's grid in place; an offset sample (half a step away) takes its
+    grid point's answer: an occluder's edge is not resolved finer than the grid anyway."""
     F, R, S, N = X.shape[:4]
     s = model.template_size
     grid = X[:, :, 0].reshape(F, R, s, s, 3)
     step = np.linalg.norm(np.diff(grid, axis=3), axis=-1).mean(axis=(2, 3))  # (F, R)
-    tolerance = np.broadcast_to(step[:, :, None, None], (F, R, S, N)).reshape(F, -1)
-    flat = X.reshape(F, -1, 3)
+    tolerance = np.broadcast_to(step[:, :, None], (F, R, N)).reshape(F, -1)
     with np.errstate(divide="ignore", invalid="ignore"):
         spacing = np.nanmedian(np.linalg.norm(np.diff(grid[..., :2] / grid[..., 2:], axis=3), axis=-1))
-    return occluded_points(flat, camera_positions, model.faces, tolerance,
-                           cell=2.0 * spacing if np.isfinite(spacing) and spacing > 0 else None).reshape(F, R, S, N)
+    hidden = occluded_points(X[:, :, 0].reshape(F, -1, 3), camera_positions, model.faces, tolerance,
+                             cell=spacing if np.isfinite(spacing) and spacing > 0 else None)
+    return np.broadcast_to(hidden.reshape(F, R, 1, N), (F, R, S, N))
 
 
 def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
