@@ -2,6 +2,7 @@
 and against brute-force Möller–Trumbore intersection on random meshes."""
 
 import numpy as np
+import pytest
 
 from facepipe.core.occlusion import occluded_points, segment_hits
 
@@ -78,3 +79,19 @@ def test_tolerance_and_points_behind_camera():
     p = np.array([[[0.0, 0.0, 5.0], [0.0, 0.0, -5.0], [5.0, 5.0, 5.0]]])
     np.testing.assert_array_equal(occluded_points(p, v[None], faces, 0.05)[0], [True, False, False])
     np.testing.assert_array_equal(occluded_points(p, v[None], faces, 0.2)[0], [False, False, False])
+
+
+def test_point_facing_of_a_tilted_plane():
+    # a square facing the camera, then turned 60° about the vertical: the cosine is 1, then 0.5
+    # (at the centre, where the direction to the camera is the optical axis)
+    from facepipe.pipeline.appearance import point_facing
+
+    v = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    face, bary = np.array([0]), np.array([[0.5, 0.0, 0.5]])  # the centre (0, 0)
+    for degrees, expected in ((0.0, 1.0), (60.0, 0.5)):
+        a = np.deg2rad(degrees)
+        R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        cam = v @ R.T + np.array([0.0, 0.0, 50.0])
+        sign = -1.0 if np.cross(cam[1] - cam[0], cam[2] - cam[0])[2] > 0 else 1.0  # the side toward the camera
+        assert point_facing(cam, faces, face, bary, sign)[0] == pytest.approx(expected, abs=1e-9)

@@ -255,12 +255,15 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
+    facing_examples = []
     for region in cfg.regions:
         vol, alpha, box = _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral,
                                          cfg, normal_sign)
         face, bary = _region_template(region, corner_uv, cfg.template_size, config.path)
         gray = [to_gray(frames[f][0]) for f in region.frames]
         patches = []
+        facing_examples.append(np.min([point_facing(cam_pos[f], faces, face, bary, normal_sign)
+                                       for f in region.frames], axis=0))
         for g, f in zip(gray, region.frames):
             X = surface_points(cam_pos[f], faces, face[0], bary[0])
             values, inside = ap.bilinear_sample(g, project_distorted(camera, X))
@@ -286,8 +289,18 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             indices, weights, cfg.template_size, cfg.min_facing, cfg.decay,
                             neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64),
                             cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
-                            corner_uv.astype(np.float32), cfg.min_seen, cfg.occlusion)
+                            corner_uv.astype(np.float32), cfg.min_seen, cfg.occlusion, cfg.min_point_facing,
+                            np.stack(facing_examples).astype(np.float32))
     return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
+
+
+def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
+                 normal_sign: float) -> np.ndarray:
+    """Cosine (...) between the smooth surface's normal at points (fixed barycentric coordinates
+    face (...), bary (..., 3)) of one frame (V, 3) in camera space and their direction to the camera."""
+    X = surface_points(camera_positions, faces, face, bary)
+    n = point_normals(camera_positions[None], faces, face, bary, normal_sign)[0]
+    return (n * -X).sum(axis=-1) / np.maximum(np.linalg.norm(X, axis=-1), 1e-30)
 
 
 def point_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
@@ -482,16 +495,39 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
     where a region is hidden, and each region's visibility (F, R)."""
     bank = ap.RegionBank(model.templates, model.indices, model.weights) if bank is None else bank
     patches, visible, seen = sample_template_frames(grays, camera_positions, model)
+    normals = None
     if model.light_face is not None:
-        patches = patches / frame_shading(grays, camera_positions, model)
+        shading, normals = frame_shading(grays, camera_positions, model, with_normals=True)
+        patches = patches / shading
+    if model.min_point_facing > 0:
+        seen = seen & (template_point_facing(camera_positions, model, normals) > model.min_point_facing)
+        if model.template_facing is not None:  # a point the examples saw edge-on has no template worth matching
+            s = model.template_size
+            seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
+        visible &= seen.mean(axis=(2, 3, 4)) >= model.min_seen
     q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen)
     visible &= np.isfinite(q)
     return np.where(visible, q, np.nan), visible
 
 
-def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, normals=None) -> np.ndarray:
+    """Cosine (F, R, 5, size, size) between the smooth surface's normal at every template point
+    and its direction to the camera (``normals``: those normals (F, R, 5, N, 3) where known).
+    Near 0 the camera sees the skin edge-on: a template's rows crowd into a pixel or two, and
+    what is sampled there is the image's blur, not the texture."""
+    X = np.einsum("rsnk,frsnkc->frsnc", model.template_bary, camera_positions[:, model.faces[model.template_face]])
+    if normals is None:
+        normals = point_normals(camera_positions, model.faces, model.template_face, model.template_bary,
+                                model.normal_sign)
+    cos = (normals * -X).sum(axis=-1) / np.maximum(np.linalg.norm(X, axis=-1), 1e-30)
+    s = model.template_size
+    return cos.reshape(cos.shape[:3] + (s, s))
+
+
+def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, with_normals: bool = False):
     """The shading (F, R, 5, size, size) at the template points of frames: each frame's light
-    fitted over the model's light points (their albedo known, their normals from the geometry)."""
+    fitted over the model's light points (their albedo known, their normals from the geometry);
+    with the template points' unit normals (F, R, 5, N, 3) too if ``with_normals``."""
     vn, local = _stencil_normals(camera_positions, model)
     F = len(grays)
     X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
@@ -507,7 +543,8 @@ def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: Appear
     light = ap.fit_light(values, model.light_albedo, normals)  # (F, 9)
     out = np.stack([ap.light_shading(t_normals[f], light[f]) for f in range(F)])
     s = model.template_size
-    return out.reshape(out.shape[:3] + (s, s))
+    out = out.reshape(out.shape[:3] + (s, s))
+    return (out, t_normals) if with_normals else out
 
 
 def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
