@@ -119,26 +119,45 @@ def normalise_patches(patches: np.ndarray, shading: bool = True, mask: np.ndarra
 
 def _normalise_masked(patches: np.ndarray, mask: np.ndarray, shading: bool) -> np.ndarray:
     """:func:`normalise_patches` with the mean and the plane fitted over the texels of ``mask``
-    (..., h, w) alone (the seen part of a partly hidden patch); texels off the mask are 0."""
+    (..., h, w) alone (the seen part of a partly hidden patch); texels off the mask are 0. The
+    mask may have fewer leading axes' lengths than the patches (broadcast: one mask, many patches)."""
     h, w = patches.shape[-2:]
-    m = mask.astype(np.float64)
-    count = np.maximum(m.sum(axis=(-2, -1), keepdims=True), 1.0)
-    mean = (patches * m).sum(axis=(-2, -1), keepdims=True) / count
-    if not shading:
-        return np.where(mask, patches / np.maximum(np.abs(mean), 1e-6), 0.0)
-    y, x = np.meshgrid(np.arange(h) - 0.5 * (h - 1), np.arange(w) - 0.5 * (w - 1), indexing="ij")
-    basis = np.stack([np.ones_like(x), x, y])                                   # (3, h, w)
-    normal = np.einsum("...hw,ihw,jhw->...ij", m, basis, basis)
-    rhs = np.einsum("...hw,ihw->...i", m * patches, basis)
-    # a seen part too thin to fix a plane (a line, a few texels) is divided by its mean alone
-    well_posed = np.linalg.cond(normal) < 1e8
-    eye = np.broadcast_to(np.eye(3), normal.shape)
-    coef = np.linalg.solve(np.where(well_posed[..., None, None], normal, eye), rhs[..., None])[..., 0]
-    coef = np.where(well_posed[..., None], coef, np.concatenate([mean[..., 0, 0, None], np.zeros(mean.shape[:-2] + (2,))],
-                                                                 axis=-1))
-    plane = np.einsum("...i,ihw->...hw", coef, basis)
+    flat = patches.reshape(patches.shape[:-2] + (h * w,))
+    m = np.asarray(mask, dtype=bool).reshape(mask.shape[:-2] + (h * w,))
+    plane, mean = _masked_plane(flat, m, shading)
     floor = np.maximum(0.1 * np.abs(mean), 1e-6)
-    return np.where(mask, patches / np.maximum(plane, floor), 0.0)
+    return np.where(m, flat / np.maximum(plane, floor), 0.0).reshape(patches.shape)
+
+
+@functools.lru_cache(maxsize=8)
+def _plane_basis(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """The plane's basis (3, h·w): 1, x, y about the centre; and its products (9, h·w)."""
+    y, x = np.meshgrid(np.arange(h) - 0.5 * (h - 1), np.arange(w) - 0.5 * (w - 1), indexing="ij")
+    basis = np.stack([np.ones(h * w), x.ravel(), y.ravel()])
+    return basis, (basis[:, None, :] * basis[None, :, :]).reshape(9, h * w)
+
+
+def _masked_plane(values: np.ndarray, mask: np.ndarray, shading: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares plane (..., N) (or the mean alone, without ``shading``) through values
+    (..., N) of a square patch over the texels of mask (broadcastable to them), and the mean (..., 1)."""
+    m = mask.astype(np.float64)
+    count = np.maximum(m.sum(axis=-1, keepdims=True), 1.0)
+    mean = (values * m).sum(axis=-1, keepdims=True) / count
+    if not shading:
+        return np.broadcast_to(mean, values.shape), mean
+    side = int(round(np.sqrt(values.shape[-1])))
+    basis, products = _plane_basis(side, side)
+    normal = (m @ products.T).reshape(m.shape[:-1] + (3, 3))       # one per mask, shared by its patches
+    rhs = (values * m) @ basis.T                                     # (..., 3)
+    # a seen part too thin to fix a plane (a line, a few texels) is divided by its mean alone
+    scale = np.trace(normal, axis1=-2, axis2=-1) / 3.0
+    well_posed = np.linalg.det(normal) > 1e-8 * np.maximum(scale, 1e-30) ** 3
+    safe = np.where(well_posed[..., None, None], normal, np.eye(3))
+    safe = np.broadcast_to(safe, rhs.shape[:-1] + (3, 3))
+    coef = np.linalg.solve(safe, rhs[..., None])[..., 0]
+    fallback = np.concatenate([mean, np.zeros(mean.shape[:-1] + (2,))], axis=-1)
+    coef = np.where(np.broadcast_to(well_posed, rhs.shape[:-1])[..., None], coef, fallback)
+    return coef @ basis, mean
 
 
 def select_coefficients(template_coefficients: np.ndarray, keep: int = 50) -> np.ndarray:
@@ -235,6 +254,15 @@ class RegionBank:
         self.tt = (self.wt * self.templates).sum(axis=-1)      # (R, n)
         H, _ = haar_matrix(int(round(np.sqrt(C))))
         self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
+        # their planes over all texels (:func:`normalise_patches` of the normalised template: near 1)
+        self.plane_all = _masked_plane(self.pixels, np.ones((1, 1, C), dtype=bool), True)[0]
+        # the Haar rows of each region's kept coefficients (padded with zero-weight rows)
+        kept = max(len(i) for i in indices)
+        self.kept_rows = np.zeros((R, kept, C))
+        self.kept_weights = np.zeros((R, kept))
+        for r, idx in enumerate(indices):
+            self.kept_rows[r, :len(idx)] = H[idx]
+            self.kept_weights[r, :len(idx)] = np.asarray(weights, dtype=np.float64)[idx]
 
     def masked_distances(self, normalised: np.ndarray, mask: np.ndarray, region: np.ndarray,
                          shading: bool = True) -> np.ndarray:
@@ -248,19 +276,21 @@ class RegionBank:
         the patch over those seen so that partly and wholly seen samples compare. With every
         texel seen this is :meth:`distances`.
         """
-        M, size = len(region), mask.shape[-1]
-        m = np.asarray(mask, dtype=bool)
-        templates = self.pixels[region].reshape(M, -1, size, size)
-        # the stored templates were normalised over all their texels: times that plane over the
-        # plane of the seen texels (both of the template itself), the same with every texel seen
-        over_seen = normalise_patches(templates, shading, np.broadcast_to(m[:, None], templates.shape))
-        over_all = normalise_patches(templates, shading)
-        templates = templates * np.divide(over_seen, over_all, out=np.zeros_like(over_seen), where=over_all != 0)
-        diff = (np.asarray(normalised)[:, None] - templates).reshape(M, templates.shape[1], -1)  # 0 off the mask
-        m = m.reshape(M, -1).astype(np.float64)
-        H, _ = haar_matrix(size)
-        c = diff @ H.T
-        d = np.einsum("mnc,mc->mn", c * c, self.weights[region]) * (m.shape[1] / np.maximum(m.sum(axis=1), 1.0))[:, None]
+        M = len(region)
+        m = np.asarray(mask, dtype=bool).reshape(M, 1, -1)
+        templates = self.pixels[region]                                           # (M, n, size²)
+        # the stored templates were normalised over all their texels (by their plane over all
+        # of them): that plane back, the plane of the seen texels out (the same with all seen)
+        plane_seen, mean = _masked_plane(templates, m, shading)
+        floor = np.maximum(0.1 * np.abs(mean), 1e-6)
+        templates = np.where(m, templates * self.plane_all[region] / np.maximum(plane_seen, floor), 0.0)
+        diff = np.asarray(normalised).reshape(M, 1, -1) - templates              # 0 off the mask
+        d = np.empty(diff.shape[:2])
+        for r in np.unique(region):  # each region's kept Haar rows on its own patches (no gathered copies)
+            rows = region == r
+            c = diff[rows] @ self.kept_rows[r].T                                  # (m, n, kept)
+            d[rows] = (c * c) @ self.kept_weights[r]
+        d *= (m.shape[-1] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
         return np.where(self.absent[region], np.inf, d)
 
     def distances(self, coefficients: np.ndarray) -> np.ndarray:

@@ -112,41 +112,47 @@ def _candidate_triangles(vertices, faces, grid: dict):
     """Triangles in front of the camera, nearer somewhere than the frame's farthest point and over
     an occupied cell: their frame, nearest depth, bounding box of cells and the affine maps from a
     projected position to their barycentric coordinates b1, b2 and inverse depth (9 arrays)."""
-    vz = vertices[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        vx, vy = vertices[..., 0] / vz, vertices[..., 1] / vz
     lo, cell, nx, ny = grid["lo"], grid["cell"], grid["nx"], grid["ny"]
-    # the culling in single precision (a cell's bounds need no more), the tests in double
-    gx = ((vx - lo[0]) / cell).astype(np.float32)       # (F, V) in cells
-    gy = ((vy - lo[1]) / cell).astype(np.float32)
     a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
-    z32 = vz.astype(np.float32)
-    za, zb, zc = z32[:, a], z32[:, b], z32[:, c]        # (F, T)
-    z_near = np.minimum(np.minimum(za, zb), zc)
-    xa, xb, xc, ya, yb, yc = gx[:, a], gx[:, b], gx[:, c], gy[:, a], gy[:, b], gy[:, c]
-    with np.errstate(invalid="ignore"):
-        x0 = np.floor(np.minimum(np.minimum(xa, xb), xc))
-        x1 = np.floor(np.maximum(np.maximum(xa, xb), xc))
-        y0 = np.floor(np.minimum(np.minimum(ya, yb), yc))
-        y1 = np.floor(np.maximum(np.maximum(ya, yb), yc))
-        keep = ((z_near > 0) & (z_near < np.float32(1.0 + 1e-6) * grid["farthest_of_frame"][:, None])
-                & (x1 >= 0) & (x0 <= nx - 1) & (y1 >= 0) & (y0 <= ny - 1))
-    frame, tri = np.nonzero(keep)
-    x0, x1 = np.clip(x0[keep], 0, nx - 1).astype(np.int64), np.clip(x1[keep], 0, nx - 1).astype(np.int64)
-    y0, y1 = np.clip(y0[keep], 0, ny - 1).astype(np.int64), np.clip(y1[keep], 0, ny - 1).astype(np.int64)
-    S = grid["occupied"]
-    occupied = S[frame, y1 + 1, x1 + 1] - S[frame, y0, x1 + 1] - S[frame, y1 + 1, x0] + S[frame, y0, x0]
-    over = occupied > 0
-    if not over.any():
+    S = grid["occupied"].reshape(len(vertices), -1)   # summed-area table per frame, flat
+    parts = []
+    for f, v in enumerate(vertices):  # one frame at a time: flat takes, in single precision (a cell's bounds need no more)
+        vz = v[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gx = ((v[:, 0] / vz - lo[0]) / cell).astype(np.float32)
+            gy = ((v[:, 1] / vz - lo[1]) / cell).astype(np.float32)
+        z32 = vz.astype(np.float32)
+        z_near = np.minimum(np.minimum(z32[a], z32[b]), z32[c])
+        xa, xb, xc, ya, yb, yc = gx[a], gx[b], gx[c], gy[a], gy[b], gy[c]
+        with np.errstate(invalid="ignore"):
+            x0 = np.minimum(np.minimum(xa, xb), xc)
+            x1 = np.maximum(np.maximum(xa, xb), xc)
+            y0 = np.minimum(np.minimum(ya, yb), yc)
+            y1 = np.maximum(np.maximum(ya, yb), yc)
+            keep = ((z_near > 0) & (z_near < np.float32(1.0 + 1e-6) * grid["farthest_of_frame"][f])
+                    & (x1 >= 0) & (x0 < nx) & (y1 >= 0) & (y0 < ny))
+        tri = np.flatnonzero(keep)
+        x0 = np.clip(x0[tri], 0, nx - 1).astype(np.int64)
+        x1 = np.clip(x1[tri], 0, nx - 1).astype(np.int64)
+        y0 = np.clip(y0[tri], 0, ny - 1).astype(np.int64)
+        y1 = np.clip(y1[tri], 0, ny - 1).astype(np.int64)
+        w = nx + 1
+        Sf = S[f]
+        occupied = Sf[(y1 + 1) * w + x1 + 1] - Sf[y0 * w + x1 + 1] - Sf[(y1 + 1) * w + x0] + Sf[y0 * w + x0]
+        over = occupied > 0
+        parts.append((np.full(int(over.sum()), f), tri[over], x0[over], x1[over], y0[over], y1[over]))
+    frame, tri, x0, x1, y0, y1 = (np.concatenate(p) for p in zip(*parts))
+    if len(tri) == 0:
         return None
-    frame, tri = frame[over], tri[over]
     A, B, C = a[tri], b[tri], c[tri]
-    px = np.stack([vx[frame, A], vx[frame, B], vx[frame, C]])
-    py = np.stack([vy[frame, A], vy[frame, B], vy[frame, C]])
-    iz = 1.0 / np.stack([vz[frame, A], vz[frame, B], vz[frame, C]])
-    z_near = np.minimum(np.minimum(vz[frame, A], vz[frame, B]), vz[frame, C])
-    return {"frame": frame, "z_near": z_near, "x0": x0[over], "x1": x1[over], "y0": y0[over],
-            "y1": y1[over], "affine": _affine_maps(px, py, iz)}
+    px = np.empty((3, len(tri)))
+    py = np.empty((3, len(tri)))
+    iz = np.empty((3, len(tri)))
+    for k, corner in enumerate((A, B, C)):
+        X = vertices[frame, corner]
+        px[k], py[k], iz[k] = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2], 1.0 / X[:, 2]
+    return {"frame": frame, "z_near": 1.0 / iz.max(axis=0), "x0": x0, "x1": x1, "y0": y0, "y1": y1,
+            "affine": _affine_maps(px, py, iz)}
 
 
 def _affine_maps(px: np.ndarray, py: np.ndarray, iz: np.ndarray) -> list:
