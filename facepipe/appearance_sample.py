@@ -162,10 +162,21 @@ def region_layout(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, di
             half *= 0.85
         halves = _elongate(centre, half, (ju, jv), mask)  # along a thin region (an eyelid) as far as it fits
         d = np.hypot((vertex_uv[:, 0] - centre[0]) * ju / halves[0], (vertex_uv[:, 1] - centre[1]) * jv / halves[1])
+        angle = float(np.pi * ((r * 0.37) % 1.0))
         out.append({"centre": centre, "scale": np.array([ju, jv]), "half": np.array(halves),
-                    "template": _box(centre, halves, (ju, jv)), "wavelength": 2 * min(halves) / 3.0,
-                    "angle": float(np.pi * ((r * 0.37) % 1.0)), "vertices": np.flatnonzero(d < 3.0)})
+                    "template": _box(centre, halves, (ju, jv)), "wavelength": _wavelength(halves, angle),
+                    "angle": angle, "vertices": np.flatnonzero(d < 3.0)})
     return out
+
+
+def _wavelength(halves, angle: float, template_size: int = 16) -> float:
+    """The stripes' wavelength (surface units): two thirds of the template's shorter half-size,
+    and at least three times the Nyquist wavelength of the template's grid along the stripes'
+    direction of change (a stretched template's grid is coarse along its length: stripes finer
+    than its points alias, and no template of that grid could tell their strength)."""
+    step_u, step_v = 2.0 * halves[0] / template_size, 2.0 * halves[1] / template_size
+    nyquist = 2.0 * max(step_u * abs(np.cos(angle)), step_v * abs(np.sin(angle)))
+    return float(max(2.0 * min(halves) / 3.0, 3.0 * nyquist))
 
 
 def skin_texture(size: int, seed: int = 0) -> np.ndarray:

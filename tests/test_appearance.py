@@ -271,3 +271,23 @@ def test_example_frame_without_geometry_exits_2(kit, tmp_path, capsys):
     cfg = _edited_config(kit, tmp_path, "frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 400]")
     assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
     assert "frame 400" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("old,new,message", [
+    ("texture_size = 512", "texture_size = 512\nmin_seen = 0.0", "min_seen"),
+    ("texture_size = 512", "texture_size = 512\nmin_point_facing = 1.5", "min_point_facing"),
+])
+def test_bad_visibility_settings(kit, tmp_path, capsys, old, new, message):
+    cfg = _edited_config(kit, tmp_path, old, new)
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert message in capsys.readouterr().err
+
+
+def test_model_keeps_its_visibility_settings(kit):
+    from facepipe.io.appearance_file import load_appearance
+
+    model = load_appearance(kit / "app.npz")
+    assert model.occlusion and model.min_seen == 0.5 and model.min_point_facing == pytest.approx(0.35)
+    s = model.template_size
+    assert model.template_facing.shape == (len(model.names), 5, s * s)
+    assert (model.template_facing <= 1.0).all() and (model.template_facing > 0).mean() > 0.9

@@ -230,3 +230,47 @@ def test_light_fit_of_frames_at_once_matches_one_by_one():
     for f in range(3):
         np.testing.assert_allclose(together[f], fit_light(values[f], albedo, normals[f]), atol=1e-10)
     np.testing.assert_allclose(together[1], np.r_[1.0, np.zeros(8)])
+
+
+def test_masked_normalisation_and_distances_reduce_to_the_whole_patch():
+    rng = np.random.default_rng(11)
+    patches = rng.uniform(0.5, 1.5, size=(4, 16, 16))
+    full = np.ones(patches.shape, dtype=bool)
+    np.testing.assert_allclose(normalise_patches(patches, True, full), normalise_patches(patches), rtol=1e-10)
+    np.testing.assert_allclose(normalise_patches(patches, False, full), normalise_patches(patches, False), rtol=1e-10)
+    # over a mask: the plane is the least-squares plane of the seen texels (checked with lstsq)
+    mask = rng.uniform(size=(16, 16)) < 0.6
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    A = np.stack([np.ones(mask.sum()), xx[mask], yy[mask]], axis=1)
+    coef = np.linalg.lstsq(A, patches[0][mask], rcond=None)[0]
+    got = normalise_patches(patches[0], True, mask)
+    np.testing.assert_allclose(got[mask], patches[0][mask] / (A @ coef), rtol=1e-10)
+    assert (got[~mask] == 0).all()
+    templates = [haar_coefficients(normalise_patches(rng.uniform(0.5, 1.5, size=(n, 16, 16)))) for n in (3, 5)]
+    bank = RegionBank(templates, [select_coefficients(t, 50) for t in templates], coefficient_weights(16))
+    region = np.array([0, 1, 1, 0])
+    norm = normalise_patches(patches)
+    whole = bank.distances(haar_coefficients(norm)[:, None, None, :].repeat(2, axis=1))[np.arange(4), region, 0]
+    masked = bank.masked_distances(norm, full, region)
+    np.testing.assert_allclose(masked, whole, rtol=1e-9)
+
+
+def test_partly_hidden_patch_classified_on_its_seen_texels():
+    rng = np.random.default_rng(12)
+    a, b, layers = _blend_templates(rng, 5)
+    templates = haar_coefficients(normalise_patches(np.stack(layers)))
+    bank = RegionBank([templates], [select_coefficients(templates, 50)], coefficient_weights(16))
+    truth = np.linspace(0.2, 3.8, 10)
+    patches = np.stack([a + (b - a) * t / 4 for t in truth])[:, None, None]  # (T, R=1, S=1, 16, 16)
+    seen = np.ones(patches.shape, dtype=bool)
+    seen[..., :6, :] = False            # the top rows covered (a brow over an eyelid) by a brighter fold
+    covered = np.where(seen, patches, 1.4 + 0.2 * rng.uniform(size=patches.shape))
+    q_blind, _ = classify_regions(covered, bank)
+    q_seen, _ = classify_regions(covered, bank, seen=seen)
+    assert np.abs(q_seen[:, 0] - truth).max() < 0.15
+    assert np.abs(q_blind[:, 0] - truth).max() > 0.5
+    # seen too little: the sample takes no part; no usable sample: NaN (held by the caller)
+    two = np.concatenate([covered, patches], axis=2)                 # (T, 1, 2, 16, 16)
+    seen2 = np.concatenate([np.zeros_like(seen), seen], axis=2)
+    np.testing.assert_allclose(classify_regions(two, bank, seen=seen2)[0], q_seen, atol=1e-12)
+    assert np.isnan(classify_regions(covered, bank, seen=np.zeros_like(seen))[0]).all()

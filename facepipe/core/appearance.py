@@ -89,7 +89,7 @@ def haar_coefficients(patches: np.ndarray) -> np.ndarray:
     return patches.reshape(patches.shape[:-2] + (size * size,)) @ H.T
 
 
-def normalise_patches(patches: np.ndarray, shading: bool = True) -> np.ndarray:
+def normalise_patches(patches: np.ndarray, shading: bool = True, mask: np.ndarray | None = None) -> np.ndarray:
     """Patches divided by their shading: the least-squares plane a + b·x + c·y through their
     intensities (``shading``), or their mean alone.
 
@@ -101,6 +101,8 @@ def normalise_patches(patches: np.ndarray, shading: bool = True) -> np.ndarray:
     patch mostly in shadow) is divided by at least a tenth of its mean.
     """
     patches = np.asarray(patches, dtype=np.float64)
+    if mask is not None:
+        return _normalise_masked(patches, np.asarray(mask, dtype=bool), shading)
     mean = patches.mean(axis=(-2, -1), keepdims=True)
     if not shading:
         return patches / np.maximum(np.abs(mean), 1e-6)
@@ -113,6 +115,49 @@ def normalise_patches(patches: np.ndarray, shading: bool = True) -> np.ndarray:
     plane = mean + bx * x + by * y
     floor = np.maximum(0.1 * np.abs(mean), 1e-6)
     return patches / np.maximum(plane, floor)
+
+
+def _normalise_masked(patches: np.ndarray, mask: np.ndarray, shading: bool) -> np.ndarray:
+    """:func:`normalise_patches` with the mean and the plane fitted over the texels of ``mask``
+    (..., h, w) alone (the seen part of a partly hidden patch); texels off the mask are 0. The
+    mask may have fewer leading axes' lengths than the patches (broadcast: one mask, many patches)."""
+    h, w = patches.shape[-2:]
+    flat = patches.reshape(patches.shape[:-2] + (h * w,))
+    m = np.asarray(mask, dtype=bool).reshape(mask.shape[:-2] + (h * w,))
+    plane, mean = _masked_plane(flat, m, shading)
+    floor = np.maximum(0.1 * np.abs(mean), 1e-6)
+    return np.where(m, flat / np.maximum(plane, floor), 0.0).reshape(patches.shape)
+
+
+@functools.lru_cache(maxsize=8)
+def _plane_basis(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """The plane's basis (3, h·w): 1, x, y about the centre; and its products (9, h·w)."""
+    y, x = np.meshgrid(np.arange(h) - 0.5 * (h - 1), np.arange(w) - 0.5 * (w - 1), indexing="ij")
+    basis = np.stack([np.ones(h * w), x.ravel(), y.ravel()])
+    return basis, (basis[:, None, :] * basis[None, :, :]).reshape(9, h * w)
+
+
+def _masked_plane(values: np.ndarray, mask: np.ndarray, shading: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares plane (..., N) (or the mean alone, without ``shading``) through values
+    (..., N) of a square patch over the texels of mask (broadcastable to them), and the mean (..., 1)."""
+    m = mask.astype(np.float64)
+    count = np.maximum(m.sum(axis=-1, keepdims=True), 1.0)
+    mean = (values * m).sum(axis=-1, keepdims=True) / count
+    if not shading:
+        return np.broadcast_to(mean, values.shape), mean
+    side = int(round(np.sqrt(values.shape[-1])))
+    basis, products = _plane_basis(side, side)
+    normal = (m @ products.T).reshape(m.shape[:-1] + (3, 3))       # one per mask, shared by its patches
+    rhs = (values * m) @ basis.T                                     # (..., 3)
+    # a seen part too thin to fix a plane (a line, a few texels) is divided by its mean alone
+    scale = np.trace(normal, axis1=-2, axis2=-1) / 3.0
+    well_posed = np.linalg.det(normal) > 1e-8 * np.maximum(scale, 1e-30) ** 3
+    safe = np.where(well_posed[..., None, None], normal, np.eye(3))
+    safe = np.broadcast_to(safe, rhs.shape[:-1] + (3, 3))
+    coef = np.linalg.solve(safe, rhs[..., None])[..., 0]
+    fallback = np.concatenate([mean, np.zeros(mean.shape[:-1] + (2,))], axis=-1)
+    coef = np.where(np.broadcast_to(well_posed, rhs.shape[:-1])[..., None], coef, fallback)
+    return coef @ basis, mean
 
 
 def select_coefficients(template_coefficients: np.ndarray, keep: int = 50) -> np.ndarray:
@@ -207,6 +252,46 @@ class RegionBank:
             self.absent[r, len(t):] = True
         self.wt = self.weights[:, None, :] * self.templates  # (R, n, C)
         self.tt = (self.wt * self.templates).sum(axis=-1)      # (R, n)
+        H, _ = haar_matrix(int(round(np.sqrt(C))))
+        self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
+        # their planes over all texels (:func:`normalise_patches` of the normalised template: near 1)
+        self.plane_all = _masked_plane(self.pixels, np.ones((1, 1, C), dtype=bool), True)[0]
+        # the Haar rows of each region's kept coefficients (padded with zero-weight rows)
+        kept = max(len(i) for i in indices)
+        self.kept_rows = np.zeros((R, kept, C))
+        self.kept_weights = np.zeros((R, kept))
+        for r, idx in enumerate(indices):
+            self.kept_rows[r, :len(idx)] = H[idx]
+            self.kept_weights[r, :len(idx)] = np.asarray(weights, dtype=np.float64)[idx]
+
+    def masked_distances(self, normalised: np.ndarray, mask: np.ndarray, region: np.ndarray,
+                         shading: bool = True) -> np.ndarray:
+        """(M, n) distances of partly seen patches to their region's templates over the seen texels.
+
+        normalised : (M, size, size) patches normalised over their seen texels; mask : (M, size,
+        size) the seen texels; region : (M,) each patch's region. The templates are normalised
+        over the same texels (a plane fitted over part of a patch takes up part of its pattern:
+        patch and template alike), and compared with the patch on those texels only (the
+        difference there, zero elsewhere, in the region's Haar terms), scaled by the texels of
+        the patch over those seen so that partly and wholly seen samples compare. With every
+        texel seen this is :meth:`distances`.
+        """
+        M = len(region)
+        m = np.asarray(mask, dtype=bool).reshape(M, 1, -1)
+        templates = self.pixels[region]                                           # (M, n, size²)
+        # the stored templates were normalised over all their texels (by their plane over all
+        # of them): that plane back, the plane of the seen texels out (the same with all seen)
+        plane_seen, mean = _masked_plane(templates, m, shading)
+        floor = np.maximum(0.1 * np.abs(mean), 1e-6)
+        templates = np.where(m, templates * self.plane_all[region] / np.maximum(plane_seen, floor), 0.0)
+        diff = np.asarray(normalised).reshape(M, 1, -1) - templates              # 0 off the mask
+        d = np.empty(diff.shape[:2])
+        for r in np.unique(region):  # each region's kept Haar rows on its own patches (no gathered copies)
+            rows = region == r
+            c = diff[rows] @ self.kept_rows[r].T                                  # (m, n, kept)
+            d[rows] = (c * c) @ self.kept_weights[r]
+        d *= (m.shape[-1] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
+        return np.where(self.absent[region], np.inf, d)
 
     def distances(self, coefficients: np.ndarray) -> np.ndarray:
         """(..., R, S, n) distances of coefficients (..., R, S, C) to every region's templates."""
@@ -217,15 +302,42 @@ class RegionBank:
         return np.where(self.absent[:, None, :], np.inf, d)
 
 
-def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True, seen: np.ndarray | None = None,
+                     min_seen: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """:func:`classify` of every region at once: patches (..., R, S, size, size) → Q (..., R) and
-    the chosen sample's smallest distance (..., R)."""
+    the chosen sample's smallest distance (..., R).
+
+    seen : (..., R, S, size, size) which texels of the samples the camera sees (None: all). A
+    partly hidden sample is matched on its seen texels (:meth:`RegionBank.masked_distances`); a
+    sample with under ``min_seen`` of its texels seen takes no part, and a region none of whose
+    samples does gets Q NaN (the caller holds its last value).
+    """
     coefficients = haar_coefficients(normalise_patches(patches, shading))
     d = bank.distances(coefficients)  # (..., R, S, n)
+    if seen is not None:
+        d = _distances_of_seen(patches, seen, bank, shading, d, min_seen)
     best = d.min(axis=-1)
     sample = np.argmin(best, axis=-1)
     chosen = np.take_along_axis(d, sample[..., None, None], axis=-2)[..., 0, :]
-    return peak_index(chosen), np.take_along_axis(best, sample[..., None], -1)[..., 0]
+    usable = np.isfinite(np.take_along_axis(best, sample[..., None], -1)[..., 0])
+    q = np.full(usable.shape, np.nan)
+    q[usable] = peak_index(chosen[usable])
+    return q, np.take_along_axis(best, sample[..., None], -1)[..., 0]
+
+
+def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.ndarray, min_seen: float) -> np.ndarray:
+    """Distances (..., R, S, n) with the partly seen samples' over their seen texels, and those
+    of the samples seen too little infinite."""
+    seen = np.asarray(seen, dtype=bool)
+    fraction = seen.mean(axis=(-2, -1))                         # (..., R, S)
+    partial = (fraction >= min_seen) & (fraction < 1.0)
+    d = np.where((fraction < min_seen)[..., None], np.inf, d)
+    if partial.any():
+        idx = np.nonzero(partial)
+        region = idx[-2]
+        part = normalise_patches(patches[idx], shading, seen[idx])  # (M, size, size)
+        d[idx] = bank.masked_distances(part, seen[idx], region, shading)
+    return d
 
 
 def hold_and_decay(values: np.ndarray, visible: np.ndarray, times: np.ndarray, decay: float) -> np.ndarray:

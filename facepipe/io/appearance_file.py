@@ -28,6 +28,11 @@ class AppearanceModel:
     template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
     templates : per region (n, C) coefficients; indices : per region kept coefficients;
     weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
+    min_point_facing : template points the camera sees more edge-on than this cosine (in the
+    frame, or in any of the region's examples: ``template_facing`` (R, 5, N), their least cosine
+    there) are left out of the match (0: none); min_seen : the share of a template's points that must be seen for the region to be
+    classified; occlusion : template points hidden by the face itself are found (ray cast) and
+    left out of the match (False in models before it);
     shading : patches divided by their shading plane (else by their mean; models before it);
     light_face (K,), light_bary (K, 3), light_albedo (K,) : points on the surface (fixed
     barycentric coordinates) and their albedo, over which each frame's light is fitted and
@@ -60,6 +65,10 @@ class AppearanceModel:
     light_bary: np.ndarray | None = None
     light_albedo: np.ndarray | None = None
     corner_uv: np.ndarray | None = None
+    min_seen: float = 0.5
+    occlusion: bool = True
+    min_point_facing: float = 0.0
+    template_facing: np.ndarray | None = None
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
@@ -77,10 +86,13 @@ def save_appearance(path, model) -> None:
               "rotation": model.rotation, "translation": model.translation, "faces": model.faces,
               "normal_sign": np.array(model.normal_sign), "template_face": model.template_face,
               "template_bary": model.template_bary, "weights": model.weights,
-              "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading)]), "neutral": model.neutral,
+              "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading),
+                                   model.min_seen, float(model.occlusion), model.min_point_facing]), "neutral": model.neutral,
               "boxes": model.boxes}
     if model.corner_uv is not None:
         arrays["corner_uv"] = model.corner_uv
+    if model.template_facing is not None:
+        arrays["template_facing"] = model.template_facing
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     for r in range(len(model.names)):
@@ -110,7 +122,9 @@ def load_appearance(path):
                                d["weights"], int(s[0]), float(s[1]), float(s[2]), d["neutral"],
                                [d[f"volume_{r}"] for r in range(n)], [d[f"alpha_{r}"] for r in range(n)], d["boxes"],
                                bool(s[3]) if len(s) > 3 else False, d.get("light_face"), d.get("light_bary"),
-                               d.get("light_albedo"), d.get("corner_uv"))
+                               d.get("light_albedo"), d.get("corner_uv"),
+                               float(s[4]) if len(s) > 4 else 0.5, bool(s[5]) if len(s) > 5 else False,
+                               float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None

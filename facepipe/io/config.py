@@ -102,6 +102,9 @@ class AppearanceConfig:
     decay: float = 0.5  # seconds: a hidden region's value fades to neutral
     shading: bool = True  # patches divided by their shading plane (else by their mean) before the match
     light_fit: bool = True  # each frame's light fitted over the face's known normals and divided out of the patches
+    occlusion: bool = True  # template points the face hides (ray cast) left out of the match
+    min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
+    min_point_facing: float = 0.35  # template points seen more edge-on (cosine), in the frame or an example, left out
     regions: list = field(default_factory=list)
 
 
@@ -143,7 +146,8 @@ _TYPES: dict[str, dict[str, object]] = {
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
-                   "shading": bool, "light_fit": bool, "regions": dict},
+                   "shading": bool, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
+                   "regions": dict},
     "video": {"landmarks": str},
 }
 _REGION_TYPES = {"vertices": str, "template": list, "frames": list}
@@ -313,6 +317,12 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
                          path=path)
     if out.ramp < 0 or out.decay < 0 or not all(_is(x, float) and x >= 0 for x in out.scale_weights):
         raise InputError("[appearance] ramp, decay and scale_weights must be ≥ 0", path=path)
+    if not 0.0 <= out.min_point_facing < 1.0:
+        raise InputError(f"[appearance] min_point_facing = {out.min_point_facing} is not in [0, 1)", path=path,
+                         hint="a cosine: 0 keeps every point the camera sees, 0.35 drops those seen within ~70° of edge-on")
+    if not 0.0 < out.min_seen <= 1.0:
+        raise InputError(f"[appearance] min_seen = {out.min_seen} is not in (0, 1]", path=path,
+                         hint="the share of a template that must be seen, e.g. 0.5")
     return out
 
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
+from facepipe.core.occlusion import occluded_points
 from facepipe.core.raster import triangle_pixels
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
@@ -121,30 +122,59 @@ def template_points(rect, size: int) -> np.ndarray:
 
 
 def sample_templates(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's template samples (R, 5, size, size) and each region's visibility (R,)."""
-    patches, visible = sample_template_frames(gray[None], camera_positions[None], model)
-    return patches[0], visible[0]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A frame's template samples (R, 5, size, size), each region's visibility (R,) and which
+    template points the camera sees (R, 5, size, size)."""
+    patches, visible, seen = sample_template_frames(gray[None], camera_positions[None], model)
+    return patches[0], visible[0], seen[0]
 
 
 def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
-                           ) -> tuple[np.ndarray, np.ndarray]:
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Template samples (F, R, 5, size, size) of frames (F, H, W) with their geometry (F, V, 3) in
-    camera space, and each region's visibility (F, R): every frame's points projected at once."""
+    camera space, each region's visibility (F, R) and which template points the camera sees
+    (F, R, 5, size, size): every frame's points projected at once.
+
+    A point is seen when it projects into the image in front of the camera and (the model's
+    ``occlusion``) no part of the face lies in front of it (its ray cast against the animated
+    mesh, :func:`facepipe.core.occlusion.occluded_points`: a lowered brow over an eyelid, the
+    nose over the far cheek of a turned head). A region is visible when it faces the camera and
+    at least ``min_seen`` of its points are seen."""
     F = len(grays)
     X = np.einsum("rsnk,frsnkc->frsnc", model.template_bary,
                   camera_positions[:, model.faces[model.template_face]])  # (F, R, 5, N, 3)
     pixels = project_distorted_fast(model.camera, X)
     values = np.empty(X.shape[:-1])
-    inside = np.empty(X.shape[:-1], dtype=bool)
+    seen = np.empty(X.shape[:-1], dtype=bool)
     for f in range(F):
-        values[f], inside[f] = ap.bilinear_sample(grays[f], pixels[f])
+        values[f], seen[f] = ap.bilinear_sample(grays[f], pixels[f])
+    seen &= X[..., 2] > 0
+    if model.occlusion:
+        seen &= ~template_points_hidden(X, camera_positions, model)
     corners = camera_positions[:, model.faces[model.template_face[:, 0]]]  # (F, R, N, 3, 3)
     normal = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]).sum(axis=2)
     cos = model.normal_sign * ap.facing(normal, X[:, :, 0].mean(axis=2))
-    visible = (cos > model.min_facing) & inside.all(axis=(2, 3)) & (X[..., 2] > 0).all(axis=(2, 3))
+    visible = (cos > model.min_facing) & (seen.mean(axis=(2, 3)) >= model.min_seen)
     s = model.template_size
-    return values.reshape(values.shape[:3] + (s, s)), visible
+    return values.reshape(values.shape[:3] + (s, s)), visible, seen.reshape(seen.shape[:3] + (s, s))
+
+
+def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """Which template points (F, R, 5, N) at camera-space positions X (F, R, 5, N, 3) the face
+    hides. A surface hides a point when it crosses the point's ray nearer by more than the
+    template's grid step there (the point's own surface, curving, stays within it). The rays
+    are cast for the template's grid in place; an offset sample (half a step away) takes its
+    grid point's answer: an occluder's edge is not resolved finer than the grid anyway."""
+    F, R, S, N = X.shape[:4]
+    s = model.template_size
+    grid = X[:, :, 0].reshape(F, R, s, s, 3)
+    step = np.linalg.norm(np.diff(grid, axis=3), axis=-1).mean(axis=(2, 3))  # (F, R)
+    tolerance = np.broadcast_to(step[:, :, None], (F, R, N)).reshape(F, -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spacing = np.nanmedian(np.linalg.norm(np.diff(grid[..., :2] / grid[..., 2:], axis=3), axis=-1))
+    hidden = occluded_points(X[:, :, 0].reshape(F, -1, 3), camera_positions, model.faces, tolerance,
+                             cell=spacing if np.isfinite(spacing) and spacing > 0 else None)
+    return np.broadcast_to(hidden.reshape(F, R, 1, N), (F, R, S, N))
 
 
 def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -225,12 +255,15 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
+    facing_examples = []
     for region in cfg.regions:
         vol, alpha, box = _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral,
                                          cfg, normal_sign)
         face, bary = _region_template(region, corner_uv, cfg.template_size, config.path)
         gray = [to_gray(frames[f][0]) for f in region.frames]
         patches = []
+        facing_examples.append(np.min([point_facing(cam_pos[f], faces, face, bary, normal_sign)
+                                       for f in region.frames], axis=0))
         for g, f in zip(gray, region.frames):
             X = surface_points(cam_pos[f], faces, face[0], bary[0])
             values, inside = ap.bilinear_sample(g, project_distorted(camera, X))
@@ -256,8 +289,18 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             indices, weights, cfg.template_size, cfg.min_facing, cfg.decay,
                             neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64),
                             cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
-                            corner_uv.astype(np.float32))
+                            corner_uv.astype(np.float32), cfg.min_seen, cfg.occlusion, cfg.min_point_facing,
+                            np.stack(facing_examples).astype(np.float32))
     return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
+
+
+def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
+                 normal_sign: float) -> np.ndarray:
+    """Cosine (...) between the smooth surface's normal at points (fixed barycentric coordinates
+    face (...), bary (..., 3)) of one frame (V, 3) in camera space and their direction to the camera."""
+    X = surface_points(camera_positions, faces, face, bary)
+    n = point_normals(camera_positions[None], faces, face, bary, normal_sign)[0]
+    return (n * -X).sum(axis=-1) / np.maximum(np.linalg.norm(X, axis=-1), 1e-30)
 
 
 def point_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
@@ -451,16 +494,40 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
     """Q (F, R) of frames' luminance (F, H, W) with their geometry in camera space (F, V, 3), NaN
     where a region is hidden, and each region's visibility (F, R)."""
     bank = ap.RegionBank(model.templates, model.indices, model.weights) if bank is None else bank
-    patches, seen = sample_template_frames(grays, camera_positions, model)
+    patches, visible, seen = sample_template_frames(grays, camera_positions, model)
+    normals = None
     if model.light_face is not None:
-        patches = patches / frame_shading(grays, camera_positions, model)
-    q, _ = ap.classify_regions(patches, bank, model.shading)
-    return np.where(seen, q, np.nan), seen
+        shading, normals = frame_shading(grays, camera_positions, model, with_normals=True)
+        patches = patches / shading
+    if model.min_point_facing > 0:
+        seen = seen & (template_point_facing(camera_positions, model, normals) > model.min_point_facing)
+        if model.template_facing is not None:  # a point the examples saw edge-on has no template worth matching
+            s = model.template_size
+            seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
+        visible &= seen.mean(axis=(2, 3, 4)) >= model.min_seen
+    q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen)
+    visible &= np.isfinite(q)
+    return np.where(visible, q, np.nan), visible
 
 
-def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, normals=None) -> np.ndarray:
+    """Cosine (F, R, 5, size, size) between the smooth surface's normal at every template point
+    and its direction to the camera (``normals``: those normals (F, R, 5, N, 3) where known).
+    Near 0 the camera sees the skin edge-on: a template's rows crowd into a pixel or two, and
+    what is sampled there is the image's blur, not the texture."""
+    X = np.einsum("rsnk,frsnkc->frsnc", model.template_bary, camera_positions[:, model.faces[model.template_face]])
+    if normals is None:
+        normals = point_normals(camera_positions, model.faces, model.template_face, model.template_bary,
+                                model.normal_sign)
+    cos = (normals * -X).sum(axis=-1) / np.maximum(np.linalg.norm(X, axis=-1), 1e-30)
+    s = model.template_size
+    return cos.reshape(cos.shape[:3] + (s, s))
+
+
+def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, with_normals: bool = False):
     """The shading (F, R, 5, size, size) at the template points of frames: each frame's light
-    fitted over the model's light points (their albedo known, their normals from the geometry)."""
+    fitted over the model's light points (their albedo known, their normals from the geometry);
+    with the template points' unit normals (F, R, 5, N, 3) too if ``with_normals``."""
     vn, local = _stencil_normals(camera_positions, model)
     F = len(grays)
     X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
@@ -476,7 +543,8 @@ def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: Appear
     light = ap.fit_light(values, model.light_albedo, normals)  # (F, 9)
     out = np.stack([ap.light_shading(t_normals[f], light[f]) for f in range(F)])
     s = model.template_size
-    return out.reshape(out.shape[:3] + (s, s))
+    out = out.reshape(out.shape[:3] + (s, s))
+    return (out, t_normals) if with_normals else out
 
 
 def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
