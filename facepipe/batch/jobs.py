@@ -47,6 +47,7 @@ from facepipe.mocap.cleaning import CleanOptions
 from facepipe.mocap.landmarks2d import is_landmark_take
 from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows
 from facepipe.batch.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
+from facepipe.batch.worker_memory import reuse_freed_arrays
 from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
 
 STAMP_NAME = "batch_take.json"
@@ -389,6 +390,7 @@ def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, 
     try:
         threads = worker_threads(slots_by_host)
         parallel.set_thread_count(threads)
+        reuse_freed_arrays()  # undo what the nanny's MALLOC_TRIM_THRESHOLD_ costs every chunk
         for name in POCL_THREADS_ENV:  # before this process's first OpenCL context
             os.environ.setdefault(name, str(threads))
         options_key = options.fingerprint()
