@@ -81,14 +81,15 @@ def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler
                             smooth=smooth)
     cluster = ClusterSpec(workers=workers, scheduler=scheduler, scheduler_file=scheduler_file,
                           connect_timeout=connect_timeout)
-    rep.say(f"batch on the {cluster.describe()}")
     with rep.bar(0, unit="take", desc="batch") as bar:
         def progress(record):
             if record.status == "failed" and not rep.quiet:
                 bar.write(f"failed: {record.name}: {record.error}")
             bar.update(1)
 
-        def start(total):
+        def start(total):  # once the takes and the model are found good, so bad input is said alone
+            if not rep.quiet:
+                bar.write(f"batch of {total} takes on the {cluster.describe()}")
             bar.total = total
             bar.refresh()
 
