@@ -154,7 +154,8 @@ def test_missing_take_is_said_before_any_cluster(tmp_path, capsys):
     code = run_cli("batch", tmp_path / "nothere.csv", "-m", tmp_path / "model.npz", "-o", tmp_path / "out")
     out, err = capsys.readouterr()
     assert code == 2 and "take not found" in err and "nothere.csv" in err
-    assert "cluster" not in out + err  # nothing said of a cluster for a batch that never starts one
+    # nothing said of a cluster, and no progress bar, for a batch that never starts
+    assert "cluster" not in out + err and "batch:" not in err
     assert not (tmp_path / "out").exists()
 
 
