@@ -12,9 +12,9 @@ read from another starting frame, back and forth so every take is smooth), then 
   model and one evaluator, as a worker does: what the batch gains by running takes side by side
   alone, start-up costs aside.
 
-Reports wall times and the throughput ratio, the CPU time each way spends per take (what a
-machine shared with other work cannot blur), and whether every positions.npy is identical to the
-byte.
+Reports wall times and the throughput ratio, the CPU time and page faults each way spends per
+take (what a machine shared with other work blurs least), the load average around and during the
+run, and whether every positions.npy is identical to the byte.
 Run from the repository root: ``python -m bench.batch_speed -o bench/batch.json``.
 """
 
@@ -26,6 +26,7 @@ import os
 import resource
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -70,18 +71,40 @@ def one_process(takes: list[Path], model_path: Path, out: Path, backend: str) ->
         replay_into(str(take), out / take.stem, model, evaluator, options, {})
 
 
-def _cpu_seconds() -> float:
-    """User + system CPU seconds of this process and of its children that have ended (the replay
-    processes, the local cluster's workers, and the PoCL threads within them)."""
-    return sum(r.ru_utime + r.ru_stime for r in (resource.getrusage(resource.RUSAGE_SELF),
-                                                   resource.getrusage(resource.RUSAGE_CHILDREN)))
+def _usage() -> tuple[float, int]:
+    """User + system CPU seconds and minor page faults of this process and of its children that
+    have ended (the replay processes, the local cluster's workers, and the PoCL threads within them)."""
+    both = (resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN))
+    return sum(r.ru_utime + r.ru_stime for r in both), sum(r.ru_minflt for r in both)
 
 
-def measured(function, *args) -> tuple[float, float]:
-    """(wall seconds, CPU seconds) of ``function(*args)``."""
-    wall, cpu = time.perf_counter(), _cpu_seconds()
+def measured(function, *args) -> tuple[float, float, int]:
+    """(wall seconds, CPU seconds, minor page faults) of ``function(*args)``."""
+    wall, (cpu, faults) = time.perf_counter(), _usage()
     function(*args)
-    return time.perf_counter() - wall, _cpu_seconds() - cpu
+    cpu_after, faults_after = _usage()
+    return time.perf_counter() - wall, cpu_after - cpu, faults_after - faults
+
+
+class LoadSampler:
+    """The machine's 1-minute load average every ``interval`` seconds while the bench runs (the
+    other work on a shared machine, which the wall-clock figures depend on)."""
+
+    def __init__(self, interval: float = 10.0):
+        self.samples = [os.getloadavg()[0]]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(interval,), daemon=True)
+        self._thread.start()
+
+    def _run(self, interval: float) -> None:
+        while not self._stop.wait(interval):
+            self.samples.append(os.getloadavg()[0])
+
+    def stop(self) -> list[float]:
+        self._stop.set()
+        self._thread.join()
+        self.samples.append(os.getloadavg()[0])
+        return [min(self.samples), max(self.samples)]
 
 
 def _run(args: list) -> None:
@@ -119,6 +142,7 @@ def main(argv=None) -> dict:
     backend = ["--backend", a.backend]
     half = len(takes) // 2
     loads = [os.getloadavg()[0]]
+    sampler = LoadSampler()
 
     def serial(part):
         for t in part:
@@ -126,12 +150,14 @@ def main(argv=None) -> dict:
 
     # the machine may be shared: the baseline runs in two halves, before and after the batch, so a
     # change of the other load weighs on both
-    wall_a, cpu_a = measured(serial, takes[:half])
-    batch_wall, batch_cpu = measured(_run, fp + ["batch", *takes, "-m", model, "-o", batch_dir,
-                                                 "--workers", str(a.workers)] + backend)
-    one_wall, one_cpu = measured(one_process, takes, model, one_dir, a.backend) if a.one_process else (None, None)
-    wall_b, cpu_b = measured(serial, takes[half:])
+    wall_a, cpu_a, faults_a = measured(serial, takes[:half])
+    batch_wall, batch_cpu, batch_faults = measured(_run, fp + ["batch", *takes, "-m", model, "-o", batch_dir,
+                                                               "--workers", str(a.workers)] + backend)
+    one_wall, one_cpu, _ = measured(one_process, takes, model, one_dir, a.backend) if a.one_process \
+        else (None, None, None)
+    wall_b, cpu_b, faults_b = measured(serial, takes[half:])
     loads.append(os.getloadavg()[0])
+    load_range = sampler.stop()
     serial_wall, serial_cpu = wall_a + wall_b, cpu_a + cpu_b
     report = json.loads((batch_dir / "batch.json").read_text())
     first = json.loads((serial_dir / takes[0].stem / "replay.json").read_text())
@@ -140,11 +166,13 @@ def main(argv=None) -> dict:
         "takes": n, "frames_per_take": a.frames, "vertices": first["vertices"], "backend": first["backend"],
         "model_bytes": model.stat().st_size, "workers": a.workers, "cpus": os.cpu_count(),
         "load_average_before_after": loads,
+        "load_average_min_max": load_range,  # sampled every 10 s during the run
         "serial_seconds": serial_wall, "serial_seconds_per_take": serial_wall / n,
         "batch_seconds": batch_wall, "batch_seconds_per_take": batch_wall / n,
         "throughput_ratio": serial_wall / batch_wall,
         "serial_cpu_seconds_per_take": serial_cpu / n, "batch_cpu_seconds_per_take": batch_cpu / n,
         "cpu_ratio": serial_cpu / batch_cpu,
+        "serial_page_faults_per_take": (faults_a + faults_b) / n, "batch_page_faults_per_take": batch_faults / n,
         "batch_task_seconds_per_take": report["totals"]["task_seconds"] / n,
         "identical_outputs": _same(serial_dir, batch_dir, takes),
         "batch_ok": report["totals"]["ok"], "batch_failed": report["totals"]["failed"],

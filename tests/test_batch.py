@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import signal
 import socket
 import subprocess
@@ -147,6 +148,51 @@ def test_threads_share_the_host_among_its_slots(monkeypatch):
     assert worker_threads({"10.0.0.7": 32}) == 1
     monkeypatch.setenv("FACEPIPE_THREADS", "3")
     assert worker_threads({"10.0.0.7": 4}) == 3
+
+
+def test_missing_take_is_said_before_any_cluster(tmp_path, capsys):
+    code = run_cli("batch", tmp_path / "nothere.csv", "-m", tmp_path / "model.npz", "-o", tmp_path / "out")
+    out, err = capsys.readouterr()
+    assert code == 2 and "take not found" in err and "nothere.csv" in err
+    # nothing said of a cluster, and no progress bar, for a batch that never starts
+    assert "cluster" not in out + err and "batch:" not in err
+    assert not (tmp_path / "out").exists()
+
+
+_MAPPED_BYTES = """
+import ctypes, sys
+import numpy as np
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                     "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = MallInfo2
+if sys.argv[1] == "set":
+    from facepipe.batch.worker_memory import reuse_freed_arrays
+    assert reuse_freed_arrays()
+np.ones(2 << 20).sum()  # a chunk's 16 MiB temporary, made and freed
+again = np.ones(2 << 20)  # the next chunk's
+print(libc.mallinfo2().hblkhd)  # bytes the allocator holds in mappings of their own
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc"
+                    or platform.libc_ver()[1] < "2.33", reason="glibc's malloc (mallinfo2) only")
+def test_worker_reuses_freed_arrays_despite_the_nannys_trim_threshold():
+    """With Dask's MALLOC_TRIM_THRESHOLD_ every 16 MiB array is a mapping of its own (mapped, its
+    pages faulted in, unmapped when freed); after reuse_freed_arrays the next one is served from
+    the heap, where the freed one was."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT), MALLOC_TRIM_THRESHOLD_="65536")
+
+    def mapped_bytes(mode):
+        run = subprocess.run([sys.executable, "-c", _MAPPED_BYTES, mode], env=env, capture_output=True,
+                             text=True, check=True)
+        return int(run.stdout.split()[-1])
+
+    assert mapped_bytes("plain") >= 16 << 20
+    assert mapped_bytes("set") < 16 << 20
 
 
 def test_unreachable_scheduler_is_a_cluster_failure(takes, tmp_path):

@@ -41,12 +41,11 @@ from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_path
 from facepipe.io.model_file import load_model
 from facepipe.io.replay_folder import ReplayDir
-from facepipe.mocap import parse_frame_slice, read_take
 from facepipe.mocap import registry as take_registry
-from facepipe.mocap.cleaning import CleanOptions
 from facepipe.mocap.landmarks2d import is_landmark_take
-from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows
+from facepipe.mocap.marker_take import MarkerTakeOptions, read_marker_take
 from facepipe.batch.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
+from facepipe.batch.worker_memory import reuse_freed_arrays
 from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
 
 STAMP_NAME = "batch_take.json"
@@ -85,6 +84,12 @@ class ReplayOptions:
         key = {k: v for k, v in asdict(self).items() if k not in ("device", "chunk", "neutral_take")}
         key["neutral_take_digest"] = file_digest(self.neutral_take) if self.neutral_take else None
         return key
+
+    def marker_take(self) -> MarkerTakeOptions:
+        """The options of reading and preparing the take, as replay's."""
+        return MarkerTakeOptions(take_units=self.take_units, subject=self.subject, clean=self.clean,
+                                 stabilise=self.stabilise, neutral_frame=self.neutral_frame,
+                                 neutral_take=self.neutral_take, frames=self.frames, smooth=self.smooth)
 
 
 @dataclass(frozen=True)
@@ -309,25 +314,11 @@ def replay_into(take_path: str, out_dir: Path, model, evaluator, options: Replay
     if is_landmark_take(take_path):
         raise InputError("a 2D landmark take: batch replays marker takes", path=take_path,
                          hint="replay it with 'facepipe replay TAKE --camera … --landmarks …'")
-    read = dict(units=model.meta.get("units"), take_units=options.take_units, subject=options.subject,
-                absent="missing" if options.clean else "error", allow_empty_frames=True)
-    take = read_take(take_path, model.marker_names, **read)
-    neutral = read_take(options.neutral_take, model.marker_names, **read) if options.neutral_take else None
-    prepare = PrepareOptions(neutral_frame=options.neutral_frame, neutral_take=neutral, stabilise=options.stabilise,
-                             clean=options.clean, frames=parse_frame_slice(options.frames) if options.frames else None,
-                             clean_options=CleanOptions(smooth=options.smooth))
-    prepared = prepare_take_windows(take, model, prepare)
-    take = take if prepare.frames is None else take.select(prepare.frames)
-
-    def take_report():
-        gaps = prepared.report()
-        return {"take": str(take_path), "mocap": gaps, "markers": gaps["markers"],
-                "extra_markers": take.extra_markers, **extra}
-
+    marker_take = read_marker_take(take_path, model, options.marker_take())
     _reset_counters(evaluator)
-    result = replay_windows(model, prepared.windows(), take.frames, take.times, out_dir, chunk=options.chunk,
-                            evaluator=evaluator, head_motion=options.head_motion, extra_report=take_report,
-                            save_large=options.save_large)
+    result = replay_windows(model, marker_take.prepared.windows(), marker_take.take.frames, marker_take.take.times,
+                            out_dir, chunk=options.chunk, evaluator=evaluator, head_motion=options.head_motion,
+                            extra_report=lambda: {**marker_take.report(), **extra}, save_large=options.save_large)
     return result.report
 
 
@@ -389,6 +380,7 @@ def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, 
     try:
         threads = worker_threads(slots_by_host)
         parallel.set_thread_count(threads)
+        reuse_freed_arrays()  # undo what the nanny's MALLOC_TRIM_THRESHOLD_ costs every chunk
         for name in POCL_THREADS_ENV:  # before this process's first OpenCL context
             os.environ.setdefault(name, str(threads))
         options_key = options.fingerprint()

@@ -81,19 +81,23 @@ def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler
                             smooth=smooth)
     cluster = ClusterSpec(workers=workers, scheduler=scheduler, scheduler_file=scheduler_file,
                           connect_timeout=connect_timeout)
-    rep.say(f"batch on the {cluster.describe()}")
-    with rep.bar(0, unit="take", desc="batch") as bar:
-        def progress(record):
-            if record.status == "failed" and not rep.quiet:
-                bar.write(f"failed: {record.name}: {record.error}")
-            bar.update(1)
+    bars = []  # opened once the takes and the model are found good, so bad input is said alone
 
-        def start(total):
-            bar.total = total
-            bar.refresh()
+    def start(total):
+        rep.say(f"batch of {total} takes on the {cluster.describe()}")
+        bars.append(rep.bar(total, unit="take", desc="batch"))
 
+    def progress(record):
+        if record.status == "failed" and not rep.quiet:
+            bars[0].write(f"failed: {record.name}: {record.error}")
+        bars[0].update(1)
+
+    try:
         result = run_batch(takes, model_path, output, options, exports=exports, force=force, cluster=cluster,
                            retries=retries, progress=progress, on_start=start)
+    finally:
+        for bar in bars:
+            bar.close()
     _summary(rep, result, Path(output))
     return result.exit_status
 

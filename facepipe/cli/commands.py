@@ -218,10 +218,10 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     """
 
     from facepipe.cli.progress import LazyBar, StageBar
-    from facepipe.mocap.cleaning import CLEAN_STEPS, CleanOptions
-    from facepipe.mocap import parse_frame_slice, read_take
+    from facepipe.mocap.cleaning import CLEAN_STEPS
     from facepipe.io.model_file import load_model
-    from facepipe.mocap.prepare import PrepareOptions, prepare_take_windows, summary_lines
+    from facepipe.mocap.marker_take import MarkerTakeOptions, read_marker_take
+    from facepipe.mocap.prepare import summary_lines
     from facepipe.io.edits_file import read_edits
     from facepipe.pipeline.replay import edited_windows, replay_windows
 
@@ -277,26 +277,15 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     evaluator_future = setup.submit(_make_evaluator, model, backend, device, chunk, rep)
     setup.shutdown(wait=False)
     try:
-        # absent markers are filled through the prior when cleaning; without it they are an error
-        read = dict(units=units, take_units=take_units, subject=subject, absent="error" if no_clean else "missing",
-                    allow_empty_frames=True)
-        take_data = read_take(take, model.marker_names, **read)
-        neutral = read_take(neutral_take, model.marker_names, **read) if neutral_take else None
-        options = PrepareOptions(neutral_frame=neutral_frame, neutral_take=neutral, stabilise=not no_stabilise,
-                                 clean=not no_clean, frames=parse_frame_slice(frames_text) if frames_text else None,
-                                 clean_options=CleanOptions(smooth=smooth))
         # a long take is cleaned window by window, each while the previous one is on the device
-        prepared = prepare_take_windows(take_data, model, options)
+        marker_take = read_marker_take(take, model, MarkerTakeOptions(
+            take_units=take_units, subject=subject, clean=not no_clean, stabilise=not no_stabilise,
+            neutral_frame=neutral_frame, neutral_take=neutral_take, frames=frames_text, smooth=smooth))
     except BaseException:
         wait([evaluator_future])  # the take's error is the one to report; the setup's outcome no longer matters
         raise
     evaluator = evaluator_future.result()
-    take_data = take_data if options.frames is None else take_data.select(options.frames)
-
-    def take_report():  # asked for once every window is cleaned (each is cleaned once)
-        gap_report = prepared.report()
-        return {"take": str(take), "mocap": gap_report, "markers": gap_report["markers"],
-                "extra_markers": take_data.extra_markers}
+    take_data, prepared = marker_take.take, marker_take.prepared
 
     # cleaning steps on a bar of their own; the frame bar opens with its first frames, so its rate
     # and ETA are the evaluation's
@@ -308,7 +297,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
             windows = edited_windows(windows, take_data.frames, edits)
         result = replay_windows(model, windows, take_data.frames, take_data.times,
                                 Path(output), chunk=chunk, evaluator=evaluator, head_motion=head_motion,
-                                progress=bar.update, extra_report=take_report, save_large=save_large_scale)
+                                progress=bar.update, extra_report=marker_take.report, save_large=save_large_scale)
     gap_report = prepared.report()
     r = result.report
     rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
