@@ -1,5 +1,7 @@
 """Validation of the local-strain model's kernel width and ridge (pipeline.strain_validation)."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -72,3 +74,15 @@ def test_fit_validates_a_local_strain_rig(strain_config):
     assert len(pairs) == len(report["details"]) >= 4
     best = min(r["cv_rms"] for r in report["details"] if r["accepted"])
     assert chosen["cv_rms"] == best
+
+
+@pytest.mark.parametrize("line", ["strain_width = [0.0, 0.1]", "strain_ridge = []", "strain_ridge = [-1.0]"])
+def test_bad_strain_candidates_are_refused_naming_the_key(strain_config, line):
+    from facepipe.errors import InputError
+    from facepipe.io.config import load_config
+
+    bad = strain_config.parent / "bad.toml"  # (beside the rig's files)
+    key = line.split()[0]
+    bad.write_text(re.sub(rf"^{key} = .*$", line, strain_config.read_text(), count=1, flags=re.M))
+    with pytest.raises(InputError, match=key):
+        load_config(bad)
