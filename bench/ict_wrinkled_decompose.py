@@ -43,7 +43,7 @@ from facepipe.pipeline.fit import fit_rig
 from facepipe.pipeline.rig import load_rig, load_sequence
 
 FACE = slice(0, 9409)
-KERNELS = [(0.08, 0.3), (0.04, 0.03), (0.16, 3.0)]
+KERNELS = [(0.08, 0.3)]  # the config default (the kit's validated pair is in bench/ict_wrinkled.json)
 
 
 def scores(P, T, S, large_rms=None) -> dict:
@@ -158,8 +158,9 @@ def main():
     near = np.union1d(np.union1d(held - 1, held), held + 1)
     meshes = np.arange(26)
     result = {"prepare_s": time.perf_counter() - t0}
-    result["kit"] = run_split("kit 80-119", np.r_[meshes, 26 + np.arange(80)], 26 + np.arange(80, 120), ctx)
     result["interleaved"] = run_split("interleaved", np.r_[meshes, 26 + np.setdiff1d(frames, near)], 26 + held, ctx)
+    Path(args.json).write_text(json.dumps(result, indent=1))  # (the kit split takes as long again)
+    result["kit"] = run_split("kit 80-119", np.r_[meshes, 26 + np.arange(80)], 26 + np.arange(80, 120), ctx)
     result["seconds"] = time.perf_counter() - t0
     Path(args.json).write_text(json.dumps(result, indent=1))
 
