@@ -17,7 +17,7 @@ mean and pooled over frames) and the worst frame against the large scale alone:
 * "oracle S": the plain truth as the large scale, details = the true wrinkle layer, fitted over
   WPSD's features or over the plain truth's own local strain (what each feature carries of the
   wrinkles when the large scale is perfect and the strain exact);
-* local strain of the shell (the ``local_strain`` method) at several kernel widths and ridges;
+* local strain of the shell (the ``local_strain`` method) with the kernels of ``KERNELS``;
 * hybrid: WPSD for the smooth error, then the local strain of the WPSD-corrected surface for
   the rest.
 
@@ -43,7 +43,7 @@ from facepipe.pipeline.fit import fit_rig
 from facepipe.pipeline.rig import load_rig, load_sequence
 
 FACE = slice(0, 9409)
-KERNELS = [(0.08, 0.3)]  # the config default (the kit's validated pair is in bench/ict_wrinkled.json)
+KERNELS = [(0.08, 0.3)]  # the config's default (validated pairs: bench/ict_wrinkled_local_strain_validated.json)
 
 
 def scores(P, T, S, large_rms=None) -> dict:
