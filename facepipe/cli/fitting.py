@@ -75,7 +75,7 @@ def say_choice(rep, report: dict, units: str) -> None:
     c, d = report["chosen"], report["default"]
     rep.say(f"validated in {report['seconds']['total']:.1f} s on {len(report['folds'])} folds of held-out "
             f"expressions: k_stretch {c['k_stretch']:g}, β ×{c['beta_scale']:g}, λ {c['smoothing']:g}, "
-            f"τ {c['novelty_tau']:g}, P {c['poses']}")
+            f"τ {c['novelty_tau']:g}, P {c['poses']}" + _strain_choice(c))
     rep.say(f"  why: held-out RMS {c['cv_rms']:.4f} {units} against {d['cv_rms']:.4f} with the config's values "
             f"and {c['large_cv_rms']:.4f} with the large scale alone; the largest basis (then the strongest "
             f"novelty gate) among the candidates within a standard error of the best, no held-out expression "
@@ -89,6 +89,13 @@ def say_choice(rep, report: dict, units: str) -> None:
                 f"{100 * report['max_regression']:g} %: the details would do harm on unseen expressions; {what}")
 
 
+def _strain_choice(chosen: dict) -> str:
+    """The local-strain model's validated kernel width and ridge, where it has them."""
+    if "strain_width" not in chosen:
+        return ""
+    return f", strain kernel σ {chosen['strain_width']:g}, ridge {chosen['strain_ridge']:g}"
+
+
 def say_performance_choice(rep, report: dict, units: str) -> None:
     """What validation on held-out time blocks of the training performance (and held-out
     expressions) chose and why."""
@@ -97,7 +104,7 @@ def say_performance_choice(rep, report: dict, units: str) -> None:
     rep.say(f"validated in {report['seconds']['total']:.1f} s on {n_blocks} held-out time blocks of the performance"
             + (f" and {n_expr} folds of held-out expressions" if n_expr else "")
             + f": k_stretch {c['k_stretch']:g}, β ×{c['beta_scale']:g}, λ {c['smoothing']:g}, "
-              f"τ {c['novelty_tau']:g}, P {c['poses']}")
+              f"τ {c['novelty_tau']:g}, P {c['poses']}" + _strain_choice(c))
     rep.say(f"  new mixtures (held-out time blocks): RMS {c['cv_rms']:.4f} {units} against {d['cv_rms']:.4f} with "
             f"the config's values and {c['large_cv_rms']:.4f} with the large scale alone")
     if n_expr:

@@ -62,6 +62,9 @@ class TuneConfig:
     beta_scale: list = field(default_factory=lambda: [0.5, 1.0, 2.0])
     smoothing: list = field(default_factory=lambda: [0.0, 0.01, 0.1])
     novelty_tau: list = field(default_factory=lambda: [0.1, 0.15, 0.2, 0.3])  # the novelty gate (0 = off)
+    # method local_strain: the kernel width σ and ridge λ (strain has no unit: any face, any scale)
+    strain_width: list = field(default_factory=lambda: [0.02, 0.04, 0.08, 0.16])
+    strain_ridge: list = field(default_factory=lambda: [0.03, 0.3, 3.0])
     max_poses: int = 16  # largest basis tried (at least [psd] max_poses, at most the training examples)
     folds: int = 5  # cross-validation folds (whole expressions per fold)
     vertices: str = ""  # vertex range the errors are measured on, e.g. "0:9409" (default: all)
@@ -213,6 +216,10 @@ def load_config(path: str | Path) -> Config:
         values = getattr(tune, key)
         if not values or any(v < 0 for v in values):
             raise InputError(f"[tune] {key} must be a non-empty list of numbers ≥ 0", path=path)
+    for key in ("strain_width", "strain_ridge"):
+        values = getattr(tune, key)
+        if not values or any(not v > 0 for v in values):
+            raise InputError(f"[tune] {key} must be a non-empty list of numbers > 0", path=path)
     if tune.folds < 2 or tune.max_poses < 1 or tune.sample_vertices < 1 or tune.max_regression < 0:
         raise InputError("[tune] folds must be ≥ 2, max_poses and sample_vertices ≥ 1, max_regression ≥ 0",
                          path=path)

@@ -48,6 +48,8 @@ from facepipe.pipeline.geodesics import geodesic_from
 from facepipe.pipeline.cross_validation import expression_groups, holdout_folds
 from facepipe.pipeline.evaluate import parse_vertex_range
 from facepipe.pipeline.fit import Geometry, feature_graph
+from facepipe.pipeline.strain_validation import (choose_strain, held_out_errors, sampled_strains, strain_grid,
+                                                   strain_table)
 
 
 def _with_unique(values, default) -> list[float]:
@@ -99,6 +101,10 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
         if n_frames >= MIN_FRAMES_PER_BLOCK * tune.folds else []
     expression_ok = len(mesh_names) >= 3 and len(set(expression_groups(mesh_names).tolist())) >= 2
     splits = time_splits + (expression_splits(mesh_names, tune.folds) if expression_ok else [])
+    if cfg.psd.method == "local_strain":  # its own parameters, σ and λ of the kernel regression
+        return _strain_report(rig, geo, poses, sampled_details[best_k], sample, best_k, splits,
+                              dict(n_meshes=len(mesh_names), time_splits=time_splits, expression_ok=expression_ok),
+                              default, limit, dict(shell=shell_rows, k_values=k_values, t0=t0, t_shell=t_shell))
     distances = geodesics.finish() if geodesics is not None else \
         geodesic_from(edge_graph(geo.rest, geo.faces), geo.handles)
     max_poses = min(max(tune.max_poses, default["poses"]), len(names))
@@ -170,6 +176,58 @@ def tune_rig(rig, tune=None, progress=None, geodesics=None) -> dict:
     }
 
 
+def _strain_report(rig, geo, poses: np.ndarray, details: np.ndarray, sample: np.ndarray, best_k: float,
+                   splits: list, layout: dict, default: dict, limit: float, stage1: dict) -> dict:
+    """Stage 2 of :func:`tune_rig` for method ``local_strain``: σ and λ of the kernel regression,
+    cross-validated on ``splits`` (:mod:`facepipe.pipeline.strain_validation`) with the chosen
+    shell; ``details`` (E + 1, S, 3) of the poses on the ``sample`` vertices with that shell."""
+    cfg, tune = rig.config, rig.config.tune
+    t_details = time.perf_counter()
+    large = geo.rest + shell_displacements(geo.rest, geo.faces, geo.handles, rig.anchors,
+                                           poses[:, geo.handles] - geo.rest[geo.handles], k_stretch=best_k,
+                                           k_bend=cfg.shell.k_bend, spacing=geo.spacing)
+    strains = sampled_strains(geo.rest, geo.faces, geo.neighbors, large, sample)
+    del large
+    grid = strain_grid(tune.strain_width, tune.strain_ridge, cfg.psd.strain_width, cfg.psd.strain_ridge)
+    errors = held_out_errors(strains, details, splits, grid)
+    large_errors = rms_per_pose(np.zeros_like(details[1:]), details[1:])
+    n_meshes, time_splits = layout["n_meshes"], layout["time_splits"]
+    mesh_cols = np.arange(n_meshes) if layout["expression_ok"] else np.zeros(0, dtype=np.int64)
+    frame_cols = np.arange(n_meshes, len(poses) - 1) if time_splits else np.zeros(0, dtype=np.int64)
+    fixed = dict(k_stretch=best_k, beta_scale=default["beta_scale"], smoothing=default["smoothing"],
+                 novelty_tau=0.0, poses=default["poses"])
+    default_pair = (float(cfg.psd.strain_width), float(cfg.psd.strain_ridge))
+    rows, default_row = strain_table(errors, large_errors, frame_cols, mesh_cols, default_pair, limit, fixed)
+    chosen = choose_strain(rows)
+    harm = chosen["cv_rms"] > limit * chosen["large_cv_rms"]
+    names = list(rig.example_names)
+    now = time.perf_counter()
+    return {
+        "method": "local_strain",
+        "vertices": tune.vertices or "all",
+        "sample_vertices": int(len(sample)),
+        "examples": names,
+        "validation": ("time blocks + expressions" if len(mesh_cols) else "time blocks") if time_splits
+        else "expressions",
+        "time_blocks": [[names[h[0] - 1], names[h[-1] - 1]] for _, h in time_splits],
+        "expression_folds": len(splits) - len(time_splits),
+        "folds": [[names[j - 1] for j in held] for _, held in splits],
+        "stopped_early": [],
+        "max_regression": tune.max_regression,
+        "shell": stage1["shell"],
+        "details": rows,
+        "large_cv_rms": {str(best_k): float(large_errors.mean())},
+        "default": dict(default, strain_width=default_pair[0], strain_ridge=default_pair[1],
+                        cv_rms=default_row["cv_rms"]),
+        "chosen": chosen,
+        "harm": bool(harm),
+        "fallback": bool(harm and tune.fallback),
+        "candidates": {"k_stretch": stage1["k_values"], "strain_width": sorted({w for w, _ in grid}),
+                       "strain_ridge": sorted({r for _, r in grid})},
+        "seconds": {"shell": stage1["t_shell"], "details": now - t_details, "total": now - stage1["t0"]},
+    }
+
+
 def validation_obstacle(cfg, names: list[str]) -> str | None:
     """Why the rig's examples cannot validate its parameters, or None when they can: a thin shell
     (whose stiffness is chosen), a detail method, at least 3 examples in at least 2 expressions
@@ -178,8 +236,6 @@ def validation_obstacle(cfg, names: list[str]) -> str | None:
         return "validation chooses the thin shell's stiffness and [shell] method is 'rbf'"
     if cfg.psd.method == "none":
         return "[psd] method is 'none': there are no details to validate"
-    if cfg.psd.method == "local_strain":
-        return "[psd] method is 'local_strain': its kernel width and ridge are not validated yet"
     n_frames = sequence_pose_count(cfg, names)
     if n_frames >= MIN_FRAMES_PER_BLOCK * cfg.tune.folds:
         return None  # held-out time blocks of the performance validate
@@ -549,6 +605,9 @@ def tuned_config(config, report: dict):
     out.psd.smoothing = float(chosen["smoothing"])
     out.psd.max_poses = int(chosen["poses"])
     out.psd.novelty_tau = float(chosen["novelty_tau"])
+    if "strain_width" in chosen:  # method local_strain
+        out.psd.strain_width = float(chosen["strain_width"])
+        out.psd.strain_ridge = float(chosen["strain_ridge"])
     if report["fallback"]:
         out.psd.method = "none"
     return out
