@@ -482,7 +482,7 @@ def _greedy_wpsd_least_squares(features, details, max_poses, tolerance, alpha, r
     ``observe``) along the way by the Tikhonov counterpart of the truncated pseudo-inverse, a
     batched LU rather than an SVD per vertex and step; the model returned is the exact one of
     :func:`fit_details` for the chosen basis."""
-    E, V = features.shape[0], details.shape[1]
+    V = details.shape[1]
     n_add = min(max_poses, len(candidates))
     mask = np.zeros(V, dtype=bool)
     mask[error_vertices] = True

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facepipe.core.mesh import Mesh, triangulate
+from facepipe.core.mesh import Mesh
 from facepipe.errors import InputError
 
 

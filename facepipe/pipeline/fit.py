@@ -243,7 +243,7 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
         clock[0] = now
 
     t0 = clock[0]
-    rest, faces, handles = rig.mesh.vertices, rig.mesh.faces, rig.handles
+    rest, handles = rig.mesh.vertices, rig.handles
     if geodesics is None:
         geodesics = handle_geodesics(rig.mesh, handles)
     elif geodesics.n_vertices != rest.shape[0] or not np.array_equal(geodesics.sources, handles):
