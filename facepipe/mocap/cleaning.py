@@ -44,7 +44,7 @@ from scipy.spatial.transform import Rotation
 
 from facepipe.mocap.gaps import fill_gaps
 from facepipe.core.rigid import interpolate_poses, rigid_fit, rotation_from_vector, stable_marker_pose
-from facepipe.core.temporal import hat_diagonal, smooth_series
+from facepipe.core.temporal import noise_variance_share, smooth_series
 
 __all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
            "noise_sigma", "rotation_from_vector"]
@@ -823,9 +823,11 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
 
     With ``temporal``, each marker's residual is first smoothed over the take
     (:func:`facepipe.core.temporal.smooth_series`: the off-span expression is smooth, the noise
-    white), and the Wiener shrink then weighs the off-span variance τ² against the noise that
-    passes that smoother at each frame (the diagonal of its hat matrix times σ², larger at the take's
-    ends) rather than against all of σ².
+    white), and the Wiener shrink then weighs, per frame, the smoothed residual's signal variance
+    against the noise left in it there (σ² times the diagonal of H², about twice as large at the
+    take's ends as in its middle). The signal variance is measured on the smoothed residual itself,
+    over the whole take (its mean square less the noise's): τ², measured on the unsmoothed
+    per-frame residual, also holds what the per-frame fit left behind and overstates it.
     """
     never = ~known.any(axis=0)
     res_known = np.where(never[None, :, None], 0.0, residual)
@@ -836,9 +838,10 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
         smoothed, lam, _ = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
         res_filled = smoothed.reshape(T, H, 3)
         # per frame: the first and last frames keep more of the noise than the middle
-        passed = {value: hat_diagonal(T, value) for value in np.unique(lam)}
-        share = np.stack([passed[value] for value in lam], axis=1)  # (T, H)
-        keep = noise.tau2 / np.maximum(noise.tau2 + share * noise.sigma**2, 1e-300)
+        passed = {value: noise_variance_share(T, value) for value in np.unique(lam)}
+        noise_var = noise.sigma**2 * np.stack([passed[value] for value in lam], axis=1)  # (T, H)
+        signal = np.maximum(np.mean(res_filled**2, axis=(0, 2)) - noise_var.mean(axis=0), 0.0)  # (H,)
+        keep = signal / np.maximum(signal + noise_var, 1e-300)
     else:
         keep = np.broadcast_to(keep, known.shape)
     fade = np.exp(-_distance_to_visible(known) / max(opt.decay * fps, 1e-9))
