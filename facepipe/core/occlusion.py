@@ -115,13 +115,17 @@ def _candidate_triangles(vertices, faces, grid: dict):
     lo, cell, nx, ny = grid["lo"], grid["cell"], grid["nx"], grid["ny"]
     a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
     S = grid["occupied"].reshape(len(vertices), -1)   # summed-area table per frame, flat
+    # every frame's vertices in grid units at once, in single precision (a cell's bounds need no more)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        GX = ((vertices[..., 0] / vertices[..., 2] - lo[0]) / cell).astype(np.float32)
+        GY = ((vertices[..., 1] / vertices[..., 2] - lo[1]) / cell).astype(np.float32)
+    Z32 = vertices[..., 2].astype(np.float32)
+    near_enough = np.float32(1.0 + 1e-6) * grid["farthest_of_frame"]
+    tri_all = _triangles_near_grid(GX, GY, Z32, near_enough, faces, nx, ny)
+    a, b, c = a[tri_all], b[tri_all], c[tri_all]
     parts = []
-    for f, v in enumerate(vertices):  # one frame at a time: flat takes, in single precision (a cell's bounds need no more)
-        vz = v[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gx = ((v[:, 0] / vz - lo[0]) / cell).astype(np.float32)
-            gy = ((v[:, 1] / vz - lo[1]) / cell).astype(np.float32)
-        z32 = vz.astype(np.float32)
+    for f in range(len(vertices)):  # one frame at a time: flat takes
+        gx, gy, z32 = GX[f], GY[f], Z32[f]
         z_near = np.minimum(np.minimum(z32[a], z32[b]), z32[c])
         xa, xb, xc, ya, yb, yc = gx[a], gx[b], gx[c], gy[a], gy[b], gy[c]
         with np.errstate(invalid="ignore"):
@@ -129,7 +133,7 @@ def _candidate_triangles(vertices, faces, grid: dict):
             x1 = np.maximum(np.maximum(xa, xb), xc)
             y0 = np.minimum(np.minimum(ya, yb), yc)
             y1 = np.maximum(np.maximum(ya, yb), yc)
-            keep = ((z_near > 0) & (z_near < np.float32(1.0 + 1e-6) * grid["farthest_of_frame"][f])
+            keep = ((z_near > 0) & (z_near < near_enough[f])
                     & (x1 >= 0) & (x0 < nx) & (y1 >= 0) & (y0 < ny))
         tri = np.flatnonzero(keep)
         x0 = np.clip(x0[tri], 0, nx - 1).astype(np.int64)
@@ -153,6 +157,25 @@ def _candidate_triangles(vertices, faces, grid: dict):
         px[k], py[k], iz[k] = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2], 1.0 / X[:, 2]
     return {"frame": frame, "z_near": 1.0 / iz.max(axis=0), "x0": x0, "x1": x1, "y0": y0, "y1": y1,
             "affine": _affine_maps(px, py, iz)}
+
+
+def _triangles_near_grid(gx, gy, z, near_enough, faces, nx: int, ny: int) -> np.ndarray:
+    """Indices of the triangles that can pass the per-frame test of :func:`_candidate_triangles` in
+    some frame. A triangle fails it in a frame when all three corners lie on one far side of the
+    grid there (left of it, right, below, above, or no nearer than ``near_enough``, the frame's
+    farthest point): each vertex gets one bit per side (Cohen–Sutherland outcodes), the bits a
+    vertex has in every frame of the chunk are kept, and a triangle whose corners share one is
+    dropped for all frames. Only what the per-frame test drops anyway is dropped (the same
+    comparisons on the same single-precision values), so the result does not change; the frames'
+    passes then take the triangles near the template points alone, not the whole mesh.
+
+    gx, gy, z : (F, V) float32 vertices in grid units and depth; near_enough : (F,)."""
+    with np.errstate(invalid="ignore"):  # NaN (a vertex on the camera plane) sets no bit: kept
+        sides = ((gx < 0).astype(np.uint8) | ((gx >= nx).astype(np.uint8) << 1) | ((gy < 0).astype(np.uint8) << 2)
+                 | ((gy >= ny).astype(np.uint8) << 3) | ((z >= near_enough[:, None]).astype(np.uint8) << 4))
+    always = np.bitwise_and.reduce(sides, axis=0)  # (V,) the sides a vertex is on in every frame
+    shared = always[faces[:, 0]] & always[faces[:, 1]] & always[faces[:, 2]]
+    return np.flatnonzero(shared == 0)
 
 
 def _affine_maps(px: np.ndarray, py: np.ndarray, iz: np.ndarray) -> list:
