@@ -178,7 +178,8 @@ def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: A
     with np.errstate(divide="ignore", invalid="ignore"):
         spacing = np.nanmedian(np.linalg.norm(np.diff(grid[..., :2] / grid[..., 2:], axis=3), axis=-1))
     hidden = occluded_points(X[:, :, 0].reshape(F, -1, 3), camera_positions, model.faces, tolerance,
-                             cell=spacing if np.isfinite(spacing) and spacing > 0 else None)
+                             cell=spacing if np.isfinite(spacing) and spacing > 0 else None,
+                             groups=np.repeat(np.arange(R), N))  # the triangles culled per region
     return np.broadcast_to(hidden.reshape(F, R, 1, N), (F, R, S, N))
 
 
