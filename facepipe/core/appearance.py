@@ -508,7 +508,10 @@ def _fit_light_rows(values, albedo, normals, ok, iterations: int) -> np.ndarray:
         light = np.stack([np.linalg.lstsq(n, r, rcond=None)[0] for n, r in zip(normal, rhs)])
         r = b - (A @ light[..., None])[..., 0]
         # every row here has points: the median over them is finite
-        scale = 1.4826 * np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1, keepdims=True) + 1e-9
+        # (with every point usable the plain median, the same number without nanmedian's row-by-row loop)
+        spread = np.median(np.abs(r), axis=-1, keepdims=True) if ok.all() else \
+            np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1, keepdims=True)
+        scale = 1.4826 * spread + 1e-9
         w = ok / (1.0 + (r / (2.385 * scale)) ** 2)
     return light
 
