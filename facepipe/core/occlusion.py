@@ -10,9 +10,12 @@ the ideal pinhole image (lens distortion moves where a ray lands on the sensor, 
 it meets first).
 
 Only pairs of a point and a triangle whose projections can meet are tested: the points are
-binned in a grid of cells in the projection, triangles not over any occupied cell are dropped at
-once (a summed-area table of the occupied cells), and each remaining triangle is tested against
-the points of the cells its bounding box covers. Pure functions over arrays.
+binned in a grid of cells in the projection; the triangles are first culled, once for all the
+frames of a call, to those whose bounding box over the frames meets the box of cells of some
+group of points (a template's; by default all points are one group); in each frame those not
+over any occupied cell are dropped (a summed-area table of the occupied cells), and each
+remaining triangle is tested against the points of the cells its bounding box covers. Pure
+functions over arrays.
 """
 
 from __future__ import annotations
