@@ -274,3 +274,30 @@ def test_partly_hidden_patch_classified_on_its_seen_texels():
     seen2 = np.concatenate([np.zeros_like(seen), seen], axis=2)
     np.testing.assert_allclose(classify_regions(two, bank, seen=seen2)[0], q_seen, atol=1e-12)
     assert np.isnan(classify_regions(covered, bank, seen=np.zeros_like(seen))[0]).all()
+
+
+def test_masked_templates_kept_per_mask_give_the_same_distances():
+    # the templates normalised over a mask are kept and reused: distances from a bank that has
+    # seen the masks (and one whose store overflows and is emptied) equal a fresh bank's, and each
+    # sample's equal those of it matched alone
+    rng = np.random.default_rng(21)
+    templates = [haar_coefficients(normalise_patches(rng.uniform(0.5, 1.5, size=(n, 16, 16)))) for n in (3, 5)]
+    args = (templates, [select_coefficients(t, 50) for t in templates], coefficient_weights(16))
+    masks = rng.uniform(size=(3, 16, 16)) < 0.7
+    pick = np.array([0, 1, 2, 0, 1, 1, 2, 0])
+    region = np.array([0, 1, 1, 0, 0, 1, 0, 1])
+    mask = masks[pick]
+    norm = normalise_patches(rng.uniform(0.5, 1.5, size=(8, 16, 16)), True, mask)
+    fresh = RegionBank(*args).masked_distances(norm, mask, region)
+    alone = np.concatenate([RegionBank(*args).masked_distances(norm[i:i + 1], mask[i:i + 1], region[i:i + 1])
+                            for i in range(8)])
+    np.testing.assert_allclose(fresh, alone, rtol=1e-12)
+    warm = RegionBank(*args)
+    warm.masked_distances(norm[:3], mask[:3], region[:3])      # some masks stored first
+    np.testing.assert_allclose(warm.masked_distances(norm, mask, region), fresh, rtol=1e-12)
+    np.testing.assert_allclose(warm.masked_distances(norm, mask, region), fresh, rtol=1e-12)  # all from the store
+    small = RegionBank(*args)
+    small.MASK_CACHE = 2
+    small.masked_distances(norm[:3], mask[:3], region[:3])
+    np.testing.assert_allclose(small.masked_distances(norm, mask, region), fresh, rtol=1e-12)
+    assert len(small._mask_cache) <= max(2, len(set(zip(pick, region))))

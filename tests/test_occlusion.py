@@ -95,3 +95,46 @@ def test_point_facing_of_a_tilted_plane():
         cam = v @ R.T + np.array([0.0, 0.0, 50.0])
         sign = -1.0 if np.cross(cam[1] - cam[0], cam[2] - cam[0])[2] > 0 else 1.0  # the side toward the camera
         assert point_facing(cam, faces, face, bary, sign)[0] == pytest.approx(expected, abs=1e-9)
+
+
+def test_culling_per_group_matches_brute_force():
+    # small clusters of points (a template's) on a far wavy sheet behind a nearer, moving one:
+    # the triangles culled against each cluster's box, the answer the brute-force cast's
+    import facepipe.core.occlusion as occlusion
+
+    rng = np.random.default_rng(5)
+    gx, gy = np.meshgrid(np.linspace(-2, 2, 41), np.linspace(-2, 2, 41))
+    quads = [(i * 41 + j, i * 41 + j + 1, (i + 1) * 41 + j) for i in range(40) for j in range(40)]
+    quads += [(i * 41 + j + 1, (i + 1) * 41 + j + 1, (i + 1) * 41 + j) for i in range(40) for j in range(40)]
+    grid_faces = np.array(quads)
+    far = np.stack([gx, gy, 8.0 + 0.3 * np.sin(2 * gx) * np.cos(gy)], -1).reshape(-1, 3)
+    faces = np.vstack([grid_faces, grid_faces + len(far)])
+    centres = rng.uniform(-1.5, 1.5, size=(5, 2))
+    groups = np.repeat(np.arange(5), 60)
+    xy = centres[groups] + rng.uniform(-0.15, 0.15, size=(300, 2))
+    z = 8.0 + 0.3 * np.sin(2 * xy[:, 0]) * np.cos(xy[:, 1])
+    points, verts = [], []
+    for f in range(3):  # the near sheet moves across the clusters from frame to frame
+        near = np.stack([0.2 * gx + 0.3 * f - 0.3, 0.2 * gy, np.full_like(gx, 5.0)], -1).reshape(-1, 3)
+        verts.append(np.vstack([far, near]))
+        points.append(np.column_stack([xy, z]))
+    points, verts = np.stack(points), np.stack(verts)
+    kept = []
+    original = occlusion._triangles_near_groups
+
+    def spy(*args):
+        kept.append(len(original(*args)))
+        return original(*args)
+
+    occlusion._triangles_near_groups = spy
+    try:
+        culled = occluded_points(points, verts, faces, 1e-6, groups=groups)
+        whole = occluded_points(points, verts, faces, 1e-6)
+    finally:
+        occlusion._triangles_near_groups = original
+    assert kept[0] < 0.5 * len(faces)  # the culling did drop most of the mesh
+    for f in range(3):
+        slow = segment_hits(points[f], verts[f], faces, 1e-6)
+        assert slow.sum() > 20 and (~slow).sum() > 20
+        np.testing.assert_array_equal(culled[f], slow)
+    np.testing.assert_array_equal(culled, whole)

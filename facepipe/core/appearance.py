@@ -239,7 +239,10 @@ class RegionBank:
     product gives every region's distances over its own terms, as :func:`match_distances` does.
     """
 
+    MASK_CACHE = 1024  # (region, mask) pairs whose normalised templates are kept: 12 kB each at 6 layers of 16²
+
     def __init__(self, templates, indices, weights):
+        self._mask_cache: dict = {}
         R = len(templates)
         C = len(weights)
         n_max = max(len(t) for t in templates)
@@ -278,12 +281,7 @@ class RegionBank:
         """
         M = len(region)
         m = np.asarray(mask, dtype=bool).reshape(M, 1, -1)
-        templates = self.pixels[region]                                           # (M, n, size²)
-        # the stored templates were normalised over all their texels (by their plane over all
-        # of them): that plane back, the plane of the seen texels out (the same with all seen)
-        plane_seen, mean = _masked_plane(templates, m, shading)
-        floor = np.maximum(0.1 * np.abs(mean), 1e-6)
-        templates = np.where(m, templates * self.plane_all[region] / np.maximum(plane_seen, floor), 0.0)
+        templates = self._masked_templates(m[:, 0], np.asarray(region), shading)  # (M, n, size²)
         diff = np.asarray(normalised).reshape(M, 1, -1) - templates              # 0 off the mask
         d = np.empty(diff.shape[:2])
         for r in np.unique(region):  # each region's kept Haar rows on its own patches (no gathered copies)
@@ -292,6 +290,35 @@ class RegionBank:
             d[rows] = (c * c) @ self.kept_weights[r]
         d *= (m.shape[-1] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
         return np.where(self.absent[region], np.inf, d)
+
+    def _masked_templates(self, masks: np.ndarray, region: np.ndarray, shading: bool) -> np.ndarray:
+        """(M, n, size²) each region's templates normalised over a mask (M, size²), zero off it.
+
+        The stored templates were normalised over all their texels (by their plane over all of
+        them): that plane back, the plane of the seen texels out (the same with all seen). What a
+        camera cannot see of a region (a fold turned edge-on, a brow over the lid) changes slowly,
+        so the same masks come back frame after frame: each (region, mask) is normalised once and
+        kept (up to ``MASK_CACHE`` of them)."""
+        keys = [(int(r), bool(shading), k.tobytes()) for r, k in zip(region, masks)]
+        cache = self._mask_cache
+        new = {}
+        for i, key in enumerate(keys):
+            if key not in cache and key not in new:
+                new[key] = i
+        found = {}
+        if new:
+            first = np.fromiter(new.values(), dtype=np.int64, count=len(new))
+            m = masks[first][:, None, :]
+            templates = self.pixels[region[first]]
+            plane_seen, mean = _masked_plane(templates, m, shading)
+            floor = np.maximum(0.1 * np.abs(mean), 1e-6)
+            normalised = np.where(m, templates * self.plane_all[region[first]] / np.maximum(plane_seen, floor), 0.0)
+            found = dict(zip(new, normalised))
+        out = np.stack([found[k] if k in found else cache[k] for k in keys])
+        if len(cache) + len(found) > self.MASK_CACHE:
+            cache.clear()
+        cache.update(found)
+        return out
 
     def distances(self, coefficients: np.ndarray) -> np.ndarray:
         """(..., R, S, n) distances of coefficients (..., R, S, C) to every region's templates."""
@@ -475,12 +502,16 @@ def _fit_light_rows(values, albedo, normals, ok, iterations: int) -> np.ndarray:
     light = np.zeros(values.shape[:1] + (9,))
     for _ in range(iterations):
         Aw = A * w[..., None]
-        normal = np.einsum("bki,bkj->bij", Aw, A) + penalty * w.sum(axis=-1)[:, None, None]
-        rhs = np.einsum("bki,bk->bi", Aw, b)
+        # products through BLAS (matmul), not einsum's loops: a tenth of the time
+        normal = Aw.swapaxes(-1, -2) @ A + penalty * w.sum(axis=-1)[:, None, None]
+        rhs = (Aw.swapaxes(-1, -2) @ b[..., None])[..., 0]
         light = np.stack([np.linalg.lstsq(n, r, rcond=None)[0] for n, r in zip(normal, rhs)])
-        r = b - np.einsum("bki,bi->bk", A, light)
+        r = b - (A @ light[..., None])[..., 0]
         # every row here has points: the median over them is finite
-        scale = 1.4826 * np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1, keepdims=True) + 1e-9
+        # (with every point usable the plain median, the same number without nanmedian's row-by-row loop)
+        spread = np.median(np.abs(r), axis=-1, keepdims=True) if ok.all() else \
+            np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1, keepdims=True)
+        scale = 1.4826 * spread + 1e-9
         w = ok / (1.0 + (r / (2.385 * scale)) ** 2)
     return light
 

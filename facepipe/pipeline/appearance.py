@@ -31,6 +31,7 @@ from facepipe.core.occlusion import occluded_points
 from facepipe.core.raster import triangle_pixels
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
+from facepipe.parallel import serial_blas
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import open_footage, read_frames, to_gray
 
@@ -129,7 +130,12 @@ def sample_templates(gray: np.ndarray, camera_positions: np.ndarray, model: Appe
     return patches[0], visible[0], seen[0]
 
 
-def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
+def template_positions(camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """Camera-space positions (F, R, 5, N, 3) of every template point in frames (F, V, 3)."""
+    return np.einsum("rsnk,frsnkc->frsnc", model.template_bary, camera_positions[:, model.faces[model.template_face]])
+
+
+def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, points=None
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Template samples (F, R, 5, size, size) of frames (F, H, W) with their geometry (F, V, 3) in
     camera space, each region's visibility (F, R) and which template points the camera sees
@@ -139,10 +145,10 @@ def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, mode
     ``occlusion``) no part of the face lies in front of it (its ray cast against the animated
     mesh, :func:`facepipe.core.occlusion.occluded_points`: a lowered brow over an eyelid, the
     nose over the far cheek of a turned head). A region is visible when it faces the camera and
-    at least ``min_seen`` of its points are seen."""
+    at least ``min_seen`` of its points are seen (``points``: :func:`template_positions` where
+    already computed)."""
     F = len(grays)
-    X = np.einsum("rsnk,frsnkc->frsnc", model.template_bary,
-                  camera_positions[:, model.faces[model.template_face]])  # (F, R, 5, N, 3)
+    X = template_positions(camera_positions, model) if points is None else points  # (F, R, 5, N, 3)
     pixels = project_distorted_fast(model.camera, X)
     values = np.empty(X.shape[:-1])
     seen = np.empty(X.shape[:-1], dtype=bool)
@@ -173,7 +179,8 @@ def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: A
     with np.errstate(divide="ignore", invalid="ignore"):
         spacing = np.nanmedian(np.linalg.norm(np.diff(grid[..., :2] / grid[..., 2:], axis=3), axis=-1))
     hidden = occluded_points(X[:, :, 0].reshape(F, -1, 3), camera_positions, model.faces, tolerance,
-                             cell=spacing if np.isfinite(spacing) and spacing > 0 else None)
+                             cell=spacing if np.isfinite(spacing) and spacing > 0 else None,
+                             groups=np.repeat(np.arange(R), N))  # the triangles culled per region
     return np.broadcast_to(hidden.reshape(F, R, 1, N), (F, R, S, N))
 
 
@@ -492,15 +499,25 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
 def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Q (F, R) of frames' luminance (F, H, W) with their geometry in camera space (F, V, 3), NaN
-    where a region is hidden, and each region's visibility (F, R)."""
+    where a region is hidden, and each region's visibility (F, R).
+
+    BLAS runs on one thread here: its products are small (a light fit's 9 × 9, a chunk's
+    patches), and OpenBLAS's threads only wait on each other over them, taking CPU time from
+    whatever else runs (a classification's CPU time halves)."""
+    with serial_blas():
+        return _classify_chunk(grays, camera_positions, model, bank)
+
+
+def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank) -> tuple[np.ndarray, np.ndarray]:
     bank = ap.RegionBank(model.templates, model.indices, model.weights) if bank is None else bank
-    patches, visible, seen = sample_template_frames(grays, camera_positions, model)
+    points = template_positions(camera_positions, model)
+    patches, visible, seen = sample_template_frames(grays, camera_positions, model, points)
     normals = None
     if model.light_face is not None:
         shading, normals = frame_shading(grays, camera_positions, model, with_normals=True)
         patches = patches / shading
     if model.min_point_facing > 0:
-        seen = seen & (template_point_facing(camera_positions, model, normals) > model.min_point_facing)
+        seen = seen & (template_point_facing(camera_positions, model, normals, points) > model.min_point_facing)
         if model.template_facing is not None:  # a point the examples saw edge-on has no template worth matching
             s = model.template_size
             seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
@@ -510,12 +527,14 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
     return np.where(visible, q, np.nan), visible
 
 
-def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, normals=None) -> np.ndarray:
+def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, normals=None, points=None
+                          ) -> np.ndarray:
     """Cosine (F, R, 5, size, size) between the smooth surface's normal at every template point
-    and its direction to the camera (``normals``: those normals (F, R, 5, N, 3) where known).
+    and its direction to the camera (``normals``: those normals (F, R, 5, N, 3), ``points``:
+    :func:`template_positions`, where known).
     Near 0 the camera sees the skin edge-on: a template's rows crowd into a pixel or two, and
     what is sampled there is the image's blur, not the texture."""
-    X = np.einsum("rsnk,frsnkc->frsnc", model.template_bary, camera_positions[:, model.faces[model.template_face]])
+    X = template_positions(camera_positions, model) if points is None else points
     if normals is None:
         normals = point_normals(camera_positions, model.faces, model.template_face, model.template_bary,
                                 model.normal_sign)
