@@ -36,11 +36,15 @@ test-fast: venv
 
 # the paper's configuration: ~530k vertices, 89 markers on the shell, 6 example poses (a few minutes);
 # then `facepipe batch` of 32 sample-rig takes on a LocalCluster of 2 workers against one
-# `facepipe replay` per take (bench/batch.json, several minutes)
+# `facepipe replay` per take (bench/batch.json, several minutes); then appearance classification on
+# rendered ICT footage (bench/appearance_ict.json, a few minutes, where the kit is beside the checkout)
 bench: venv
 	$(BIN)/python -m bench.paper_scale -o bench/results.json --vertices 530000 --markers 89 --examples 6 --frames 128
 	$(BIN)/python -m bench.point_caches_speed --json bench/point_caches_speed.json
 	$(BIN)/python -m bench.batch_speed -o bench/batch.json --takes 32 --frames 200 --workers 2
+	@# appearance classification (8 regions) on rendered ICT footage: needs the kit in ../shared
+	if [ -d ../shared/data/ict ]; then $(BIN)/python -m bench.appearance_ict --out bench/work/appearance --json bench/appearance_ict.json; \
+	else echo "bench.appearance_ict skipped: the ICT kit (../shared/data/ict) is not here"; fi
 
 clean:
 	rm -rf $(DEMO) bench/results.* bench/batch.json bench/work .pytest_cache
