@@ -19,9 +19,9 @@ Pure arrays; a banded solve per λ, O(T) per column.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import cholesky_banded, eigvals_banded, solveh_banded
+from scipy.linalg import eigvals_banded, solveh_banded
 
-__all__ = ["LAMBDAS", "hat_diagonal", "noise_variance_share", "smooth_series", "whittaker"]
+__all__ = ["LAMBDAS", "noise_variance_share", "smooth_series", "whittaker"]
 
 #: λ candidates for the cross-validation (frames⁴: λ ≈ (smoothing length in frames)⁴ / 16)
 LAMBDAS = np.logspace(-2, 7, 37)
@@ -54,35 +54,6 @@ def whittaker(y: np.ndarray, lam: float) -> np.ndarray:
     ab = lam * _penalty_bands(T)
     ab[2] += 1.0
     return solveh_banded(ab, y.reshape(T, -1)).reshape(y.shape)
-
-
-def hat_diagonal(T: int, lam: float) -> np.ndarray:
-    """(T,) the diagonal of the Whittaker smoother's hat matrix (I + λ DᵀD)⁻¹: the share of a frame's
-    white noise that stays in that frame's smoothed value — larger at a take's first and last
-    frames, which have neighbours on one side only.
-
-    The band of the inverse from the banded Cholesky factor (Takahashi's recursion), O(T); the
-    inverse itself is never formed.
-    """
-    if T < 3 or lam <= 0:
-        return np.ones(T)
-    ab = lam * _penalty_bands(T)
-    ab[2] += 1.0
-    U = cholesky_banded(ab)  # upper form: U[2 - k, j] = U_{j-k, j}; A = UᵀU
-    d = U[2] ** 2  # A = L diag(d) Lᵀ with L = Uᵀ / diag(U), unit lower
-    L1 = np.zeros(T)  # L_{i+1, i}
-    L2 = np.zeros(T)  # L_{i+2, i}
-    L1[:-1] = U[1, 1:] / U[2, :-1]
-    L2[:-2] = U[0, 2:] / U[2, :-2]
-    z0 = np.zeros(T + 2)  # Z_ii
-    z1 = np.zeros(T + 2)  # Z_{i, i+1}
-    z2 = np.zeros(T + 2)  # Z_{i, i+2}
-    for i in range(T - 1, -1, -1):
-        # Z_{i, j} = -Σ_k L_ki Z_kj over k = i+1, i+2 (j > i); Z_ii = 1/d_i - Σ_k L_ki Z_ki
-        z2[i] = -(L1[i] * z1[i + 1] + L2[i] * z0[i + 2])
-        z1[i] = -(L1[i] * z0[i + 1] + L2[i] * z1[i + 1])
-        z0[i] = 1.0 / d[i] - L1[i] * z1[i] - L2[i] * z2[i]
-    return z0[:T]
 
 
 def noise_variance_share(T: int, lam: float, block: int = 512) -> np.ndarray:

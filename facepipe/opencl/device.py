@@ -121,6 +121,7 @@ def select_device(spec: str | None = None):
 
 
 _compile_errors: dict = {}
+_probe_lock = threading.Lock()
 
 
 def compiles(device) -> bool:
@@ -129,7 +130,7 @@ def compiles(device) -> bool:
     'generic' and refuses every kernel; the automatic choice passes such a device over (its
     reason kept for the error when none is left), so another driver's device serves."""
     cl = _cl()
-    with _lock:
+    with _probe_lock:
         if device.int_ptr not in _compile_errors:
             try:
                 cl.Program(cl.Context([device]), "__kernel void probe(__global float *a) { a[0] = 1.0f; }").build()
@@ -180,16 +181,12 @@ def build_program(context, defines: dict, name: str = "replay.cl"):
         if program is None:
             try:
                 program = cl.Program(context, kernel_source(name)).build(options=list(options))
-            except cl.RuntimeError as exc:
-                if "unknown target CPU" not in str(exc):
-                    raise
-                # PoCL's LLVM is older than the CPU (e.g. LLVM 14 on AMD Zen 5): it names it
-                # "generic", which its own compiler then refuses. Every kernel fails alike.
+            except cl.RuntimeError:
                 device = context.devices[0]
-                raise OpenCLUnavailable(
-                    f"the OpenCL driver {device.platform.version.strip()!r} cannot compile kernels for this CPU "
-                    "(its LLVM does not know it: 'unknown target CPU'); a PoCL built on a newer LLVM, or one "
-                    "that picks its target from the CPU's features (Debian's pocl-opencl-icd 3.1 does), works"
-                ) from None
+                if compiles(device):
+                    raise  # the kernel's own error: the driver builds other programs
+                where = " for this CPU" if device.type & cl.device_type.CPU else ""
+                raise OpenCLUnavailable(f"the OpenCL driver {device.platform.version.strip()!r} cannot compile "
+                                        f"kernels{where} ({_compile_errors[device.int_ptr]})") from None
             _programs[key] = program
         return program
