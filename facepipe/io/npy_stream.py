@@ -209,7 +209,10 @@ class NpyWriter:
             self._fd = None
         if self.direct:
             self._view = None
-            self._buf.close()
+            try:
+                self._buf.close()
+            except BufferError:  # still viewed (an error's traceback holds a slice): freed with it
+                pass
         if self._own_regions:
             for region in self._regions.values():
                 try:
