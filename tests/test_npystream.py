@@ -63,6 +63,61 @@ def test_falls_back_to_buffered_where_direct_io_is_refused(tmp_path, monkeypatch
     np.testing.assert_array_equal(np.load(tmp_path / "b.npy"), data.astype(np.float32))
 
 
+def _is_direct(fd) -> bool:
+    import fcntl
+
+    return bool(fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_DIRECT)
+
+
+@pytest.mark.skipif(not hasattr(os, "O_DIRECT"), reason="no direct I/O on this system")
+def test_falls_back_to_buffered_where_direct_writes_are_refused(tmp_path, monkeypatch):
+    """Some file systems open with O_DIRECT and refuse the writes (EINVAL): the header's write
+    says so and the same bytes are written buffered."""
+    real_write = os.write
+
+    def refuse_direct(fd, data):
+        if _is_direct(fd):
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(npystream.os, "write", refuse_direct)
+    data = _rows((4, 10, 3), seed=2)
+    with NpyWriter(tmp_path / "b.npy", data.shape, direct=True) as w:
+        w.write(data)
+    assert not w.direct
+    np.testing.assert_array_equal(np.load(tmp_path / "b.npy"), data.astype(np.float32))
+
+
+@pytest.mark.parametrize("direct", [True, False])
+def test_a_failed_write_is_the_error_raised_and_everything_is_released(tmp_path, monkeypatch, direct):
+    """A disk error in the middle of a file (raised on the writer's thread, as replay's sink
+    raises it) comes out as itself, not as an error of the clean-up; the file and the staging
+    buffer are released while it propagates (its traceback holds the writing frames)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    monkeypatch.setattr(npystream, "BUFFER", 3 * BLOCK)
+    real_write = os.write
+    calls = []
+
+    def failing(fd, data):
+        calls.append(fd)
+        if len(calls) == 3:
+            raise OSError(errno.EIO, "Input/output error")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(npystream.os, "write", failing)
+    data = _rows((7, 1001, 3))
+    with pytest.raises(OSError) as info:
+        with NpyWriter(tmp_path / "e.npy", data.shape, direct=direct) as w, \
+                ThreadPoolExecutor(1) as sink:
+            for k in range(7):
+                sink.submit(w.write, data[k:k + 1]).result()
+    assert info.value.errno == errno.EIO and len(calls) == 3
+    assert w._fd is None
+    if w.direct:
+        assert w._buf.closed
+
+
 @pytest.mark.parametrize("direct", [True, False])
 def test_refuses_incomplete_files_and_wrong_rows(tmp_path, direct):
     with pytest.raises(RuntimeError, match="wrote 1 of 2"):

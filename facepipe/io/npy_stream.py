@@ -90,8 +90,9 @@ class NpyWriter:
         try:
             self._flush_blocks()  # the header block: a file system that refuses direct writes says so now
         except OSError as exc:
-            os.close(fd)
             self._fd = None
+            os.close(fd)
+            self._view = None
             self._buf.close()
             if exc.errno != errno.EINVAL:
                 raise
@@ -143,7 +144,8 @@ class NpyWriter:
         end = staged + nbytes
         whole = end - end % BLOCK
         if whole:
-            self._write_all(memoryview(region)[:whole])
+            with memoryview(region)[:whole] as blocks:
+                self._write_all(blocks)
         self._view[:end - whole] = view[whole:end]
         self._staged = end - whole
 
@@ -176,15 +178,21 @@ class NpyWriter:
         """Write the staged whole blocks; the partial last block moves to the buffer's start."""
         whole = self._staged - self._staged % BLOCK
         if whole:
-            self._write_all(memoryview(self._buf)[:whole])
+            with memoryview(self._buf)[:whole] as blocks:
+                self._write_all(blocks)
             tail = self._staged - whole
             self._view[:tail] = self._view[whole:self._staged]
             self._staged = tail
 
     def _write_all(self, data) -> None:
-        data = memoryview(data)
-        while len(data):
-            data = data[os.write(self._fd, data):]
+        rest = memoryview(data)
+        try:
+            while len(rest):
+                rest = rest[os.write(self._fd, rest):]
+        finally:
+            # a write error's traceback keeps this frame: without the view in it, the staging
+            # buffer can still be closed while that error propagates
+            rest.release()
 
     def close(self) -> None:
         if self._fd is None:
@@ -205,8 +213,10 @@ class NpyWriter:
 
     def _release(self) -> None:
         if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+            # forgotten before it is closed: were close() to fail, no later call (``__del__``)
+            # would close the number again, by then perhaps another file's
+            fd, self._fd = self._fd, None
+            os.close(fd)
         if self.direct:
             self._view = None
             try:
