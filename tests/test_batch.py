@@ -4,6 +4,7 @@ ones; every take's positions.npy compared with a serial `facepipe replay` of it,
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -203,6 +204,136 @@ def test_unreachable_scheduler_is_a_cluster_failure(takes, tmp_path):
     assert code == 1
     report = json.loads((out / "batch.json").read_text())
     assert report["cluster_error"] and report["takes"][0]["status"] == "failed"
+
+
+_ATTEMPT = """
+import json, pickle, sys, time
+from pathlib import Path
+
+from facepipe.batch import jobs
+from facepipe.io import npy_stream
+
+args, flags, role = pickle.loads(Path(sys.argv[1]).read_bytes()), Path(sys.argv[2]), sys.argv[3]
+if role == "first":  # stops after its first rows until told to go on
+    write = npy_stream.NpyWriter.write
+
+    def write_then_wait(self, rows):
+        write(self, rows)
+        if not (flags / "writing").exists():
+            (flags / "writing").touch()
+            deadline = time.monotonic() + 300
+            while not (flags / "go").exists() and time.monotonic() < deadline:
+                time.sleep(0.01)
+
+    npy_stream.NpyWriter.write = write_then_wait
+try:
+    result = {"record": jobs.replay_take_task(*args)}
+except Exception as exc:
+    result = {"raised": f"{exc.__class__.__name__}: {exc}"}
+(flags / f"{role}.json").write_text(json.dumps(result))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("force", [False, True])
+def test_two_attempts_at_one_take_at_once_leave_it_complete_once(takes, tmp_path, force):
+    """Dask runs a take again while an attempt it gave up on still runs (a worker it lost but
+    that lives on): the second attempt starts while the first is writing positions.npy. Both
+    end well, the take is replayed once, its outputs are complete and a serial replay's, and
+    nothing half-written is left. With --force the second attempt, of the same batch, keeps
+    what the first completed rather than replaying it again."""
+    import pickle
+
+    from facepipe.batch.jobs import ATTEMPTS_NAME, STAMP_NAME, ModelRef, file_digest
+
+    root, model, paths = takes
+    out, flags = tmp_path / "out", tmp_path / "flags"
+    flags.mkdir()
+    job = plan_jobs([paths[1]], out, "batch-1")[0] if force else plan_jobs([paths[1]], out)[0]
+    args = (job, ModelRef(str(model.resolve()), file_digest(model)), ReplayOptions(backend="numpy"), (), force)
+    (flags / "args.pickle").write_bytes(pickle.dumps(args))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), FACEPIPE_THREADS="1")
+
+    def attempt(role):
+        return subprocess.Popen([sys.executable, "-c", _ATTEMPT, str(flags / "args.pickle"), str(flags), role],
+                                env=env, cwd=ROOT)
+
+    def started() -> int:
+        log = out / paths[1].stem / ATTEMPTS_NAME
+        return sum('"worker"' in line for line in log.read_text().splitlines()) if log.is_file() else 0
+
+    first = attempt("first")
+    deadline = time.monotonic() + 300  # a bound on a hung test only
+    while not (flags / "writing").exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    second = attempt("second")
+    while started() < 2 and second.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    (flags / "go").touch()
+    assert first.wait(timeout=300) == 0 and second.wait(timeout=300) == 0
+    results = [json.loads((flags / f"{role}.json").read_text()) for role in ("first", "second")]
+    assert all("record" in r for r in results), results
+    records = [r["record"] for r in results]
+    assert [r["status"] for r in records] == ["ok", "ok"] and [r["frames"] for r in records] == [N_FRAMES] * 2
+    assert [r["replayed"] for r in records] == [True, False]  # the second kept the first's replay
+    assert records[1]["attempts"] == 2
+    take_dir = out / paths[1].stem
+    assert _same_as_serial(root, out, paths[1])
+    stamp = json.loads((take_dir / STAMP_NAME).read_text())
+    assert stamp["frames"] == N_FRAMES and stamp["take_digest"] == job.digest
+    assert json.loads((take_dir / "replay.json").read_text())["frames"] == N_FRAMES
+    assert not list(take_dir.rglob(".*.part*"))
+
+
+@pytest.mark.slow
+def test_an_attempts_error_is_reported_whole(takes, tmp_path, monkeypatch):
+    """A disk error in the middle of positions.npy is raised as itself (Dask runs the take again)
+    and logged with its traceback; the attempt that completes the take reports it. An internal
+    error is reported with its traceback, and with the error it was raised while handling."""
+    import errno
+
+    from facepipe import parallel
+    from facepipe.batch import jobs
+    from facepipe.io import npy_stream
+
+    root, model, paths = takes
+    monkeypatch.setattr(jobs, "reuse_freed_arrays", lambda: False)  # (this test's process keeps its allocator)
+    monkeypatch.setattr(parallel, "_override", parallel._override)
+    for name in jobs.POCL_THREADS_ENV:
+        monkeypatch.setenv(name, "1")
+    job = plan_jobs([paths[2]], tmp_path / "out", "batch-1")[0]
+    args = (job, jobs.ModelRef(str(model.resolve()), jobs.file_digest(model)), ReplayOptions(backend="numpy"))
+    real_write, calls = os.write, []
+
+    def failing_write(fd, data):
+        calls.append(fd)
+        if len(calls) == 2:
+            raise OSError(errno.EIO, "Input/output error")
+        return real_write(fd, data)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(npy_stream.os, "write", failing_write)
+        with pytest.raises(OSError, match="Input/output error"):
+            jobs.replay_take_task(*args)
+    record = jobs.replay_take_task(*args)
+    assert record["status"] == "ok" and record["attempts"] == 2 and record["replayed"]
+    [error] = record["attempt_errors"]
+    assert error["error"].startswith("OSError: [Errno 5] Input/output error (")
+    assert "_write_all" in error["traceback"] and "replay_windows" in error["traceback"]
+    assert _same_as_serial(root, tmp_path / "out", paths[2])
+
+    def broken_report(*a, **k):
+        try:
+            raise KeyError("frames")
+        except KeyError:
+            raise ValueError("the report could not be made")
+
+    monkeypatch.setattr(jobs, "replay_into", broken_report)
+    record = jobs.replay_take_task(dataclasses.replace(job, batch="batch-2"), *args[1:], force=True)
+    assert record["status"] == "failed" and record["error"].startswith(
+        "internal error ValueError: the report could not be made (test_batch.py:")
+    assert "raised while handling KeyError: 'frames'" in record["error"]
+    assert "KeyError: 'frames'" in record["traceback"] and "During handling" in record["traceback"]
 
 
 # ----------------------------------------------------------------------------- on a real cluster

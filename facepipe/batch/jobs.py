@@ -11,14 +11,19 @@ shared file system, checks it has the client's digest, and keeps it (and its eva
 OpenCL kernels are built once) for every later take with that digest.
 
 A take's folder is complete only once ``batch_take.json`` is written, last, atomically; the
-outputs before it are written atomically too. A worker killed mid-take leaves at most temporary
-``.NAME.part`` files (removed by the next attempt) and an attempt line in ``batch_attempts.jsonl``,
-which the attempt that completes the take reports (``attempts`` in ``batch.json``).
+outputs before it are written atomically too. Attempts at one take never overlap in its folder
+(:mod:`facepipe.batch.take_lock`): Dask can run a take again while an attempt it gave up on still
+runs, and that later attempt waits, then keeps what the earlier one of its batch completed. A
+worker killed mid-take leaves at most temporary ``.NAME.part`` files (removed by the next attempt)
+and an attempt line in ``batch_attempts.jsonl``; an attempt that fails on an error adds that
+error and its traceback there. The attempt that completes the take reports them all
+(``attempts``, ``attempt_workers``, ``attempt_errors`` in ``batch.json``).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import glob
 import hashlib
 import json
@@ -45,6 +50,7 @@ from facepipe.mocap import registry as take_registry
 from facepipe.mocap.landmarks2d import is_landmark_take
 from facepipe.mocap.marker_take import MarkerTakeOptions, read_marker_take
 from facepipe.batch.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
+from facepipe.batch.take_lock import take_lock
 from facepipe.batch.worker_memory import reuse_freed_arrays
 from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
 
@@ -102,12 +108,13 @@ class ModelRef:
 
 @dataclass(frozen=True)
 class TakeJob:
-    """One take of the batch: its file, digest and output folder."""
+    """One take of the batch: its file, digest and output folder, and the batch's id."""
 
     take: str
     name: str
     out_dir: str
     digest: str
+    batch: str | None = None
 
 
 @dataclass
@@ -122,8 +129,10 @@ class TakeRecord:
     seconds: float | None = None
     worker: str | None = None
     error: str | None = None
+    traceback: str | None = None  # where the error is not the input's: the whole exception, chained ones too
     attempts: int = 0
     attempt_workers: list = field(default_factory=list)
+    attempt_errors: list = field(default_factory=list)  # {worker, error, traceback} of attempts that erred
     replayed: bool = False
     model_loaded: bool = False  # this take's worker process read the model for it (once per process)
     exports: dict = field(default_factory=dict)
@@ -167,15 +176,15 @@ def expand_takes(specs) -> list[Path]:
     return unique
 
 
-def plan_jobs(takes: list[Path], out: Path) -> list[TakeJob]:
-    """A job per take, its folder ``out/<stem>``; two takes of one stem are refused."""
+def plan_jobs(takes: list[Path], out: Path, batch: str | None = None) -> list[TakeJob]:
+    """A job per take of the batch ``batch``, its folder ``out/<stem>``; two takes of one stem are refused."""
     by_name: dict[str, Path] = {}
     for take in takes:
         if take.stem in by_name:
             raise InputError(f"two takes would write to {out / take.stem}: {by_name[take.stem]} and {take}",
                              hint="batch them into different -o folders, or rename one")
         by_name[take.stem] = take
-    return [TakeJob(str(take), take.stem, str(out / take.stem), file_digest(take)) for take in takes]
+    return [TakeJob(str(take), take.stem, str(out / take.stem), file_digest(take), batch) for take in takes]
 
 
 def export_destination(out_dir: Path, name: str, fmt: str) -> Path:
@@ -322,22 +331,63 @@ def replay_into(take_path: str, out_dir: Path, model, evaluator, options: Replay
     return result.report
 
 
-def _start_attempt(out_dir: Path, worker: str) -> list[dict]:
-    """Log this attempt, remove what a killed attempt left half-written; every attempt so far."""
+def _log_attempt(out_dir: Path, worker: str) -> str:
+    """Log this attempt (before it waits for the folder: a waiting attempt is seen); its id."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    for part in out_dir.rglob(".*.part*"):
-        part.unlink(missing_ok=True)
-    line = json.dumps({"worker": worker, "host": socket.gethostname(), "pid": os.getpid(), "started": time.time()})
-    log = out_dir / ATTEMPTS_NAME
-    with open(log, "a", encoding="utf-8") as fh:  # one short O_APPEND write per attempt
-        fh.write(line + "\n")
-    attempts = []
-    for text in log.read_text(encoding="utf-8").splitlines():
+    attempt = uuid.uuid4().hex
+    _append_attempts(out_dir, {"attempt": attempt, "worker": worker, "host": socket.gethostname(),
+                               "pid": os.getpid(), "started": time.time()})
+    return attempt
+
+
+def _append_attempts(out_dir: Path, entry: dict) -> None:
+    with open(out_dir / ATTEMPTS_NAME, "a", encoding="utf-8") as fh:  # one short O_APPEND write per line
+        fh.write(json.dumps(entry) + "\n")
+
+
+def read_attempts(out_dir: Path) -> list[dict]:
+    """The attempts logged in a take's folder, in order, each with its ``error`` and
+    ``traceback`` where it failed on one."""
+    log = Path(out_dir) / ATTEMPTS_NAME
+    attempts: dict[str, dict] = {}
+    try:
+        text = log.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return []
+    for number, line in enumerate(text.splitlines()):
         try:
-            attempts.append(json.loads(text))
+            entry = json.loads(line)
         except ValueError:  # a line cut short by a kill
             continue
-    return attempts
+        # lines of older logs have no id: each is an attempt of its own
+        attempts.setdefault(entry.get("attempt") or f"line {number}", {}).update(entry)
+    return [a for a in attempts.values() if "worker" in a]
+
+
+def _remove_dead_parts(out_dir: Path) -> None:
+    """Remove what killed attempts left half-written (called with the folder's lock held: no
+    live attempt has files here)."""
+    for part in out_dir.rglob(".*.part*"):
+        part.unlink(missing_ok=True)
+
+
+def describe_error(exc: BaseException) -> str:
+    """An internal error in a line: its class, message and where it was raised, and the error it
+    was raised while handling, if any (the original, which a failing clean-up would hide)."""
+    where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+    text = f"{exc.__class__.__name__}: {exc}" + (f" ({Path(where.filename).name}:{where.lineno})" if where else "")
+    first = exc
+    while first.__context__ is not None and not first.__suppress_context__:
+        first = first.__context__
+    if first is not exc:
+        where = traceback.extract_tb(first.__traceback__)[-1] if first.__traceback__ else None
+        text += (f", raised while handling {first.__class__.__name__}: {first}"
+                 + (f" ({Path(where.filename).name}:{where.lineno})" if where else ""))
+    return text
+
+
+def format_traceback(exc: BaseException) -> str:
+    return "".join(traceback.format_exception(exc))
 
 
 class _ReplayWithModel(ReplayDir):
@@ -370,13 +420,33 @@ def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, 
 
     Returns the take's :class:`TakeRecord` as a dict; a bad take (InputError, or any error of its
     own) is a ``failed`` record, not an exception, so the batch goes on and Dask does not retry
-    it. Errors of the storage (OSError) are raised: Dask retries them (``retries``)."""
+    it. Errors of the storage (OSError) are raised: Dask retries them (``retries``); each is
+    logged with its traceback and reported by the attempt that ends the take.
+
+    The attempt holds the take folder's lock throughout (another attempt at this take, of this
+    batch or another, waits); an attempt of the same batch that finds the take completed by
+    another keeps those outputs, ``--force`` or not."""
     t0 = time.perf_counter()
     worker = _worker_name()
     out_dir = Path(job.out_dir)
-    attempts = _start_attempt(out_dir, worker)
+    attempt = _log_attempt(out_dir, worker)
+    try:
+        with take_lock(out_dir):
+            return _attempt_take(job, model_ref, options, exports, force, slots_by_host, worker, t0)
+    except OSError as exc:  # the storage: Dask runs the take again (retries); said in the log first
+        with contextlib.suppress(OSError):
+            _append_attempts(out_dir, {"attempt": attempt, "error": describe_error(exc),
+                                       "traceback": format_traceback(exc)})
+        raise
+
+
+def _attempt_take(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, exports: tuple[str, ...], force: bool,
+                  slots_by_host: dict | None, worker: str, t0: float) -> dict:
+    out_dir = Path(job.out_dir)
+    _remove_dead_parts(out_dir)
+    attempts = read_attempts(out_dir)
     record = TakeRecord(job.take, job.name, job.out_dir, "ok", worker=worker, attempts=len(attempts),
-                        attempt_workers=[a.get("worker") for a in attempts])
+                        attempt_workers=[a.get("worker") for a in attempts], attempt_errors=_attempt_errors(attempts))
     try:
         threads = worker_threads(slots_by_host)
         parallel.set_thread_count(threads)
@@ -384,7 +454,12 @@ def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, 
         for name in POCL_THREADS_ENV:  # before this process's first OpenCL context
             os.environ.setdefault(name, str(threads))
         options_key = options.fingerprint()
-        stamp = None if force else _read_stamp(out_dir)
+        stamp = _read_stamp(out_dir)
+        # completed by another attempt of this batch (one Dask gave up on, or ran twice): kept
+        by_this_batch = job.batch is not None and stamp is not None and stamp.get("batch") == job.batch
+        redo = force and not by_this_batch
+        if redo:
+            stamp = None
         if _replay_matches(stamp, job, model_ref, options_key):
             record.frames = stamp.get("frames")
             done_exports = dict(stamp.get("exports", {}))
@@ -398,22 +473,29 @@ def replay_take_task(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, 
             record.frames, record.replayed, done_exports = report["frames"], True, {}
             stamp = {"take": job.take, "take_digest": job.digest, "model": model_ref.path,
                      "model_digest": model_ref.digest, "options": options_key, "frames": record.frames}
-        for fmt in (exports if record.replayed or force else _exports_left(stamp, job, exports)):
+        to_export = exports if record.replayed or redo else _exports_left(stamp, job, exports)
+        for fmt in to_export:
             model, loaded = cached_model(model_ref)
             record.model_loaded |= loaded
             done_exports[fmt] = _export_take(out_dir, job.name, fmt, model, model_ref.path)
         record.exports = {fmt: done_exports[fmt] for fmt in exports}
-        _write_stamp(out_dir, dict(stamp, exports=done_exports, completed=time.time()))
+        if record.replayed or to_export or not by_this_batch:  # a finished take's stamp is left as it is
+            _write_stamp(out_dir, dict(stamp, exports=done_exports, batch=job.batch, completed=time.time()))
     except OSError:
         raise
     except InputError as exc:
         record.status, record.error = "failed", str(exc)
     except Exception as exc:  # this take's own failure (a bug it exposes): reported with where it happened
-        where = traceback.extract_tb(exc.__traceback__)[-1]
         record.status = "failed"
-        record.error = f"internal error {exc.__class__.__name__}: {exc} ({Path(where.filename).name}:{where.lineno})"
+        record.error = f"internal error {describe_error(exc)}"
+        record.traceback = format_traceback(exc)
     record.seconds = time.perf_counter() - t0
     return asdict(record)
+
+
+def _attempt_errors(attempts: list[dict]) -> list[dict]:
+    return [{"worker": a.get("worker"), "error": a["error"], "traceback": a.get("traceback")}
+            for a in attempts if a.get("error")]
 
 
 def _write_stamp(out_dir: Path, stamp: dict) -> None:
@@ -440,17 +522,10 @@ class BatchResult:
         return 1 if self.cluster_error else 2 if self.failed else 0
 
 
-def _failed_record(job: TakeJob, error: str) -> TakeRecord:
-    attempts = []
-    log = Path(job.out_dir) / ATTEMPTS_NAME
-    if log.is_file():
-        for text in log.read_text(encoding="utf-8").splitlines():
-            try:
-                attempts.append(json.loads(text).get("worker"))
-            except ValueError:
-                continue
-    return TakeRecord(job.take, job.name, job.out_dir, "failed", error=error, attempts=len(attempts),
-                      attempt_workers=attempts)
+def _failed_record(job: TakeJob, error: str, tb: str | None = None) -> TakeRecord:
+    attempts = read_attempts(Path(job.out_dir))
+    return TakeRecord(job.take, job.name, job.out_dir, "failed", error=error, traceback=tb, attempts=len(attempts),
+                      attempt_workers=[a.get("worker") for a in attempts], attempt_errors=_attempt_errors(attempts))
 
 
 def _gather(client, futures: dict, on_done) -> tuple[dict[str, TakeRecord], str | None]:
@@ -466,7 +541,7 @@ def _gather(client, futures: dict, on_done) -> tuple[dict[str, TakeRecord], str 
                     job, f"workers died while running this take, {exc.last_worker and 'last ' + str(exc.last_worker.address)}"
                          f" (too much memory for a worker? see the workers' logs)")
             except OSError as exc:  # the storage, after Dask's retries
-                records[job.name] = _failed_record(job, f"{exc.__class__.__name__}: {exc}")
+                records[job.name] = _failed_record(job, describe_error(exc), format_traceback(exc))
             on_done(records[job.name])
     except (Exception, asyncio.CancelledError) as exc:  # the scheduler lost, futures cancelled: the cluster failed
         return records, f"{exc.__class__.__name__}: {exc}"
@@ -487,7 +562,8 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
     exports = tuple(dict.fromkeys(exports))
     for fmt in exports:
         export_registry.get_format(fmt)
-    jobs = plan_jobs(expand_takes(take_specs), out)
+    batch_id = uuid.uuid4().hex[:8]  # task keys unique on a long-lived cluster; attempts know their batch
+    jobs = plan_jobs(expand_takes(take_specs), out, batch_id)
     load_model(model_path)  # a bad model is the user's to fix (exit 2), before any cluster starts
     model_ref = ModelRef(str(Path(model_path).resolve()), file_digest(model_path))
     options_key = options.fingerprint()
@@ -505,7 +581,6 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
         else:
             to_run.append(job)
     cluster_error, cluster_info = None, {"cluster": cluster.describe()}
-    batch_id = uuid.uuid4().hex[:8]  # task keys unique on a long-lived cluster
     if to_run:
         out.mkdir(parents=True, exist_ok=True)
         for job in to_run:  # this batch's attempts only
