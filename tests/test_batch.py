@@ -108,6 +108,14 @@ def cluster(takes):
         c.close()
 
 
+def _errors(out: Path) -> str:
+    """What went wrong with the takes of ``out/batch.json``, whole, for an assertion's message."""
+    report = json.loads((out / "batch.json").read_text())
+    return "\n".join(f"{t['name']}: {t['error']}\n{t.get('traceback') or ''}"
+                     + "".join(f"  attempt on {e['worker']}: {e['error']}\n{e['traceback']}" for e in t["attempt_errors"])
+                     for t in report["takes"] if t["error"] or t.get("attempt_errors"))
+
+
 def _same_as_serial(root: Path, out: Path, take: Path) -> bool:
     return np.array_equal(np.load(root / "serial" / take.stem / "positions.npy"),
                           np.load(out / take.stem / "positions.npy"))
@@ -352,7 +360,7 @@ def test_corrupt_take_is_reported_and_the_rest_go_on(takes, cluster, tmp_path):
     assert run_cli(*args) == 2
     report = json.loads((out / "batch.json").read_text())
     status = {t["name"]: t for t in report["takes"]}
-    assert report["failed"] == [str(bad)]
+    assert report["failed"] == [str(bad)], _errors(out)
     assert status["broken"]["status"] == "failed" and "broken.csv" in status["broken"]["error"]
     assert all(status[t.stem]["status"] == "ok" and status[t.stem]["frames"] == N_FRAMES for t in good)
     assert all(_same_as_serial(root, out, t) for t in good)
@@ -364,7 +372,7 @@ def test_corrupt_take_is_reported_and_the_rest_go_on(takes, cluster, tmp_path):
     assert [t["status"] for t in report["takes"]] == ["skipped"] * 3 + ["failed"]
     assert (out / good[0].stem / "positions.npy").stat().st_mtime_ns == mtime
     assert run_cli("--quiet", "batch", *good, "-m", model, "-o", out, "--scheduler-file", cluster.scheduler_file,
-                   "--backend", "numpy", "--force") == 0
+                   "--backend", "numpy", "--force") == 0, _errors(out)
     report = json.loads((out / "batch.json").read_text())
     assert [t["status"] for t in report["takes"]] == ["ok"] * 3 and all(_same_as_serial(root, out, t) for t in good)
     assert report["scheduler"] == cluster.address
@@ -423,7 +431,7 @@ def test_killed_worker_take_runs_elsewhere_and_the_batch_completes(takes, cluste
     runner.join(timeout=300)
     assert not runner.is_alive()
     assert killed_take is not None, "worker wA never started a take"
-    assert result["code"] == 0
+    assert result["code"] == 0, _errors(out)
     report = json.loads((out / "batch.json").read_text())
     assert report["totals"]["ok"] == N_TAKES and report["totals"]["retried"] >= 1
     record = next(t for t in report["takes"] if t["name"] == killed_take)
