@@ -98,6 +98,35 @@ def test_drag_patch_matches_the_full_frame(editor_rig, tmp_path):
     session.close()
 
 
+def test_drag_patch_frames_are_local_frames_of_the_moved_patch(editor_rig, tmp_path):
+    """A drag step's frames, made from terms linear in the offset, against local_frames of the
+    moved sub-mesh (vertex normals by the sparse incidence sum); degenerate rows take
+    local_frames' fallbacks."""
+    from facepipe.core.tangent_frames import frames_from_normals, local_frames
+
+    _, _, model, take = editor_rig
+    session = EditorSession(model, take, tmp_path / "e.json", mode="server")
+    try:
+        h, row = brow_handle(model), 6
+        base = session.handles(row)
+        base_final, base_large = session.evaluate(base, None)
+        patch = DragPatch(model, h, base, base_final, base_large, None)
+        offset = np.array([0.2, 0.6, -0.3])
+        sub = base_large[patch.used].astype(np.float64) + patch.column[patch.used, None].astype(np.float64) * offset
+        want = local_frames(sub, patch.sub_faces, patch.sub_neighbours)[patch.patch_local]  # (n, 3, 3)
+        got = np.stack(patch.frames(offset), axis=-1).transpose(1, 0, 2)  # (n, coordinate, column)
+        np.testing.assert_allclose(got, want, atol=2e-5)
+        # a zero normal, and a frame neighbour along the normal: the fallbacks of local_frames
+        patch.normal0[:, 0] = patch.normal1[:, 0] = 0.0
+        patch.edge0[:, 1], patch.edge1[1] = want[1, :, 2] * 0.3, 0.0
+        got = np.stack(patch.frames(offset), axis=-1).transpose(1, 0, 2)
+        normal = np.array([[0.0, 0.0, 1.0], want[1, :, 2]])
+        edges = np.stack([patch.edge0[:, k] + patch.edge1[k] * offset for k in (0, 1)])
+        np.testing.assert_allclose(got[:2], frames_from_normals(normal, edges), atol=1e-6)
+    finally:
+        session.close()
+
+
 def test_server_drag_messages_rebuild_the_patch_evaluation(editor_rig, tmp_path):
     """The drag's patch protocol: the page's rebuild (base + column × float32(offset), the patch's
     positions over it; as evaluate_worker.js does it) is DragPatch.evaluate bit for bit, and a page
