@@ -8,8 +8,9 @@
 // it had no time to show.
 import * as THREE from 'three';
 import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
-import { unpackBundle } from '/static/evaluate.js';
-import { faceMaterial, markerMaterial } from '/static/materials.js';
+import { unpackBundle, vertexNormals } from '/static/evaluate.js';
+import { faceMaterial, faceLight, markerMaterial } from '/static/materials.js';
+import { lightVertices } from '/static/shading.js';
 
 const $ = (id) => document.getElementById(id);
 const SKIN = [0.86, 0.72, 0.64];
@@ -64,16 +65,20 @@ renderer.setSize(window.innerWidth, window.innerHeight);
 document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x303338);
+// drawn: the positions and the lit colours of the front and back faces (bytes, see materials.js);
+// the normals stay in this thread (a Shift drag's direction)
 const geometry = new THREE.BufferGeometry();
 const positionAttr = new THREE.BufferAttribute(rest.slice(), 3);
 positionAttr.setUsage(THREE.DynamicDrawUsage);
 geometry.setAttribute('position', positionAttr);
-const normalAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
-normalAttr.setUsage(THREE.DynamicDrawUsage);
-geometry.setAttribute('normal', normalAttr);
-geometry.computeVertexNormals();
-const colorAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
-geometry.setAttribute('color', colorAttr);
+const frontAttr = new THREE.BufferAttribute(new Uint8Array(V * 4), 4, true);
+frontAttr.setUsage(THREE.DynamicDrawUsage);
+geometry.setAttribute('front', frontAttr);
+const backAttr = new THREE.BufferAttribute(new Uint8Array(V * 4), 4, true);
+backAttr.setUsage(THREE.DynamicDrawUsage);
+geometry.setAttribute('back', backAttr);
+let shownNormal = new Float32Array(V * 3);
+vertexNormals(triangles, rest, shownNormal, V);
 geometry.setIndex(new THREE.BufferAttribute(triangles, 1));
 geometry.computeBoundingSphere();
 
@@ -92,8 +97,9 @@ camera.lookAt(centre);
 // a key light from above and the side at a grazing angle: wrinkles show as shading
 const side = new THREE.Vector3().crossVectors(camera.up, view).normalize();
 const keyPosition = centre.clone().addScaledVector(view, radius * 0.8).addScaledVector(camera.up, radius * 2.5).addScaledVector(side, radius * 0.5);
-const material = faceMaterial(keyPosition.clone().sub(centre).normalize(), new THREE.Vector3(0, 1, 0));
-const face = new THREE.Mesh(geometry, material);
+const light = faceLight(keyPosition.clone().sub(centre).normalize(), new THREE.Vector3(0, 1, 0));
+lightVertices(shownNormal, SKIN, light, frontAttr.array, backAttr.array, V);
+const face = new THREE.Mesh(geometry, faceMaterial());
 scene.add(face);
 
 // the handles: round points, one draw
@@ -125,7 +131,7 @@ const worker = new Worker('/static/evaluate_worker.js', { type: 'module' });
 await new Promise((resolve, reject) => {
   worker.onmessage = (e) => e.data.op === 'ready' && resolve();
   worker.onerror = (e) => reject(new Error(`the evaluation worker failed: ${e.message}`));
-  worker.postMessage({ op: 'init', buffer: modelBuffer }, [modelBuffer]);
+  worker.postMessage({ op: 'init', buffer: modelBuffer, light, skin: SKIN }, [modelBuffer]);
 });
 let workerNext = null;  // the newest job waiting for the worker (older ones are dropped)
 function toWorker(job, transfer = []) {
@@ -138,7 +144,7 @@ function toWorker(job, transfer = []) {
 }
 function recycle(set) {
   worker.postMessage({ op: 'recycle', set }, [set.final.buffer, set.large.buffer, set.normal.buffer, set.detailN.buffer,
-                                               set.color.buffer]);
+                                               set.color.buffer, set.front.buffer, set.back.buffer]);
 }
 worker.onmessage = (event) => {
   const m = event.data;
@@ -148,6 +154,7 @@ worker.onmessage = (event) => {
   state.evaluations += 1;
   note('worker_evaluate', m.timings.evaluate);
   note('worker_normals', m.timings.normals);
+  note('worker_light', m.timings.light);
   if (incoming) recycle(incoming.set);
   incoming = m;
   schedule();
@@ -161,30 +168,25 @@ function heat(t) {  // 0..1 → dark blue, cyan, yellow, red
   return [Math.min(1, Math.max(0, 1.5 * t * 2 - 1)), Math.min(1, Math.max(0, 2 - Math.abs(4 * t - 2))), Math.min(1, Math.max(0, 1.5 - 3 * t))];
 }
 
-let colouredAs = null;
+// the lit colours of a frame: the worker's, or (error layer) the heat map lit here
 function colour(frame) {
-  const c = colorAttr.array;
-  if (frame.layer === 'details') {
-    c.set(frame.set.color);
-  } else if (frame.layer === 'error' && state.truth) {
-    const final = frame.set.final, e = new Float32Array(V);
+  if (frame.layer === 'error' && state.truth) {
+    const final = frame.set.final, e = new Float32Array(V), albedo = new Float32Array(3 * V);
     let top = 1e-12;
     for (let v = 0; v < V; v++) {
       const dx = final[3 * v] - state.truth[3 * v], dy = final[3 * v + 1] - state.truth[3 * v + 1], dz = final[3 * v + 2] - state.truth[3 * v + 2];
       e[v] = Math.sqrt(dx * dx + dy * dy + dz * dz);
       top = Math.max(top, e[v]);
     }
-    for (let v = 0; v < V; v++) { const [r, g, b] = heat(e[v] / top); c[3 * v] = r; c[3 * v + 1] = g; c[3 * v + 2] = b; }
+    for (let v = 0; v < V; v++) { const [r, g, b] = heat(e[v] / top); albedo[3 * v] = r; albedo[3 * v + 1] = g; albedo[3 * v + 2] = b; }
     $('message').textContent = `error up to ${top.toFixed(3)} ${meta.units || ''}`;
+    lightVertices(frame.set.normal, albedo, light, frontAttr.array, backAttr.array, V);
   } else {
-    if (colouredAs === 'skin') return;  // unchanged: no upload
-    for (let v = 0; v < V; v++) { c[3 * v] = SKIN[0]; c[3 * v + 1] = SKIN[1]; c[3 * v + 2] = SKIN[2]; }
-    colouredAs = 'skin';
-    colorAttr.needsUpdate = true;
-    return;
+    frontAttr.array.set(frame.set.front);
+    backAttr.array.set(frame.set.back);
   }
-  colouredAs = frame.layer;
-  colorAttr.needsUpdate = true;
+  frontAttr.needsUpdate = true;
+  backAttr.needsUpdate = true;
 }
 
 // once per animation frame: the newest finished frame (if any) is uploaded and the scene drawn
@@ -196,8 +198,7 @@ function present(now) {
     incoming = null;
     positionAttr.array.set(frame.layer === 'large' && frame.layered ? frame.set.large : frame.set.final);
     positionAttr.needsUpdate = true;
-    normalAttr.array.set(frame.set.normal);
-    normalAttr.needsUpdate = true;
+    shownNormal = frame.set.normal;
     colour(frame);
     handles = frame.handles;
     placeMarkers();
@@ -394,7 +395,7 @@ function ray(event) {
 }
 function handleNormal(h) {
   const v = handleVertices[h];
-  return new THREE.Vector3(normalAttr.getX(v), normalAttr.getY(v), normalAttr.getZ(v)).normalize();
+  return new THREE.Vector3(shownNormal[3 * v], shownNormal[3 * v + 1], shownNormal[3 * v + 2]).normalize();
 }
 // the handle drawn under the pointer (its disc, grown by a few pixels to be easy to hit; the
 // nearest to the camera where discs overlap), or -1
@@ -483,7 +484,7 @@ window.facepipeEditor = {
   handlePosition: (h) => Array.from(handles.slice(3 * h, 3 * h + 3)),
   three: { THREE, renderer, scene, camera, face, markers, geometry },  // for experiments on the drawing
   // milliseconds a draw of the scene takes to finish in the GPU process, at
-  // the drag's resolution: alone, and with the positions and normals uploaded first
+  // the drag's resolution: alone, and with the positions and colours uploaded first
   renderCost(n = 10) {
     const gl = renderer.getContext();
     const wasInteractive = interactive;
@@ -496,7 +497,7 @@ window.facepipeEditor = {
       finish();
       const t0 = performance.now();
       for (let i = 0; i < n; i++) {
-        if (upload) { positionAttr.needsUpdate = true; normalAttr.needsUpdate = true; }
+        if (upload) { positionAttr.needsUpdate = true; frontAttr.needsUpdate = true; backAttr.needsUpdate = true; }
         renderer.render(scene, camera);
         finish();
       }
