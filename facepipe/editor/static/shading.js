@@ -23,15 +23,18 @@ export function lightVertices(normal, albedo, light, front, back, V) {
     // 1/π: Lambert's BRDF
     const ar = albedo[a] * 0.3183098861837907, ag = albedo[a + 1] * 0.3183098861837907, ab = albedo[a + 2] * 0.3183098861837907;
     const nl = nx * kx + ny * ky + nz * kz, nu = nx * ux + ny * uy + nz * uz;
-    for (let side = 0; side < 2; side++) {
-      const s = side === 0 ? 1 : -1;
-      const key = Math.max(s * nl, 0), t = 0.5 * s * nu + 0.5;  // the hemisphere: ground at t = 0, sky at 1
-      const out = side === 0 ? front : back;
-      out[4 * v] = toByte(ar * (kr * key + gr + (sr - gr) * t));
-      out[4 * v + 1] = toByte(ag * (kg * key + gg + (sg - gg) * t));
-      out[4 * v + 2] = toByte(ab * (kb * key + gb + (sb - gb) * t));
-      out[4 * v + 3] = 255;
-    }
+    // the front (n) and the back (−n): the key light on the side it faces, the hemisphere's
+    // ground at t = 0 and sky at 1
+    const keyF = nl > 0 ? nl : 0, keyB = nl < 0 ? -nl : 0, tF = 0.5 * nu + 0.5, tB = 0.5 - 0.5 * nu;
+    const i = 4 * v;
+    front[i] = toByte(ar * (kr * keyF + gr + (sr - gr) * tF));
+    front[i + 1] = toByte(ag * (kg * keyF + gg + (sg - gg) * tF));
+    front[i + 2] = toByte(ab * (kb * keyF + gb + (sb - gb) * tF));
+    front[i + 3] = 255;
+    back[i] = toByte(ar * (kr * keyB + gr + (sr - gr) * tB));
+    back[i + 1] = toByte(ag * (kg * keyB + gg + (sg - gg) * tB));
+    back[i + 2] = toByte(ab * (kb * keyB + gb + (sb - gb) * tB));
+    back[i + 3] = 255;
   }
 }
 
@@ -48,5 +51,5 @@ for (let i = 0; i <= STEPS; i++) {
 function toByte(c) {
   if (!(c > 0)) return 0;
   if (c >= 1) return 255;
-  return c < 0.0031308 ? Math.round(255 * 12.92 * c) : TABLE[Math.round(c * STEPS)];
+  return c < 0.0031308 ? (3294.6 * c + 0.5) | 0 : TABLE[(c * STEPS + 0.5) | 0];  // 3294.6 = 255 × 12.92
 }
