@@ -1,5 +1,5 @@
 // Drawing only what a drag changes. A software rasteriser (a machine without a GPU) pays about a
-// microsecond per triangle per rasteriser thread whether or not the triangle covers pixels, and a
+// microsecond per triangle per rasteriser thread however few pixels the triangle covers, and a
 // drag moves a region of the face: the rest moves too (the large scale is exact everywhere) but by
 // far less than a pixel there. So while a handle is dragged the canvas keeps its last whole
 // drawing (preserveDrawingBuffer) and each frame redraws, clipped to a rectangle, only the
