@@ -355,6 +355,8 @@ function receive(buffer) {
     Object.assign(job, { op: 'pose', handles: terms.slice(0, 3 * H), features: terms.slice(3 * H, 3 * H + F),
                          gate: meta.gate ? terms.slice(3 * H + F, 3 * H + 2 * F) : null });
     state.lastPose = { row, handles: job.handles, gate: job.gate, preview: job.drag };
+    // an answer while the pointer rested: the gate the server now stands in with for this drag
+    if (drag && drag.local && job.drag) drag.local.gate = job.gate;
     toWorker(job);
   } else if (kind === 1) {  // whole positions
     const offset = 48 + 24 * H;
