@@ -98,6 +98,35 @@ def test_drag_patch_matches_the_full_frame(editor_rig, tmp_path):
     session.close()
 
 
+def test_drag_patch_frames_are_local_frames_of_the_moved_patch(editor_rig, tmp_path):
+    """A drag step's frames, made from terms linear in the offset, against local_frames of the
+    moved sub-mesh (vertex normals by the sparse incidence sum); degenerate rows take
+    local_frames' fallbacks."""
+    from facepipe.core.tangent_frames import frames_from_normals, local_frames
+
+    _, _, model, take = editor_rig
+    session = EditorSession(model, take, tmp_path / "e.json", mode="server")
+    try:
+        h, row = brow_handle(model), 6
+        base = session.handles(row)
+        base_final, base_large = session.evaluate(base, None)
+        patch = DragPatch(model, h, base, base_final, base_large, None)
+        offset = np.array([0.2, 0.6, -0.3])
+        sub = base_large[patch.used].astype(np.float64) + patch.column[patch.used, None].astype(np.float64) * offset
+        want = local_frames(sub, patch.sub_faces, patch.sub_neighbours)[patch.patch_local]  # (n, 3, 3)
+        got = np.stack(patch.frames(offset), axis=-1).transpose(1, 0, 2)  # (n, coordinate, column)
+        np.testing.assert_allclose(got, want, atol=2e-5)
+        # a zero normal, and a frame neighbour along the normal: the fallbacks of local_frames
+        patch.normal0[:, 0] = patch.normal1[:, 0] = 0.0
+        patch.edge0[:, 1], patch.edge1[1] = want[1, :, 2] * 0.3, 0.0
+        got = np.stack(patch.frames(offset), axis=-1).transpose(1, 0, 2)
+        normal = np.array([[0.0, 0.0, 1.0], want[1, :, 2]])
+        edges = np.stack([patch.edge0[:, k] + patch.edge1[k] * offset for k in (0, 1)])
+        np.testing.assert_allclose(got[:2], frames_from_normals(normal, edges), atol=1e-6)
+    finally:
+        session.close()
+
+
 def test_server_drag_messages_rebuild_the_patch_evaluation(editor_rig, tmp_path):
     """The drag's patch protocol: the page's rebuild (base + column × float32(offset), the patch's
     positions over it; as evaluate_worker.js does it) is DragPatch.evaluate bit for bit, and a page
@@ -303,3 +332,111 @@ def test_page_drag_step_evaluation_equals_whole(editor_rig, tmp_path):
     for step in results:
         assert step["moved"] > 1e-3 * scale  # the pose moved the face: the comparison is not of two rest faces
         assert step["final"] < 1e-6 * scale and step["large"] < 1e-6 * scale, step
+
+
+PAGE_NUMERICS_JS = """async ({ normals, albedo, light, handles, edges, rest, points }) => {
+  const { lightVertices } = await import('/static/shading.js');
+  const { strainFeatures } = await import('/static/evaluate.js');
+  const { projectVertices } = await import('/static/partial_redraw.js');
+  const V = normals.length / 3;
+  const front = new Uint8Array(4 * V), back = new Uint8Array(4 * V);
+  lightVertices(Float32Array.from(normals), Float32Array.from(albedo), light, front, back, V);
+  const features = strainFeatures(Float64Array.from(handles), Uint32Array.from(edges), Float64Array.from(rest),
+                                  new Float64Array(rest.length));
+  const { THREE, camera, renderer } = window.facepipeEditor.three;
+  const width = renderer.domElement.width, height = renderer.domElement.height;
+  const m = new THREE.Matrix4().multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse);
+  const screen = projectVertices(Float32Array.from(points), m.elements, width, height, new Float32Array(points.length / 3 * 2), points.length / 3);
+  const want = [];  // three.js's own projection, to drawing-buffer pixels
+  for (let i = 0; i < points.length; i += 3) {
+    const p = new THREE.Vector3(points[i], points[i + 1], points[i + 2]).project(camera);
+    want.push((p.x + 1) / 2 * width, (1 - p.y) / 2 * height);
+  }
+  return { front: Array.from(front), back: Array.from(back), features: Array.from(features),
+           screen: Array.from(screen), want };
+}"""
+
+
+@pytest.mark.slow
+def test_page_lighting_strain_and_projection(editor_rig, tmp_path):
+    """The page's per-vertex Lambert lighting in sRGB bytes (shading.js), its strain features
+    (evaluate.js) and its screen projection (partial_redraw.js) against independent references:
+    the lighting formula and sRGB transfer in NumPy, core.strain.strain_features, three.js's project."""
+    from facepipe.core.strain import strain_features
+
+    chromium, reason = chromium_or_reason()
+    if chromium is None:
+        pytest.skip(reason)
+    root, model_path, model, _ = editor_rig
+    rng = np.random.default_rng(3)
+    normals = rng.normal(size=(300, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo = rng.uniform(0, 1, size=(300, 3))
+    key, up = np.array([0.3, 0.8, 0.52]), np.array([0.0, 1.0, 0.0])
+    key /= np.linalg.norm(key)
+    light = {"key": key.tolist(), "up": up.tolist(), "keyColour": [2.2, 2.2, 2.2], "sky": [0.6, 0.6, 0.6],
+             "ground": [0.03, 0.03, 0.03]}
+    handles = model.rest[model.handle_vertices].astype(np.float64) + rng.normal(scale=0.2, size=(len(model.handle_vertices), 3))
+    points = model.rest[rng.choice(model.n_vertices, 50, replace=False)].astype(np.float64)
+    with editor_server(model_path, "--edits", tmp_path / "e.json", "--evaluate", "browser") as url, \
+            browser_page(chromium, url) as page:
+        got = page.evaluate(PAGE_NUMERICS_JS, {
+            "normals": normals.ravel().tolist(), "albedo": albedo.ravel().tolist(), "light": light,
+            "handles": handles.ravel().tolist(), "edges": model.edges.ravel().tolist(),
+            "rest": model.rest_lengths.tolist(), "points": points.ravel().tolist()})
+        assert not page.errors
+    for side, sign in (("front", 1.0), ("back", -1.0)):
+        n = sign * normals
+        linear = albedo / np.pi * (2.2 * np.maximum(n @ key, 0.0)[:, None] + 0.03 + 0.57 * (0.5 * (n @ up) + 0.5)[:, None])
+        srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * np.maximum(linear, 0) ** (1 / 2.4) - 0.055)
+        want = np.round(255 * np.clip(srgb, 0, 1))
+        bytes_ = np.array(got[side]).reshape(-1, 4)
+        assert np.abs(bytes_[:, :3] - want).max() <= 1 and (bytes_[:, 3] == 255).all(), side
+    want_features = strain_features(handles[None], model.edges, model.rest_lengths)[0]
+    np.testing.assert_allclose(got["features"], want_features, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got["screen"], got["want"], atol=1e-2)
+
+
+@pytest.mark.slow
+def test_page_partial_redraw_matches_a_whole_drawing(editor_rig, tmp_path):
+    """While a handle is dragged the page redraws only the rectangle its change reaches
+    (partial_redraw.js): the canvas then equals a whole drawing of the same frame but for
+    sub-pixel differences at a few pixels."""
+    chromium, reason = chromium_or_reason()
+    if chromium is None:
+        pytest.skip(reason)
+    root, model_path, model, _ = editor_rig
+    h = brow_handle(model)
+    with editor_server(model_path, root / "rig" / "take.csv", "--edits", tmp_path / "e.json", "--evaluate",
+                       "browser") as url, browser_page(chromium, url) as page:
+        page.evaluate("window.facepipeEditor.setFrame(12)")
+        wait_settled(page)
+        start = page.evaluate(f"window.facepipeEditor.handleScreen({h})")
+        page.mouse.move(start["x"], start["y"])
+        page.mouse.down()
+        for k in range(1, 16):  # held: the drag's frames are drawn in part
+            page.mouse.move(start["x"], start["y"] - 2 * k)
+            page.wait_for_function("window.facepipeEditor.idle")
+        wait_settled(page)  # the pointer rests: the exact gate's frame, drawn in part as well
+        redrawn = page.evaluate("window.facepipeEditor.state.timings.redrawn_triangles")
+        part = canvas_pixels(page)
+        page.evaluate("window.facepipeEditor.redrawWhole()")
+        page.evaluate("() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        whole = canvas_pixels(page)
+        page.mouse.up()
+        assert not page.errors
+    assert 0 < redrawn < len(model.triangles)  # drawn in part
+    differs = np.abs(part - whole).max(axis=2) > 8
+    face = np.abs(whole - whole[0, 0]).max(axis=2) > 8  # not the background
+    assert face.sum() > 1000 and differs.sum() <= 0.002 * face.sum(), (differs.sum(), face.sum())
+
+
+def canvas_pixels(page) -> np.ndarray:
+    """The editor's canvas as drawn (RGB, float): its drawing buffer, kept between frames."""
+    import base64
+    import io
+
+    import imageio.v3 as iio
+
+    url = page.evaluate("window.facepipeEditor.three.renderer.domElement.toDataURL('image/png')")
+    return iio.imread(io.BytesIO(base64.b64decode(url.split(",", 1)[1])))[..., :3].astype(float)

@@ -100,6 +100,12 @@ def local_frames(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray,
         return out
     n = vertex_normals(vertices, faces, incidence)
     e = vertices[..., neighbors, :] - vertices
+    return frames_from_normals(n, e).astype(np.asarray(vertices).dtype, copy=False)
+
+
+def frames_from_normals(n: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """The frames of :func:`local_frames` from unit normals n and the edges e to the frame
+    neighbours (both (..., V, 3)): R (..., V, 3, 3), columns t, b, n."""
     t = e - np.einsum("...i,...i->...", e, n)[..., None] * n
     # an edge parallel to the normal (degenerate) falls back to any perpendicular direction
     alt = np.cross(n, np.array([1.0, 0.0, 0.0]))
@@ -109,7 +115,7 @@ def local_frames(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray,
     t = np.where(tlen > 1e-6 * np.maximum(elen, 1e-30), t, alt)
     t = _normalize(t, fallback=np.array([1.0, 0.0, 0.0]))
     b = np.cross(n, t)
-    return np.stack([t, b, n], axis=-1).astype(np.asarray(vertices).dtype, copy=False)
+    return np.stack([t, b, n], axis=-1)
 
 
 def to_local(frames: np.ndarray, vectors: np.ndarray) -> np.ndarray:

@@ -303,5 +303,7 @@ class EditorSession:
             arrays.update(B=m.B.astype(np.float32), frame_neighbors=m.frame_neighbors.astype(np.uint32),
                           basis_features=m.basis_features.astype(np.float32),
                           rbf_weights=m.rbf_weights.astype(np.float32), rbf_const=m.rbf_const.astype(np.float32),
-                          edge_index=m.edge_index.astype(np.uint32), edge_weight=m.edge_weight.astype(np.float32))
+                          edge_index=m.edge_index.astype(np.uint32), edge_weight=m.edge_weight.astype(np.float32),
+                          # a drag's steps form their strain features in the page
+                          edges=m.edges.astype(np.uint32), rest_lengths=m.rest_lengths.astype(np.float64))
         return pack_arrays(arrays, self.meta())

@@ -8,8 +8,10 @@
 // it had no time to show.
 import * as THREE from 'three';
 import { OrbitControls } from '/static/vendor/three/OrbitControls.js';
-import { unpackBundle } from '/static/evaluate.js';
-import { faceMaterial, markerMaterial } from '/static/materials.js';
+import { unpackBundle, strainFeatures, vertexNormals } from '/static/evaluate.js';
+import { faceMaterial, faceLight, markerMaterial } from '/static/materials.js';
+import { lightVertices } from '/static/shading.js';
+import { REDRAW_PIXELS, changedVertices, growOverTriangles, projectVertices, trianglesIn } from '/static/partial_redraw.js';
 
 const $ = (id) => document.getElementById(id);
 const SKIN = [0.86, 0.72, 0.64];
@@ -41,13 +43,18 @@ const V = meta.vertices, H = meta.handles, F = meta.features;
 const rest = bundle.arrays.rest.slice();
 const triangles = bundle.arrays.triangles.slice();
 const handleVertices = bundle.arrays.handle_vertices.slice();
+// browser mode: a drag's steps are posed here (see evaluateHere)
+const featureEdges = bundle.arrays.edges ? bundle.arrays.edges.slice() : null;
+const restLengths = bundle.arrays.rest_lengths ? bundle.arrays.rest_lengths.slice() : null;
 let handles = new Float64Array(H * 3);
 for (let h = 0; h < H; h++) for (let x = 0; x < 3; x++) handles[3 * h + x] = rest[3 * handleVertices[h] + x];
+let drag = null;      // the handle being dragged (pointerdown)
 let shown = null;     // the frame on screen: the worker's set of arrays (final, large, normal, …)
 let incoming = null;  // the newest finished frame not yet drawn
 
 // ---------------------------------------------------------------- scene
-const renderer = new THREE.WebGLRenderer({ antialias: false, powerPreference: 'high-performance' });
+// the drawing is kept between frames: a drag redraws only what it changes (partial_redraw.js)
+const renderer = new THREE.WebGLRenderer({ antialias: false, powerPreference: 'high-performance', preserveDrawingBuffer: true });
 // while a handle is dragged or the take plays the canvas renders at half resolution: a software
 // rasteriser (a machine without a GPU) is bound by the pixels it shades; full resolution once settled
 const fullRatio = window.devicePixelRatio;
@@ -64,17 +71,28 @@ renderer.setSize(window.innerWidth, window.innerHeight);
 document.body.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x303338);
+// drawn: the positions and the lit colours of the front and back faces (bytes, see materials.js);
+// the normals stay in this thread (a Shift drag's direction)
 const geometry = new THREE.BufferGeometry();
 const positionAttr = new THREE.BufferAttribute(rest.slice(), 3);
 positionAttr.setUsage(THREE.DynamicDrawUsage);
 geometry.setAttribute('position', positionAttr);
-const normalAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
-normalAttr.setUsage(THREE.DynamicDrawUsage);
-geometry.setAttribute('normal', normalAttr);
-geometry.computeVertexNormals();
-const colorAttr = new THREE.BufferAttribute(new Float32Array(V * 3), 3);
-geometry.setAttribute('color', colorAttr);
-geometry.setIndex(new THREE.BufferAttribute(triangles, 1));
+const frontAttr = new THREE.BufferAttribute(new Uint8Array(V * 4), 4, true);
+frontAttr.setUsage(THREE.DynamicDrawUsage);
+geometry.setAttribute('front', frontAttr);
+const backAttr = new THREE.BufferAttribute(new Uint8Array(V * 4), 4, true);
+backAttr.setUsage(THREE.DynamicDrawUsage);
+geometry.setAttribute('back', backAttr);
+let shownNormal = new Float32Array(V * 3);
+vertexNormals(triangles, rest, shownNormal, V);
+const wholeIndex = new THREE.BufferAttribute(triangles, 1);
+const partIndex = new THREE.BufferAttribute(new Uint32Array(triangles.length), 1);
+partIndex.setUsage(THREE.DynamicDrawUsage);
+geometry.setIndex(wholeIndex);
+// what the last whole drawing showed (see drawScene)
+const drawn = { key: null, screen: new Float32Array(2 * V), front: new Uint8Array(4 * V), back: new Uint8Array(4 * V),
+                rect: null };
+const screenNow = new Float32Array(2 * V), changed = new Uint8Array(V), viewProjection = new THREE.Matrix4();
 geometry.computeBoundingSphere();
 
 // frame the rest face: look along its mean normal at the markers, y up unless that is the view
@@ -92,8 +110,9 @@ camera.lookAt(centre);
 // a key light from above and the side at a grazing angle: wrinkles show as shading
 const side = new THREE.Vector3().crossVectors(camera.up, view).normalize();
 const keyPosition = centre.clone().addScaledVector(view, radius * 0.8).addScaledVector(camera.up, radius * 2.5).addScaledVector(side, radius * 0.5);
-const material = faceMaterial(keyPosition.clone().sub(centre).normalize(), new THREE.Vector3(0, 1, 0));
-const face = new THREE.Mesh(geometry, material);
+const light = faceLight(keyPosition.clone().sub(centre).normalize(), new THREE.Vector3(0, 1, 0));
+lightVertices(shownNormal, SKIN, light, frontAttr.array, backAttr.array, V);
+const face = new THREE.Mesh(geometry, faceMaterial());
 scene.add(face);
 
 // the handles: round points, one draw
@@ -125,7 +144,7 @@ const worker = new Worker('/static/evaluate_worker.js', { type: 'module' });
 await new Promise((resolve, reject) => {
   worker.onmessage = (e) => e.data.op === 'ready' && resolve();
   worker.onerror = (e) => reject(new Error(`the evaluation worker failed: ${e.message}`));
-  worker.postMessage({ op: 'init', buffer: modelBuffer }, [modelBuffer]);
+  worker.postMessage({ op: 'init', buffer: modelBuffer, light, skin: SKIN }, [modelBuffer]);
 });
 let workerNext = null;  // the newest job waiting for the worker (older ones are dropped)
 function toWorker(job, transfer = []) {
@@ -138,7 +157,7 @@ function toWorker(job, transfer = []) {
 }
 function recycle(set) {
   worker.postMessage({ op: 'recycle', set }, [set.final.buffer, set.large.buffer, set.normal.buffer, set.detailN.buffer,
-                                               set.color.buffer]);
+                                               set.color.buffer, set.front.buffer, set.back.buffer]);
 }
 worker.onmessage = (event) => {
   const m = event.data;
@@ -148,6 +167,7 @@ worker.onmessage = (event) => {
   state.evaluations += 1;
   note('worker_evaluate', m.timings.evaluate);
   note('worker_normals', m.timings.normals);
+  note('worker_light', m.timings.light);
   if (incoming) recycle(incoming.set);
   incoming = m;
   schedule();
@@ -161,30 +181,25 @@ function heat(t) {  // 0..1 → dark blue, cyan, yellow, red
   return [Math.min(1, Math.max(0, 1.5 * t * 2 - 1)), Math.min(1, Math.max(0, 2 - Math.abs(4 * t - 2))), Math.min(1, Math.max(0, 1.5 - 3 * t))];
 }
 
-let colouredAs = null;
+// the lit colours of a frame: the worker's, or (error layer) the heat map lit here
 function colour(frame) {
-  const c = colorAttr.array;
-  if (frame.layer === 'details') {
-    c.set(frame.set.color);
-  } else if (frame.layer === 'error' && state.truth) {
-    const final = frame.set.final, e = new Float32Array(V);
+  if (frame.layer === 'error' && state.truth) {
+    const final = frame.set.final, e = new Float32Array(V), albedo = new Float32Array(3 * V);
     let top = 1e-12;
     for (let v = 0; v < V; v++) {
       const dx = final[3 * v] - state.truth[3 * v], dy = final[3 * v + 1] - state.truth[3 * v + 1], dz = final[3 * v + 2] - state.truth[3 * v + 2];
       e[v] = Math.sqrt(dx * dx + dy * dy + dz * dz);
       top = Math.max(top, e[v]);
     }
-    for (let v = 0; v < V; v++) { const [r, g, b] = heat(e[v] / top); c[3 * v] = r; c[3 * v + 1] = g; c[3 * v + 2] = b; }
+    for (let v = 0; v < V; v++) { const [r, g, b] = heat(e[v] / top); albedo[3 * v] = r; albedo[3 * v + 1] = g; albedo[3 * v + 2] = b; }
     $('message').textContent = `error up to ${top.toFixed(3)} ${meta.units || ''}`;
+    lightVertices(frame.set.normal, albedo, light, frontAttr.array, backAttr.array, V);
   } else {
-    if (colouredAs === 'skin') return;  // unchanged: no upload
-    for (let v = 0; v < V; v++) { c[3 * v] = SKIN[0]; c[3 * v + 1] = SKIN[1]; c[3 * v + 2] = SKIN[2]; }
-    colouredAs = 'skin';
-    colorAttr.needsUpdate = true;
-    return;
+    frontAttr.array.set(frame.set.front);
+    backAttr.array.set(frame.set.back);
   }
-  colouredAs = frame.layer;
-  colorAttr.needsUpdate = true;
+  frontAttr.needsUpdate = true;
+  backAttr.needsUpdate = true;
 }
 
 // once per animation frame: the newest finished frame (if any) is uploaded and the scene drawn
@@ -196,8 +211,7 @@ function present(now) {
     incoming = null;
     positionAttr.array.set(frame.layer === 'large' && frame.layered ? frame.set.large : frame.set.final);
     positionAttr.needsUpdate = true;
-    normalAttr.array.set(frame.set.normal);
-    normalAttr.needsUpdate = true;
+    shownNormal = frame.set.normal;
     colour(frame);
     handles = frame.handles;
     placeMarkers();
@@ -219,11 +233,60 @@ function present(now) {
   const t1 = performance.now();
   markers.material.uniforms.pixelsPerUnit.value =
     renderer.domElement.height / (2 * Math.tan(THREE.MathUtils.degToRad(camera.fov) / 2));
-  renderer.render(scene, camera);
+  drawScene();
   note('render_submit', performance.now() - t1);
   // the status line four times a second: a changed text costs a repaint of its layer every frame
   if (now - (state.statusAt || 0) > 250) { state.statusAt = now; showStatus(); }
   else if (!state.statusTimer) state.statusTimer = setTimeout(() => { state.statusTimer = null; showStatus(); }, 260);
+}
+
+// the scene, whole or (while a handle is dragged) the part the drag changed since the last whole
+// drawing (partial_redraw.js)
+function drawScene() {
+  const width = renderer.domElement.width, height = renderer.domElement.height;
+  camera.updateMatrixWorld();
+  viewProjection.multiplyMatrices(camera.projectionMatrix, camera.matrixWorldInverse);
+  projectVertices(positionAttr.array, viewProjection.elements, width, height, screenNow, V);
+  const key = `${width}x${height} ${state.shownRow} ${shown ? shown.layer : ''}`;
+  let triangleCount = -1;
+  if (drag && drawn.key === key) {
+    // the rectangle grows over the triangles of the vertices changed since the whole drawing
+    changedVertices({ screen: screenNow, front: frontAttr.array, back: backAttr.array }, drawn, REDRAW_PIXELS, changed, V);
+    const rect = growOverTriangles(triangles, changed, [screenNow, drawn.screen], drawn.rect);
+    // a pixel's rounding either side, and the handles' discs (drawn about their vertices, see materials.js)
+    const grow = 2 + 1.5 * meta.marker_size * markers.material.uniforms.pixelsPerUnit.value / camera.position.distanceTo(centre);
+    const clip = { x0: Math.max(0, Math.floor(rect.x0 - grow)), y0: Math.max(0, Math.floor(rect.y0 - grow)),
+                   x1: Math.min(width, Math.ceil(rect.x1 + grow)), y1: Math.min(height, Math.ceil(rect.y1 + grow)) };
+    if (clip.x1 > clip.x0 && clip.y1 > clip.y0) {
+      triangleCount = trianglesIn(triangles, screenNow, clip, partIndex.array);
+      if (triangleCount > 0.6 * triangles.length / 3) triangleCount = -1;  // most of it: whole is as cheap
+    } else {
+      triangleCount = 0;
+    }
+    if (triangleCount >= 0) {
+      const ratio = renderer.getPixelRatio();  // three.js takes the scissor in CSS pixels, y up
+      partIndex.clearUpdateRanges();
+      partIndex.addUpdateRange(0, 3 * triangleCount);
+      partIndex.needsUpdate = true;
+      geometry.setIndex(partIndex);
+      geometry.setDrawRange(0, 3 * triangleCount);
+      renderer.setScissor(clip.x0 / ratio, (height - clip.y1) / ratio, (clip.x1 - clip.x0) / ratio, (clip.y1 - clip.y0) / ratio);
+      renderer.setScissorTest(true);
+      renderer.render(scene, camera);
+      renderer.setScissorTest(false);
+      note('redrawn_triangles', triangleCount);
+      return;
+    }
+  }
+  geometry.setIndex(wholeIndex);
+  geometry.setDrawRange(0, Infinity);
+  renderer.render(scene, camera);
+  note('redrawn_triangles', triangles.length / 3);
+  drawn.key = key;
+  drawn.screen.set(screenNow);
+  drawn.front.set(frontAttr.array);
+  drawn.back.set(backAttr.array);
+  drawn.rect = { x0: Infinity, y0: Infinity, x1: -Infinity, y1: -Infinity };
 }
 
 // ---------------------------------------------------------------- the server
@@ -231,6 +294,10 @@ const socket = new WebSocket(`ws://${location.host}/ws`);
 socket.binaryType = 'arraybuffer';
 
 function requestEvaluation() {
+  if (drag && drag.local && state.preview) evaluateHere(); else askServer();
+}
+
+function askServer() {
   if (socket.readyState !== WebSocket.OPEN) return;
   // two requests in flight: the server forms the next answer while the last one is evaluated and
   // drawn; none while a finished frame waits to be drawn (a frame made faster than the screen
@@ -241,6 +308,34 @@ function requestEvaluation() {
   state.sentAt = performance.now();
   if (state.preview) state.dragRequests.add(state.requestId + 1);
   socket.send(JSON.stringify({ op: 'eval', id: ++state.requestId, frame: state.frame, preview: state.preview, layer: state.layer }));
+}
+
+// Browser mode, while a handle is dragged: the step's pose terms are formed here rather than asked
+// of the server (a round trip through the browser's network process and the server's event loop
+// per step): the handles of the frame as last answered (its edits applied, no preview) with the
+// drag's offset added (its own key frame: weight 1, core/edits.py), their strain features, and the
+// gate the server would stand in with — the latest exact one, that of the last answer. When the
+// pointer rests the server is asked as before (the gate's exact fits follow), and the frame shown
+// once the handle is released is the server's. Answers to requests older than a step made here
+// are not shown (the pose has moved on).
+const REST_MS = 150;
+function evaluateHere() {
+  if (incoming || state.workerBusy) { state.pending = true; return; }
+  state.pending = false;
+  const { handle, offset } = state.preview;
+  const handles = drag.local.handles.slice();
+  for (let x = 0; x < 3; x++) handles[3 * handle + x] += offset[x];
+  const id = ++state.requestId;
+  state.localFloor = id;
+  toWorker({ op: 'pose', id, row: state.frame, exact: false, layer: state.layer, drag: true, handles,
+             features: strainFeatures(handles, featureEdges, restLengths, new Float64Array(F)), gate: drag.local.gate });
+  clearTimeout(state.restTimer);
+  const onRest = () => {
+    if (!drag || !drag.local) return;
+    if (state.inFlight >= state.inFlightMax || incoming || workerNext) { state.restTimer = setTimeout(onRest, REST_MS); return; }
+    askServer();
+  };
+  state.restTimer = setTimeout(onRest, REST_MS);
 }
 
 function easing() {
@@ -255,9 +350,13 @@ function receive(buffer) {
   const job = { id, row, exact: exact === 1, layer: state.layer, drag: state.dragRequests.has(id) };
   for (const old of state.dragRequests) if (old <= id) state.dragRequests.delete(old);
   if (kind === 0) {  // pose terms: evaluated in the worker
+    if (id < (state.localFloor || 0)) return;  // older than a drag step posed here
     const terms = new Float64Array(buffer, 48);
     Object.assign(job, { op: 'pose', handles: terms.slice(0, 3 * H), features: terms.slice(3 * H, 3 * H + F),
                          gate: meta.gate ? terms.slice(3 * H + F, 3 * H + 2 * F) : null });
+    state.lastPose = { row, handles: job.handles, gate: job.gate, preview: job.drag };
+    // an answer while the pointer rested: the gate the server now stands in with for this drag
+    if (drag && drag.local && job.drag) drag.local.gate = job.gate;
     toWorker(job);
   } else if (kind === 1) {  // whole positions
     const offset = 48 + 24 * H;
@@ -385,7 +484,6 @@ window.addEventListener('keydown', (e) => {
 // Shift along the surface normal at the handle (vertical pointer motion)
 const raycaster = new THREE.Raycaster();
 const pointer = new THREE.Vector2();
-let drag = null;
 function ray(event) {
   const r = renderer.domElement.getBoundingClientRect();
   pointer.set(((event.clientX - r.left) / r.width) * 2 - 1, -((event.clientY - r.top) / r.height) * 2 + 1);
@@ -394,7 +492,7 @@ function ray(event) {
 }
 function handleNormal(h) {
   const v = handleVertices[h];
-  return new THREE.Vector3(normalAttr.getX(v), normalAttr.getY(v), normalAttr.getZ(v)).normalize();
+  return new THREE.Vector3(shownNormal[3 * v], shownNormal[3 * v + 1], shownNormal[3 * v + 2]).normalize();
 }
 // the handle drawn under the pointer (its disc, grown by a few pixels to be easy to hit; the
 // nearest to the camera where discs overlap), or -1
@@ -421,7 +519,13 @@ renderer.domElement.addEventListener('pointerdown', (event) => {
   const normal = camera.getWorldDirection(new THREE.Vector3());
   const perPixel = 2 * start.distanceTo(camera.position) * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2)) / renderer.domElement.clientHeight;
   drag = { h, start, plane: new THREE.Plane().setFromNormalAndCoplanarPoint(normal, start), y0: event.clientY,
-           surfaceNormal: handleNormal(h), perPixel, pointerId: event.pointerId };
+           surfaceNormal: handleNormal(h), perPixel, pointerId: event.pointerId, local: null };
+  // the steps are posed here from the frame as the server last answered it, if that is this frame
+  // without a preview and nothing newer is on its way (evaluateHere)
+  const last = state.lastPose;
+  if (featureEdges && last && last.row === state.frame && !last.preview && state.inFlight === 0 && !state.pending) {
+    drag.local = { handles: last.handles, gate: last.gate };
+  }
   markHandle(h, true);
   setInteractive(true);
   renderer.domElement.setPointerCapture(event.pointerId);
@@ -441,6 +545,7 @@ renderer.domElement.addEventListener('pointermove', (event) => {
 });
 function endDrag() {
   if (!drag) return;
+  clearTimeout(state.restTimer);
   markHandle(drag.h, false);
   if (state.preview) send({ op: 'commit', frame: state.frame, preview: state.preview });
   state.preview = null;
@@ -453,11 +558,12 @@ renderer.domElement.addEventListener('pointercancel', endDrag);
 const controls = new OrbitControls(camera, renderer.domElement);
 controls.target.copy(centre);
 controls.update();
-controls.addEventListener('change', () => schedule());
+controls.addEventListener('change', () => { drawn.key = null; schedule(); });
 window.addEventListener('resize', () => {
   camera.aspect = window.innerWidth / window.innerHeight;
   camera.updateProjectionMatrix();
   renderer.setSize(window.innerWidth, window.innerHeight);
+  drawn.key = null;
   schedule();
 });
 
@@ -482,12 +588,17 @@ window.facepipeEditor = {
   preview(h, offset) { state.preview = offset ? { handle: h, offset, ...easing() } : null; setInteractive(!!offset); requestEvaluation(); },
   handlePosition: (h) => Array.from(handles.slice(3 * h, 3 * h + 3)),
   three: { THREE, renderer, scene, camera, face, markers, geometry },  // for experiments on the drawing
+  // draw the scene whole at the next animation frame (a drag draws only what it changed)
+  redrawWhole() { drawn.key = null; schedule(); },
   // milliseconds a draw of the scene takes to finish in the GPU process, at
-  // the drag's resolution: alone, and with the positions and normals uploaded first
+  // the drag's resolution: alone, and with the positions and colours uploaded first
   renderCost(n = 10) {
     const gl = renderer.getContext();
     const wasInteractive = interactive;
     setInteractive(true);
+    geometry.setIndex(wholeIndex);  // the whole scene (a drag may have left a part of it set)
+    geometry.setDrawRange(0, Infinity);
+    drawn.key = null;
     const timed = (upload) => {
       const pixel = new Uint8Array(4);
       // a read of a pixel waits for the draw (Chromium's gl.finish is only a flush)
@@ -496,7 +607,7 @@ window.facepipeEditor = {
       finish();
       const t0 = performance.now();
       for (let i = 0; i < n; i++) {
-        if (upload) { positionAttr.needsUpdate = true; normalAttr.needsUpdate = true; }
+        if (upload) { positionAttr.needsUpdate = true; frontAttr.needsUpdate = true; backAttr.needsUpdate = true; }
         renderer.render(scene, camera);
         finish();
       }

@@ -198,12 +198,14 @@ export class BrowserEvaluator {
       const ex = large[3 * j] - large[3 * v], ey = large[3 * j + 1] - large[3 * v + 1], ez = large[3 * j + 2] - large[3 * v + 2];
       const en = ex * nx + ey * ny + ez * nz;
       let tx = ex - en * nx, ty = ey - en * ny, tz = ez - en * nz;
-      // n × (1, 0, 0), or n × (0, 1, 0) where the normal is along x
-      let ax = 0, ay = nz, az = -ny;
-      if (Math.hypot(ax, ay, az) < 1e-6) { ax = -nz; ay = 0; az = nx; }
-      const tl = Math.hypot(tx, ty, tz), el = Math.hypot(ex, ey, ez);
-      if (!(tl > 1e-6 * Math.max(el, 1e-30))) { tx = ax; ty = ay; tz = az; }
-      const tn = Math.hypot(tx, ty, tz);
+      // lengths as numpy's norm forms them (√ of the summed squares; Math.hypot is far slower)
+      const tl = Math.sqrt(tx * tx + ty * ty + tz * tz), el = Math.sqrt(ex * ex + ey * ey + ez * ez);
+      if (!(tl > 1e-6 * Math.max(el, 1e-30))) {
+        // n × (1, 0, 0), or n × (0, 1, 0) where the normal is along x
+        tx = 0; ty = nz; tz = -ny;
+        if (Math.sqrt(nz * nz + ny * ny) < 1e-6) { tx = -nz; ty = 0; tz = nx; }
+      }
+      const tn = Math.sqrt(tx * tx + ty * ty + tz * tz);
       if (tn > 1e-30) { tx /= tn; ty /= tn; tz /= tn; } else { tx = 1; ty = 0; tz = 0; }
       const bx = ny * tz - nz * ty, by = nz * tx - nx * tz, bz = nx * ty - ny * tx;
       const lx = large[3 * v], ly = large[3 * v + 1], lz = large[3 * v + 2];
@@ -217,6 +219,17 @@ export class BrowserEvaluator {
 
   // area-weighted vertex normals of the large scale, unit length ((0, 0, 1) where undefined)
   vertexNormals() { vertexNormals(this.tri, this.large, this.normal, this.V); }
+}
+
+// Strain features (|p_a − p_b| − l) / l of handles (H·3) over feature edges (F·2) with rest
+// lengths l (F) into out (F): facepipe.core.strain.strain_features, in the same order of operations.
+export function strainFeatures(handles, edges, restLengths, out) {
+  for (let f = 0; f < restLengths.length; f++) {
+    const a = 3 * edges[2 * f], b = 3 * edges[2 * f + 1];
+    const dx = handles[a] - handles[b], dy = handles[a + 1] - handles[b + 1], dz = handles[a + 2] - handles[b + 2];
+    out[f] = (Math.sqrt(dx * dx + dy * dy + dz * dz) - restLengths[f]) / restLengths[f];
+  }
+  return out;
 }
 
 // Area-weighted unit vertex normals of positions (V·3) over triangles into normal (V·3; (0, 0, 1)

@@ -1,13 +1,14 @@
 // The editor's second thread: it turns what the server sends into a frame ready to draw — the
 // per-vertex evaluation (browser mode), or the streamed positions and a drag's patch (server
-// mode) — plus the normals the renderer shades with and the details' colours, so the page's own
-// thread only uploads and draws, and a frame is evaluated here while the last one is drawn.
+// mode) — plus the normals and, lit by them (shading.js), the colours the renderer draws, so the
+// page's own thread only uploads and draws, and a frame is evaluated here while the last one is drawn.
 //
-// A frame travels as one set of typed arrays (final, large, normal, detailN, color) transferred,
-// not copied, both ways: the page sends a set back once a newer one is on screen.
+// A frame travels as one set of typed arrays (final, large, normal, detailN, color, front, back)
+// transferred, not copied, both ways: the page sends a set back once a newer one is on screen.
 import { unpackBundle, BrowserEvaluator, vertexNormals } from '/static/evaluate.js';
+import { lightVertices } from '/static/shading.js';
 
-let evaluator = null, triangles = null, V = 0, H = 0;
+let evaluator = null, triangles = null, V = 0, H = 0, light = null, skin = null;
 let patch = null;  // server mode: the current drag's base, B's column and patch vertices
 const pool = [];
 
@@ -15,7 +16,8 @@ function takeSet() {
   const s = pool.pop();
   if (s) return s;
   return { final: new Float32Array(3 * V), large: new Float32Array(3 * V), normal: new Float32Array(3 * V),
-           detailN: new Float32Array(V), color: new Float32Array(3 * V) };
+           detailN: new Float32Array(V), color: new Float32Array(3 * V), front: new Uint8Array(4 * V),
+           back: new Uint8Array(4 * V) };
 }
 
 // the details along the large scale's normal, blue in, white none, red out; scaled by the 95th
@@ -83,6 +85,8 @@ onmessage = (event) => {
     triangles = bundle.arrays.triangles;
     V = bundle.meta.vertices;
     H = bundle.meta.handles;
+    light = m.light;
+    skin = m.skin;
     if (bundle.meta.mode === 'browser') evaluator = new BrowserEvaluator(bundle);
     postMessage({ op: 'ready' });
     return;
@@ -98,8 +102,11 @@ onmessage = (event) => {
   if (m.layer === 'details') detailColours(set);
   vertexNormals(triangles, m.layer === 'large' && layered ? set.large : set.final, set.normal, V);
   const t2 = performance.now();
-  const { final, large, normal, detailN, color } = set;
+  // the error layer's colours need the truth, which the page holds: it lights them itself
+  if (m.layer !== 'error') lightVertices(set.normal, m.layer === 'details' ? set.color : skin, light, set.front, set.back, V);
+  const t3 = performance.now();
+  const { final, large, normal, detailN, color, front, back } = set;
   postMessage({ op: 'frame', id: m.id, row: m.row, exact: m.exact, layer: m.layer, handles: m.handles, layered,
-                set, timings: { evaluate: t1 - t0, normals: t2 - t1 } },
-              [final.buffer, large.buffer, normal.buffer, detailN.buffer, color.buffer]);
+                set, timings: { evaluate: t1 - t0, normals: t2 - t1, light: t3 - t2 } },
+              [final.buffer, large.buffer, normal.buffer, detailN.buffer, color.buffer, front.buffer, back.buffer]);
 };

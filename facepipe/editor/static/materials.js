@@ -1,35 +1,23 @@
 // The editor's materials: the face (Lambert shading, lit per vertex) and the handle markers (round
 // points). Both are chosen for a software rasteriser (a machine without a GPU), which pays per
-// vertex, per triangle and per shaded pixel.
+// vertex, per triangle, per varying and per shaded pixel.
 //
-// The face: Lambert shading of a hemisphere light and a key light, lit per vertex.
-//
-// It draws what three.js's MeshLambertMaterial draws with the same lights (colour/π × (key × n·l
-// + the hemisphere's mix of ground and sky by n·up), in linear light, then the output's colour
-// space), but evaluates the lighting in the vertex shader: a software rasteriser (no GPU) pays
-// per shaded pixel, the face has fewer vertices than the canvas has pixels, and the wrinkles are
-// in the vertex normals either way. Both sides are lit (the inside of lips and eyelids shows).
+// The face: its lighting (shading.js: what three.js's MeshLambertMaterial draws with the same
+// lights) is evaluated per vertex in JavaScript where the normals are made, as colours in the
+// output's colour space, front and back (both sides are lit: the inside of lips and eyelids
+// shows); the shaders only place the vertices and interpolate those colours. Lambert lighting
+// does not depend on the view, so orbiting needs no new colours.
 import * as THREE from 'three';
 
 const vertexShader = /* glsl */ `
-uniform vec3 keyDirection;   // towards the key light, world space
-uniform vec3 keyColour;
-uniform vec3 upDirection;    // the hemisphere light's sky direction, world space
-uniform vec3 skyColour;
-uniform vec3 groundColour;
+attribute vec4 front;  // normalised bytes: the lit colour of front faces, sRGB
+attribute vec4 back;
 varying vec3 vFront;
 varying vec3 vBack;
 
-vec3 irradiance(vec3 n) {
-  vec3 hemisphere = mix(groundColour, skyColour, 0.5 * dot(n, upDirection) + 0.5);
-  return keyColour * max(dot(n, keyDirection), 0.0) + hemisphere;
-}
-
 void main() {
-  vec3 n = normalize(mat3(modelMatrix) * normal);
-  vec3 albedo = color * 0.3183098861837907;  // 1/π: Lambert's BRDF
-  vFront = albedo * irradiance(n);
-  vBack = albedo * irradiance(-n);
+  vFront = front.rgb;
+  vBack = back.rgb;
   gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
 }`;
 
@@ -38,22 +26,24 @@ varying vec3 vFront;
 varying vec3 vBack;
 
 void main() {
-  gl_FragColor = vec4(gl_FrontFacing ? vFront : vBack, 1.0);
-  #include <colorspace_fragment>
+  gl_FragColor = vec4(gl_FrontFacing ? vFront : vBack, 1.0);  // already in the output's colour space
 }`;
 
-// keyDirection, up: THREE.Vector3 in world space (normalised here)
-export function faceMaterial(keyDirection, up, { key = 2.2, sky = 0xffffff, ground = 0x404040, hemisphere = 0.6 } = {}) {
-  return new THREE.ShaderMaterial({
-    vertexShader, fragmentShader, vertexColors: true, side: THREE.DoubleSide,
-    uniforms: {
-      keyDirection: { value: keyDirection.clone().normalize() },
-      keyColour: { value: new THREE.Color(0xffffff).multiplyScalar(key) },
-      upDirection: { value: up.clone().normalize() },
-      skyColour: { value: new THREE.Color(sky).multiplyScalar(hemisphere) },
-      groundColour: { value: new THREE.Color(ground).multiplyScalar(hemisphere) },
-    },
-  });
+// the face's material: positions and the attributes front and back (Uint8 RGBA, normalised)
+export function faceMaterial() {
+  return new THREE.ShaderMaterial({ vertexShader, fragmentShader, side: THREE.DoubleSide });
+}
+
+// the lights of lightVertices (shading.js) as plain numbers in linear light, three.js's working
+// colour space: keyDirection, up (THREE.Vector3, world space, normalised here)
+export function faceLight(keyDirection, up, { key = 2.2, sky = 0xffffff, ground = 0x404040, hemisphere = 0.6 } = {}) {
+  const rgb = (c) => [c.r, c.g, c.b];
+  return {
+    key: keyDirection.clone().normalize().toArray(), up: up.clone().normalize().toArray(),
+    keyColour: rgb(new THREE.Color(0xffffff).multiplyScalar(key)),
+    sky: rgb(new THREE.Color(sky).multiplyScalar(hemisphere)),
+    ground: rgb(new THREE.Color(ground).multiplyScalar(hemisphere)),
+  };
 }
 
 const markerVertexShader = /* glsl */ `
