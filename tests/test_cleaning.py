@@ -555,11 +555,11 @@ def test_whittaker_smoother_keeps_straight_motion_to_the_ends_and_matches_a_dens
     np.testing.assert_allclose(whittaker(y, 7.0), np.linalg.solve(np.eye(40) + 7.0 * D.T @ D, y), atol=1e-10)
     line = np.linspace(-1, 2, 40)[:, None] * [1.0, -3.0]
     np.testing.assert_allclose(whittaker(line, 1e5), line, atol=1e-9)
-    z, lam, share = smooth_series(line + 0.05 * rng.normal(size=line.shape))
+    z, lam, share, _ = smooth_series(line + 0.05 * rng.normal(size=line.shape))
     assert (lam >= 30).all() and (share < 0.3).all()
     assert np.abs(z - line).max() < 0.06  # the ends included (the noise is 0.05)
     curve = np.sin(np.linspace(0, 6, 40))[:, None]
-    z, lam, _ = smooth_series(curve)
+    z, lam, _, _ = smooth_series(curve)
     assert np.abs(z - curve).max() < 1e-3
 
 
@@ -594,7 +594,7 @@ def test_smoothing_with_known_noise_keeps_a_clean_jump_and_picks_the_least_risk(
     from facepipe.core.temporal import LAMBDAS, smooth_series
 
     step = np.r_[np.zeros(20), np.ones(20)][:, None]
-    z, lam, _ = smooth_series(step, noise_var=1e-12)
+    z, lam, _, _ = smooth_series(step, noise_var=1e-12)
     np.testing.assert_array_equal(z, step)
     assert lam[0] == 0.0
     assert np.abs(smooth_series(step)[0] - step).max() > 1e-3  # what GCV alone does to it
@@ -602,7 +602,7 @@ def test_smoothing_with_known_noise_keeps_a_clean_jump_and_picks_the_least_risk(
     rng = np.random.default_rng(5)
     truth = np.sin(np.linspace(0, 4, T))[:, None]
     y = truth + rng.normal(scale=0.1, size=(T, 1))
-    z, lam, _ = smooth_series(y, noise_var=0.01)
+    z, lam, _, _ = smooth_series(y, noise_var=0.01)
     D = np.diff(np.eye(T), 2, axis=0)
 
     def risk(l):

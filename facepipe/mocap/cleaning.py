@@ -768,7 +768,7 @@ def _smooth_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray):
     mean = Rotation.from_matrix(R).mean()
     v = (mean.inv() * Rotation.from_matrix(R)).as_rotvec()
     moved = np.einsum("tij,j->ti", R, centre) + t
-    z, _, _ = smooth_series(np.concatenate([v, moved], axis=1), groups=np.array([0, 0, 0, 1, 1, 1]))
+    z = smooth_series(np.concatenate([v, moved], axis=1), groups=np.array([0, 0, 0, 1, 1, 1]))[0]
     Rs = (mean * Rotation.from_rotvec(z[:, :3])).as_matrix()
     return Rs, z[:, 3:] - np.einsum("tij,j->ti", Rs, centre)
 
@@ -835,11 +835,11 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
     keep = noise.keep
     if temporal:
         T, H, _ = res_filled.shape
-        smoothed, lam, _ = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
+        smoothed, lam, _, order = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
         res_filled = smoothed.reshape(T, H, 3)
         # per frame: the first and last frames keep more of the noise than the middle
-        passed = {value: noise_variance_share(T, value) for value in np.unique(lam)}
-        noise_var = noise.sigma**2 * np.stack([passed[value] for value in lam], axis=1)  # (T, H)
+        passed = {key: noise_variance_share(T, key[0], order=key[1]) for key in set(zip(lam, order))}
+        noise_var = noise.sigma**2 * np.stack([passed[key] for key in zip(lam, order)], axis=1)  # (T, H)
         signal = np.maximum(np.mean(res_filled**2, axis=(0, 2)) - noise_var.mean(axis=0), 0.0)  # (H,)
         keep = signal / np.maximum(signal + noise_var, 1e-300)
     else:
