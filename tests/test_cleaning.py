@@ -555,11 +555,11 @@ def test_whittaker_smoother_keeps_straight_motion_to_the_ends_and_matches_a_dens
     np.testing.assert_allclose(whittaker(y, 7.0), np.linalg.solve(np.eye(40) + 7.0 * D.T @ D, y), atol=1e-10)
     line = np.linspace(-1, 2, 40)[:, None] * [1.0, -3.0]
     np.testing.assert_allclose(whittaker(line, 1e5), line, atol=1e-9)
-    z, lam, share = smooth_series(line + 0.05 * rng.normal(size=line.shape))
+    z, lam, share, _ = smooth_series(line + 0.05 * rng.normal(size=line.shape))
     assert (lam >= 30).all() and (share < 0.3).all()
     assert np.abs(z - line).max() < 0.06  # the ends included (the noise is 0.05)
     curve = np.sin(np.linspace(0, 6, 40))[:, None]
-    z, lam, _ = smooth_series(curve)
+    z, lam, _, _ = smooth_series(curve)
     assert np.abs(z - curve).max() < 1e-3
 
 
@@ -580,11 +580,51 @@ def test_the_first_and_last_frames_are_cleaned_as_well_as_the_rest():
         errors[temporal] = np.mean(e, axis=0)
     ends = np.r_[0:3, T - 3:T]
     middle = errors[True][10:T - 10].mean()
-    # a smoother has fewer neighbours at the ends: more noise stays there than in the middle, but
-    # no more than the take's unsmoothed frames have
-    assert errors[True][ends].max() < 2.0 * middle, (errors[True][ends], middle)
+    # a smoother has neighbours on one side only at the ends: more noise stays there than in the
+    # middle (for any smoother of a curved motion: a Gaussian-process posterior's end variance is
+    # several times its middle's), but about what an unsmoothed frame has at most
+    assert errors[True][ends].max() < 2.5 * middle, (errors[True][ends], middle)
+    assert errors[True][ends].max() < 1.2 * errors[False][10:T - 10].mean()
     assert errors[True].mean() < 0.8 * errors[False].mean()
     assert errors[True][ends].mean() < errors[False][ends].mean()
+
+
+def test_a_head_accelerating_at_the_takes_ends_is_placed_there_better_than_by_its_own_frame(monkeypatch):
+    """Synthetic rig, a head turning back and forth (its largest acceleration at the first and last
+    frames), noise of 0.02: over many draws the end frames' pose error (the true head placed by
+    the cleaned pose, against the truth) is below what each end frame's own fit gives and below
+    the smoother of second differences alone (which continues the ends as straight lines), and
+    within 3× the interior's — the ends have neighbours on one side only, so never as good."""
+    import facepipe.mocap.cleaning as cleaning
+
+    _, rest, basis, stable, _ = make_rig()
+    s = np.linspace(0, 1, T)
+    weights = np.clip(np.stack([np.sin(np.pi * (s * (k + 1) + 0.3 * k)) for k in range(K)], 1), 0, None)
+    head = rest + np.einsum("tk,khc->thc", weights, basis)
+    rotvec = np.radians(15.0) * np.stack([np.cos(2 * np.pi * s), 0.5 * np.cos(2 * np.pi * s + 0.5),
+                                          0.3 * np.sin(np.pi * s)], 1)
+    R = Rotation.from_rotvec(rotvec).as_matrix()
+    t = np.stack([np.cos(2 * np.pi * s), 0.5 * np.sin(3 * s), -s], 1) + [0.0, 150.0, 10.0]
+    world = np.einsum("tij,thj->thi", R, head) + t[:, None, :]
+
+    def pose_errors(temporal):
+        e = []
+        for seed in range(8):
+            noisy = world + np.random.default_rng(50 + seed).normal(scale=0.02, size=world.shape)
+            res = clean_take(noisy, rest, basis, stable, np.arange(T) / 30.0, CleanOptions(temporal=temporal),
+                             spacing=2.0)
+            placed = np.einsum("tij,thj->thi", res.R, head) + res.t[:, None, :]
+            e.append(np.sqrt(np.mean(np.sum((placed - world) ** 2, axis=-1), axis=1)))
+        return np.sqrt(np.mean(np.square(e), axis=0))  # (T,) RMS over the draws
+
+    new, own = pose_errors(True), pose_errors(False)
+    monkeypatch.setattr(cleaning, "ORDERS", (2,))
+    straight = pose_errors(True)
+    ends = [0, T - 1]
+    assert new[ends].mean() < own[ends].mean(), (new[ends], own[ends])
+    assert new[ends].mean() < straight[ends].mean(), (new[ends], straight[ends])
+    assert new[ends].max() < 3.0 * np.median(new[10:T - 10]), (new[ends], np.median(new[10:T - 10]))
+    assert np.median(new[10:T - 10]) < np.median(straight[10:T - 10])
 
 
 def test_smoothing_with_known_noise_keeps_a_clean_jump_and_picks_the_least_risk():
@@ -594,7 +634,7 @@ def test_smoothing_with_known_noise_keeps_a_clean_jump_and_picks_the_least_risk(
     from facepipe.core.temporal import LAMBDAS, smooth_series
 
     step = np.r_[np.zeros(20), np.ones(20)][:, None]
-    z, lam, _ = smooth_series(step, noise_var=1e-12)
+    z, lam, _, _ = smooth_series(step, noise_var=1e-12)
     np.testing.assert_array_equal(z, step)
     assert lam[0] == 0.0
     assert np.abs(smooth_series(step)[0] - step).max() > 1e-3  # what GCV alone does to it
@@ -602,7 +642,7 @@ def test_smoothing_with_known_noise_keeps_a_clean_jump_and_picks_the_least_risk(
     rng = np.random.default_rng(5)
     truth = np.sin(np.linspace(0, 4, T))[:, None]
     y = truth + rng.normal(scale=0.1, size=(T, 1))
-    z, lam, _ = smooth_series(y, noise_var=0.01)
+    z, lam, _, _ = smooth_series(y, noise_var=0.01)
     D = np.diff(np.eye(T), 2, axis=0)
 
     def risk(l):
@@ -627,6 +667,26 @@ def test_weight_variance_is_the_spread_of_least_squares_weights():
     draws = rng.normal(size=(20000, 36)) / np.sqrt(w)
     fits = np.linalg.solve(A.T @ (w[:, None] * A), (A.T * w) @ draws.T).T
     np.testing.assert_allclose(_weight_variance(W, basis), fits.var(axis=0), rtol=0.05)
+
+
+def test_pose_variance_is_the_spread_of_weighted_rigid_fits():
+    """The rotation's and the centroid translation's noise variance per component against the spread
+    of weighted rigid fits to many noisy draws of the same points (variance 1 / W per coordinate)."""
+    from facepipe.core.rigid import rigid_fit
+    from facepipe.mocap.cleaning import _pose_variance
+
+    rng = np.random.default_rng(4)
+    points = rng.normal(scale=[3.0, 2.0, 1.0], size=(15, 3))
+    W = rng.uniform(0.5, 2.0, size=15)
+    n = 20000
+    noisy = points + rng.normal(size=(n, 15, 3)) / np.sqrt(W)[None, :, None]
+    R, t = rigid_fit(points, noisy, np.broadcast_to(W, (n, 15)))
+    rotation = Rotation.from_matrix(R).as_rotvec()
+    centroid = W @ points / W.sum()
+    moved = np.einsum("nij,j->ni", R, centroid) + t
+    rot_var, trans_var = _pose_variance(W[None], points[None])
+    assert rotation.var(axis=0).mean() == pytest.approx(rot_var, rel=0.05)
+    assert moved.var(axis=0).mean() == pytest.approx(trans_var, rel=0.05)
 
 
 def test_noise_sigma_is_the_capture_noise_not_what_the_fit_leaves():

@@ -3,20 +3,27 @@
 A take's per-frame estimates (head pose, handle positions) are a smooth motion plus white
 noise. The Whittaker smoother (Eilers 2003) — a discrete smoothing spline,
 
-    z = argmin Σ_t w_t (y_t − z_t)² + λ Σ_t (z_{t−1} − 2 z_t + z_{t+1})²,
+    z = argmin Σ_t w_t (y_t − z_t)² + λ Σ_t (Δᵈ z)_t²,
 
-is the exact posterior mean of an integrated random walk observed in white noise (a
-Rauch–Tung–Striebel smoother without the recursion): it needs no window, so the first and last
-frames are estimated from the frames they have without padding, reflection or a one-sided
-kernel's bias — a straight motion is kept exactly up to the take's ends. λ is chosen per group of
-columns by generalised cross-validation (Craven & Wahba 1979): the λ that best predicts each
-sample from the others, so a still marker is smoothed hard, a fast one barely, and noise-free
-input is left (nearly) alone.
+with Δᵈ the differences of order d, is the exact posterior mean of a d-fold integrated random walk
+observed in white noise (a Rauch–Tung–Striebel smoother without the recursion): it needs no
+window, so the first and last frames are estimated from the frames they have without padding,
+reflection or a one-sided kernel's bias — a polynomial of degree < d is kept exactly up to the
+take's ends. The order sets what a take's ends do where one side is missing: second differences
+(d = 2) continue the motion there as a straight line, so a head that accelerates at the first frame
+(nodding, turning) is biased there by more than the noise the smoother removes; d = 3, 4 follow
+its curvature at the cost of more noise at the ends. λ, and d among the candidates, are chosen
+per group of columns by generalised cross-validation (Craven & Wahba 1979): the smoother that best
+predicts each sample from the others, so a still marker is smoothed hard, a fast one barely, and
+noise-free input is left (nearly) alone.
 
 Pure arrays; a banded solve per λ, O(T) per column.
 """
 
 from __future__ import annotations
+
+from functools import lru_cache
+from math import comb
 
 import numpy as np
 from scipy.linalg import eigvals_banded, solveh_banded
@@ -27,48 +34,53 @@ __all__ = ["LAMBDAS", "noise_variance_share", "smooth_series", "whittaker"]
 LAMBDAS = np.logspace(-2, 7, 37)
 
 
-def _penalty_bands(T: int) -> np.ndarray:
-    """(3, T) upper banded form of DᵀD, D the (T−2, T) second-difference matrix."""
-    d = np.zeros(T)
-    c = np.array([1.0, -2.0, 1.0])
-    for k in range(3):  # row r of D has c at columns r..r+2
-        d[k:T - 2 + k] += c[k] ** 2
-    e1 = np.zeros(T - 1)
-    e1[0:T - 2] += c[0] * c[1]
-    e1[1:T - 1] += c[1] * c[2]
-    e2 = np.zeros(T - 2)
-    e2[:] = c[0] * c[2]
-    ab = np.zeros((3, T))
-    ab[2] = d
-    ab[1, 1:] = e1
-    ab[0, 2:] = e2
+def _penalty_bands(T: int, order: int = 2) -> np.ndarray:
+    """(order + 1, T) upper banded form of DᵀD, D the (T − order, T) difference matrix of that order."""
+    c = np.array([(-1.0) ** (order - k) * comb(order, k) for k in range(order + 1)])
+    ab = np.zeros((order + 1, T))
+    rows = T - order  # row r of D has c at columns r..r+order
+    if rows <= 0:
+        return ab
+    for k in range(order + 1):
+        for lag in range(order + 1 - k):  # (DᵀD)[r+k, r+k+lag] += c[k] c[k+lag]
+            ab[order - lag, k + lag:k + lag + rows] += c[k] * c[k + lag]
     return ab
 
 
-def whittaker(y: np.ndarray, lam: float) -> np.ndarray:
-    """The Whittaker smoother of the columns of y (T, …) with penalty λ (0: y itself)."""
+@lru_cache(maxsize=8)
+def _penalty_eigenvalues(T: int, order: int) -> np.ndarray:
+    """DᵀD's eigenvalues (tr H = Σ 1 / (1 + λ μ)): O(T²), and the same for every smoothing of a take's
+    T frames (poses, weights, residuals), so kept. Read-only."""
+    mu = eigvals_banded(_penalty_bands(T, order), select="a")
+    mu.setflags(write=False)
+    return mu
+
+
+def whittaker(y: np.ndarray, lam: float, order: int = 2) -> np.ndarray:
+    """The Whittaker smoother of the columns of y (T, …) with penalty λ on the differences of that
+    order (0, or too few frames for one difference: y itself)."""
     y = np.asarray(y, dtype=np.float64)
     T = y.shape[0]
-    if T < 3 or lam <= 0:
+    if T <= order or lam <= 0:
         return y.copy()
-    ab = lam * _penalty_bands(T)
-    ab[2] += 1.0
+    ab = lam * _penalty_bands(T, order)
+    ab[-1] += 1.0
     return solveh_banded(ab, y.reshape(T, -1)).reshape(y.shape)
 
 
-def noise_variance_share(T: int, lam: float, block: int = 512) -> np.ndarray:
+def noise_variance_share(T: int, lam: float, block: int = 512, order: int = 2) -> np.ndarray:
     """(T,) the variance of smoothed unit white noise at each frame: the diagonal of H Hᵀ = H², H the
     hat matrix (I + λ DᵀD)⁻¹ — Σ_j H_tj², the noise of every frame that reaches frame t.
 
     This, not the hat diagonal H_tt (the share of frame t's own noise, an upper bound since H's
-    eigenvalues lie in [0, 1]), is the noise variance left in a smoothed value; both are about twice
-    as large at a take's ends as in its middle. H's rows by banded solves, ``block`` columns at a
-    time: O(T²) time, O(T · block) memory.
+    eigenvalues lie in [0, 1]), is the noise variance left in a smoothed value; both are larger at a
+    take's ends than in its middle (about twice with second differences). H's rows by banded
+    solves, ``block`` columns at a time: O(T²) time, O(T · block) memory.
     """
-    if T < 3 or lam <= 0:
+    if T <= order or lam <= 0:
         return np.ones(T)
-    ab = lam * _penalty_bands(T)
-    ab[2] += 1.0
+    ab = lam * _penalty_bands(T, order)
+    ab[-1] += 1.0
     out = np.zeros(T)
     for start in range(0, T, block):
         stop = min(T, start + block)
@@ -80,8 +92,9 @@ def noise_variance_share(T: int, lam: float, block: int = 512) -> np.ndarray:
 
 
 def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.ndarray = LAMBDAS,
-                  noise_var: np.ndarray | None = None):
-    """Whittaker-smooth the columns of y (T, n), λ chosen per group by generalised cross-validation.
+                  noise_var: np.ndarray | None = None, orders=(2,)):
+    """Whittaker-smooth the columns of y (T, n), λ (and the penalty's order) chosen per group by
+    generalised cross-validation.
 
     With ``noise_var`` (the known variance of each column's white noise, (n,) or a scalar), λ is
     chosen instead by the unbiased risk estimate (Mallows' C_p: rss / T − σ² + 2 σ² tr(H) / T),
@@ -95,20 +108,24 @@ def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.n
     groups : (n,) int, columns that share a λ (e.g. a marker's three coordinates); default one
         group per column.
     lambdas : candidate λ (ascending).
+    orders : candidate orders of the penalised differences (2: an integrated random walk, the
+        ends extrapolated as straight lines; higher: the ends follow the motion's curvature).
 
     Returns
     -------
     z : (T, n) smoothed; lam : (groups,) the λ chosen per group (index order of ``np.unique(groups)``);
-    noise_share : (groups,) tr(H) / T, the share of white noise that passes the chosen smoother.
+    noise_share : (groups,) tr(H) / T, the share of white noise that passes the chosen smoother;
+    order : (groups,) int, the order chosen per group.
     """
     y = np.asarray(y, dtype=np.float64)
     T, n = y.shape
     groups = np.arange(n) if groups is None else np.asarray(groups)
     labels, g = np.unique(groups, return_inverse=True)
     G = len(labels)
-    if T < 4:
-        return y.copy(), np.zeros(G), np.ones(G)
-    mu = eigvals_banded(_penalty_bands(T), select="a")  # eigenvalues of DᵀD: tr H = Σ 1 / (1 + λ μ)
+    orders = [int(o) for o in orders if T >= o + 2]
+    order_out = np.full(G, min(orders) if orders else 2, dtype=np.int64)
+    if T < 4 or not orders:
+        return y.copy(), np.zeros(G), np.ones(G), order_out
     count = np.bincount(g, minlength=G).astype(np.float64)
     z = y.copy()
     lam_out = np.zeros(G)
@@ -119,19 +136,22 @@ def smooth_series(y: np.ndarray, groups: np.ndarray | None = None, lambdas: np.n
         best = s2.copy()
     else:
         best = np.full(G, np.inf)
-    for lam in lambdas:
-        zl = whittaker(y, lam)
-        rss = np.bincount(g, weights=((y - zl) ** 2).mean(axis=0), minlength=G)
-        trace = float(np.sum(1.0 / (1.0 + lam * mu)))
-        if noise_var is not None:
-            gcv = rss / count - s2 + 2.0 * s2 * trace / T
-        else:
-            gcv = rss / count / (1.0 - trace / T) ** 2
-        better = (gcv < best) & ~np.isclose(gcv, best, rtol=1e-12, atol=0.0)
-        if better.any():
-            best[better] = gcv[better]
-            cols = better[g]
-            z[:, cols] = zl[:, cols]
-            lam_out[better] = lam
-            share[better] = trace / T
-    return z, lam_out, share
+    for order in orders:
+        mu = _penalty_eigenvalues(T, order)
+        for lam in lambdas:
+            zl = whittaker(y, lam, order)
+            rss = np.bincount(g, weights=((y - zl) ** 2).mean(axis=0), minlength=G)
+            trace = float(np.sum(1.0 / (1.0 + lam * mu)))
+            if noise_var is not None:
+                gcv = rss / count - s2 + 2.0 * s2 * trace / T
+            else:
+                gcv = rss / count / (1.0 - trace / T) ** 2
+            better = (gcv < best) & ~np.isclose(gcv, best, rtol=1e-12, atol=0.0)
+            if better.any():
+                best[better] = gcv[better]
+                cols = better[g]
+                z[:, cols] = zl[:, cols]
+                lam_out[better] = lam
+                share[better] = trace / T
+                order_out[better] = order
+    return z, lam_out, share, order_out

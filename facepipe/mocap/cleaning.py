@@ -46,7 +46,12 @@ from facepipe.mocap.gaps import fill_gaps
 from facepipe.core.rigid import interpolate_poses, rigid_fit, rotation_from_vector, stable_marker_pose
 from facepipe.core.temporal import noise_variance_share, smooth_series
 
-__all__ = ["CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
+#: Orders of the differences the pose and weight smoothers penalise, chosen per signal with λ (see
+#: :func:`facepipe.core.temporal.smooth_series`): 2 alone continues a take's ends as straight lines, and
+#: a head that accelerates at the first frame is then placed worse there than no smoothing would.
+ORDERS = (2, 3, 4)
+
+__all__ = ["ORDERS", "CleanOptions", "CleanResult", "clean_take", "find_jumps", "fit_pose_expression", "sample_counts",
            "noise_sigma", "rotation_from_vector"]
 
 
@@ -757,20 +762,38 @@ def _every_frame(R_rows: np.ndarray, t_rows: np.ndarray, C_rows: np.ndarray, usa
     return R, t, C
 
 
-def _smooth_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray):
+def _smooth_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray, noise_var: np.ndarray | None = None):
     """Head poses smoothed over the take (:func:`facepipe.core.temporal.smooth_series`).
 
     Rotations as rotation vectors from their mean (a head turns far less than π); translations
     as the motion of ``centre`` (the markers' centroid in head space): about the face itself a
     rotation's noise does not leak into the translation through the lever arm to the origin, so
-    the two are smoothed apart.
+    the two are smoothed apart. With ``noise_var`` ((2,): the rotation's and the centre's noise
+    variance per component, :func:`_pose_variance`) the strength is chosen by the unbiased risk,
+    so poses whose noise is negligible next to their frame-to-frame deviations are left as fitted.
     """
     mean = Rotation.from_matrix(R).mean()
     v = (mean.inv() * Rotation.from_matrix(R)).as_rotvec()
     moved = np.einsum("tij,j->ti", R, centre) + t
-    z, _, _ = smooth_series(np.concatenate([v, moved], axis=1), groups=np.array([0, 0, 0, 1, 1, 1]))
+    noise = None if noise_var is None else np.repeat(noise_var, 3)
+    z = smooth_series(np.concatenate([v, moved], axis=1), groups=np.array([0, 0, 0, 1, 1, 1]), noise_var=noise,
+                      orders=ORDERS)[0]
     Rs = (mean * Rotation.from_rotvec(z[:, :3])).as_matrix()
     return Rs, z[:, 3:] - np.einsum("tij,j->ti", Rs, centre)
+
+
+def _pose_variance(W: np.ndarray, handles: np.ndarray) -> np.ndarray:
+    """(2,) the noise variance per component of a weighted rigid fit's rotation vector and of its
+    translation at the weighted centroid, averaged over the frames: the mean diagonal of the inverse
+    rotational inertia Σ_m w_m (|q_m|² I − q_m q_mᵀ) (q about the centroid) and 1 / Σ_m w_m.
+    W (n, H) the markers' inverse noise variances, handles (n, H, 3) the head-space points fitted."""
+    sw = np.maximum(W.sum(axis=1), 1e-300)
+    q = handles - (np.einsum("nh,nhc->nc", W, handles) / sw[:, None])[:, None, :]
+    inertia = (np.einsum("nh,nhc,nhc->n", W, q, q)[:, None, None] * np.eye(3)
+               - np.einsum("nh,nhi,nhj->nij", W, q, q))
+    inertia += np.eye(3) * 1e-12 * np.einsum("nii->n", inertia).max(initial=1e-300)
+    rotation = np.einsum("nii->n", np.linalg.inv(inertia)).mean() / 3.0
+    return np.array([rotation, float(np.mean(1.0 / sw))])
 
 
 def _refit_over_time(frames: _UsableFrames, W, R, t, C, usable: np.ndarray, times: np.ndarray, robust_scale,
@@ -784,24 +807,29 @@ def _refit_over_time(frames: _UsableFrames, W, R, t, C, usable: np.ndarray, time
        under noise — most at a take's first and last frames, which have no neighbours on one side
        to average that out. The poses are then smoothed over the take (:func:`_smooth_poses`).
     2. The expression refitted under the smoothed pose (whatever the pose's noise moved into the
-       expression goes back out): L1 prior, then the relaxed refit of :func:`_relaxed_refit`. Not
-       smoothed: that helps the middle of a take but biases its ends wherever a weight curves there.
+       expression goes back out): L1 prior, then the relaxed refit of :func:`_relaxed_refit`; then
+       smoothed over the take as in 1. The smoothers may follow a weight's curvature to the take's
+       ends (:data:`ORDERS`), so a weight that rises from the first frame is not flattened there.
     """
     rows = np.flatnonzero(usable)
     reference, basis = frames.reference, frames.basis
     K = basis.shape[0]
     if K:
-        smoothed = np.maximum(smooth_series(C, noise_var=_weight_variance(W, basis))[0][rows], 0.0)
+        variance = _weight_variance(W, basis)
+        smoothed = np.maximum(smooth_series(C, noise_var=variance, orders=ORDERS)[0][rows], 0.0)
         handles = reference + np.einsum("nk,khc->nhc", smoothed, basis)
         R_rows, t_rows = rigid_fit(handles, np.where(frames.visible[..., None], frames.world, 0.0), W)
         R, t, _ = _every_frame(R_rows, t_rows, C[rows], usable, times)
-    R, t = _smooth_poses(R, t, reference.mean(axis=0))
+    else:
+        handles = np.broadcast_to(reference, frames.world.shape)
+    R, t = _smooth_poses(R, t, reference.mean(axis=0), _pose_variance(W, handles))
     posed = replace(frames, fix_pose=True)
     C_rows = _sparse_fit(posed, W, R[rows], t[rows], C[rows], robust_scale, sparsity)[2]
     if K and sparsity > 0:
         C_rows = _relaxed_refit(posed, W, R[rows], t[rows], C_rows, robust_scale, sparsity)[2]
-    C = C.copy()
-    C[rows] = C_rows
+    C = _every_frame(R[rows], t[rows], C_rows, usable, times)[2]
+    if K:
+        C = np.maximum(smooth_series(C, noise_var=variance, orders=ORDERS)[0], 0.0)
     return R, t, C
 
 
@@ -835,11 +863,12 @@ def _clean_handles(model: np.ndarray, residual: np.ndarray, known: np.ndarray, n
     keep = noise.keep
     if temporal:
         T, H, _ = res_filled.shape
-        smoothed, lam, _ = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
+        # second differences alone (not ORDERS): higher ones changed nothing measurable here, at 3× the cost
+        smoothed, lam, _, order = smooth_series(res_filled.reshape(T, 3 * H), groups=np.repeat(np.arange(H), 3))
         res_filled = smoothed.reshape(T, H, 3)
         # per frame: the first and last frames keep more of the noise than the middle
-        passed = {value: noise_variance_share(T, value) for value in np.unique(lam)}
-        noise_var = noise.sigma**2 * np.stack([passed[value] for value in lam], axis=1)  # (T, H)
+        passed = {key: noise_variance_share(T, key[0], order=key[1]) for key in set(zip(lam, order))}
+        noise_var = noise.sigma**2 * np.stack([passed[key] for key in zip(lam, order)], axis=1)  # (T, H)
         signal = np.maximum(np.mean(res_filled**2, axis=(0, 2)) - noise_var.mean(axis=0), 0.0)  # (H,)
         keep = signal / np.maximum(signal + noise_var, 1e-300)
     else:
