@@ -28,14 +28,14 @@ from scipy.stats import pearsonr, spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's facepipe, however it is run
 
 from facepipe.appearance_sample import write_appearance_kit
-from facepipe.core.appearance import RegionBank, stream_bits
+from facepipe.core.appearance import stream_bits
 from facepipe.io.appearance_file import STREAM_DECIMALS
 from facepipe.io.camera_file import read_camera
 from facepipe.io.config import load_config
 from facepipe.io.footage import open_footage, read_frames, to_gray
 from facepipe.io.mesh_read import load_mesh, load_vertices
 from facepipe.pipeline.appearance import (_read_geometry, build_appearance, classify_chunk, classify_frames,
-                                          texel_map, texture_differences)
+                                          region_bank, texel_map, texture_differences)
 
 KIT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict"
 TAKES = {"train": KIT / "train_truth.npz", "video": KIT / "video" / "video_truth.npz", "sweep": None}
@@ -86,7 +86,7 @@ def throughput(model, out: Path, take: str, positions: np.ndarray, numbers: np.n
     footage = open_footage(out / take / "frame_%04d.png")
     grays = np.stack([to_gray(image) for _, image, _ in read_frames(footage, numbers)])
     cam = np.stack([model.to_camera(p) for p in positions])
-    bank = RegionBank(model.templates, model.indices, model.weights)
+    bank = region_bank(model)
     out = {}
     # the model as built, then without the edge-on points' test, then without the occlusion test too
     variants = {"": {}, "_without_edge_on_test": {"min_point_facing": 0.0},

@@ -2,7 +2,6 @@
 
 import json
 import shutil
-from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -276,6 +275,9 @@ def test_example_frame_without_geometry_exits_2(kit, tmp_path, capsys):
 @pytest.mark.parametrize("old,new,message", [
     ("texture_size = 512", "texture_size = 512\nmin_seen = 0.0", "min_seen"),
     ("texture_size = 512", "texture_size = 512\nmin_point_facing = 1.5", "min_point_facing"),
+    ("texture_size = 512", "texture_size = 512\nmin_relative_facing = 1.0", "min_relative_facing"),
+    # every point of a template must be seen well in every example: some are not (folds, slants)
+    ("texture_size = 512", "texture_size = 512\nmin_seen = 1.0\nmin_relative_facing = 0.95", "seen well"),
 ])
 def test_bad_visibility_settings(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
@@ -291,3 +293,11 @@ def test_model_keeps_its_visibility_settings(kit):
     s = model.template_size
     assert model.template_facing.shape == (len(model.names), 5, s * s)
     assert (model.template_facing <= 1.0).all() and (model.template_facing > 0).mean() > 0.9
+    # the stable points: each region's templates are zero off them, and at least min_seen of a template
+    assert model.template_mask.shape == (len(model.names), s * s) and model.template_mask.dtype == bool
+    assert (model.template_mask.mean(axis=1) >= model.min_seen).all()
+    from facepipe.core.appearance import haar_matrix
+
+    H, _ = haar_matrix(s)
+    for t, m in zip(model.templates, model.template_mask):
+        assert np.abs((t @ H)[:, ~m]).max(initial=0.0) < 1e-9

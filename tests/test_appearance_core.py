@@ -301,3 +301,77 @@ def test_masked_templates_kept_per_mask_give_the_same_distances():
     small.masked_distances(norm[:3], mask[:3], region[:3])
     np.testing.assert_allclose(small.masked_distances(norm, mask, region), fresh, rtol=1e-12)
     assert len(small._mask_cache) <= max(2, len(set(zip(pick, region))))
+
+
+def test_half_rolled_away_template_classified_on_its_stable_half():
+    # the lower half of a region's template rolls out of view (an upper lid into its socket):
+    # in every example, and in the frames, it shows something unrelated to the layer (the fold
+    # seen edge-on: dark, changing with the geometry). Templates, kept coefficients and the match
+    # on the stable half recover Q; on the whole patch the rolled half decides.
+    rng = np.random.default_rng(31)
+    n = 5
+    a, b, _ = _blend_templates(rng, n)
+    stable = np.zeros((16, 16), dtype=bool)
+    stable[:8] = True
+
+    def rolled(k):  # what the rolled-away half shows: dark folds whose place moves with the fold
+        fold = 0.3 + 0.6 * rng.uniform(size=(16, 16))
+        return np.where(stable, 0.0, fold * (1.0 + np.sin(k + np.arange(16))[None, :]))
+
+    def sample(t):
+        return np.where(stable, a + (b - a) * t / (n - 1), rolled(7.3 * t))
+
+    examples = np.stack([sample(k) for k in range(n)])
+    w = coefficient_weights(16)
+    masked = haar_coefficients(normalise_patches(examples, True, stable))
+    whole = haar_coefficients(normalise_patches(examples))
+    bank = RegionBank([masked], [select_coefficients(masked, 50)], w, masks=stable.reshape(1, -1))
+    blind = RegionBank([whole], [select_coefficients(whole, 50)], w)
+    # the kept coefficients are chosen on the stable half: none whose Haar row lies on the rolled half alone
+    H, _ = haar_matrix(16)
+    assert (np.abs(H[select_coefficients(masked, 50)][:, stable.ravel()]).max(axis=1) > 0).all()
+    assert not (np.abs(H[select_coefficients(whole, 50)][:, stable.ravel()]).max(axis=1) > 0).all()
+    truth = np.linspace(0.1, 3.9, 12)
+    patches = np.stack([sample(t) for t in truth])[:, None, None] * 0.8  # (T, R=1, S=1, 16, 16), another exposure
+    q, _ = classify_regions(patches, bank)
+    q_blind, _ = classify_regions(patches, blind)
+    assert np.abs(q[:, 0] - truth).max() < 0.15
+    assert np.abs(q_blind[:, 0] - truth).max() > 0.5
+    # part of the stable half hidden as well: matched on what is left of it, still within 0.15
+    seen = np.ones(patches.shape, dtype=bool)
+    seen[..., :3, :] = False
+    q_part, _ = classify_regions(np.where(seen, patches, 5.0), bank, seen=seen)
+    assert np.abs(q_part[:, 0] - truth).max() < 0.15
+
+
+def test_bank_with_stable_masks_against_direct_distances():
+    # distances of a masked bank: the patch normalised over its region's mask (plane by lstsq),
+    # its Haar coefficients against the stored templates on the kept terms, summed by hand
+    rng = np.random.default_rng(32)
+    masks = rng.uniform(size=(2, 16, 16)) < 0.7
+    raw = [rng.uniform(0.5, 1.5, size=(k, 16, 16)) for k in (3, 5)]
+    templates = [haar_coefficients(normalise_patches(t, True, m)) for t, m in zip(raw, masks)]
+    indices = [select_coefficients(t, 40) for t in templates]
+    w = coefficient_weights(16)
+    bank = RegionBank(templates, indices, w, masks=masks.reshape(2, -1))
+    patches = rng.uniform(0.5, 1.5, size=(3, 2, 1, 16, 16))
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    q, d = classify_regions(patches, bank)
+    for r in range(2):
+        m = masks[r]
+        A = np.stack([np.ones(m.sum()), xx[m], yy[m]], axis=1)
+        for f in range(3):
+            p = patches[f, r, 0]
+            norm = np.zeros((16, 16))
+            norm[m] = p[m] / (A @ np.linalg.lstsq(A, p[m], rcond=None)[0])
+            c = haar_coefficients(norm)
+            direct = [np.sum(w[indices[r]] * (c[indices[r]] - t[indices[r]]) ** 2) for t in templates[r]]
+            assert d[f, r] == pytest.approx(min(direct), rel=1e-9)
+            assert q[f, r] == pytest.approx(peak_index(np.array(direct)), abs=1e-9)
+    # every stable texel seen: the masked match is the plain one
+    norm = normalise_patches(patches[:, 0, 0], True, masks[0])
+    plain = bank.distances(haar_coefficients(norm)[:, None, None, :].repeat(2, axis=1))[:, 0, 0]
+    np.testing.assert_allclose(bank.masked_distances(norm, np.broadcast_to(masks[0], norm.shape), np.zeros(3, int)),
+                               plain, rtol=1e-9)
+    with pytest.raises(ValueError):
+        RegionBank(templates, indices, w, masks=np.zeros((2, 256), dtype=bool))

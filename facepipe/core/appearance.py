@@ -237,14 +237,24 @@ class RegionBank:
     kept coefficients; weights : (C,). A region's coefficient weights are zero off its kept set
     and its missing templates (n_r below the most) are at infinite distance, so one batched
     product gives every region's distances over its own terms, as :func:`match_distances` does.
+
+    masks : optional (R, C) bool, each region's stable texels (e.g. the template points every example shows well):
+    its templates were normalised over them and are zero elsewhere (``normalise_patches`` with
+    that mask), and a region's patches are matched on them alone (:func:`classify_regions`).
+    None: every texel.
     """
 
     MASK_CACHE = 1024  # (region, mask) pairs whose normalised templates are kept: 12 kB each at 6 layers of 16²
 
-    def __init__(self, templates, indices, weights):
+    def __init__(self, templates, indices, weights, masks=None):
         self._mask_cache: dict = {}
         R = len(templates)
         C = len(weights)
+        self.masks = np.ones((R, C), dtype=bool) if masks is None else np.asarray(masks, dtype=bool).reshape(R, C)
+        if not self.masks.any(axis=1).all():
+            raise ValueError("a region's stable mask is empty")
+        self.masked = not self.masks.all()
+        self.mask_count = self.masks.sum(axis=1).astype(np.float64)  # (R,)
         n_max = max(len(t) for t in templates)
         self.weights = np.zeros((R, C))
         self.templates = np.zeros((R, n_max, C))
@@ -257,8 +267,8 @@ class RegionBank:
         self.tt = (self.wt * self.templates).sum(axis=-1)      # (R, n)
         H, _ = haar_matrix(int(round(np.sqrt(C))))
         self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
-        # their planes over all texels (:func:`normalise_patches` of the normalised template: near 1)
-        self.plane_all = _masked_plane(self.pixels, np.ones((1, 1, C), dtype=bool), True)[0]
+        # their planes over the stable texels (:func:`normalise_patches` of the normalised template: near 1)
+        self.plane_all = _masked_plane(self.pixels, self.masks[:, None, :], True)[0]
         # the Haar rows of each region's kept coefficients (padded with zero-weight rows)
         kept = max(len(i) for i in indices)
         self.kept_rows = np.zeros((R, kept, C))
@@ -272,12 +282,12 @@ class RegionBank:
         """(M, n) distances of partly seen patches to their region's templates over the seen texels.
 
         normalised : (M, size, size) patches normalised over their seen texels; mask : (M, size,
-        size) the seen texels; region : (M,) each patch's region. The templates are normalised
-        over the same texels (a plane fitted over part of a patch takes up part of its pattern:
-        patch and template alike), and compared with the patch on those texels only (the
-        difference there, zero elsewhere, in the region's Haar terms), scaled by the texels of
-        the patch over those seen so that partly and wholly seen samples compare. With every
-        texel seen this is :meth:`distances`.
+        size) the seen texels (within the region's stable ones); region : (M,) each patch's
+        region. The templates are normalised over the same texels (a plane fitted over part of a
+        patch takes up part of its pattern: patch and template alike), and compared with the
+        patch on those texels only (the difference there, zero elsewhere, in the region's Haar
+        terms), scaled by the region's stable texels over those seen so that partly and wholly
+        seen samples compare. With every stable texel seen this is :meth:`distances`.
         """
         M = len(region)
         m = np.asarray(mask, dtype=bool).reshape(M, 1, -1)
@@ -288,14 +298,14 @@ class RegionBank:
             rows = region == r
             c = diff[rows] @ self.kept_rows[r].T                                  # (m, n, kept)
             d[rows] = (c * c) @ self.kept_weights[r]
-        d *= (m.shape[-1] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
+        d *= (self.mask_count[region] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
         return np.where(self.absent[region], np.inf, d)
 
     def _masked_templates(self, masks: np.ndarray, region: np.ndarray, shading: bool) -> np.ndarray:
         """(M, n, size²) each region's templates normalised over a mask (M, size²), zero off it.
 
-        The stored templates were normalised over all their texels (by their plane over all of
-        them): that plane back, the plane of the seen texels out (the same with all seen). What a
+        The stored templates were normalised over the region's stable texels (by their plane over
+        those): that plane back, the plane of the seen texels out (the same with all seen). What a
         camera cannot see of a region (a fold turned edge-on, a brow over the lid) changes slowly,
         so the same masks come back frame after frame: each (region, mask) is normalised once and
         kept (up to ``MASK_CACHE`` of them)."""
@@ -334,12 +344,16 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
     """:func:`classify` of every region at once: patches (..., R, S, size, size) → Q (..., R) and
     the chosen sample's smallest distance (..., R).
 
-    seen : (..., R, S, size, size) which texels of the samples the camera sees (None: all). A
-    partly hidden sample is matched on its seen texels (:meth:`RegionBank.masked_distances`); a
-    sample with under ``min_seen`` of its texels seen takes no part, and a region none of whose
-    samples does gets Q NaN (the caller holds its last value).
+    A region's patches are normalised and matched over its stable texels (the bank's masks; all
+    by default). seen : (..., R, S, size, size) which texels of the samples the camera sees
+    (None: all). A sample with some stable texels hidden is matched on its seen ones
+    (:meth:`RegionBank.masked_distances`); a sample with under ``min_seen`` of its stable texels
+    seen takes no part, and a region none of whose samples does gets Q NaN (the caller holds
+    its last value).
     """
-    coefficients = haar_coefficients(normalise_patches(patches, shading))
+    size = patches.shape[-1]
+    stable = bank.masks.reshape(-1, 1, size, size) if bank.masked else None  # (R, 1, size, size): every sample alike
+    coefficients = haar_coefficients(normalise_patches(patches, shading, stable))
     d = bank.distances(coefficients)  # (..., R, S, n)
     if seen is not None:
         d = _distances_of_seen(patches, seen, bank, shading, d, min_seen)
@@ -355,9 +369,12 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
 def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.ndarray, min_seen: float) -> np.ndarray:
     """Distances (..., R, S, n) with the partly seen samples' over their seen texels, and those
     of the samples seen too little infinite."""
-    seen = np.asarray(seen, dtype=bool)
-    fraction = seen.mean(axis=(-2, -1))                         # (..., R, S)
-    partial = (fraction >= min_seen) & (fraction < 1.0)
+    size = patches.shape[-1]
+    stable = bank.masks.reshape(-1, 1, size, size)
+    seen = np.asarray(seen, dtype=bool) & stable                # texels off a region's stable set never count
+    count = seen.sum(axis=(-2, -1))                             # (..., R, S)
+    fraction = count / bank.mask_count[:, None]
+    partial = (fraction >= min_seen) & (count < bank.mask_count[:, None])
     d = np.where((fraction < min_seen)[..., None], np.inf, d)
     if partial.any():
         idx = np.nonzero(partial)

@@ -30,8 +30,11 @@ class AppearanceModel:
     weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
     min_point_facing : template points the camera sees more edge-on than this cosine (in the
     frame, or in any of the region's examples: ``template_facing`` (R, 5, N), their least cosine
-    there) are left out of the match (0: none); min_seen : the share of a template's points that must be seen for the region to be
-    classified; occlusion : template points hidden by the face itself are found (ray cast) and
+    there) are left out of the match (0: none); template_mask (R, N) : each region's stable
+    template points, those every example shows well (in view, not hidden, not edge-on): its
+    templates are normalised over them, its kept coefficients chosen on them, and it is matched
+    on them (None in models before it: all points); min_seen : the share of a template's
+    (stable) points that must be seen for the region to be classified; occlusion : template points hidden by the face itself are found (ray cast) and
     left out of the match (False in models before it);
     shading : patches divided by their shading plane (else by their mean; models before it);
     light_face (K,), light_bary (K, 3), light_albedo (K,) : points on the surface (fixed
@@ -69,6 +72,7 @@ class AppearanceModel:
     occlusion: bool = True
     min_point_facing: float = 0.0
     template_facing: np.ndarray | None = None
+    template_mask: np.ndarray | None = None
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
@@ -93,6 +97,8 @@ def save_appearance(path, model) -> None:
         arrays["corner_uv"] = model.corner_uv
     if model.template_facing is not None:
         arrays["template_facing"] = model.template_facing
+    if model.template_mask is not None:
+        arrays["template_mask"] = model.template_mask
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     for r in range(len(model.names)):
@@ -124,7 +130,8 @@ def load_appearance(path):
                                bool(s[3]) if len(s) > 3 else False, d.get("light_face"), d.get("light_bary"),
                                d.get("light_albedo"), d.get("corner_uv"),
                                float(s[4]) if len(s) > 4 else 0.5, bool(s[5]) if len(s) > 5 else False,
-                               float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"))
+                               float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"),
+                               None if d.get("template_mask") is None else d["template_mask"].astype(bool))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None

@@ -108,6 +108,7 @@ class AppearanceConfig:
     occlusion: bool = True  # template points the face hides (ray cast) left out of the match
     min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
     min_point_facing: float = 0.35  # template points seen more edge-on (cosine), in the frame or an example, left out
+    min_relative_facing: float = 0.8  # template points an example sees under this share of the template's median facing (a fold turning away) left out
     regions: list = field(default_factory=list)
 
 
@@ -150,7 +151,7 @@ _TYPES: dict[str, dict[str, object]] = {
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
                    "shading": bool, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
-                   "regions": dict},
+                   "min_relative_facing": float, "regions": dict},
     "video": {"landmarks": str},
 }
 _REGION_TYPES = {"vertices": str, "template": list, "frames": list}
@@ -327,6 +328,9 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if not 0.0 <= out.min_point_facing < 1.0:
         raise InputError(f"[appearance] min_point_facing = {out.min_point_facing} is not in [0, 1)", path=path,
                          hint="a cosine: 0 keeps every point the camera sees, 0.35 drops those seen within ~70° of edge-on")
+    if not 0.0 <= out.min_relative_facing < 1.0:
+        raise InputError(f"[appearance] min_relative_facing = {out.min_relative_facing} is not in [0, 1)", path=path,
+                         hint="a share of the template's median facing: 0 keeps every point, 0.8 drops folds turning away")
     if not 0.0 < out.min_seen <= 1.0:
         raise InputError(f"[appearance] min_seen = {out.min_seen} is not in (0, 1]", path=path,
                          hint="the share of a template that must be seen, e.g. 0.5")

@@ -36,7 +36,7 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import open_footage, read_frames, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_chunk",
-           "texture_differences"]
+           "texture_differences", "well_seen_points", "region_bank"]
 
 
 def texel_map(corner_uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -160,9 +160,25 @@ def sample_template_frames(grays: np.ndarray, camera_positions: np.ndarray, mode
     corners = camera_positions[:, model.faces[model.template_face[:, 0]]]  # (F, R, N, 3, 3)
     normal = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]).sum(axis=2)
     cos = model.normal_sign * ap.facing(normal, X[:, :, 0].mean(axis=2))
-    visible = (cos > model.min_facing) & (seen.mean(axis=(2, 3)) >= model.min_seen)
+    visible = (cos > model.min_facing) & (seen_fraction(seen, model) >= model.min_seen)
     s = model.template_size
     return values.reshape(values.shape[:3] + (s, s)), visible, seen.reshape(seen.shape[:3] + (s, s))
+
+
+def seen_fraction(seen: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """(F, R) the share of each region's stable template points (all, in models without them) the
+    camera sees, over all samples: seen (F, R, 5, N) or (F, R, 5, size, size)."""
+    F, R = seen.shape[:2]
+    seen = seen.reshape(F, R, 5, -1)
+    if model.template_mask is None:
+        return seen.mean(axis=(2, 3))
+    stable = np.asarray(model.template_mask, dtype=bool)
+    return (seen & stable[:, None, :]).sum(axis=(2, 3)) / (seen.shape[2] * stable.sum(axis=-1))
+
+
+def region_bank(model: AppearanceModel) -> ap.RegionBank:
+    """The model's templates for :func:`facepipe.core.appearance.classify_regions`."""
+    return ap.RegionBank(model.templates, model.indices, model.weights, model.template_mask)
 
 
 def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
@@ -172,16 +188,23 @@ def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: A
     are cast for the template's grid in place; an offset sample (half a step away) takes its
     grid point's answer: an occluder's edge is not resolved finer than the grid anyway."""
     F, R, S, N = X.shape[:4]
-    s = model.template_size
-    grid = X[:, :, 0].reshape(F, R, s, s, 3)
-    step = np.linalg.norm(np.diff(grid, axis=3), axis=-1).mean(axis=(2, 3))  # (F, R)
-    tolerance = np.broadcast_to(step[:, :, None], (F, R, N)).reshape(F, -1)
+    hidden = grid_points_hidden(X[:, :, 0], camera_positions, model.faces, model.template_size)
+    return np.broadcast_to(hidden[:, :, None], (F, R, S, N))
+
+
+def grid_points_hidden(grid: np.ndarray, camera_positions: np.ndarray, faces: np.ndarray, size: int) -> np.ndarray:
+    """Which points (F, G, N) of template grids (F, G, N = size², 3) in camera space the face
+    (F, V, 3) hides, by more than the grid's step (see :func:`template_points_hidden`)."""
+    F, G, N = grid.shape[:3]
+    rows = grid.reshape(F, G, size, size, 3)
+    step = np.linalg.norm(np.diff(rows, axis=3), axis=-1).mean(axis=(2, 3))  # (F, G)
+    tolerance = np.broadcast_to(step[:, :, None], (F, G, N)).reshape(F, -1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        spacing = np.nanmedian(np.linalg.norm(np.diff(grid[..., :2] / grid[..., 2:], axis=3), axis=-1))
-    hidden = occluded_points(X[:, :, 0].reshape(F, -1, 3), camera_positions, model.faces, tolerance,
+        spacing = np.nanmedian(np.linalg.norm(np.diff(rows[..., :2] / rows[..., 2:], axis=3), axis=-1))
+    hidden = occluded_points(grid.reshape(F, -1, 3), camera_positions, faces, tolerance,
                              cell=spacing if np.isfinite(spacing) and spacing > 0 else None,
-                             groups=np.repeat(np.arange(R), N))  # the triangles culled per region
-    return np.broadcast_to(hidden.reshape(F, R, 1, N), (F, R, S, N))
+                             groups=np.repeat(np.arange(G), N))  # the triangles culled per region
+    return hidden.reshape(F, G, N)
 
 
 def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -262,7 +285,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
-    facing_examples = []
+    facing_examples, masks = [], []
     for region in cfg.regions:
         vol, alpha, box = _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral,
                                          cfg, normal_sign)
@@ -271,6 +294,16 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         patches = []
         facing_examples.append(np.min([point_facing(cam_pos[f], faces, face, bary, normal_sign)
                                        for f in region.frames], axis=0))
+        stable = well_seen_points(np.stack([cam_pos[f] for f in region.frames]), faces, face[0], bary[0], camera,
+                                  cfg.template_size, normal_sign, cfg.min_point_facing, cfg.occlusion,
+                                  cfg.min_relative_facing)
+        if stable.mean() < cfg.min_seen:
+            raise InputError(f"region {region.name}: only {stable.mean():.0%} of its template is seen well (in the "
+                             f"image, not hidden, not edge-on) in every example frame, under min_seen = "
+                             f"{cfg.min_seen}", path=config.path,
+                             hint="move the template to where every example shows the region, or lower "
+                                  "min_point_facing / min_seen")
+        masks.append(stable)
         for g, f in zip(gray, region.frames):
             X = surface_points(cam_pos[f], faces, face[0], bary[0])
             values, inside = ap.bilinear_sample(g, project_distorted(camera, X))
@@ -281,7 +314,11 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                 normals = point_normals(cam_pos[f][None], faces, face[0], bary[0], normal_sign)[0]
                 values = values / ap.light_shading(normals, light["light"])
             patches.append(values.reshape(cfg.template_size, cfg.template_size))
-        coeffs = ap.haar_coefficients(ap.normalise_patches(np.stack(patches), cfg.shading))
+        # the templates, and the coefficients kept, of the stable points alone: what rolls out of
+        # view in some example (an eyelid into its socket) neither dominates the selection nor
+        # takes up the normalisation's plane
+        size = cfg.template_size
+        coeffs = ap.haar_coefficients(ap.normalise_patches(np.stack(patches), cfg.shading, stable.reshape(size, size)))
         names.append(region.name)
         volumes.append(vol.astype(np.float32))
         alphas.append(alpha.astype(np.float32))
@@ -297,7 +334,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64),
                             cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
                             corner_uv.astype(np.float32), cfg.min_seen, cfg.occlusion, cfg.min_point_facing,
-                            np.stack(facing_examples).astype(np.float32))
+                            np.stack(facing_examples).astype(np.float32), np.stack(masks))
     return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
 
 
@@ -308,6 +345,34 @@ def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarr
     X = surface_points(camera_positions, faces, face, bary)
     n = point_normals(camera_positions[None], faces, face, bary, normal_sign)[0]
     return (n * -X).sum(axis=-1) / np.maximum(np.linalg.norm(X, axis=-1), 1e-30)
+
+
+def well_seen_points(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
+                     camera: Camera, size: int, normal_sign: float, min_point_facing: float, occlusion: bool = True,
+                     min_relative_facing: float = 0.0) -> np.ndarray:
+    """(N,) which points of a template grid (face (N,), bary (N, 3), size² points) every frame
+    (F, V, 3) (camera space: a region's example frames) shows well: in front of the camera and
+    inside the image, not hidden by the face (``occlusion``: the ray cast of
+    :func:`grid_points_hidden`), facing the camera more than ``min_point_facing`` (cosine of the
+    smooth surface's normal) and at least ``min_relative_facing`` times the grid's median cosine
+    in that frame. A region's templates and its kept coefficients are built on these points and
+    it is matched on them: what an example does not show well has no template.
+
+    The relative test finds folds: a point facing the camera much worse than the rest of its
+    template lies where the surface turns away (an upper lid rolling into its socket, a lip into
+    the mouth); its cell of the grid is squeezed into a fraction of the pixels the others get, and
+    what it samples changes with the fold's geometry (blur, aliasing), not with the texture. A
+    template that is slanted as a whole (a brow) keeps its points: its median is low too."""
+    X = np.einsum("nk,fnkc->fnc", bary, camera_positions[:, faces[face]])     # (F, N, 3)
+    _, inside = ap.bilinear_sample(np.zeros((camera.height, camera.width)), project_distorted_fast(camera, X))
+    good = inside & (X[..., 2] > 0)
+    if occlusion:
+        good &= ~grid_points_hidden(X[:, None], camera_positions, faces, size)[:, 0]
+    if min_point_facing > 0 or min_relative_facing > 0:
+        cos = np.stack([point_facing(c, faces, face, bary, normal_sign) for c in camera_positions])  # (F, N)
+        good &= cos > min_point_facing
+        good &= cos >= min_relative_facing * np.median(cos, axis=1, keepdims=True)
+    return good.all(axis=0)
 
 
 def point_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
@@ -468,7 +533,7 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     visible = np.zeros((T, Rn), dtype=bool)
     problems = []
     row_of = {int(n): i for i, n in enumerate(numbers)}
-    bank = ap.RegionBank(model.templates, model.indices, model.weights)
+    bank = region_bank(model)
     rows, grays = [], []
 
     def flush():
@@ -509,7 +574,7 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
 
 
 def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank) -> tuple[np.ndarray, np.ndarray]:
-    bank = ap.RegionBank(model.templates, model.indices, model.weights) if bank is None else bank
+    bank = region_bank(model) if bank is None else bank
     points = template_positions(camera_positions, model)
     patches, visible, seen = sample_template_frames(grays, camera_positions, model, points)
     normals = None
@@ -518,10 +583,11 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank) -> tu
         patches = patches / shading
     if model.min_point_facing > 0:
         seen = seen & (template_point_facing(camera_positions, model, normals, points) > model.min_point_facing)
-        if model.template_facing is not None:  # a point the examples saw edge-on has no template worth matching
+        if model.template_mask is None and model.template_facing is not None:
+            # models before the stable points: a point the examples saw edge-on has no template worth matching
             s = model.template_size
             seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
-        visible &= seen.mean(axis=(2, 3, 4)) >= model.min_seen
+        visible &= seen_fraction(seen, model) >= model.min_seen
     q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen)
     visible &= np.isfinite(q)
     return np.where(visible, q, np.nan), visible
