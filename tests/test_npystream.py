@@ -47,7 +47,13 @@ def test_header_is_one_block_that_numpy_reads(tmp_path):
     assert (shape, fortran, dtype) == ((5, 530000, 3), False, np.dtype(np.float32))
 
 
-def test_falls_back_to_buffered_where_direct_io_is_refused(tmp_path, monkeypatch):
+def _is_direct(fd) -> bool:
+    import fcntl
+
+    return bool(fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_DIRECT)
+
+
+def _refuse_direct_open(monkeypatch):
     real_open = os.open
 
     def no_direct(path, flags, *args):
@@ -56,23 +62,9 @@ def test_falls_back_to_buffered_where_direct_io_is_refused(tmp_path, monkeypatch
         return real_open(path, flags, *args)
 
     monkeypatch.setattr(npystream.os, "open", no_direct)
-    data = _rows((4, 10, 3), seed=1)
-    with NpyWriter(tmp_path / "b.npy", data.shape, direct=True) as w:
-        w.write(data)
-    assert not w.direct
-    np.testing.assert_array_equal(np.load(tmp_path / "b.npy"), data.astype(np.float32))
 
 
-def _is_direct(fd) -> bool:
-    import fcntl
-
-    return bool(fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_DIRECT)
-
-
-@pytest.mark.skipif(not hasattr(os, "O_DIRECT"), reason="no direct I/O on this system")
-def test_falls_back_to_buffered_where_direct_writes_are_refused(tmp_path, monkeypatch):
-    """Some file systems open with O_DIRECT and refuse the writes (EINVAL): the header's write
-    says so and the same bytes are written buffered."""
+def _refuse_direct_writes(monkeypatch):
     real_write = os.write
 
     def refuse_direct(fd, data):
@@ -81,7 +73,18 @@ def test_falls_back_to_buffered_where_direct_writes_are_refused(tmp_path, monkey
         return real_write(fd, data)
 
     monkeypatch.setattr(npystream.os, "write", refuse_direct)
-    data = _rows((4, 10, 3), seed=2)
+
+
+@pytest.mark.parametrize("refuse", [
+    _refuse_direct_open,
+    # some file systems open with O_DIRECT and refuse the writes (EINVAL): the header's write
+    # says so and the same bytes are written buffered
+    pytest.param(_refuse_direct_writes,
+                 marks=pytest.mark.skipif(not hasattr(os, "O_DIRECT"), reason="no direct I/O on this system")),
+], ids=["open", "writes"])
+def test_falls_back_to_buffered_where_direct_io_is_refused(tmp_path, monkeypatch, refuse):
+    refuse(monkeypatch)
+    data = _rows((4, 10, 3), seed=1)
     with NpyWriter(tmp_path / "b.npy", data.shape, direct=True) as w:
         w.write(data)
     assert not w.direct
