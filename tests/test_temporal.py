@@ -113,3 +113,33 @@ def test_a_still_or_straight_series_loses_little_at_its_ends_to_the_higher_order
             ends[orders] = np.sqrt(np.mean(_smoothing_errors(truth, draws, orders, rng)[[0, -1]] ** 2))
         assert ends[(2, 3, 4)] < 1.25 * ends[(2,)]
         assert ends[(2, 3, 4)] < 0.5  # still far below the raw frames' noise
+
+
+def test_row_decay_is_how_fast_the_hat_matrix_falls_off():
+    from facepipe.core.temporal import row_decay
+
+    lam = 3.0  # first differences: z + 1/z = 2 + 1/λ, in closed form
+    b = 2.0 + 1.0 / lam
+    assert row_decay(lam, 1) == pytest.approx((b - np.sqrt(b * b - 4.0)) / 2.0, rel=1e-12)
+    for order, lam in [(1, 3.0), (2, 50.0), (3, 200.0), (4, 1000.0)]:
+        H = _dense_hat(400, lam, order)
+        row = np.abs(H[200, 200:330])
+        # the envelope of a row (its peaks, where the solutions oscillate) shrinks by r a frame
+        r = row_decay(lam, order)
+        fitted = np.exp(np.polyfit(np.arange(40, 120), np.log(np.maximum.accumulate(row[::-1])[::-1][40:120]), 1)[0])
+        assert fitted == pytest.approx(r, rel=0.02)
+
+
+@pytest.mark.parametrize("order", [1, 2, 3, 4])
+def test_noise_variance_share_on_windows_is_the_whole_takes(order):
+    """Each block of H's rows is solved on a window around it (O(T) per strength): the same as the
+    dense hat matrix's, up to the rounding of a system with condition number about 1 + λ 4^d."""
+    from facepipe.core.temporal import row_decay
+
+    T = 400
+    for lam in LAMBDAS[::4]:
+        H = _dense_hat(T, lam, order)
+        share = noise_variance_share(T, lam, block=32, order=order)
+        np.testing.assert_allclose(share, np.sum(H * H, axis=1), rtol=1e-13 * (1.0 + lam * 4.0**order) + 1e-10)
+    # the light smoothings' windows were a part of the take: their rows fall below 1e-17 within 150 frames
+    assert row_decay(1.0, order) ** 150 < 1e-17 / (1.0 + 4.0**order)

@@ -28,7 +28,7 @@ from math import comb
 import numpy as np
 from scipy.linalg import eigvals_banded, solveh_banded
 
-__all__ = ["LAMBDAS", "noise_variance_share", "smooth_series", "whittaker"]
+__all__ = ["LAMBDAS", "noise_variance_share", "row_decay", "smooth_series", "whittaker"]
 
 #: λ candidates for the cross-validation (frames⁴: λ ≈ (smoothing length in frames)⁴ / 16)
 LAMBDAS = np.logspace(-2, 7, 37)
@@ -68,25 +68,52 @@ def whittaker(y: np.ndarray, lam: float, order: int = 2) -> np.ndarray:
     return solveh_banded(ab, y.reshape(T, -1)).reshape(y.shape)
 
 
+def row_decay(lam: float, order: int) -> float:
+    """r < 1 such that the hat matrix's entries fall off as |H_ts| ≲ r^|t − s| away from the diagonal.
+
+    Inside the take a row of H solves the recurrence e_t + λ (−Δ)^d e = 0 (Δ the second
+    difference); its solutions are z^t with 1 + λ (2 − z − 1/z)^d = 0, i.e. z + 1/z = 2 − μ for the
+    d roots μ of μ^d = −1/λ. r is the largest |z| below 1 (the slowest decaying solution); the
+    take's ends change the coefficients of these solutions, not how fast they decay."""
+    mu = lam ** (-1.0 / order) * np.exp(1j * np.pi * (2 * np.arange(order) + 1) / order)
+    b = 2.0 - mu
+    root = np.sqrt(b * b - 4.0)
+    z = np.concatenate([(b - root) / 2.0, (b + root) / 2.0])
+    inside = np.abs(z)[np.abs(z) < 1.0]
+    return float(inside.max()) if inside.size else 1.0
+
+
 def noise_variance_share(T: int, lam: float, block: int = 512, order: int = 2) -> np.ndarray:
     """(T,) the variance of smoothed unit white noise at each frame: the diagonal of H Hᵀ = H², H the
     hat matrix (I + λ DᵀD)⁻¹ — Σ_j H_tj², the noise of every frame that reaches frame t.
 
     This, not the hat diagonal H_tt (the share of frame t's own noise, an upper bound since H's
     eigenvalues lie in [0, 1]), is the noise variance left in a smoothed value; both are larger at a
-    take's ends than in its middle (about twice with second differences). H's rows by banded
-    solves, ``block`` columns at a time: O(T²) time, O(T · block) memory.
+    take's ends than in its middle (about twice with second differences).
+
+    H's rows by banded solves, ``block`` columns at a time, each on a window of the take around
+    its columns: H's rows fall off geometrically (:func:`row_decay`), so beyond ``reach`` frames
+    they are below double precision and the window's cut changes nothing that counts (the cut
+    couples to the rows' values there through λ DᵀD, at most λ 4^d times their size, which the
+    reach takes to 1e-17 of a row's peak). O(T · (block + reach)) time — O(T) for a given
+    smoothing strength, where the whole take at once was O(T²) — and O(block · (block + reach))
+    memory; a strength whose rows reach across the take is solved on the whole take.
     """
     if T <= order or lam <= 0:
         return np.ones(T)
     ab = lam * _penalty_bands(T, order)
     ab[-1] += 1.0
+    r = row_decay(lam, order)
+    amplification = 1.0 + lam * 4.0 ** order
+    reach = T if r >= 1.0 - 1e-12 else int(np.ceil(np.log(1e-17 / amplification) / np.log(r))) + order
     out = np.zeros(T)
     for start in range(0, T, block):
         stop = min(T, start + block)
-        unit = np.zeros((T, stop - start))
-        unit[np.arange(start, stop), np.arange(stop - start)] = 1.0
-        columns = solveh_banded(ab, unit)  # H is symmetric: its columns are its rows
+        lo, hi = max(0, start - reach), min(T, stop + reach)
+        unit = np.zeros((hi - lo, stop - start))
+        unit[np.arange(start - lo, stop - lo), np.arange(stop - start)] = 1.0
+        # the principal window of the banded matrix: LAPACK leaves the band's unused corner alone
+        columns = solveh_banded(ab[:, lo:hi], unit)  # H is symmetric: its columns are its rows
         out[start:stop] = np.sum(columns**2, axis=0)
     return out
 
