@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facepipe.core.temporal import LAMBDAS, noise_variance_share, smooth_series, whittaker
+from facepipe.core.temporal import LAMBDAS, noise_variance_share, row_decay, smooth_series, whittaker
 
 
 def _dense_hat(T: int, lam: float, order: int) -> np.ndarray:
@@ -116,8 +116,6 @@ def test_a_still_or_straight_series_loses_little_at_its_ends_to_the_higher_order
 
 
 def test_row_decay_is_how_fast_the_hat_matrix_falls_off():
-    from facepipe.core.temporal import row_decay
-
     lam = 3.0  # first differences: z + 1/z = 2 + 1/λ, in closed form
     b = 2.0 + 1.0 / lam
     assert row_decay(lam, 1) == pytest.approx((b - np.sqrt(b * b - 4.0)) / 2.0, rel=1e-12)
@@ -134,8 +132,6 @@ def test_row_decay_is_how_fast_the_hat_matrix_falls_off():
 def test_noise_variance_share_on_windows_is_the_whole_takes(order):
     """Each block of H's rows is solved on a window around it (O(T) per strength): the same as the
     dense hat matrix's, up to the rounding of a system with condition number about 1 + λ 4^d."""
-    from facepipe.core.temporal import row_decay
-
     T = 400
     for lam in LAMBDAS[::4]:
         H = _dense_hat(T, lam, order)
