@@ -290,8 +290,8 @@ def test_replay_reports_novelty_fits_stopped_by_their_cap(pipeline, tmp_path, mo
     assert converged["novelty_fits_at_cap"] == 0
     novelty = psd.NoveltyGate.novelty
     monkeypatch.setattr(psd.NoveltyGate, "novelty",
-                        lambda self, f, displacements=None, tolerance=1e-14, max_iterations=2:
-                        novelty(self, f, displacements, tolerance, max_iterations))
+                        lambda self, f, displacements=None, tolerance=1e-14, max_iterations=2, settled=None:
+                        novelty(self, f, displacements, tolerance, max_iterations))  # no fit settles early
 
     def exact_solver_gives_up(*args, **kwargs):
         raise RuntimeError("Maximum number of iterations reached.")

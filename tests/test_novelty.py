@@ -5,7 +5,7 @@ import pytest
 from scipy.optimize import nnls
 
 from facepipe.pipeline.baselines import global_blend_weights, local_blend_operator, local_blend_positions
-from facepipe.core.psd import NOVELTY_MAX_ITERATIONS, edge_distances, edge_weight_matrix, fit_details, novelty_gate
+from facepipe.core.psd import CONFIDENCE_TOLERANCE, NOVELTY_MAX_ITERATIONS, edge_distances, edge_weight_matrix, fit_details, novelty_gate
 
 
 def _graph(F=30, seed=0):
@@ -157,6 +157,40 @@ def test_novelty_fit_stops_each_fit_on_its_own():
     together = gate.novelty_fit(queries).rho
     alone = np.concatenate([gate.novelty_fit(queries[q:q + 1]).rho for q in range(len(queries))])
     assert np.allclose(alone, together, rtol=0, atol=1e-12)
+
+
+def test_confidence_settles_fits_within_its_tolerance():
+    """A replay's confidences stop each fit once its coefficients leave so little unexplained that
+    the confidence is within CONFIDENCE_TOLERANCE of 1: the same confidences as fits run to
+    convergence (and as exact NNLS) to that tolerance, in fewer steps where the queries are
+    mixtures of the examples, and the fits of the other queries unchanged."""
+    gate, queries = _overlapping_gate()
+    settled = gate.settled_fraction()
+    assert gate.site_confidence(np.array([settled]))[0] == pytest.approx(1.0 - CONFIDENCE_TOLERANCE, rel=1e-9)
+    full = gate.novelty_fit(queries)
+    early = gate.novelty_fit(queries, settled=settled)
+    stopped_early = early.rho != full.rho
+    assert stopped_early.any() and (early.rho[stopped_early] <= settled).all()
+    assert np.abs(gate.site_confidences(queries) - gate.site_confidence(full.rho)).max() <= CONFIDENCE_TOLERANCE
+    x = queries[:, gate.index] * gate.sqrt_weight
+    exact = np.array([[nnls(gate.examples[s].T.astype(np.float64), x[q, s])[1] ** 2 / (x[q, s] @ x[q, s] + 1e-12)
+                       for s in range(x.shape[1])] for q in range(len(queries))])
+    assert np.abs(gate.site_confidences(queries) - gate.site_confidence(exact)).max() <= 2 * CONFIDENCE_TOLERANCE
+    mixtures = queries[:4]
+    assert gate.novelty_fit(mixtures, settled=settled).iterations < gate.novelty_fit(mixtures).iterations
+    # the per-vertex confidence is the per-site one through α
+    np.testing.assert_allclose(gate.confidence(queries), (gate.alpha @ gate.site_confidences(queries).T).T)
+
+
+def test_novelty_fits_of_many_queries_match_one_at_a_time():
+    """Fits run in units of a few queries of one site: a batch of more queries than a unit holds
+    (the last unit padded) gives each query the ρ it gets alone."""
+    gate, queries = _overlapping_gate()
+    many = np.concatenate([queries, queries[::-1], queries[:5]])  # 29 queries: 3 full units and a padded one
+    together = gate.novelty_fit(many).rho
+    alone = np.concatenate([gate.novelty_fit(many[q:q + 1]).rho for q in range(len(many))])
+    assert np.allclose(alone, together, rtol=0, atol=1e-12)
+    assert np.allclose(together[:12], together[12:24][::-1], rtol=0, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- the gate's motion part

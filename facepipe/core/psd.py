@@ -532,6 +532,14 @@ def edge_distances(marker_distances: np.ndarray, edges: np.ndarray) -> np.ndarra
 NOVELTY_TOLERANCE = 1e-5
 # ... or after this many steps, which are then reported
 NOVELTY_MAX_ITERATIONS = 2000
+# A replay needs each site's confidence, not ρ itself: a fit whose coefficients already leave so
+# little unexplained that the confidence is within this of 1 stops there (most fits of a take of
+# seen expressions and their mixtures do within a few steps)
+CONFIDENCE_TOLERANCE = 1e-6
+# the fits iterate in units of this many queries of one site (a site's Gram matrix shared by its
+# unit): a unit leaves the batch when all its fits have stopped, so one slow fit holds back a few
+# columns, not every query of its site
+_FIT_UNIT = 8
 
 
 @dataclass(frozen=True)
@@ -615,12 +623,13 @@ class NoveltyGate:
         return motion_vectors(displacements, self.motion_index, self.motion_weight, self.motion_scale)
 
     def novelty(self, features: np.ndarray, displacements: np.ndarray | None = None,
-                tolerance: float = NOVELTY_TOLERANCE, max_iterations: int = NOVELTY_MAX_ITERATIONS) -> np.ndarray:
+                tolerance: float = NOVELTY_TOLERANCE, max_iterations: int = NOVELTY_MAX_ITERATIONS,
+                settled: float | None = None) -> np.ndarray:
         """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) [, handle displacements (Q, H, 3)] →
         (Q, F); see :meth:`novelty_fit`.
 
         Fits left unconverged are added to :attr:`unconverged_fits` and logged."""
-        fit = self.novelty_fit(features, displacements, tolerance, max_iterations)
+        fit = self.novelty_fit(features, displacements, tolerance, max_iterations, settled=settled)
         if fit.unconverged:
             self.unconverged_fits += fit.unconverged
             logger.warning("novelty gate: %d of %d site fits stopped after %d iterations, short of the tolerance "
@@ -629,7 +638,7 @@ class NoveltyGate:
 
     def novelty_fit(self, features: np.ndarray, displacements: np.ndarray | None = None,
                     tolerance: float = NOVELTY_TOLERANCE, max_iterations: int = NOVELTY_MAX_ITERATIONS,
-                    finish_exactly: bool = True) -> NoveltyFit:
+                    finish_exactly: bool = True, settled: float | None = None) -> NoveltyFit:
         """ρ per query and site, with the iterations taken and the fits left unconverged.
 
         The non-negative coefficients are found by accelerated projected gradient (FISTA) on
@@ -646,6 +655,11 @@ class NoveltyGate:
         exact in finitely many steps; only a fit that solver cannot finish either is
         ``unconverged``.
 
+        With ``settled`` (a fraction), a fit also stops as soon as its coefficients leave at most
+        that fraction of its vector unexplained: its ρ is then that upper bound, not the exact
+        value (any non-negative coefficients bound ρ from above). :meth:`confidence` settles fits
+        whose confidence is already within :data:`CONFIDENCE_TOLERANCE` of 1.
+
         With a motion part (:attr:`motion_examples`), ``displacements`` (Q, H, 3) are the
         handles' displacements from the rest pose; the motion is fitted by its own non-negative
         fit (strain is not linear in the motion: one set of coefficients for both would call
@@ -654,12 +668,12 @@ class NoveltyGate:
         x = features[:, self.index] * self.sqrt_weight  # (Q, F, K)
         if self.examples.shape[1] == 0:
             return NoveltyFit(np.ones(x.shape[:2]), 0, 0)
-        fits = [_cone_fit(x, self._cone, tolerance, max_iterations, finish_exactly)]
+        fits = [_cone_fit(x, self._cone, tolerance, max_iterations, finish_exactly, settled)]
         if self.has_motion:
             if displacements is None:
                 raise ValueError("this novelty gate tests the handles' motion too: pass their displacements")
             fits.append(_cone_fit(self.motion_vectors(displacements), self._motion_cone, tolerance, max_iterations,
-                                  finish_exactly))
+                                  finish_exactly, settled))
         return NoveltyFit(np.maximum.reduce([f.rho for f in fits]), max(f.iterations for f in fits),
                           sum(f.unconverged for f in fits), sum(f.finished_exactly for f in fits))
 
@@ -681,12 +695,22 @@ class NoveltyGate:
             return np.ones_like(rho)
         return 1.0 / (1.0 + (rho / tau) ** self.sharpness)
 
+    def settled_fraction(self, tolerance: float = CONFIDENCE_TOLERANCE) -> float:
+        """The unexplained fraction below which a site's confidence is within ``tolerance`` of 1."""
+        return self.tau * (tolerance / (1.0 - tolerance)) ** (1.0 / self.sharpness)
+
+    def site_confidences(self, features: np.ndarray, displacements: np.ndarray | None = None) -> np.ndarray:
+        """Per-site confidence (Q, F), each within :data:`CONFIDENCE_TOLERANCE` of the exact fits'
+        (fits stop once that is settled): (Q, F) [, handle displacements (Q, H, 3)]."""
+        if self.tau <= 0:
+            return np.ones(features.shape[:1] + self.index.shape[:1])
+        return self.site_confidence(self.novelty(features, displacements, settled=self.settled_fraction()))
+
     def confidence(self, features: np.ndarray, displacements: np.ndarray | None = None) -> np.ndarray:
         """Per-vertex confidence in [0, 1]: (Q, F) [, handle displacements (Q, H, 3)] → (Q, V)."""
         if self.tau <= 0:
             return np.ones((features.shape[0], self.alpha.shape[0]))
-        site = self.site_confidence(self.novelty(features, displacements))
-        return np.asarray(self.alpha @ site.T).T
+        return np.asarray(self.alpha @ self.site_confidences(features, displacements).T).T
 
 
 @dataclass(frozen=True)
@@ -714,30 +738,50 @@ class _Cone:
         return cls(A, gram, step, np.where(live, norm, 0.0), solve.astype(np.float64))
 
 
-def _cone_fit(x: np.ndarray, cone: _Cone, tolerance: float, max_iterations: int, finish_exactly: bool) -> NoveltyFit:
+def _cone_fit(x: np.ndarray, cone: _Cone, tolerance: float, max_iterations: int, finish_exactly: bool,
+              settled: float | None = None) -> NoveltyFit:
     """The non-negative fits of the site vectors x (Q, F, D) by the cone's examples and their
-    unexplained fractions: see :meth:`NoveltyGate.novelty_fit`."""
-    energy = np.einsum("qsk,qsk->qs", x, x)
+    unexplained fractions: see :meth:`NoveltyGate.novelty_fit`.
+
+    The fits iterate in units of :data:`_FIT_UNIT` queries of one site: (U, E, B) coefficients,
+    each unit with its site's Gram matrix, so a unit leaves the batch once all its fits have
+    stopped. Every fit takes the same steps whichever unit or batch it is in."""
+    energy = np.einsum("qsk,qsk->qs", x, x)  # (Q, F)
     A, gram, step, norm = cone.A, cone.gram, cone.step, cone.norm
-    # sites first, queries last: the iterations are batched matrix products (BLAS)
     xs = np.moveaxis(x, 0, 2)  # (F, D, Q)
     b = np.matmul(A, xs)  # Aᵀx: (F, E, Q)
     coef = np.maximum(np.matmul(cone.solve, xs), 0.0) * norm[..., None]
-    # the sites still iterating, and their fits' state
-    live = np.arange(coef.shape[0])
-    c, y, g, bl, st = coef.copy(), coef.copy(), gram, b, step
-    limit = tolerance * np.sqrt(energy).T  # (F, Q)
-    active = np.ones(limit.shape, dtype=bool)
+    F, E, Q = coef.shape
+    units = _FitUnits(F, Q, max(1, min(_FIT_UNIT, Q)))
+    # the units still iterating and their fits' state
+    live = np.arange(units.count)
+    c, bl, en = units.split(coef), units.split(b), units.split(energy.T)
+    y, g, st = c.copy(), gram[units.site], step[units.site]
+    limit = tolerance * np.sqrt(en)  # (U, B)
+    bound = None if settled is None else settled * (en + 1e-12)
+    active = units.split(np.ones((F, Q), dtype=bool), fill=False)
+    if bound is not None:  # the first guess may settle a fit already
+        active &= ~(_unexplained(c, bl, g, en) <= bound)
     t = 1.0
     iterations = 0
     while live.size and iterations < max_iterations:
+        finished = ~active.any(axis=1)
+        # units whose fits have all stopped leave the batch, a few at a time (the copies cost)
+        if finished.sum() * 8 >= live.size:
+            units.store(live[finished], c[finished])
+            keep = ~finished
+            live, c, y, g, st, bl, en, limit, active = (a[keep] for a in (live, c, y, g, st, bl, en, limit, active))
+            if bound is not None:
+                bound = bound[keep]
+            if not live.size:
+                break
         new = np.matmul(g, y)
         new -= bl
         new *= st
         np.subtract(y, new, out=new)
         np.maximum(new, 0.0, out=new)
         moved = y - new
-        moved = np.sqrt(np.einsum("seq,seq->sq", moved, moved))
+        moved = np.sqrt(np.einsum("ueq,ueq->uq", moved, moved))
         t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
         going = np.broadcast_to(active[:, None], c.shape)
         # y ← new + m (new − c), c ← new, where the fit is still going
@@ -749,34 +793,73 @@ def _cone_fit(x: np.ndarray, cone: _Cone, tolerance: float, max_iterations: int,
         t = t_new
         iterations += 1
         active &= ~(moved <= limit)
-        finished = ~active.any(axis=1)
-        # sites whose fits have all stopped leave the batch, a few at a time (the copies cost)
-        if finished.sum() * 8 >= live.size:
-            coef[live[finished]] = c[finished]
-            keep = ~finished
-            live, c, y, g, bl, st, active, limit = (a[keep] for a in (live, c, y, g, bl, st, active, limit))
+        if bound is not None and iterations % 4 == 0:  # (every few steps: it costs a step's products)
+            active &= ~(_unexplained(c, bl, g, en) <= bound)
     finished = 0
-    if finish_exactly and active.any():
-        finished = _finish_exactly(c, active, live, xs, A)
-    coef[live] = c
+    if live.size:
+        if finish_exactly and active.any():
+            finished = _finish_exactly(c, active, units.site[live], units.query[live], xs, A)
+        units.store(live, c)
+    coef = units.join(E)
     residual = energy - (2.0 * np.einsum("seq,seq->qs", coef, b)
                          - np.einsum("seq,seq->qs", coef, np.matmul(gram, coef)))
     # a site barely strained (or moved) at all is treated as seen (its details are near zero anyway)
     rho = np.clip(np.maximum(residual, 0.0) / (energy + 1e-12), 0.0, 1.0)
-    return NoveltyFit(rho, iterations, int(active.sum()), finished)
+    return NoveltyFit(rho, iterations, int(active.sum()) if live.size else 0, finished)
 
 
-def _finish_exactly(c: np.ndarray, active: np.ndarray, live: np.ndarray, xs: np.ndarray, A: np.ndarray) -> int:
-    """Solve the still ``active`` fits exactly in place (``c``: (S, E, Q) coefficients of the
-    ``live`` sites, in the unit-norm examples' scale); marks them done. Returns how many."""
+def _unexplained(c: np.ndarray, b: np.ndarray, gram: np.ndarray, energy: np.ndarray) -> np.ndarray:
+    """|x − Aᵀc|² of coefficients c (U, E, B), from Aᵀx = b (U, E, B), the Gram matrices (U, E, E)
+    and |x|² (U, B)."""
+    return energy - (2.0 * np.einsum("ueq,ueq->uq", c, b) - np.einsum("ueq,ueq->uq", c, np.matmul(gram, c)))
+
+
+class _FitUnits:
+    """(F, ..., Q) arrays of per-site, per-query values as units of ``size`` queries of one site:
+    (F·n, ..., size), n = ⌈Q / size⌉, the last unit of a site padded; ``site`` (U,) and ``query``
+    (U, size) say whose (−1: padding). :meth:`store` keeps units' coefficients as they finish and
+    :meth:`join` gives the (F, E, Q) coefficients back."""
+
+    def __init__(self, sites: int, queries: int, size: int):
+        self.F, self.Q, self.size = sites, queries, size
+        self.n = -(-queries // size)
+        self.count = sites * self.n
+        self.site = np.repeat(np.arange(sites), self.n)
+        q = np.arange(self.n * size).reshape(self.n, size)
+        self.query = np.tile(np.where(q < queries, q, -1), (sites, 1))
+        self._out: np.ndarray | None = None
+
+    def split(self, a: np.ndarray, fill=0.0) -> np.ndarray:
+        pad = self.n * self.size - self.Q
+        if pad:
+            a = np.concatenate([a, np.full(a.shape[:-1] + (pad,), fill, dtype=a.dtype)], axis=-1)
+        a = a.reshape(a.shape[:-1] + (self.n, self.size))
+        return np.ascontiguousarray(np.moveaxis(a, -2, 1)).reshape((self.count,) + a.shape[1:-2] + (self.size,))
+
+    def store(self, ids: np.ndarray, c: np.ndarray) -> None:
+        if self._out is None:
+            self._out = np.zeros((self.count,) + c.shape[1:])
+        self._out[ids] = c
+
+    def join(self, E: int) -> np.ndarray:
+        if self._out is None:
+            self._out = np.zeros((self.count, E, self.size))
+        out = np.moveaxis(self._out.reshape(self.F, self.n, E, self.size), 1, 2)
+        return out.reshape(self.F, E, self.n * self.size)[..., :self.Q]
+
+
+def _finish_exactly(c: np.ndarray, active: np.ndarray, site: np.ndarray, query: np.ndarray, xs: np.ndarray,
+                    A: np.ndarray) -> int:
+    """Solve the still ``active`` fits exactly in place (``c``: (U, E, B) coefficients of units of
+    the sites ``site`` (U,) and queries ``query`` (U, B), in the unit-norm examples' scale); marks
+    them done. Returns how many."""
     done = 0
-    for s_live, q in np.argwhere(active):
-        s = live[s_live]
+    for u, j in np.argwhere(active):
         try:
-            c[s_live, :, q] = nnls(A[s].T, xs[s, :, q])[0]
+            c[u, :, j] = nnls(A[site[u]].T, xs[site[u], :, query[u, j]])[0]
         except RuntimeError:  # its own iteration cap: the batched iterate stays, reported
             continue
-        active[s_live, q] = False
+        active[u, j] = False
         done += 1
     return done
 

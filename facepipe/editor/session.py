@@ -83,7 +83,7 @@ def _start_gate_worker(gate) -> None:
 
 
 def _site_confidence(features: np.ndarray, displacements: np.ndarray) -> np.ndarray:
-    return _WORKER_GATE.site_confidence(_WORKER_GATE.novelty(features, displacements))
+    return _WORKER_GATE.site_confidences(features, displacements)
 
 
 class GateCache:
