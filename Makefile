@@ -41,6 +41,8 @@ test-fast: venv
 bench: venv
 	$(BIN)/python -m bench.paper_scale -o bench/results.json --vertices 530000 --markers 89 --examples 6 --frames 128
 	$(BIN)/python -m bench.point_caches_speed --json bench/point_caches_speed.json
+	@# the host's share of a marker replay: cleaning and the novelty gate's fits, ms a frame (ICT takes where the kit is here)
+	$(BIN)/python -m bench.host_stages --json bench/host_stages.json
 	$(BIN)/python -m bench.batch_speed -o bench/batch.json --takes 32 --frames 200 --workers 2
 	@# appearance classification (8 regions) on rendered ICT footage: needs the kit in ../shared
 	if [ -d ../shared/data/ict ]; then $(BIN)/python -m bench.appearance_ict --out bench/work/appearance --json bench/appearance_ict.json; \
