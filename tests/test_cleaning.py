@@ -82,6 +82,41 @@ def test_fit_pose_expression_is_exact_in_the_span():
     assert (C >= 0).all()
 
 
+def test_fit_pose_expression_stops_each_frame_on_its_own(monkeypatch):
+    """Each frame iterates until its step is below CONVERGED_STEP: a frame gets the same fit in a
+    batch as alone, a converged frame stops (frames already at their fit take one step), and the
+    result is what all the iterations would give (to round-off)."""
+    from facepipe.mocap import cleaning
+
+    _, rest, basis, _, _ = make_rig()
+    world, head, R, t, weights = make_truth(rest, basis)
+    world = world + np.random.default_rng(3).normal(scale=0.02, size=world.shape)  # not exactly in the span
+    R0 = np.tile(np.eye(3), (T, 1, 1))
+    t0 = world.mean(axis=1) - rest.mean(axis=0)
+    args = (np.ones((T, H)), rest, basis)
+    together = fit_pose_expression(world, *args, R0, t0, iterations=25, robust_scale=0.05)
+    alone = [fit_pose_expression(world[f:f + 1], args[0][f:f + 1], rest, basis, R0[f:f + 1], t0[f:f + 1],
+                                 iterations=25, robust_scale=0.05) for f in range(0, T, 7)]
+    for i, f in enumerate(range(0, T, 7)):
+        for a, b in zip(together, alone[i]):
+            np.testing.assert_allclose(a[f], b[0], rtol=0, atol=1e-12)
+    # frames already at their fit stop after one step
+    steps = []
+    original = cleaning._normal_equations
+    monkeypatch.setattr(cleaning, "_normal_equations", lambda R, y, *rest_: steps.append(len(y)) or original(R, y, *rest_))
+    again = fit_pose_expression(world, *args, together[0], together[1], together[2], iterations=25, robust_scale=0.05)
+    assert steps[0] == T and sum(steps) < 3 * T
+    for a, b in zip(together, again):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+    # without the stop every frame takes every iteration: the same fit
+    monkeypatch.setattr(cleaning, "CONVERGED_STEP", -1.0)
+    steps.clear()
+    every = fit_pose_expression(world, *args, R0, t0, iterations=25, robust_scale=0.05)
+    assert sum(steps) == 25 * T
+    for a, b in zip(together, every):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+
+
 def test_noise_sigma_of_white_noise_on_smooth_motion():
     rng = np.random.default_rng(5)
     s = np.linspace(0, 4, 400)[:, None, None]

@@ -210,36 +210,56 @@ class _ExpressionBasis:
         return self.reference + (C @ self.Dflat.T).reshape(len(C), len(self.reference), 3)
 
 
+# A frame's Gauss–Newton stops once a step moves its weights and rotation (radians) by at most this,
+# and its translation by at most this times the handles' spread: the steps left would change
+# nothing a replay can show, and most frames get there in a few of the allowed iterations
+CONVERGED_STEP = 1e-12
+
+
 def _fit_frames(x, w0, R, t, C, l1, allowed, expression: _ExpressionBasis, iterations: int, fix_pose: bool,
                 robust_scale):
     """Gauss–Newton of :func:`fit_pose_expression` on a chunk of frames: x (n, H, 3) markers (0 where
     missing), w0 (n, H) their weights, R, t, C the starting pose and weights, l1 (n, K), allowed
-    (n, K) the weights that may be non-zero. Returns R, t, C and the sample weights used last."""
+    (n, K) the weights that may be non-zero. Returns R, t, C and the sample weights used last.
+
+    Each frame iterates until its step is below :data:`CONVERGED_STEP` or ``iterations`` are
+    done; the frames still iterating are solved together (what a frame gets does not depend on
+    the others in the chunk)."""
     K = expression.K
     n_pose = 0 if fix_pose else 6
+    R, t = np.array(R, dtype=np.float64), np.array(t, dtype=np.float64)
     C = np.where(allowed, C, 0.0)
     free = allowed.copy()
-    w = w0
+    w_out = np.array(w0, dtype=np.float64)
+    spread = float(np.sqrt(((expression.reference - expression.reference.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    going = np.arange(len(C))  # the frames still iterating
     for _ in range(iterations):
-        y = expression.handles(C)
-        q = np.einsum("nij,nhj->nhi", R, y)
-        r = x - (q + t[:, None, :])
-        if robust_scale is not None:
-            w = _huber_weights(w0, r, robust_scale)
-        A, g = _normal_equations(R, y, q, r, w, expression, fix_pose)
+        if not going.size:
+            break
+        part = slice(None) if going.size == len(C) else going
+        Rg, tg, Cg, fg, xg, w0g = R[part], t[part], C[part], free[part], x[part], w0[part]
+        y = expression.handles(Cg)
+        q = np.einsum("nij,nhj->nhi", Rg, y)
+        r = xg - (q + tg[:, None, :])
+        w = _huber_weights(w0g, r, robust_scale) if robust_scale is not None else w0g
+        A, g = _normal_equations(Rg, y, q, r, w, expression, fix_pose)
         if K:
-            g[:, n_pose:] -= l1
+            g[:, n_pose:] -= l1[part]
             # weights at zero whose gradient points inward come back into the set
-            free = (free | ((C <= 0) & (g[:, n_pose:] > 0) & allowed)) & ((C > 0) | (g[:, n_pose:] > 0))
+            fg = (fg | ((Cg <= 0) & (g[:, n_pose:] > 0) & allowed[part])) & ((Cg > 0) | (g[:, n_pose:] > 0))
         _regularise(A, n_pose, K, fix_pose)
-        step, free = _solve_active_set(A, g, C, free, n_pose, K)
-        alpha = np.ones(len(C))
+        step, fg = _solve_active_set(A, g, Cg, fg, n_pose, K)
+        alpha = np.ones(len(Cg))
         if K:
-            alpha, C, free = _step_weights(C, step[:, n_pose:], free)
+            alpha, Cg, fg = _step_weights(Cg, step[:, n_pose:], fg)
+        taken = alpha[:, None] * step
         if not fix_pose:
-            R = rotation_from_vector(alpha[:, None] * step[:, :3]) @ R
-            t = t + alpha[:, None] * step[:, 3:6]
-    return R, t, C, w
+            R[part] = rotation_from_vector(taken[:, :3]) @ Rg
+            t[part] = tg + taken[:, 3:6]
+            taken[:, 3:6] /= max(spread, 1e-300)
+        C[part], free[part], w_out[part] = Cg, fg, w
+        going = going[np.abs(taken).max(axis=1, initial=0.0) > CONVERGED_STEP]
+    return R, t, C, w_out
 
 
 def _huber_weights(w0: np.ndarray, r: np.ndarray, robust_scale) -> np.ndarray:
