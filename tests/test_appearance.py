@@ -301,3 +301,13 @@ def test_model_keeps_its_visibility_settings(kit):
     H, _ = haar_matrix(s)
     for t, m in zip(model.templates, model.template_mask):
         assert np.abs((t @ H)[:, ~m]).max(initial=0.0) < 1e-9
+
+
+def test_sample_appearance_without_its_drivers_exits_2_before_writing(tmp_path, capsys):
+    """--appearance with too few examples for the regions' drivers is refused before the rig is
+    written, naming the missing expressions and the --examples that has them."""
+    d = tmp_path / "rig"
+    assert _run("sample", d, "--vertices", 2000, "--examples", 7, "--appearance", "-q") == 2
+    err = capsys.readouterr().err
+    assert "squint_R" in err and "--examples 8" in err
+    assert not d.exists()

@@ -8,7 +8,7 @@ import numpy as np
 
 from facepipe.errors import InputError
 
-__all__ = ["build_command", "classify_command", "sample_appearance", "SAMPLE_DRIVERS"]
+__all__ = ["build_command", "check_sample_appearance", "classify_command", "sample_appearance", "SAMPLE_DRIVERS"]
 
 #: Regions of the sample rig and the expressions whose mean weight is each one's truth activation.
 SAMPLE_DRIVERS = {"forehead": ["browRaise"], "brows": ["frown"], "mouth": ["pucker"], "nasolabial_L": ["smile_L"],
@@ -59,6 +59,17 @@ def classify_command(model_path, footage, geometry, output, fps, rep):
 def _absolute_footage(footage) -> str:
     """The footage's path (a folder, a video, or a ``frame_%04d.png`` pattern) made absolute."""
     return str(Path(footage).parent.resolve() / Path(footage).name)
+
+
+def check_sample_appearance(examples: int) -> None:
+    """Refuse, before anything is written, a sample whose examples lack a region's drivers."""
+    from facepipe.sample_rig import EXPRESSIONS
+
+    missing = sorted({d for ds in SAMPLE_DRIVERS.values() for d in ds} - set(EXPRESSIONS[:examples]))
+    if missing:
+        needed = max(EXPRESSIONS.index(d) for d in missing) + 1
+        raise InputError(f"--appearance needs the expressions {missing}, which --examples {examples} leaves out",
+                         hint=f"write the sample with --examples {needed} or more")
 
 
 def sample_appearance(directory, frames: int, size: int, rep) -> dict:

@@ -593,6 +593,10 @@ def sample(ctx, directory, vertices, examples, frames, seed, markers, with_appea
     if not 100 <= vertices <= 2_000_000:
         raise InputError(f"--vertices {vertices} is outside 100..2000000")
     check_output_path(directory, kind="folder", what="sample rig folder")
+    if with_appearance:
+        from facepipe.cli.appearance import check_sample_appearance
+
+        check_sample_appearance(examples)
     info = write_sample_rig(directory, n_vertices=vertices, n_examples=examples, n_frames=frames, seed=seed,
                             n_markers=markers)
     rep.say(f"wrote sample rig to {directory}: " + ", ".join(f"{k} {v}" for k, v in info.items()
