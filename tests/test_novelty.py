@@ -101,16 +101,21 @@ def _overlapping_gate():
 
 def test_novelty_is_the_non_negative_least_squares_residual():
     """ρ equals the residual of an exact NNLS (scipy) at every site, also where examples overlap
-    and where one example barely strains the site (where clipped least squares is far off)."""
+    and where one example barely strains the site (where clipped least squares is far off):
+    by default (a few batched steps, the rest handed to the exact solver) and by the batched steps
+    alone, run to convergence."""
     gate, queries = _overlapping_gate()
     fit = gate.novelty_fit(queries)
-    assert fit.unconverged == 0 and 0 < fit.iterations < NOVELTY_MAX_ITERATIONS
+    assert fit.unconverged == 0 and fit.iterations <= NOVELTY_MAX_ITERATIONS and fit.finished_exactly > 0
+    batched = gate.novelty_fit(queries, max_iterations=20000, finish_exactly=False)
+    assert batched.unconverged == 0 and NOVELTY_MAX_ITERATIONS < batched.iterations < 20000
     x = queries[:, gate.index] * gate.sqrt_weight
     for q in range(len(queries)):
         for s in range(x.shape[1]):
             b = x[q, s].astype(np.float64)
             _, r = nnls(gate.examples[s].T.astype(np.float64), b)
-            assert abs(fit.rho[q, s] - r ** 2 / (b @ b + 1e-12)) < 1e-5
+            for f in (fit, batched):
+                assert abs(f.rho[q, s] - r ** 2 / (b @ b + 1e-12)) < 1e-5
     assert np.array_equal(gate.novelty(queries), fit.rho)
 
 
@@ -145,6 +150,7 @@ def test_novelty_fits_left_unconverged_are_counted_and_logged(caplog, monkeypatc
     assert gate.unconverged_fits == capped.unconverged
     assert f"{capped.unconverged} of {capped.rho.size} site fits stopped after 3 iterations" in caplog.text
     # converged fits add nothing and say nothing
+    monkeypatch.undo()
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="facepipe.core.psd"):
         gate.novelty(queries)
