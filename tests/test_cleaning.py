@@ -749,3 +749,43 @@ def test_noise_variance_share_is_the_variance_of_smoothed_white_noise(T, lam):
         noise = np.random.default_rng(T).normal(size=(T, 20000))
         np.testing.assert_allclose(whittaker(noise, lam).var(axis=1), share, rtol=0.05)
         assert share[0] > share[T // 2]  # an end keeps more noise than the middle
+
+
+def test_active_set_step_resolves_only_the_frames_whose_set_changed():
+    """The active-set step of a batch equals each frame's own (a weight at zero that its step would
+    make negative leaves the set, the system is solved again), leaves the caller's set untouched,
+    and solves again only the frames whose set changed."""
+    from facepipe.mocap import cleaning
+
+    rng = np.random.default_rng(5)
+    n, n_pose, K = 12, 6, 20
+    P = n_pose + K
+    M = rng.normal(size=(n, P + 10, P))
+    A = np.einsum("nip,niq->npq", M, M)
+    g = rng.normal(size=(n, P))
+    C = np.where(rng.random((n, K)) < 0.6, 0.0, rng.random((n, K)))  # many weights at zero ...
+    C[n // 2:] += 0.1  # ... in half the frames: the others settle at once
+    free = rng.random((n, K)) < 0.9
+    free_before = free.copy()
+    solved = []
+    original = cleaning._solve_active
+    cleaning_solve = lambda A_, g_, f_, p_: solved.append(len(A_)) or original(A_, g_, f_, p_)  # noqa: E731
+    try:
+        cleaning._solve_active = cleaning_solve
+        step, out = cleaning._solve_active_set(A, g, C, free, n_pose, K)
+    finally:
+        cleaning._solve_active = original
+    assert np.array_equal(free, free_before)
+    passes = 0
+    for i in range(n):  # each frame alone, by the rule
+        f = free[i:i + 1].copy()
+        for k in range(K + 1):
+            s = original(A[i:i + 1], g[i:i + 1], f, n_pose)
+            leave = f & (C[i:i + 1] <= 0) & (s[:, n_pose:] < 0)
+            if not leave.any():
+                break
+            f &= ~leave
+        passes = max(passes, k)
+        np.testing.assert_allclose(step[i], s[0], rtol=0, atol=1e-9 * np.abs(s).max())
+        assert np.array_equal(out[i], f[0])
+    assert passes >= 2 and solved[0] == n and len(solved) > 2 and all(m <= n // 2 for m in solved[1:])

@@ -329,15 +329,21 @@ def _regularise(A: np.ndarray, n_pose: int, K: int, fix_pose: bool) -> None:
 
 def _solve_active_set(A: np.ndarray, g: np.ndarray, C: np.ndarray, free: np.ndarray, n_pose: int, K: int):
     """The step δ of A δ = g with the weights outside ``free`` held; a weight at zero that the step
-    would make negative leaves the set and the system is solved again. Returns δ and the set."""
-    for _ in range(K + 1):
-        step = _solve_active(A, g, free, n_pose)
-        if not K:
+    would make negative leaves the set and that frame's system is solved again (only the frames
+    whose set changed: with many examples most settle at once). Returns δ and the set."""
+    step = _solve_active(A, g, free, n_pose)
+    if not K:
+        return step, free
+    free = free.copy()
+    again = np.arange(A.shape[0])
+    for _ in range(K):
+        out = free[again] & (C[again] <= 0) & (step[again, n_pose:] < 0)
+        changed = out.any(axis=1)
+        if not changed.any():
             break
-        out = free & (C <= 0) & (step[:, n_pose:] < 0)
-        if not out.any():
-            break
-        free = free & ~out
+        again, out = again[changed], out[changed]
+        free[again] &= ~out
+        step[again] = _solve_active(A[again], g[again], free[again], n_pose)
     return step, free
 
 
