@@ -5,7 +5,8 @@ import pytest
 from scipy.optimize import nnls
 
 from facepipe.pipeline.baselines import global_blend_weights, local_blend_operator, local_blend_positions
-from facepipe.core.psd import CONFIDENCE_TOLERANCE, NOVELTY_MAX_ITERATIONS, edge_distances, edge_weight_matrix, fit_details, novelty_gate
+from facepipe.core.psd import (CONFIDENCE_TOLERANCE, edge_distances, edge_weight_matrix, fit_details, novelty_batched_steps,
+                              novelty_gate)
 
 
 def _graph(F=30, seed=0):
@@ -105,10 +106,11 @@ def test_novelty_is_the_non_negative_least_squares_residual():
     by default (a few batched steps, the rest handed to the exact solver) and by the batched steps
     alone, run to convergence."""
     gate, queries = _overlapping_gate()
+    steps = novelty_batched_steps(gate.examples.shape[1])
     fit = gate.novelty_fit(queries)
-    assert fit.unconverged == 0 and fit.iterations <= NOVELTY_MAX_ITERATIONS and fit.finished_exactly > 0
+    assert fit.unconverged == 0 and fit.iterations <= steps and fit.finished_exactly > 0
     batched = gate.novelty_fit(queries, max_iterations=20000, finish_exactly=False)
-    assert batched.unconverged == 0 and NOVELTY_MAX_ITERATIONS < batched.iterations < 20000
+    assert batched.unconverged == 0 and steps < batched.iterations < 20000
     x = queries[:, gate.index] * gate.sqrt_weight
     for q in range(len(queries)):
         for s in range(x.shape[1]):
@@ -286,3 +288,10 @@ def test_motion_part_matches_exact_nnls_of_each_part():
             assert abs(rho[q, s] - min(1.0, max(parts))) < 1e-3
     with pytest.raises(ValueError, match="displacements"):
         gate.novelty(qf)
+
+
+def test_batched_steps_before_the_exact_solver_grow_as_the_examples_get_fewer():
+    """Few examples make a batched step cheap against one exact solve: more steps before it."""
+    assert novelty_batched_steps(8) == 64 and novelty_batched_steps(26) == 19
+    assert novelty_batched_steps(106) == novelty_batched_steps(1000) == 16
+    assert novelty_batched_steps(0) >= 16

@@ -529,13 +529,21 @@ def edge_distances(marker_distances: np.ndarray, edges: np.ndarray) -> np.ndarra
 # The non-negative fits of the novelty gate stop where a projected-gradient step moves the
 # coefficients by less than this fraction of the site's strain ...
 NOVELTY_TOLERANCE = 1e-5
-# ... or after this many steps, when the exact active-set solver takes the fit over. Batched
-# steps settle the many plainly explained fits cheaply; the rest converge slowly (along
-# nearly coinciding examples, most of all with many examples such as a performance's frames:
-# thousands of steps) and one Lawson–Hanson solve each is both exact and far quicker (ICT kit,
-# 32 frames of the noisy take: 0.56 s with 2000 steps, confidences 3.6e-3 off; 0.33 s
-# exact; 26 expressions + 80 frames: 15 s → 2 s)
-NOVELTY_MAX_ITERATIONS = 16
+# ... or after a few steps, when the exact active-set solver takes the fit over. Batched steps
+# settle the many plainly explained fits cheaply; the rest converge slowly (along nearly
+# coinciding examples, most of all with many examples such as a performance's frames: thousands
+# of steps) and one Lawson–Hanson solve each is both exact and far quicker (ICT kit, 32 frames of
+# the noisy take: 0.56 s with up to 2000 steps, confidences 3.6e-3 off; 0.33 s exact; 26
+# expressions + 80 frames: 15 s → 2 s). At least this many steps ...
+NOVELTY_MIN_BATCHED_STEPS = 16
+# ... or, with few examples, as many as cost about one exact solve: a batched step costs ~E² a fit,
+# the solver's call a fixed overhead that weighs most where E is small (8 examples: 64 steps)
+_EXACT_SOLVE_IN_STEPS = 512
+
+
+def novelty_batched_steps(n_examples: int) -> int:
+    """The batched steps a gate's fit gets before the exact solver takes it over."""
+    return max(NOVELTY_MIN_BATCHED_STEPS, _EXACT_SOLVE_IN_STEPS // max(1, n_examples))
 # A replay needs each site's confidence, not ρ itself: a fit whose coefficients already leave so
 # little unexplained that the confidence is within this of 1 stops there (most fits of a take of
 # seen expressions and their mixtures do within a few steps)
@@ -630,12 +638,13 @@ class NoveltyGate:
         return motion_vectors(displacements, self.motion_index, self.motion_weight, self.motion_scale)
 
     def novelty(self, features: np.ndarray, displacements: np.ndarray | None = None,
-                tolerance: float = NOVELTY_TOLERANCE, max_iterations: int = NOVELTY_MAX_ITERATIONS,
+                tolerance: float = NOVELTY_TOLERANCE, max_iterations: int | None = None,
                 settled: float | None = None) -> np.ndarray:
         """Unexplained fraction ρ ∈ [0, 1] per site: (Q, F) [, handle displacements (Q, H, 3)] →
         (Q, F); see :meth:`novelty_fit`.
 
         Fits left unconverged are added to :attr:`unconverged_fits` and logged."""
+        max_iterations = novelty_batched_steps(self.examples.shape[1]) if max_iterations is None else max_iterations
         fit = self.novelty_fit(features, displacements, tolerance, max_iterations, settled=settled)
         if fit.unconverged:
             self.unconverged_fits += fit.unconverged
@@ -644,7 +653,7 @@ class NoveltyGate:
         return fit.rho
 
     def novelty_fit(self, features: np.ndarray, displacements: np.ndarray | None = None,
-                    tolerance: float = NOVELTY_TOLERANCE, max_iterations: int = NOVELTY_MAX_ITERATIONS,
+                    tolerance: float = NOVELTY_TOLERANCE, max_iterations: int | None = None,
                     finish_exactly: bool = True, settled: float | None = None) -> NoveltyFit:
         """ρ per query and site, with the iterations taken and the fits left unconverged.
 
@@ -654,7 +663,8 @@ class NoveltyGate:
         takes negative parts that, cut off, leave seen mixtures looking twice as novel.
 
         A fit stops once a step moves its coefficients (of the examples scaled to unit norm) by
-        at most ``tolerance`` × the norm of its strain, or after ``max_iterations`` steps. A
+        at most ``tolerance`` × the norm of its strain, or after ``max_iterations`` steps
+        (default: :func:`novelty_batched_steps` of the examples' count). A
         stopped fit is left as it is while the others go on (where it stops does not depend on
         the other queries in the batch), and sites whose fits have all stopped leave the batch.
         FISTA is slow along directions where examples nearly coincide, so the fits the cap
@@ -673,6 +683,7 @@ class NoveltyGate:
         large genuine mixtures novel) and ρ is the larger of the two unexplained fractions.
         """
         x = features[:, self.index] * self.sqrt_weight  # (Q, F, K)
+        max_iterations = novelty_batched_steps(self.examples.shape[1]) if max_iterations is None else max_iterations
         if self.examples.shape[1] == 0:
             return NoveltyFit(np.ones(x.shape[:2]), 0, 0)
         fits = [_cone_fit(x, self._cone, tolerance, max_iterations, finish_exactly, settled)]
