@@ -876,8 +876,8 @@ def _finish_exactly(c: np.ndarray, active: np.ndarray, site: np.ndarray, query: 
     done = 0
     for u, j in np.argwhere(active):
         try:
-            c[u, :, j] = nnls(A[site[u]].T, xs[site[u], :, query[u, j]])[0]
-        except RuntimeError:  # its own iteration cap: the batched iterate stays, reported
+            c[u, :, j] = nnls(A[site[u]].T, xs[site[u], :, query[u, j]], maxiter=10 * A.shape[1])[0]
+        except RuntimeError:  # its own cap (10 E steps, SciPy's default 3 E), rare: the batched iterate stays, reported
             continue
         active[u, j] = False
         done += 1
