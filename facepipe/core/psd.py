@@ -544,6 +544,8 @@ _EXACT_SOLVE_IN_STEPS = 512
 def novelty_batched_steps(n_examples: int) -> int:
     """The batched steps a gate's fit gets before the exact solver takes it over."""
     return max(NOVELTY_MIN_BATCHED_STEPS, _EXACT_SOLVE_IN_STEPS // max(1, n_examples))
+
+
 # A replay needs each site's confidence, not ρ itself: a fit whose coefficients already leave so
 # little unexplained that the confidence is within this of 1 stops there (most fits of a take of
 # seen expressions and their mixtures do within a few steps)
@@ -644,12 +646,11 @@ class NoveltyGate:
         (Q, F); see :meth:`novelty_fit`.
 
         Fits left unconverged are added to :attr:`unconverged_fits` and logged."""
-        max_iterations = novelty_batched_steps(self.examples.shape[1]) if max_iterations is None else max_iterations
         fit = self.novelty_fit(features, displacements, tolerance, max_iterations, settled=settled)
         if fit.unconverged:
             self.unconverged_fits += fit.unconverged
             logger.warning("novelty gate: %d of %d site fits stopped after %d iterations, short of the tolerance "
-                           "%g", fit.unconverged, fit.rho.size, max_iterations, tolerance)
+                           "%g", fit.unconverged, fit.rho.size, fit.iterations, tolerance)
         return fit.rho
 
     def novelty_fit(self, features: np.ndarray, displacements: np.ndarray | None = None,
