@@ -13,6 +13,7 @@ from facepipe.errors import InputError
 from facepipe.io.mesh_write import save_obj
 from facepipe.io.model_file import load_model
 from facepipe.io.point_caches import read_mdd, read_pc2, write_mdd, write_pc2
+from facepipe.io.replay_folder import ReplayDir
 from facepipe.mocap.mesh_cache import read_mesh_cache
 from facepipe.mocap.registry import mesh_cache_format
 from tests.conftest import grid, ict_or_skip, run_cli
@@ -209,8 +210,9 @@ def test_large_scale_cache_replays_to_the_marker_replay(rig, tmp_path):
     report = json.loads((tmp_path / "take" / "replay.json").read_text())
     assert report["cache"]["bands"]["added_fraction"] == pytest.approx(1.0)
     assert report["frame_numbers"] == json.loads((out / "replay.json").read_text())["frame_numbers"]
-    # the cache's surface is the large scale
-    np.testing.assert_allclose(np.load(tmp_path / "take" / "large_scale.npy"), large, atol=1e-6 * size)
+    # the cache's surface is the large scale: read back from the cache, not written again
+    assert not (tmp_path / "take" / "large_scale.npy").exists()
+    np.testing.assert_allclose(ReplayDir(tmp_path / "take").layer("large")[:], large, atol=1e-6 * size)
     # shell: the handle vertices replayed as markers give the same face
     assert run_cli("replay", tmp_path / "large.mdd", "-m", rig.models["wpsd"], "-o", tmp_path / "shell",
                    "--large-scale", "shell", "--backend", "numpy", "-q") == 0
@@ -306,6 +308,41 @@ def test_details_layer_exports(rig, tmp_path):
     assert len(list((tmp_path / "maps").glob("*.exr"))) == len(times)
 
 
+def test_cache_take_large_scale_read_back_from_the_cache(rig, tmp_path, capsys):
+    """A cache take keeps no copy of the cache: its large scale is read back from the cache (the rows
+    of the replayed frames, in the rig's units), equal to what --save-large-scale writes; a cache
+    moved or changed since the replay is a clear exit 2 that says how to keep the layer."""
+    _, large, final, times = _replay_large(rig)
+    cache = tmp_path / "large.mdd"
+    write_mdd(cache, (large * 10.0).astype(np.float32), times)  # in mm: the replay scales it back
+    args = ("-m", rig.models["wpsd"], "--take-units", "mm", "--frames", "2:", "--backend", "numpy", "-q")
+    assert run_cli("replay", cache, "-o", tmp_path / "kept", "--save-large-scale", *args) == 0
+    assert run_cli("replay", cache, "-o", tmp_path / "read", *args) == 0
+    assert not (tmp_path / "read" / "large_scale.npy").exists()
+    stored = np.load(tmp_path / "kept" / "large_scale.npy")
+    read = ReplayDir(tmp_path / "read")
+    np.testing.assert_allclose(read.layer("large")[:], stored, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(read.large_scale[-2], stored[-2], rtol=0, atol=1e-6)
+    assert np.asarray(read.large_scale).shape == stored.shape
+    np.testing.assert_allclose(read.large_scale[[3, 0]], stored[[3, 0]], rtol=0, atol=1e-6)
+    assert run_cli("export", tmp_path / "read", "--format", "mdd", "--layer", "details", "-o",
+                   tmp_path / "details.mdd", "-q") == 0
+    np.testing.assert_allclose(read_mdd(tmp_path / "details.mdd")[1], np.load(tmp_path / "read" / "positions.npy")
+                               - stored, rtol=0, atol=1e-5)
+    # changed since: refused, not silently another surface
+    write_mdd(cache, (large * 10.0 + 1.0).astype(np.float32), times)
+    capsys.readouterr()
+    assert run_cli("export", tmp_path / "read", "--format", "mdd", "--layer", "large", "-o", tmp_path / "l.mdd") == 2
+    err = capsys.readouterr().err
+    assert "changed since the replay" in err and "--save-large-scale" in err
+    cache.unlink()
+    assert run_cli("export", tmp_path / "read", "--format", "mdd", "--layer", "large", "-o", tmp_path / "l.mdd") == 2
+    assert "not there any more" in capsys.readouterr().err
+    # the replay that kept its layer does not need the cache
+    assert run_cli("export", tmp_path / "kept", "--format", "mdd", "--layer", "large", "-o", tmp_path / "k.mdd",
+                   "-q") == 0
+
+
 def test_opencl_take_matches_numpy(rig, tmp_path):
     pytest.importorskip("pyopencl")
     from facepipe.opencl import OpenCLUnavailable  # noqa: F401
@@ -356,12 +393,13 @@ def test_head_moving_cache_opencl_and_numpy_agree(rig, tmp_path):
     for backend in ("numpy", "opencl"):
         for motion in ("keep", "remove"):
             code = run_cli("replay", tmp_path / "moved.mdd", "-m", rig.models["wpsd"], "-o",
-                           tmp_path / f"{backend}_{motion}", "--backend", backend, "--head-motion", motion, "-q")
+                           tmp_path / f"{backend}_{motion}", "--backend", backend, "--head-motion", motion, "-q",
+                           *(["--save-large-scale"] if backend == "numpy" else []))  # written by the replay vs read back
             if code == 2 and backend == "opencl":
                 pytest.skip("no OpenCL device")
             assert code == 0
-            out[backend, motion] = {k: np.load(tmp_path / f"{backend}_{motion}" / f"{k}.npy")
-                                    for k in ("positions", "large_scale")}
+            folder = ReplayDir(tmp_path / f"{backend}_{motion}")  # (the large scale read back from the cache)
+            out[backend, motion] = {"positions": np.asarray(folder.positions), "large_scale": folder.layer("large")[:]}
     for motion in ("keep", "remove"):
         for k in ("positions", "large_scale"):
             assert np.abs(out["opencl", motion][k] - out["numpy", motion][k]).max() < 1e-5 * size, (motion, k)

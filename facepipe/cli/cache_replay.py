@@ -44,7 +44,7 @@ def replay_cache(rep, take: str, model_path: str, output: str, *, large_scale: s
     report = {"take": str(take), "cache": {"format": cache.format, "fps": cache.fps, "units": cache.units,
                                            "source_units": cache.source_units, "scale": cache.scale,
                                            "rest_check": check, "notes": list(cache.notes or []) + pose.notes,
-                                           "large_scale": mode}}
+                                           "large_scale": mode, "source": _source(take)}}
     details = None
     if mode == "shell":
         evaluator = make_evaluator(model)
@@ -61,7 +61,9 @@ def replay_cache(rep, take: str, model_path: str, output: str, *, large_scale: s
                     "band, relative to the details': " + ", ".join(f"{r:.2f}" for r in band["amplitude_ratio"]))
         evaluator = _take_evaluator(rep, model, cache, pose, evaluator, backend, device, chunk)
         windows = [(pose.head, pose.rotation, pose.translation)]
-        save = True  # the cache's surface is the large scale: kept for --layer large / details exports
+        # the cache's surface is the large scale: exports read it back from the cache (replay.json
+        # says where and what it was), so it is written again only when asked
+        save = save_large
     try:
         with rep.bar(cache.n_frames, desc="replay") as bar:
             result = replay_windows(model, windows, cache.frames, cache.times, Path(output), evaluator=evaluator,
@@ -88,3 +90,13 @@ def _take_evaluator(rep, model, cache, pose, details, backend: str, device: str 
     return opencl_or_fallback(
         rep, backend, lambda: OpenCLCacheEvaluator(model, cache, pose, details, device=device, chunk=chunk),
         lambda: details)
+
+
+def _source(take: str) -> dict:
+    """Where the cache is and what it was (a file's size and modification time), so exports can read
+    its surface back and tell when it has changed since."""
+    path = Path(take).resolve()
+    if not path.is_file():  # an OBJ sequence (folder or pattern)
+        return {"path": str(path)}
+    stat = path.stat()
+    return {"path": str(path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}

@@ -170,7 +170,8 @@ def _refuse_options_not_for(kind, take, given):
 @click.option("--chunk", default=32, show_default=True, help="Frames evaluated together.")
 @click.option("--head-motion", type=click.Choice(["keep", "remove"]), default="keep", show_default=True,
               help="Re-apply the head's rigid motion to the output, or leave the face in rig space.")
-@click.option("--save-large-scale", is_flag=True, help="Also write large_scale.npy (the shell alone).")
+@click.option("--save-large-scale", is_flag=True, help="Also write large_scale.npy (the shell alone; for a mesh cache replayed with "
+              "--large-scale take, the cache's surface, else read back from the cache by exports).")
 @click.option("--edits", "edits_path", default=None, type=click.Path(dir_okay=False),
               help="EDITS.json (from `facepipe edit`): handle offsets keyed at frames, added to the cleaned take.")
 @click.option("--neutral-frame", type=int, default=None,

@@ -97,9 +97,14 @@ class ReplayDir:
         return self._array("positions.npy")
 
     @cached_property
-    def large_scale(self) -> np.ndarray | None:
-        """(T, V, 3) float32 memmap of the large-scale positions, or None when not saved."""
-        return self._array("large_scale.npy", required=False)
+    def large_scale(self):
+        """(T, V, 3) float32 memmap of the large-scale positions, or None when not saved. A mesh cache
+        replayed as a take without ``--save-large-scale`` has the cache itself as its large scale:
+        read back from it, frames when indexed (:class:`_CacheSurface`)."""
+        stored = self._array("large_scale.npy", required=False)
+        if stored is None and self.large_scale_from_cache:
+            return _CacheSurface.of(self)
+        return stored
 
     def layer(self, name: str) -> np.ndarray:
         """Positions of a layer: "final" (positions.npy), "large" (large_scale.npy) or "details"
@@ -190,6 +195,70 @@ class ReplayDir:
     def fps(self) -> float:
         """Frames per second of the take (from the replay's frame times)."""
         return frame_rate(self.times)
+
+
+class _CacheSurface:
+    """The large scale of a mesh cache replayed as a take, read back from the cache: its rows of the
+    replay's frames in the rig's units (the replay's unit scale), moved into head space where the
+    replay removed the head motion. (T, V, 3) float32 frames, read when indexed."""
+
+    def __init__(self, positions, rows: np.ndarray, scale: float, rotation=None, translation=None):
+        self.positions, self.rows, self.scale = positions, rows, float(scale)
+        self.rotation, self.translation = rotation, translation
+        self.shape, self.ndim, self.dtype = (len(rows), positions.shape[1], 3), 3, np.dtype(np.float32)
+
+    @classmethod
+    def of(cls, replay: "ReplayDir") -> "_CacheSurface":
+        from facepipe.mocap.registry import mesh_cache_format
+
+        cache_info = replay.info["cache"]
+        source = cache_info.get("source") or {}
+        path = Path(source.get("path") or replay.info.get("take", ""))
+        hint = ("put the cache back where the replay read it, or replay the take with --save-large-scale to keep "
+                "its large scale in the replay folder")
+        fmt = mesh_cache_format(path)
+        if fmt is None or (not path.exists() and fmt.name != "obj-sequence"):
+            raise InputError("this replay's large scale is its mesh cache, which is not there any more", path=path,
+                             hint=hint)
+        if path.is_file() and source.get("size") is not None:
+            stat = path.stat()
+            if (stat.st_size, stat.st_mtime_ns) != (source["size"], source["mtime_ns"]):
+                raise InputError("the mesh cache has changed since the replay: its large scale cannot be read "
+                                 "back from it", path=path, hint=hint)
+        V = replay.positions.shape[1]
+        cache = fmt.reader(path, cache_info.get("fps"), **({"n_vertices": V} if fmt.name == "usd" else {}))
+        row_of = {int(f): i for i, f in enumerate(cache.frames)}
+        missing = [int(f) for f in replay.frame_numbers if int(f) not in row_of]
+        if cache.n_vertices != V or missing:
+            raise InputError("the mesh cache no longer matches the replay (" + (
+                f"frame {missing[0]} is not in it" if missing else f"{cache.n_vertices} vertices, not {V}") + ")",
+                path=path, hint=hint)
+        rows = np.array([row_of[int(f)] for f in replay.frame_numbers], dtype=np.int64)
+        R = t = None
+        if replay.info.get("head_motion") == "remove":
+            R, t = replay.handles["rotation"], replay.handles["translation"]
+        return cls(cache.positions, rows, cache_info.get("scale", 1.0), R, t)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __array__(self, dtype=None, copy=None):
+        return self[:] if dtype is None else self[:].astype(dtype)
+
+    def __getitem__(self, index):
+        frames = np.arange(self.shape[0])[index]
+        one = np.ndim(frames) == 0
+        frames = np.atleast_1d(frames)
+        rows = self.rows[frames]
+        if rows.size and np.array_equal(rows, np.arange(rows[0], rows[0] + rows.size)):
+            x = np.asarray(self.positions[rows[0]:rows[0] + rows.size], dtype=np.float64)  # (a memmap reads a slice)
+        else:
+            x = np.asarray(self.positions[rows], dtype=np.float64)
+        x *= self.scale
+        if self.rotation is not None:  # world = R head + t
+            x = np.einsum("cji,cvj->cvi", self.rotation[frames], x - self.translation[frames, None, :])
+        x = x.astype(np.float32)
+        return x[0] if one else x
 
 
 class _Difference:
