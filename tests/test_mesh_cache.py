@@ -329,6 +329,11 @@ def test_cache_take_large_scale_read_back_from_the_cache(rig, tmp_path, capsys):
                    tmp_path / "details.mdd", "-q") == 0
     np.testing.assert_allclose(read_mdd(tmp_path / "details.mdd")[1], np.load(tmp_path / "read" / "positions.npy")
                                - stored, rtol=0, atol=1e-5)
+    # eval --large-scale scores the layer read back (against itself as the truth: 0)
+    frames = json.loads((tmp_path / "read" / "replay.json").read_text())["frame_numbers"]
+    np.savez(tmp_path / "truth.npz", positions=stored, frame=np.asarray(frames))
+    assert run_cli("eval", tmp_path / "read", "--truth", tmp_path / "truth.npz", "--large-scale", "-q") == 0
+    assert json.loads((tmp_path / "read" / "eval.json").read_text())["large_scale"]["max_error"] < 1e-5
     # changed since: refused, not silently another surface
     write_mdd(cache, (large * 10.0 + 1.0).astype(np.float32), times)
     capsys.readouterr()

@@ -441,7 +441,8 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
 @click.argument("outdir", type=click.Path(file_okay=False))
 @click.option("--truth", required=True, type=click.Path(dir_okay=False), help="Truth .npz with 'positions'.")
 @click.option("--vertices", "vertex_range", default=None, help="Vertex range A:B (default: all).")
-@click.option("--large-scale", is_flag=True, help="Also evaluate large_scale.npy if the replay wrote it.")
+@click.option("--large-scale", is_flag=True, help="Also evaluate the large-scale layer (large_scale.npy where the replay wrote "
+              "it; a mesh cache's own surface, read back from the cache).")
 @click.option("--compare", "compare_config", default=None, type=click.Path(dir_okay=False),
               help="CONFIG.toml: also fit it and compare baselines (shell, RBF morph, global and local blend "
                    "shapes, PSD and WPSD by basis size) on this replay's handles; writes compare.json/.png.")
@@ -452,6 +453,7 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
 def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, quiet, verbose):
     """Per-frame RMS and max vertex error of a replay against ground truth."""
     from facepipe.io.npz_file import read_truth
+    from facepipe.io.replay_folder import ReplayDir
     from facepipe.pipeline.evaluate import frame_errors, match_frames, parse_vertex_range, summarize
 
     rep = _reporter(ctx, quiet, verbose)
@@ -470,7 +472,8 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, q
     if large_scale:
         sources.append(("large_scale", "large_scale.npy"))
     for label, name in sources:
-        pos = _load_positions(outdir, name)
+        # (a mesh cache's large scale is the cache: read back from it where the replay kept no copy)
+        pos = _load_positions(outdir, name) if label == "final" else ReplayDir(outdir).layer("large")
         rms, mx = frame_errors(pos, truth_sel, vertices)
         result[label] = dict(summarize(rms, mx), per_frame_rms=rms.tolist(), per_frame_max=mx.tolist())
         if verbose:

@@ -246,6 +246,9 @@ class _CacheSurface:
         return self[:] if dtype is None else self[:].astype(dtype)
 
     def __getitem__(self, index):
+        if isinstance(index, tuple):  # frames, then vertices and coordinates
+            out = self[index[0]]
+            return out[((slice(None),) if out.ndim == 3 else ()) + index[1:]]
         frames = np.arange(self.shape[0])[index]
         one = np.ndim(frames) == 0
         frames = np.atleast_1d(frames)
