@@ -145,6 +145,20 @@ def test_bands_to_add():
     assert bands_to_add(band_sums(D, own))["added"].tolist() == [1.0] * 3 + [0.0] * (len(D) - 3)
 
 
+def test_paired_band_sums_equal_the_bands_split_whole():
+    """The streamed sums of two fields' bands (low-passed together, two bands held at a time) equal
+    band_sums of their full splits, double and single precision."""
+    rng = np.random.default_rng(4)
+    V, F = grid(20, 18)
+    for single, dtype, tol in ((False, np.float64, 1e-12), (True, np.float32, 1e-5)):
+        bands = DetailBands(V, F, spacing=2.0, single=single)
+        D = rng.normal(size=(3, len(V), 3)).astype(dtype)
+        E = (0.5 * D + rng.normal(size=D.shape)).astype(dtype)
+        whole = band_sums(bands.split(D), bands.split(E))
+        np.testing.assert_allclose(bands.paired_band_sums(D, E), whole, rtol=tol, atol=tol * np.abs(whole).max())
+        bands.close()
+
+
 def _detail_model(method, V, rng, P=5, F=12):
     """A fitted PSD or WPSD detail model on the mesh V (rest pose first, its details zero)."""
     import scipy.sparse as sp

@@ -88,6 +88,21 @@ class DetailBands:
         lows = [_as_float(D)] + [self.lowpass(k, D) for k in range(len(self.wavelengths))]
         return [lows[k] - lows[k + 1] for k in range(len(self.wavelengths))] + [lows[-1]]
 
+    def paired_band_sums(self, D: np.ndarray, E: np.ndarray) -> np.ndarray:
+        """:func:`band_sums` of the bands of two fields of one shape, (C, V, 3) each, without keeping
+        every band: both low-passed in the same solves (their frames side by side as right-hand
+        sides), band by band from the finest, holding two low-passes at a time."""
+        pair = np.concatenate([_as_float(D), _as_float(E).astype(_as_float(D).dtype, copy=False)])
+        C = D.shape[0]
+        sums = np.zeros((self.n_bands, 3))
+        above = pair
+        for k in range(self.n_bands):
+            below = self.lowpass(k, pair) if k < len(self.wavelengths) else None
+            band = above - below if below is not None else above
+            sums[k] = band_sums([band[:C]], [band[C:]])[0]
+            above = below
+        return sums
+
     def combine(self, D: np.ndarray, weights: np.ndarray, atol: float = 1e-6) -> np.ndarray:
         """Σ_b weights[b] · D_b without splitting where neighbouring weights agree.
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from facepipe.core.detail_bands import DetailBands, band_sums, banded_detail_model, bands_to_add
+from facepipe.core.detail_bands import DetailBands, banded_detail_model, bands_to_add
 from facepipe.core.rigid import robust_rigid_fit, stable_marker_pose
 from facepipe.core.shell import marker_spacing
 from facepipe.core.strain import strain_features
@@ -154,7 +154,7 @@ class CacheDetails:
             surface = np.einsum("cji,cvj->cvi", R, np.stack([cache.frame(int(i)) for i in k]) - t[:, None, :])
             shell = rest + np.einsum("vh,chx->cvx", B, head - self.rest_handles, optimize=True)
             D = self.world_details(surface, head)
-            sums = sums + band_sums(self.bands.split(D), self.bands.split(surface - shell))
+            sums = sums + self.bands.paired_band_sums(D, surface - shell)
         choice = bands_to_add(sums)
         self.keep = choice["added"]
         if self.keep.any() and not self.keep.all():
