@@ -350,6 +350,22 @@ def test_cholesky_factor_solves_multiple_rhs(sheet, backend):
     assert np.abs(x - spla.spsolve(A.tocsc(), b)).max() < 1e-10 * np.abs(x).max()
 
 
+@pytest.mark.parametrize("backend", ["pardiso", "cholmod", "superlu"])
+def test_refactored_matrix_of_the_same_pattern_solves_as_a_fresh_factor(sheet, backend):
+    """refactor: another matrix of the pattern (PARDISO keeps its analysis), then back; a matrix of
+    another pattern is factored afresh."""
+    V, F = sheet
+    K = shell_operator(V, F, 1.0, 0.0)
+    b = np.random.default_rng(2).normal(size=(len(V), 3))
+    factor = _factor_with(backend, sp.eye(len(V)) + 0.5 * K)
+    for A in (sp.eye(len(V)) + 3.0 * K, sp.eye(len(V)) + 0.5 * K, shell_operator(V, F, 1.0, 1.0) + sp.eye(len(V))):
+        factor.refactor(A)
+        assert factor.backend == backend
+        x = factor.solve(b)
+        assert np.abs(x - spla.spsolve(A.tocsc(), b)).max() < 1e-10 * np.abs(x).max()
+    factor.close()
+
+
 def test_cholesky_factor_falls_back_when_a_backend_is_missing(sheet, monkeypatch):
     monkeypatch.setitem(shell._BACKENDS, "pardiso", _missing)
     V, F = sheet

@@ -272,6 +272,20 @@ class CholeskyFactor:
         """The solution of A x = b (float32 from a single-precision factor, else float64)."""
         return self._solver.solve(np.asarray(b, dtype=np.float32 if self.single else np.float64))
 
+    def refactor(self, A: sp.spmatrix) -> None:
+        """Factor another matrix of the same sparsity pattern in place of this one. PARDISO keeps
+        its analysis (the ordering and the symbolic factor: most of a factorisation's time on a
+        large mesh) and only factors the new values; the other backends factor afresh."""
+        A = sp.csr_matrix(A)
+        if self.backend == "pardiso":
+            U = _upper_triangle(A)
+            U.sort_indices()
+            if self._solver.same_pattern(U):
+                self._solver.refactor(U.data)
+                return
+        self.close()
+        self.__init__(A, backends=(self.backend,), single=self.single)
+
     def close(self) -> None:
         """Free the factor now (PARDISO holds it outside Python's memory)."""
         close = getattr(self._solver, "close", None)
@@ -425,6 +439,16 @@ class _Pardiso:
                  i32(nrhs), self._iparm.ctypes.data, i32(0), b.ctypes.data, x.ctypes.data, ctypes.byref(err))
         if err.value != 0:
             raise _PardisoError(f"PARDISO phase {phase} failed with error {err.value}")
+
+    def same_pattern(self, U: sp.csr_matrix) -> bool:
+        """Whether ``U`` (an upper triangle, sorted) has this factor's sparsity pattern."""
+        return (self._open and U.shape[0] == self.n and np.array_equal(U.indptr, self._ia)
+                and np.array_equal(U.indices, self._ja))
+
+    def refactor(self, values: np.ndarray) -> None:
+        """Factor the matrix of this pattern with other ``values`` (phase 22: the analysis kept)."""
+        self._a = np.ascontiguousarray(values, dtype=self._dtype)
+        self._call(22, np.zeros(1, self._dtype), np.zeros(1, self._dtype), 1)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         if not self._open:
