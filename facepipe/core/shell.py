@@ -243,6 +243,7 @@ class CholeskyFactor:
         anyway; the other backends stay in double precision. :attr:`single` says which was used."""
         A = sp.csr_matrix(A)
         self.single = False
+        self._rhs_rows = rhs_rows
         self.n = A.shape[0]
         self._solver = None
         self.backend: str | None = None
@@ -272,19 +273,20 @@ class CholeskyFactor:
         """The solution of A x = b (float32 from a single-precision factor, else float64)."""
         return self._solver.solve(np.asarray(b, dtype=np.float32 if self.single else np.float64))
 
-    def refactor(self, A: sp.spmatrix) -> None:
-        """Factor another matrix of the same sparsity pattern in place of this one. PARDISO keeps
-        its analysis (the ordering and the symbolic factor: most of a factorisation's time on a
-        large mesh) and only factors the new values; the other backends factor afresh."""
+    def refactor(self, A: sp.spmatrix, upper: bool = False) -> None:
+        """Factor another matrix in place of this one (``upper`` as for the constructor; the same
+        right-hand-side rows). Where it has the same sparsity pattern PARDISO keeps its analysis
+        (the ordering and the symbolic factor: most of a factorisation's time on a large mesh)
+        and only factors the new values; otherwise, and on the other backends, it factors afresh."""
         A = sp.csr_matrix(A)
         if self.backend == "pardiso":
-            U = _upper_triangle(A)
+            U = A if upper else _upper_triangle(A)
             U.sort_indices()
             if self._solver.same_pattern(U):
                 self._solver.refactor(U.data)
                 return
         self.close()
-        self.__init__(A, backends=(self.backend,), single=self.single)
+        self.__init__(A, backends=(self.backend,), upper=upper, rhs_rows=self._rhs_rows, single=self.single)
 
     def close(self) -> None:
         """Free the factor now (PARDISO holds it outside Python's memory)."""
@@ -556,7 +558,8 @@ def solve_shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarr
 
 def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarray, anchors: np.ndarray | None,
                         handle_displacements: np.ndarray, k_stretch: float = 0.0, k_bend: float = 1.0,
-                        spacing: float | None = None, parts: "ShellParts | None" = None) -> np.ndarray:
+                        spacing: float | None = None, parts: "ShellParts | None" = None,
+                        keep: dict | None = None) -> np.ndarray:
     """The shell's displacements u = B · u_H for a few handle displacements, without B.
 
     The same constrained system as :func:`solve_shell_basis`, solved for the given frames' 3·E
@@ -566,7 +569,9 @@ def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.nda
     Parameters
     ----------
     handle_displacements : (E, H, 3) displacements of ``handles``; parts : the mesh's
-        :class:`ShellParts`, if at hand; other parameters as in :func:`solve_shell_basis`.
+        :class:`ShellParts`, if at hand; keep : a dict that keeps the factor (``"factor"``) for
+        the next call with other stiffnesses on the same mesh and handles, which factors only
+        the new values (the caller closes it); other parameters as in :func:`solve_shell_basis`.
 
     Returns
     -------
@@ -590,11 +595,17 @@ def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.nda
     rhs[handles] = x[handles]
     if not free.any():
         return np.moveaxis(rhs.reshape(n, E, 3), 1, 0).copy()
-    rows = np.union1d(A[handles].indices, handles)
-    factor = CholeskyFactor(U, upper=True, rhs_rows=rows)
+    factor = None if keep is None else keep.get("factor")
+    if factor is None:
+        factor = CholeskyFactor(U, upper=True, rhs_rows=np.union1d(A[handles].indices, handles))
+    else:
+        factor.refactor(U, upper=True)
     del U
     out = factor.solve(np.asfortranarray(rhs))
-    factor.close()
+    if keep is None:
+        factor.close()
+    else:
+        keep["factor"] = factor
     out[constrained] = 0.0
     out[handles] = x[handles]
     return np.moveaxis(out.reshape(n, E, 3), 1, 0).copy()

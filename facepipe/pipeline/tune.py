@@ -345,13 +345,19 @@ def _shell_candidates(rig, geo, poses: np.ndarray, vertices: np.ndarray, sample:
     moves = poses[:, geo.handles] - geo.rest[geo.handles]
     patch = FramePatch.around(geo.faces, len(geo.rest), sample)
     parts = ShellParts.of(geo.rest, geo.faces)  # the Laplacian's products, shared by every k
-    for i, k in enumerate(k_values):
-        large = geo.rest + shell_displacements(geo.rest, geo.faces, geo.handles, rig.anchors, moves, k_stretch=k,
-                                               k_bend=cfg.shell.k_bend, spacing=geo.spacing, parts=parts)
-        shell_errors[k] = rms_per_pose(large[1:], poses[1:], vertices)
-        details[k] = to_local(patch.frames(large), poses[:, sample] - large[:, sample])
-        del large
-        say("shell", i + 1, len(k_values))
+    keep: dict = {}  # one factor, factored again for each k (its analysis kept: the same pattern)
+    try:
+        for i, k in enumerate(k_values):
+            large = geo.rest + shell_displacements(geo.rest, geo.faces, geo.handles, rig.anchors, moves, k_stretch=k,
+                                                   k_bend=cfg.shell.k_bend, spacing=geo.spacing, parts=parts,
+                                                   keep=keep)
+            shell_errors[k] = rms_per_pose(large[1:], poses[1:], vertices)
+            details[k] = to_local(patch.frames(large), poses[:, sample] - large[:, sample])
+            del large
+            say("shell", i + 1, len(k_values))
+    finally:
+        if keep.get("factor") is not None:
+            keep["factor"].close()
     return details, shell_errors
 
 
