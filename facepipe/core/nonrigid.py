@@ -106,6 +106,7 @@ def refine_to_surface(vertices: np.ndarray, faces: np.ndarray, target_vertices: 
     Yn = vertex_normals(Y, G)
     X = X0.copy()
     paired = np.zeros(V, dtype=bool)
+    factor = None  # every step's matrix has A_ff's pattern: factored again numerically, the analysis kept
     for ell in lengths:
         for _ in range(iterations):
             c, paired = _pairs(X, faces, Y, G, Yn, target_border, min_cos, limit)
@@ -116,11 +117,15 @@ def refine_to_surface(vertices: np.ndarray, faces: np.ndarray, target_vertices: 
             w = np.where(paired, 1.0, 1e-6) * mass
             goal = np.where(paired[:, None], c - X, 0.0)
             M = (ell ** 4) * A_ff + sp.diags(w[fi])
-            factor = CholeskyFactor(M.tocsr())
+            if factor is None:
+                factor = CholeskyFactor(M.tocsr())
+            else:
+                factor.refactor(M)
             u = np.zeros_like(X0)
             u[fi] = factor.solve(w[fi, None] * goal[fi])
-            factor.close()
             X = X + u
+    if factor is not None:
+        factor.close()
     _, _, distance, _ = project_points(X, vertex_normals(X, faces), Y, G, min_cos=-1.0)
     return Refinement(X, lengths, paired, distance)
 
