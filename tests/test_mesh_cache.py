@@ -354,9 +354,11 @@ def test_cache_take_large_scale_read_back_from_the_cache(rig, tmp_path, capsys):
     assert run_cli("export", tmp_path / "read", "--format", "mdd", "--layer", "large", "-o", tmp_path / "l.mdd") == 2
     err = capsys.readouterr().err
     assert "changed since the replay" in err and "--save-large-scale" in err
+    assert not (tmp_path / "l.mdd").exists() and not list(tmp_path.glob(".l.mdd*"))  # nothing half-written
     cache.unlink()
     assert run_cli("export", tmp_path / "read", "--format", "mdd", "--layer", "large", "-o", tmp_path / "l.mdd") == 2
     assert "not there any more" in capsys.readouterr().err
+    assert not (tmp_path / "l.mdd").exists() and not list(tmp_path.glob(".l.mdd*"))
     # the replay that kept its layer does not need the cache
     assert run_cli("export", tmp_path / "kept", "--format", "mdd", "--layer", "large", "-o", tmp_path / "k.mdd",
                    "-q") == 0

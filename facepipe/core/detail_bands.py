@@ -101,7 +101,8 @@ class DetailBands:
         """:func:`band_sums` of the bands of two fields of one shape, (C, V, 3) each, without keeping
         every band: both low-passed in the same solves (their frames side by side as right-hand
         sides), band by band from the finest, holding two low-passes at a time."""
-        pair = np.concatenate([_as_float(D), _as_float(E).astype(_as_float(D).dtype, copy=False)])
+        D = _as_float(D)
+        pair = np.concatenate([D, _as_float(E).astype(D.dtype, copy=False)])
         C = D.shape[0]
         sums = np.zeros((self.n_bands, 3))
         above = pair
