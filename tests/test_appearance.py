@@ -311,3 +311,45 @@ def test_sample_appearance_without_its_drivers_exits_2_before_writing(tmp_path, 
     err = capsys.readouterr().err
     assert "squint_R" in err and "--examples 8" in err
     assert not d.exists()
+
+
+def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
+    """Rest calibration: every region reads exactly 0 in the example frames where it is at rest
+    (the neutral frame, the other regions' examples), still rises to its extreme layer in its
+    own, and the build reports the floors. Without it the model has none and Q is the raw one."""
+    from facepipe.io.appearance_file import load_appearance, save_appearance
+    from facepipe.io.config import load_config
+    from facepipe.pipeline.appearance import _read_geometry, classify_frames
+
+    model = load_appearance(kit / "app.npz")
+    assert model.rest_floor.shape == (len(model.names),)
+    assert (model.rest_floor >= 0).all() and (model.rest_floor <= 1.0).all() and model.rest_floor.max() > 0
+    cfg = load_config(kit / "appearance" / "appearance.toml").appearance
+    positions, numbers = _read_geometry(cfg.geometry, int(model.faces.max()) + 1)
+    q = classify_frames(model, cfg.footage, positions, numbers, numbers / 30.0).q
+    row = {int(n): i for i, n in enumerate(numbers)}
+    for r, region in enumerate(cfg.regions):
+        own = [row[f] for f in region.frames[1:]]
+        rest = [i for i in range(len(numbers)) if i not in own]
+        assert (q[rest, r] == 0.0).all(), (region.name, q[rest, r])
+        assert q[own[-1], r] == pytest.approx(len(region.frames) - 1, abs=0.05)
+        assert np.all(np.diff(q[own, r]) > 0)
+    # the floors, as the build printed them
+    out = tmp_path / "again.npz"
+    assert _run("appearance", "build", kit / "appearance" / "appearance.toml", "-o", out) == 0
+    assert "rest floors" in capsys.readouterr().out
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert [report["rest"][n]["floor"] for n in model.names] == pytest.approx(model.rest_floor.tolist())
+    # rest_calibration = false: no floor, the raw Q (the same model otherwise)
+    config = _edited_config(kit, tmp_path, "texture_size = 512", "texture_size = 512\nrest_calibration = false")
+    raw_path = tmp_path / "raw.npz"
+    assert _run("appearance", "build", config, "-o", raw_path, "-q") == 0
+    raw = load_appearance(raw_path)
+    assert raw.rest_floor is None
+    q_raw = classify_frames(raw, cfg.footage, positions, numbers, numbers / 30.0).q
+    from facepipe.core.appearance import above_rest
+
+    np.testing.assert_allclose(above_rest(q_raw, model.rest_floor, model.layer_counts), q, atol=1e-12)
+    # a model saved without floors (as before them) loads with none
+    save_appearance(tmp_path / "old.npz", raw)
+    assert load_appearance(tmp_path / "old.npz").rest_floor is None

@@ -8,7 +8,7 @@ from scipy.stats import spearmanr
 from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, RegionBank, classify_regions, bilinear_sample, classify, coefficient_weights,
                                       compose_texture, facing, haar_coefficients, haar_matrix, hold_and_decay,
                                       layer_lookup, match_distances, normalise_patches, peak_index, region_alpha,
-                                      select_coefficients)
+                                      select_coefficients, rest_floor, above_rest)
 
 
 def test_haar_2x2_by_hand():
@@ -375,3 +375,36 @@ def test_bank_with_stable_masks_against_direct_distances():
                                plain, rtol=1e-9)
     with pytest.raises(ValueError):
         RegionBank(templates, indices, w, masks=np.zeros((2, 256), dtype=bool))
+
+
+def test_rest_floor_is_the_highest_reading_at_rest():
+    readings = np.array([[0.1, 0.0, np.nan],
+                         [0.3, 2.0, np.nan],
+                         [np.nan, 0.2, 0.4],
+                         [2.5, 0.1, 0.7]])
+    at_rest = np.array([[True, True, True],
+                        [True, False, True],     # region 1's own layer: not at rest
+                        [True, True, False],
+                        [False, True, True]])
+    floor, row = rest_floor(readings, at_rest, most=0.5)
+    # region 0: the highest of 0.1, 0.3 (NaN, hidden, and its own frame 3 ignored); region 1: 0.2;
+    # region 2: 0.7 capped at 0.5 (frame 2 is its own layer); the rows that read them
+    np.testing.assert_allclose(floor, [0.3, 0.2, 0.5])
+    np.testing.assert_array_equal(row, [1, 2, 3])
+    # a region never seen at rest: floor 0, no row
+    floor, row = rest_floor(readings[:, :1], np.zeros((4, 1), dtype=bool))
+    assert floor[0] == 0.0 and row[0] == -1
+
+
+def test_above_rest_is_zero_below_the_floor_monotone_and_keeps_the_extreme():
+    q = np.linspace(0.0, 4.0, 81)[:, None].repeat(2, axis=1)
+    q[5, 1] = np.nan
+    out = above_rest(q, np.array([0.4, 0.0]), [5, 5])
+    assert (out[q[:, 0] <= 0.4, 0] == 0.0).all()
+    assert np.all(np.diff(out[:, 0]) >= 0) and np.all(np.diff(out[q[:, 0] > 0.4, 0]) > 0)
+    assert out[-1, 0] == pytest.approx(4.0)
+    # linear between: the floor to 0, the extreme layer to itself
+    np.testing.assert_allclose(out[q[:, 0] > 0.4, 0], (q[q[:, 0] > 0.4, 0] - 0.4) * 4.0 / 3.6)
+    # a zero floor changes nothing, a hidden region stays NaN
+    assert np.isnan(out[5, 1])
+    np.testing.assert_array_equal(np.delete(out[:, 1], 5), np.delete(q[:, 1], 5))

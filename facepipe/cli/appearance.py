@@ -15,7 +15,7 @@ SAMPLE_DRIVERS = {"forehead": ["browRaise"], "brows": ["frown"], "mouth": ["puck
                   "nasolabial_R": ["smile_R"], "eyelid_L": ["squint_L"], "eyelid_R": ["squint_R"], "chin": ["jawOpen"]}
 
 
-def build_command(config_path, output, rep) -> dict:
+def build_command(config_path, output, rep, write_json) -> dict:
     from facepipe.io.appearance_file import save_appearance
     from facepipe.io.camera_file import read_camera
     from facepipe.io.config import load_config
@@ -31,8 +31,15 @@ def build_command(config_path, output, rep) -> dict:
     with rep.bar(len(config.appearance.regions), unit="region", desc="regions") as bar:
         model, info = build_appearance(config, mesh, camera, progress=bar.update)
     save_appearance(output, model)
+    report = Path(output).with_suffix(".json")
+    write_json(report, info)
     rep.say(f"{len(info['regions'])} regions ({', '.join(f'{n} {k}' for n, k in zip(info['regions'], info['layers']))}"
-            f" layers), texture {info['texture_size']}²; wrote {output}")
+            f" layers), texture {info['texture_size']}²; wrote {output} and {report}")
+    if info.get("rest"):
+        rep.say("rest floors (Q read at rest in the examples, measured from): "
+                + ", ".join(f"{n} {v['floor']:.2f}" for n, v in info["rest"].items()))
+    for note in info["notes"]:
+        rep.say(f"note: {note}")
     return info
 
 

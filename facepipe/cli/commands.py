@@ -630,7 +630,7 @@ def appearance_build(ctx, config, output, quiet, verbose):
     """Build an appearance model from the config's [appearance] table (example frames with geometry)."""
     from facepipe.cli.appearance import build_command
 
-    build_command(config, output, _reporter(ctx, quiet, verbose))
+    build_command(config, output, _reporter(ctx, quiet, verbose), _write_json)
 
 
 @appearance.command("classify")

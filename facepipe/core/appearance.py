@@ -20,6 +20,9 @@ match distances of it and its neighbours to a continuous layer index Q ∈ [0, n
   index with its vertex at the patch's position, which is what the peak interpolation assumes;
 * **peak interpolation**: the vertex of the parabola through the best template's distance and
   its two neighbours (the nearest triple at the ends), kept within half a layer of the best;
+* **rest floor**: the highest Q a region reads while it is at rest (in the examples of the
+  other regions, where the rest of the face moves): Q is measured from it (:func:`above_rest`),
+  so a region at rest reads exactly 0, not a level of its own that flickers;
 * **visibility**: a region facing away from the camera keeps its last value, decaying
   exponentially to neutral (0).
 
@@ -40,7 +43,7 @@ from scipy import ndimage
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
-           "facing", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS",
+           "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS",
            "sh_basis", "fit_light", "light_shading"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
@@ -208,6 +211,35 @@ def peak_index(distances: np.ndarray) -> np.ndarray:
         vertex = centre + 0.5 * (dm - dp) / curvature
     vertex = np.where(curvature > 0, vertex, best)  # no minimum there: the best template itself
     return np.clip(np.clip(vertex, best - 0.5, best + 0.5), 0.0, n - 1.0)
+
+
+def rest_floor(readings: np.ndarray, at_rest: np.ndarray, most: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Each region's rest floor: the highest Q (R,) it reads among frames where it is at rest, at
+    most ``most`` layers, and the row (R,) that reads it (−1 where no frame is at rest).
+
+    readings : (F, R) Q of F frames (NaN where hidden); at_rest : (F, R) whether the region is at
+    rest in the frame. Why the highest: Q's offset at rest is not noise alone but what the rest of
+    the face does to the region's patch (another expression's shading, a brow lowered over a
+    lid, the peak interpolation's bias where the templates' distances are not a parabola), and
+    every such frame seen should read 0.
+    """
+    q = np.where(np.asarray(at_rest, dtype=bool), np.asarray(readings, dtype=np.float64), np.nan)
+    q = np.where(np.isfinite(q), q, -np.inf)
+    row = np.argmax(q, axis=0)
+    top = q[row, np.arange(q.shape[1])]
+    found = np.isfinite(top)
+    return np.where(found, np.clip(top, 0.0, most), 0.0), np.where(found, row, -1)
+
+
+def above_rest(q: np.ndarray, floor: np.ndarray, layers) -> np.ndarray:
+    """Q (..., R) measured from the regions' rest floors (R,): 0 at or below its floor, rising
+    linearly to n − 1 at n − 1 (the extreme layer stays where it is), NaN kept. Monotone: the
+    order of the frames above the floor is unchanged."""
+    q = np.asarray(q, dtype=np.float64)
+    floor = np.asarray(floor, dtype=np.float64)
+    top = np.asarray(layers, dtype=np.float64) - 1.0
+    scaled = np.clip((q - floor) * top / np.maximum(top - floor, 1e-12), 0.0, top)
+    return np.where(np.isnan(q), np.nan, scaled)
 
 
 def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, weights: np.ndarray,

@@ -41,6 +41,8 @@ class AppearanceModel:
     barycentric coordinates) and their albedo, over which each frame's light is fitted and
     divided out of the patches (None: no light fit); corner_uv (F, 3, 2) : the triangles' UVs
     (to render the layered texture; None in models before it);
+    rest_floor : (R,) the highest Q each region read at rest in the examples, which
+    classification measures Q from (None: 0, models before it or built without it);
     neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
     boxes : (R, 2) top-left texel of each volume.
     """
@@ -73,6 +75,7 @@ class AppearanceModel:
     min_point_facing: float = 0.0
     template_facing: np.ndarray | None = None
     template_mask: np.ndarray | None = None
+    rest_floor: np.ndarray | None = None
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
@@ -99,6 +102,8 @@ def save_appearance(path, model) -> None:
         arrays["template_facing"] = model.template_facing
     if model.template_mask is not None:
         arrays["template_mask"] = model.template_mask
+    if model.rest_floor is not None:
+        arrays["rest_floor"] = model.rest_floor
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     for r in range(len(model.names)):
@@ -131,7 +136,8 @@ def load_appearance(path):
                                d.get("light_albedo"), d.get("corner_uv"),
                                float(s[4]) if len(s) > 4 else 0.5, bool(s[5]) if len(s) > 5 else False,
                                float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"),
-                               None if d.get("template_mask") is None else d["template_mask"].astype(bool))
+                               None if d.get("template_mask") is None else d["template_mask"].astype(bool),
+                               d.get("rest_floor"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None

@@ -109,6 +109,7 @@ class AppearanceConfig:
     min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
     min_point_facing: float = 0.35  # template points seen more edge-on (cosine), in the frame or an example, left out
     min_relative_facing: float = 0.8  # template points an example sees under this share of the template's median facing (a fold turning away) left out
+    rest_calibration: bool = True  # Q measured from the highest value each region reads at rest in the other regions' examples
     regions: list = field(default_factory=list)
 
 
@@ -151,7 +152,7 @@ _TYPES: dict[str, dict[str, object]] = {
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
                    "shading": bool, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
-                   "min_relative_facing": float, "regions": dict},
+                   "min_relative_facing": float, "rest_calibration": bool, "regions": dict},
     "video": {"landmarks": str},
 }
 _REGION_TYPES = {"vertices": str, "template": list, "frames": list}

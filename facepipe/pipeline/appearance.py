@@ -7,12 +7,14 @@ a region's layers are its example frames' texels inside its vertex group's UV tr
 an alpha ramp into the neutral texture at its border. Its template is a template_size² grid of
 UV points in the template rectangle, located in the UV triangles once (fixed barycentric
 coordinates), also shifted diagonally by half a grid step for the offset samples; the
-templates are those points' samples in the example frames.
+templates are those points' samples in the example frames. Each region's rest floor is the
+highest Q it reads in the example frames where it is at rest (:func:`calibrate_rest`).
 
 **Classification** (``facepipe appearance classify``): per frame the template points are put on
 the animated surface through their barycentric coordinates, projected through the camera
 (OpenCV's distortion) and sampled bilinearly from the frame's luminance; the five samples are
-classified (:func:`facepipe.core.appearance.classify`); a region whose template faces away
+classified (:func:`facepipe.core.appearance.classify`) and Q measured from the region's rest
+floor; a region whose template faces away
 from the camera, falls outside the image or whose frame is missing keeps its last value,
 decaying to neutral.
 """
@@ -335,7 +337,43 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
                             corner_uv.astype(np.float32), cfg.min_seen, cfg.occlusion, cfg.min_point_facing,
                             np.stack(facing_examples).astype(np.float32), np.stack(masks))
-    return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "notes": notes}
+    rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
+    return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "rest": rest, "notes": notes}
+
+
+#: A rest floor is kept to at most this many layers; above half a layer the build says so.
+MOST_REST_FLOOR = 1.0
+
+
+def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, notes: list) -> dict:
+    """Set the model's rest floors from the example frames, and return them per region.
+
+    A region is at rest in every example frame but its own layers above the neutral one (the
+    neutral frame and the other regions' examples, where the rest of the face moves): the
+    highest Q it reads there is its floor (:func:`facepipe.core.appearance.rest_floor`), which
+    classification measures Q from. A floor above half a layer is noted: the region's template
+    sees another region's motion (a brow lowered over the lid), and the floor hides that much of
+    its own first layer.
+    """
+    numbers = sorted(frames)
+    grays = np.stack([to_gray(frames[n][0]) for n in numbers])
+    cams = np.stack([cam_pos[n] for n in numbers])
+    bank = region_bank(model)
+    readings = np.concatenate([classify_chunk(grays[i:i + 8], cams[i:i + 8], model, bank)[0]
+                               for i in range(0, len(numbers), 8)])
+    at_rest = np.array([[n not in set(region.frames[1:]) for region in cfg.regions] for n in numbers])
+    floor, row = ap.rest_floor(readings, at_rest, MOST_REST_FLOOR)
+    model.rest_floor = floor
+    out = {}
+    for r, name in enumerate(model.names):
+        frame = int(numbers[row[r]]) if row[r] >= 0 else None
+        out[name] = {"floor": float(floor[r]), "frame": frame}
+        if frame is None:
+            notes.append(f"region {name}: no example frame shows it at rest (seen): its rest floor is 0")
+        elif readings[row[r], r] > 0.5 * MOST_REST_FLOOR:
+            notes.append(f"region {name} reads Q {readings[row[r], r]:.2f} at rest in example frame {frame}: its "
+                         f"template sees that frame's motion; Q is measured from {floor[r]:.2f}")
+    return out
 
 
 def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
@@ -590,6 +628,8 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank) -> tu
         visible &= seen_fraction(seen, model) >= model.min_seen
     q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen)
     visible &= np.isfinite(q)
+    if model.rest_floor is not None:
+        q = ap.above_rest(q, model.rest_floor, model.layer_counts)
     return np.where(visible, q, np.nan), visible
 
 
