@@ -164,6 +164,7 @@ def main() -> None:
     model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
     bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
     result = {"take": args.take, "render_seconds": render_s, "regions": model.names, "shading": model.shading,
+              "rest_floor": None if model.rest_floor is None else dict(zip(model.names, model.rest_floor.tolist())),
               "stream_bits_per_frame": bits, "stream_kbit_s_at_30hz": bits * 30 / 1000.0}
     for take in ("take", "take_turned"):
         positions, numbers = _read_geometry(out / f"{take}.npz", mesh.n_vertices)

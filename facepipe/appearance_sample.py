@@ -305,7 +305,8 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     expressions : name → (V, 3) positions at weight 1; drivers : region → expression names.
     take_world (T, V, 3), take_weights (T, K) with take_names: the performance.
     Writes ``camera.json``, ``examples/`` (per region, its drivers at ``layers`` strengths from 0 to
-    1, frame 0 neutral) with ``examples.npz``, ``take/`` and ``take_turned/`` (the head turned up
+    1, frame 0 neutral; then every expression that drives no region at full strength, the
+    config's ``rest_frames``: the range of motion an actor would show) with ``examples.npz``, ``take/`` and ``take_turned/`` (the head turned up
     to ``turn_degrees`` and another light) each with its geometry ``.npz`` (positions in world
     space, frame numbers) and truth ``_truth.csv`` (activation per region), ``regions/NAME.txt``
     and ``appearance.toml``. Returns the paths and the layout.
@@ -333,6 +334,12 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
             a[r] = s
             ex_act.append(a)
             frames[name].append(len(ex_world) - 1)
+    driving = {d for ds in drivers.values() for d in ds}
+    rest_frames = []
+    for name in sorted(set(expressions) - driving):  # other expressions: every region at rest
+        ex_world.append(expressions[name])
+        ex_act.append(np.zeros(len(names)))
+        rest_frames.append(len(ex_world) - 1)
     ex_world = np.asarray(ex_world)
     write_appearance_footage(out / "examples", ex_world, np.asarray(ex_act), faces, corner_uv, skin, fields, scene,
                              noise=noise, seed=seed + 1, progress=progress)
@@ -352,7 +359,7 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     for name, o in zip(names, layout):
         (out / "regions" / f"{name}.txt").write_text("".join(f"{v}\n" for v in o["vertices"].tolist()))
     config = out / "appearance.toml"
-    config.write_text(_config_text(mesh_path, markers_path, names, layout, frames, scene, texture_size))
+    config.write_text(_config_text(mesh_path, markers_path, names, layout, frames, scene, texture_size, rest_frames))
     return {"config": str(config), "regions": names, "layout": layout, "examples": len(ex_world),
             "frames": len(take_world)}
 
@@ -367,11 +374,13 @@ def _write_truth(path: Path, names: list, truth: np.ndarray) -> None:
     path.write_text("frame," + ",".join(names) + "\n" + rows)
 
 
-def _config_text(mesh_path, markers_path, names, layout, frames, scene: Scene, texture_size: int) -> str:
+def _config_text(mesh_path, markers_path, names, layout, frames, scene: Scene, texture_size: int,
+                 rest_frames=()) -> str:
     lines = ["[rig]", f'mesh = "{mesh_path}"', f'markers = "{markers_path}"', "", "[appearance]",
              'camera = "camera.json"', f"camera_rotation = {scene.rotation.tolist()}",
              f"camera_translation = {scene.translation.tolist()}", 'footage = "examples/frame_%04d.png"',
-             'geometry = "examples.npz"', "neutral_frame = 0", f"texture_size = {texture_size}", ""]
+             'geometry = "examples.npz"', "neutral_frame = 0", f"texture_size = {texture_size}",
+             f"rest_frames = {list(rest_frames)}", ""]
     for name, o in zip(names, layout):
         lines += [f"[appearance.regions.{name}]", f'vertices = "regions/{name}.txt"',
                   f"template = [{', '.join(f'{x:.5f}' for x in o['template'])}]",

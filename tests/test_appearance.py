@@ -24,7 +24,8 @@ def _run(*args):
 @pytest.fixture(scope="module")
 def kit(tmp_path_factory):
     d = tmp_path_factory.mktemp("appearance")
-    assert _run("sample", d, "--vertices", 4000, "--frames", 40, "--appearance", "-q") == 0
+    # 10 examples: the 8 regions' drivers and two other expressions, the rest frames
+    assert _run("sample", d, "--vertices", 4000, "--frames", 40, "--examples", 10, "--appearance", "-q") == 0
     assert _run("appearance", "build", d / "appearance" / "appearance.toml", "-o", d / "app.npz", "-q") == 0
     return d
 
@@ -84,6 +85,8 @@ def _edited_config(kit, tmp_path, old, new):
     ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1]", "at least three layers"),
     ("template = [", "template = [0.98, 0.98, 1.2, 1.2] #", "outside the UV layout"),
     ("texture_size = 512", "texture_size = 512.0", "expected an integer"),
+    ("rest_frames = [", "rest_frames = [1.5, ", "expected an integer"),
+    ("rest_frames = [", "rest_frames = [999, ", "example frame 999"),
 ])
 def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
@@ -159,20 +162,24 @@ def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
         outside[r0:r0 + alpha.shape[0], c0:c0 + alpha.shape[1]] = False
     np.testing.assert_allclose(got[outside], model.neutral[outside], atol=1e-4)
     # inside a region (alpha 1, no other region there) it is the linear blend of its two layers
-    # around Q, computed here by hand
-    r = int(np.argmax(q[t]))
+    # around Q, computed here by hand: the most active region with such texels of its own
+    def own_texels(r):
+        (r0, c0), alpha = model.boxes[r], model.alphas[r]
+        inner = alpha == 1.0
+        for k, (a, (s0, t0)) in enumerate(zip(model.alphas, model.boxes)):
+            if k != r:  # leave out texels another region's box also covers
+                rows = slice(max(s0 - r0, 0), max(min(s0 + a.shape[0] - r0, alpha.shape[0]), 0))
+                cols = slice(max(t0 - c0, 0), max(min(t0 + a.shape[1] - c0, alpha.shape[1]), 0))
+                inner[rows, cols] = False
+        return inner
+
+    r = next(r for r in np.argsort(-q[t]) if q[t, r] > 0.5 and own_texels(r).sum() > 50)
+    inner = own_texels(r)
     lo = min(int(q[t, r]), len(model.volumes[r]) - 2)
     f = q[t, r] - lo
     expected = (1 - f) * model.volumes[r][lo] + f * model.volumes[r][lo + 1]
     (r0, c0), alpha = model.boxes[r], model.alphas[r]
     window = got[r0:r0 + alpha.shape[0], c0:c0 + alpha.shape[1]]
-    inner = alpha == 1.0
-    for k, (a, (s0, t0)) in enumerate(zip(model.alphas, model.boxes)):
-        if k != r:  # leave out texels another region's box also covers
-            rows = slice(max(s0 - r0, 0), max(min(s0 + a.shape[0] - r0, alpha.shape[0]), 0))
-            cols = slice(max(t0 - c0, 0), max(min(t0 + a.shape[1] - c0, alpha.shape[1]), 0))
-            inner[rows, cols] = False
-    assert inner.sum() > 50
     np.testing.assert_allclose(window[inner], expected[inner], atol=1e-4)
 
 
@@ -328,6 +335,8 @@ def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
     positions, numbers = _read_geometry(cfg.geometry, int(model.faces.max()) + 1)
     q = classify_frames(model, cfg.footage, positions, numbers, numbers / 30.0).q
     row = {int(n): i for i, n in enumerate(numbers)}
+    # the sample's other expressions (no region's driver) are its rest frames: at rest for every region
+    assert cfg.rest_frames and not set(cfg.rest_frames) & {f for region in cfg.regions for f in region.frames}
     for r, region in enumerate(cfg.regions):
         own = [row[f] for f in region.frames[1:]]
         rest = [i for i in range(len(numbers)) if i not in own]

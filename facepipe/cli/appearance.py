@@ -96,7 +96,8 @@ def sample_appearance(directory, frames: int, size: int, rep) -> dict:
     from facepipe.io.mesh_read import load_vertices
 
     expressions = {n: load_vertices(directory / "expressions" / f"{n}.obj") for n in names}
-    total = 1 + 4 * len(SAMPLE_DRIVERS) + 2 * len(world)
+    driving = {d for ds in SAMPLE_DRIVERS.values() for d in ds}
+    total = 1 + 4 * len(SAMPLE_DRIVERS) + len(set(names) - driving) + 2 * len(world)
     with rep.bar(total, desc="render") as bar:
         return write_appearance_kit(directory / "appearance", mesh, mesh.vertices, expressions, SAMPLE_DRIVERS, world,
                                     weights, names, mesh_path="../neutral.obj", markers_path="../markers.csv",

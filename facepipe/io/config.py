@@ -110,6 +110,7 @@ class AppearanceConfig:
     min_point_facing: float = 0.35  # template points seen more edge-on (cosine), in the frame or an example, left out
     min_relative_facing: float = 0.8  # template points an example sees under this share of the template's median facing (a fold turning away) left out
     rest_calibration: bool = True  # Q measured from the highest value each region reads at rest in the other regions' examples
+    rest_frames: list = field(default_factory=list)  # more example frames where no region is active (other expressions), for the rest floors
     regions: list = field(default_factory=list)
 
 
@@ -152,7 +153,8 @@ _TYPES: dict[str, dict[str, object]] = {
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
                    "shading": bool, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
-                   "min_relative_facing": float, "rest_calibration": bool, "regions": dict},
+                   "min_relative_facing": float, "rest_calibration": bool, "rest_frames": list,
+                   "regions": dict},
     "video": {"landmarks": str},
 }
 _REGION_TYPES = {"vertices": str, "template": list, "frames": list}
@@ -332,6 +334,7 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if not 0.0 <= out.min_relative_facing < 1.0:
         raise InputError(f"[appearance] min_relative_facing = {out.min_relative_facing} is not in [0, 1)", path=path,
                          hint="a share of the template's median facing: 0 keeps every point, 0.8 drops folds turning away")
+    out.rest_frames = [checked_value(x, int, path, "appearance", "rest_frames") for x in out.rest_frames]
     if not 0.0 < out.min_seen <= 1.0:
         raise InputError(f"[appearance] min_seen = {out.min_seen} is not in (0, 1]", path=path,
                          hint="the share of a template that must be seen, e.g. 0.5")

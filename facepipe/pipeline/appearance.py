@@ -270,7 +270,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     R = np.asarray(cfg.camera_rotation, dtype=np.float64)
     t = np.asarray(cfg.camera_translation, dtype=np.float64)
     positions, numbers = _read_geometry(cfg.geometry, mesh.n_vertices)
-    needed = {cfg.neutral_frame} | {f for r in cfg.regions for f in r.frames}
+    needed = {cfg.neutral_frame} | {f for r in cfg.regions for f in r.frames} | set(cfg.rest_frames)
     frames = _example_frames(cfg, needed, positions, numbers, camera)
     cam_pos = {n: positions_world @ R.T + t for n, (_, positions_world) in frames.items()}
     S = cfg.texture_size
@@ -349,7 +349,8 @@ def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, not
     """Set the model's rest floors from the example frames, and return them per region.
 
     A region is at rest in every example frame but its own layers above the neutral one (the
-    neutral frame and the other regions' examples, where the rest of the face moves): the
+    neutral frame, the other regions' examples and the ``rest_frames``, other expressions where
+    no region is active: frames where the rest of the face moves): the
     highest Q it reads there is its floor (:func:`facepipe.core.appearance.rest_floor`), which
     classification measures Q from. A floor above half a layer is noted: the region's template
     sees another region's motion (a brow lowered over the lid), and the floor hides that much of
