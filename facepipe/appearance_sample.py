@@ -306,10 +306,11 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     take_world (T, V, 3), take_weights (T, K) with take_names: the performance.
     Writes ``camera.json``, ``examples/`` (per region, its drivers at ``layers`` strengths from 0 to
     1, frame 0 neutral; then every expression that drives no region at full strength, the
-    config's ``rest_frames``: the range of motion an actor would show) with ``examples.npz``, ``take/`` and ``take_turned/`` (the head turned up
-    to ``turn_degrees`` and another light) each with its geometry ``.npz`` (positions in world
-    space, frame numbers) and truth ``_truth.csv`` (activation per region), ``regions/NAME.txt``
-    and ``appearance.toml``. Returns the paths and the layout.
+    config's ``rest_frames``: the range of motion an actor would show) with ``examples.npz``,
+    ``take/`` and ``take_turned/`` (the head turned up to ``turn_degrees`` and another light) each
+    with its geometry ``.npz`` (positions in world space, frame numbers) and truth ``_truth.csv``
+    (activation per region), ``regions/NAME.txt`` and ``appearance.toml``. Returns the paths and
+    the layout.
     """
     out = Path(out_dir)
     (out / "regions").mkdir(parents=True, exist_ok=True)

@@ -14,9 +14,8 @@ highest Q it reads in the example frames where it is at rest (:func:`calibrate_r
 the animated surface through their barycentric coordinates, projected through the camera
 (OpenCV's distortion) and sampled bilinearly from the frame's luminance; the five samples are
 classified (:func:`facepipe.core.appearance.classify`) and Q measured from the region's rest
-floor; a region whose template faces away
-from the camera, falls outside the image or whose frame is missing keeps its last value,
-decaying to neutral.
+floor; a region whose template faces away from the camera, falls outside the image or whose
+frame is missing keeps its last value, decaying to neutral.
 """
 
 from __future__ import annotations
@@ -350,9 +349,9 @@ def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, not
 
     A region is at rest in every example frame but its own layers above the neutral one (the
     neutral frame, the other regions' examples and the ``rest_frames``, other expressions where
-    no region is active: frames where the rest of the face moves): the
-    highest Q it reads there is its floor (:func:`facepipe.core.appearance.rest_floor`), which
-    classification measures Q from. A floor above half a layer is noted: the region's template
+    no region is active: frames where the rest of the face moves): the highest Q it reads there
+    is its floor (:func:`facepipe.core.appearance.rest_floor`), which classification measures Q
+    from. A floor above half a layer is noted: the region's template
     sees another region's motion (a brow lowered over the lid), and the floor hides that much of
     its own first layer.
     """
