@@ -701,6 +701,60 @@ def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
             assert load_vertices(p).tolist() == [[1, 2, 3], [4, 5, 6]]
 
 
+def _plain_mesh_text(rng, corners: int, layout: str) -> str:
+    V = rng.normal(size=(400, 3)) * 10.0 ** rng.integers(-3, 3, size=(400, 3))
+    lines = [f"v {float(x)!r} {y:.6f} {z:.9g}" for x, y, z in V]
+    lines += [f"vt {u:.5f} {v:.5f}" for u, v in rng.random((90, 2))]
+    lines += ["vn 0 0 1", "vn 0 1 0"]
+    for _ in range(300):
+        vs, ts = rng.integers(1, 401, corners), rng.integers(1, 91, corners)
+        vs = np.where(rng.random(corners) < 0.1, vs - 401, vs)  # some relative (negative) indices
+        fields = {"v": [f"{a}" for a in vs], "v/vt": [f"{a}/{b}" for a, b in zip(vs, ts)],
+                  "v/vt/vn": [f"{a}/{b}/{1 + a % 2}" for a, b in zip(vs, ts)]}[layout]
+        lines.append("f " + " ".join(fields))
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("corners", [3, 4])
+@pytest.mark.parametrize("layout", ["v", "v/vt", "v/vt/vn"])
+def test_plain_obj_reader_matches_the_reference(tmp_path, corners, layout):
+    """The plain layout's reader (line starts only) reads exactly what the list reader reads."""
+    from facepipe.io.mesh_read import _parse_obj_lists, _plain_obj
+
+    p = write(tmp_path, "plain.obj", _plain_mesh_text(np.random.default_rng(corners), corners, layout))
+    plain = _plain_obj(p.read_bytes(), p)
+    assert plain is not None
+    slow = _parse_obj_lists(p, p.read_bytes())
+    for key in ("vertices", "polygon_offsets", "polygon_vertices", "uvs", "polygon_uvs", "polygon_groups"):
+        a, b = getattr(plain, key), getattr(slow, key)
+        assert (a is None and b is None) or (a.dtype == b.dtype and np.array_equal(a, b)), key
+    assert plain.group_names == slow.group_names
+
+
+@pytest.mark.parametrize("text", [
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 1 2 4 3\n",        # triangles and quads
+    "v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\nf 1 2 3\n",                  # a vertex after a face
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2  3\n",                          # a doubled space
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3 \n",                          # a trailing space
+    "v 0 0 0 1\nv 1 0 0 1\nv 0 1 0 1\nf 1 2 3\n",                      # a fourth coordinate
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0 0\nvt 1 0 0\nvt 0 1 0\nf 1/1 2/2 3/3\n",  # a third texture coordinate
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//1 3//1\n",      # v//vn
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvn 0 0 1\nf 1/1/1 2/1/1 3/1/1\nf 1/1 2/1 3/1\n",  # two corner layouts
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\ng part\nf 1 2 3\n",                  # a group
+    "v 0 0 0\nvt 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",                  # vertices in two blocks
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\n\nf 1 2 3\n",                        # a blank line
+])
+def test_other_obj_layouts_leave_the_plain_reader(tmp_path, text):
+    """Files off the plain layout are declined by its reader and read as the list reader reads them."""
+    from facepipe.io.mesh_read import _parse_obj_lists, _plain_obj
+
+    p = write(tmp_path, "odd.obj", text.encode())
+    assert _plain_obj(p.read_bytes(), p) is None
+    m, ref = load_mesh(p), _parse_obj_lists(p, p.read_bytes())
+    assert np.array_equal(m.polygon_vertices, ref.polygon_vertices) and np.array_equal(m.vertices, ref.vertices)
+    assert np.array_equal(m.polygon_offsets, ref.polygon_offsets)
+
+
 @pytest.mark.parametrize("text", [
     "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nvn 0 0 1\nf 1//1 2//1 3//1\n",  # mixed corner layouts
     "v 0 0 0\rv 1 0 0\rv 0 1 0\rf 1 2 3\r",                    # old Mac line ends

@@ -510,10 +510,109 @@ def _simple_obj_vertices(data: bytes) -> np.ndarray | None:
     return None if values is None else values.reshape(-1, 3)
 
 
+def _block_lines(is_line: np.ndarray) -> tuple[int, int] | None:
+    """The first and past-the-last line of the one contiguous run of lines ``is_line`` marks
+    ((0, 0) where it marks none), or None where they are not contiguous."""
+    lines = np.flatnonzero(is_line)
+    if lines.shape[0] == 0:
+        return 0, 0
+    if lines[-1] - lines[0] + 1 != lines.shape[0]:
+        return None
+    return int(lines[0]), int(lines[-1]) + 1
+
+
+def _per_line(positions: np.ndarray, starts: np.ndarray, ends: np.ndarray, block: tuple[int, int], k: int) -> bool:
+    """Whether each line of ``block`` holds exactly ``k`` of the byte at ``positions`` (sorted byte
+    offsets of every occurrence in the file): the block's occurrences, taken k at a time, must
+    each lie in the next line (one comparison per occurrence, no count per line)."""
+    a, b = block
+    if a == b:
+        return True
+    lo, hi = np.searchsorted(positions, [starts[a], ends[b - 1]])
+    inside = positions[lo:hi]
+    if inside.shape[0] != k * (b - a):
+        return False
+    if k == 0:
+        return True
+    line = a + np.arange(inside.shape[0]) // k
+    return bool(((inside > starts[line]) & (inside < ends[line])).all())
+
+
+def _plain_obj(data: bytes, path: Path) -> Mesh | None:
+    """The mesh of an OBJ file in the plain layout most exporters write, found from its line
+    starts alone (the token reader below cuts every file into tokens first: most of its time on a
+    large mesh); None for any other layout, which that reader then reads.
+
+    The plain layout: ``\\n`` line ends, no comments or tabs, every line a statement at its start
+    with single spaces; a block of ``v x y z`` lines, one of ``vt u v`` lines and one of ``vn``
+    lines (ignored), then only ``f`` lines, all with the same number of corners and the same
+    corner layout (``v``, ``v/vt`` or ``v/vt/vn``).
+    """
+    if b"#" in data or b"\r" in data or b"\t" in data or not data.endswith(b"\n"):
+        return None
+    buf = np.frombuffer(data, dtype=np.uint8)
+    n = buf.shape[0]
+    ends = np.flatnonzero(buf == 10)
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    first = buf[starts]
+    second = buf[np.minimum(starts + 1, n - 1)]
+    third = buf[np.minimum(starts + 2, n - 1)]
+    is_f = (first == 102) & (second == 32)
+    is_v = (first == 118) & (second == 32)
+    is_vt = (first == 118) & (second == 116) & (third == 32)
+    is_vn = (first == 118) & (second == 110) & (third == 32)
+    if not (is_f | is_v | is_vt | is_vn).all():
+        return None  # groups, materials, smoothing, blank lines: the token reader keeps or skips them
+    blocks = [_block_lines(m) for m in (is_v, is_vt, is_vn, is_f)]
+    if any(b is None for b in blocks):
+        return None
+    v_block, vt_block, vn_block, f_block = blocks
+    n_faces = f_block[1] - f_block[0]
+    if n_faces == 0 or f_block[1] != starts.shape[0] or max(v_block[1], vt_block[1], vn_block[1]) > f_block[0]:
+        return None  # no faces, or faces before a vertex (relative indices count back from each face)
+    spaces = np.flatnonzero(buf == 32)
+    slashes = np.flatnonzero(buf[int(starts[f_block[0]]):] == 47) + int(starts[f_block[0]])
+    face = f_block[0]
+    corners = int(np.searchsorted(spaces, ends[face]) - np.searchsorted(spaces, starts[face]))
+    per_corner = int(np.searchsorted(slashes, ends[face]) - np.searchsorted(slashes, starts[face]))
+    if corners < 3 or per_corner % corners or per_corner // corners > 2:
+        return None
+    fields = per_corner // corners + 1
+    if not (_per_line(spaces, starts, ends, v_block, 3) and _per_line(spaces, starts, ends, vt_block, 2)
+            and _per_line(spaces, starts, ends, f_block, corners)
+            and _per_line(slashes, starts, ends, f_block, per_corner)):
+        return None  # more or fewer numbers than the token reader keeps, doubled spaces, v//vn corners
+
+    def numbers(block, skip, width, dtype, lut):
+        begin = starts[block[0]:block[1]] + skip
+        chars = _gather_spans(buf, begin, ends[block[0]:block[1]] - begin)
+        chars[(chars == 32) | (chars == 47)] = 44  # "a b" and "a/b" -> "a,b,"
+        return _parse_numbers(chars, width * (block[1] - block[0]), dtype, lut)
+
+    vertices = numbers(v_block, 2, 3, np.float64, _OBJ_LUT_FLOAT)
+    uvs = numbers(vt_block, 3, 2, np.float64, _OBJ_LUT_FLOAT)
+    raw = numbers(f_block, 2, corners * fields, np.int64, _OBJ_LUT_INT)
+    if vertices is None or uvs is None or raw is None:
+        return None
+    raw = raw.reshape(n_faces * corners, fields)
+    n_v, n_vt = v_block[1] - v_block[0], vt_block[1] - vt_block[0]
+    corner_v = _fast_indices(raw[:, 0], n_v, n_v)
+    polygon_uvs = _fast_indices(raw[:, 1], n_vt, n_vt) if fields >= 2 else None
+    if corner_v is None or (fields >= 2 and polygon_uvs is None):
+        return None
+    return Mesh(vertices=vertices.reshape(-1, 3), polygon_offsets=np.arange(n_faces + 1, dtype=np.int64) * corners,
+                polygon_vertices=corner_v, uvs=uvs.reshape(-1, 2) if polygon_uvs is not None else None,
+                polygon_uvs=polygon_uvs, polygon_groups=np.zeros(n_faces, dtype=np.int32),
+                group_names=["default"], path=str(path))
+
+
 def _fast_obj(data: bytes, path: Path) -> Mesh | None:
     """The mesh of an OBJ file as :func:`_parse_obj_lists` reads it, or None where it might not."""
     if not _obj_prefilter(data):
         return None
+    plain = _plain_obj(data, path)
+    if plain is not None:
+        return plain
     tok = _Tokens(data)
     tag = tok.tag
     is_v = tag == np.uint64(_TAG_V)
