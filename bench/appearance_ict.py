@@ -29,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 
 from facepipe.appearance_sample import write_appearance_kit
 from facepipe.core.appearance import stream_bits
+from facepipe.core.hole_cards import boundary_loops
 from facepipe.io.appearance_file import STREAM_DECIMALS
 from facepipe.io.camera_file import read_camera
 from facepipe.io.config import load_config
@@ -41,7 +42,22 @@ KIT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict"
 TAKES = {"train": KIT / "train_truth.npz", "video": KIT / "video" / "video_truth.npz", "sweep": None}
 DRIVERS = {"forehead": ["browInnerUp_L", "browInnerUp_R"], "brow_L": ["browDown_L"], "brow_R": ["browDown_R"],
            "eyelid_L": ["eyeBlink_L"], "eyelid_R": ["eyeBlink_R"], "nasolabial_L": ["mouthSmile_L"],
-           "nasolabial_R": ["mouthSmile_R"], "mouth": ["mouthPucker"]}
+           "nasolabial_R": ["mouthSmile_R"], "mouth": ["mouthPucker"],
+           "eyeball_L": ["eyeLookIn_L"], "eyeball_R": ["eyeLookOut_R"]}
+# the eyeballs drawn behind the eye openings turn with the gaze expressions: (region, yaw, pitch)
+# in degrees at full weight (yaw to the subject's left, pitch down; both of the kit's sideways
+# looks turn to the subject's right)
+GAZE = {"eyeLookIn_L": ("eyeball_L", -25.0, 0.0), "eyeLookOut_R": ("eyeball_R", -25.0, 0.0),
+        "eyeLookUp_L": ("eyeball_L", 0.0, -20.0), "eyeLookUp_R": ("eyeball_R", 0.0, -20.0)}
+EYE_OPENINGS = {"eyeball_L": "eyeBlink_L", "eyeball_R": "eyeBlink_R"}
+
+
+def eye_rims(rest: np.ndarray, faces: np.ndarray, expressions: dict) -> dict:
+    """Each eyeball region's eye opening: the mesh's hole whose rim its eye's blink moves most."""
+    loops = boundary_loops(faces)
+    return {region: max(loops, key=lambda loop: float(np.linalg.norm(expressions[blink][loop] - rest[loop],
+                                                                     axis=1).mean()))
+            for region, blink in EYE_OPENINGS.items()}
 
 
 def sweep_take(rest: np.ndarray, expressions: dict, frames: int = 120) -> tuple[np.ndarray, np.ndarray, list]:
@@ -110,7 +126,7 @@ def texture_ratio(model, mesh, out: Path, take: str, positions: np.ndarray, numb
     texels), on the regions' texels, over the take; in all and per region; with the classified Q
     and with the truth activation as Q (what the layered texture itself reaches: shading of the
     other expressions' geometry and of the lips and eyes opening is in no region's layers)."""
-    texel_face, texel_bary = texel_map(mesh.uvs[mesh.face_uvs], model.neutral.shape[0])
+    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0])  # the cards' squares too
     sums = np.zeros((2, len(model.names), 3))
     active = np.zeros((2, len(model.names), 3))  # each region's sums over the frames it is active in
     footage = open_footage(out / take / "frame_%04d.png")
@@ -148,7 +164,8 @@ def main() -> None:
     render_s = None
     if not (args.reuse and (out / "appearance.toml").is_file()):
         if args.take == "sweep":
-            expressions = {d: load_vertices(KIT / "expressions" / f"{d}.obj") for ds in DRIVERS.values() for d in ds}
+            needed = {d for ds in DRIVERS.values() for d in ds} | set(EYE_OPENINGS.values())
+            expressions = {d: load_vertices(KIT / "expressions" / f"{d}.obj") for d in needed}
             world, weights, names = sweep_take(mesh.vertices, expressions)
         else:
             truth = np.load(TAKES[args.take])
@@ -158,7 +175,8 @@ def main() -> None:
         t0 = time.perf_counter()
         write_appearance_kit(out, mesh, mesh.vertices, expressions, DRIVERS, world, weights,
                              names, mesh_path=str(KIT / "neutral.obj"), markers_path=str(KIT / "markers.csv"),
-                             size=args.size, texture_size=1024)
+                             size=args.size, texture_size=1024,
+                             eyes=eye_rims(mesh.vertices, mesh.faces, expressions), gaze=GAZE)
         render_s = time.perf_counter() - t0
     config = load_config(out / "appearance.toml")
     model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
@@ -187,7 +205,7 @@ def main() -> None:
         print(take, f"{r['frames_per_second_with_reading']:.1f} frames/s with reading",
               f"visible {r['visible_fraction']:.3f}")
     print(f"classification alone {result['take']['classification_frames_per_second']:.0f} frames/s, "
-          f"{result['take']['classification_frames_per_cpu_second']:.0f} frames per CPU second (8 regions; "
+          f"{result['take']['classification_frames_per_cpu_second']:.0f} frames per CPU second ({len(model.names)} regions; "
           f"{result['take']['classification_frames_per_cpu_second_without_edge_on_test']:.0f} without the edge-on "
           f"test, {result['take']['classification_frames_per_cpu_second_without_visibility_tests']:.0f} without "
           f"either visibility test); "

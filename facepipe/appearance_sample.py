@@ -29,7 +29,8 @@ from facepipe.core.render import rasterize
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.io.atomic import atomic_path
 
-__all__ = ["Scene", "make_scene", "uv_scales", "region_layout", "skin_texture", "wrinkle_fields", "render_frame",
+__all__ = ["Scene", "Eye", "eyes_behind", "eye_poses", "iris_colour", "make_scene", "uv_scales", "region_layout",
+           "skin_texture", "wrinkle_fields", "render_frame",
            "write_appearance_footage"]
 
 
@@ -213,17 +214,91 @@ def _distortion_maps(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return ideal[..., 0].astype(np.float32), ideal[..., 1].astype(np.float32)
 
 
+@dataclass
+class Eye:
+    """An eyeball behind an eye opening, in head space: centre, radius and its axes at rest
+    (columns: right, up, forward — the gaze at rest)."""
+
+    centre: np.ndarray
+    radius: float
+    axes: np.ndarray
+
+
+def eyes_behind(rest: np.ndarray, rims: list) -> list:
+    """An eyeball behind each eye opening (its rim's vertex loop): radius 0.55 × the opening's
+    width, its front 10 % of the radius behind the rim's centre, looking along the rim's normal
+    (the side the face looks to: +z, the camera's side in the scene)."""
+    eyes = []
+    for rim in rims:
+        P = rest[np.asarray(rim)]
+        c = P.mean(axis=0)
+        _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+        forward = vt[2] if vt[2][2] >= 0 else -vt[2]
+        width = float(np.ptp((P - c) @ vt[0]))
+        radius = 0.55 * width
+        right = np.cross([0.0, 1.0, 0.0], forward)
+        right /= np.linalg.norm(right)
+        eyes.append(Eye(c - 1.1 * radius * forward, radius, np.stack([right, np.cross(forward, right), forward], 1)))
+    return eyes
+
+
+def _sphere(n_lon: int = 48, n_lat: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A unit UV sphere's vertices (N, 3) and outward-wound triangles (T, 3), poles on ±z."""
+    lat = np.linspace(0.0, np.pi, n_lat + 1)
+    lon = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)
+    th, ph = np.meshgrid(lat, lon, indexing="ij")
+    verts = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+    idx = np.arange((n_lat + 1) * n_lon).reshape(n_lat + 1, n_lon)
+    a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
+    c, d = idx[1:], np.roll(idx[1:], -1, axis=1)
+    tri = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([b, c, d], -1).reshape(-1, 3)])
+    return verts, tri
+
+
+def iris_colour(local: np.ndarray) -> np.ndarray:
+    """(N, 3) albedo of an eyeball at unit directions (N, 3) in its own axes (the gaze along +z):
+    pupil, an iris with radial fibres and a darker limbus, sclera."""
+    theta = np.arccos(np.clip(local[:, 2], -1.0, 1.0))
+    phi = np.arctan2(local[:, 1], local[:, 0])
+    fibres = 0.8 + 0.2 * np.cos(14 * phi) * np.cos(40 * theta)
+    iris = np.array([0.28, 0.40, 0.52]) * fibres[:, None] * (1.0 - 0.5 * np.clip((theta - 0.36) / 0.1, 0, 1))[:, None]
+    out = np.where((theta < 0.46)[:, None], iris, np.array([0.86, 0.84, 0.80]))
+    return np.where((theta < 0.17)[:, None], np.array([0.04, 0.04, 0.05]), out).astype(np.float32)
+
+
 def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, texture: np.ndarray, scene: Scene,
-                 maps=None, background: float = 0.12) -> np.ndarray:
+                 maps=None, background: float = 0.12, eyes=()) -> np.ndarray:
     """(H, W, 3) float image of the textured, lit mesh through the scene's camera (before noise).
 
     world : (V, 3); faces : (F, 3); corner_uv : (F, 3, 2) UVs of the triangles' corners.
+    eyes : eyeballs (world centre (3,), world axes (3, 3) with the gaze as the third column,
+    radius) drawn with the mesh (its lids cover them), their colour from :func:`iris_colour`.
     """
+    n_skin, n_faces = len(world), len(faces)
+    if len(eyes):
+        unit, tri = _sphere()
+        world = np.concatenate([world] + [centre + radius * unit @ axes.T for centre, axes, radius in eyes])
+        faces = np.concatenate([faces] + [tri + n_skin + k * len(unit) for k in range(len(eyes))])
     cam = scene.to_camera(world)
     K = scene.matrix
     pixels = np.stack([K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]], 1)
     face, bary = rasterize(pixels, -cam[:, 2], faces, scene.width, scene.height)
     img = np.full((scene.height, scene.width, 3), background, dtype=np.float32)
+    if len(eyes):
+        on_eye = face >= n_faces
+        k_eye = (face[on_eye] - n_faces) // len(tri)
+        point = np.einsum("nk,nkc->nc", bary[on_eye], world[faces[face[on_eye]]])
+        colour = np.zeros((len(point), 3), dtype=np.float32)
+        shade = np.zeros(len(point))
+        for k, (centre, axes, radius) in enumerate(eyes):
+            sel = k_eye == k
+            d = (point[sel] - centre) / radius
+            d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+            colour[sel] = iris_colour(d @ axes)
+            shade[sel] = np.abs((d @ scene.rotation.T) @ scene.light)
+        img[on_eye] = colour * ((scene.ambient + (1 - scene.ambient) * shade)[:, None]
+                                * np.asarray(scene.light_rgb, dtype=np.float32))
+        face = np.where(on_eye, -1, face)
     hit = face >= 0
     f, b = face[hit], bary[hit]
     uv = np.einsum("nk,nkc->nc", b, corner_uv[f])
@@ -234,7 +309,7 @@ def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, te
     tx = np.r_[uv[:, 0] * S - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
     ty = np.r_[(1.0 - uv[:, 1]) * S - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
     albedo = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n_hit]
-    normals = vertex_normals(cam, faces)
+    normals = vertex_normals(cam[:n_skin], faces[:n_faces])
     n = np.einsum("nk,nkc->nc", b, normals[faces[f]])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     shade = scene.ambient + (1 - scene.ambient) * np.abs(n @ scene.light)
@@ -251,9 +326,10 @@ def _write_png(path: Path, image: np.ndarray, rng: np.random.Generator, noise: f
 
 def write_appearance_footage(folder, world_frames: np.ndarray, activations: np.ndarray, faces, corner_uv,
                              skin: np.ndarray, fields: np.ndarray, scene: Scene, *, noise: float = 0.005,
-                             seed: int = 0, numbers=None, progress=None) -> list[Path]:
+                             seed: int = 0, numbers=None, progress=None, eyes=None) -> list[Path]:
     """Render and write ``folder/frame_NNNN.png`` for every frame: geometry (T, V, 3) world, the
-    regions' activations (T, R) scaling their wrinkle fields (R, S, S) on the skin (S, S, 3)."""
+    regions' activations (T, R) scaling their wrinkle fields (R, S, S) on the skin (S, S, 3);
+    ``eyes``: per frame the eyeballs to draw (see :func:`render_frame`)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -264,7 +340,8 @@ def write_appearance_footage(folder, world_frames: np.ndarray, activations: np.n
         dark = np.tensordot(np.asarray(a, dtype=np.float32), fields, axes=1)
         texture = np.ascontiguousarray(skin * np.clip(1.0 - dark, 0.0, 1.0)[..., None], dtype=np.float32)
         path = folder / f"frame_{int(numbers[k]):04d}.png"
-        _write_png(path, render_frame(positions, faces, corner_uv, texture, scene, maps), rng, noise)
+        _write_png(path, render_frame(positions, faces, corner_uv, texture, scene, maps,
+                                      eyes=() if eyes is None else eyes[k]), rng, noise)
         paths.append(path)
         if progress is not None:
             progress(1)
@@ -283,27 +360,53 @@ def _activations(weights: np.ndarray, names: list, drivers: dict) -> np.ndarray:
     return np.stack([weights[:, [index[d] for d in ds]].mean(axis=1) for ds in drivers.values()], axis=1)
 
 
+def _yaw_pitch(yaw: float, pitch: float) -> np.ndarray:
+    """Rotation by ``pitch`` about x, then ``yaw`` about y (radians)."""
+    Ry = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
+    Rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
+    return Ry @ Rx
+
+
+def _head_turns(frames: int, degrees: float) -> np.ndarray:
+    """(T, 3, 3) head rotations: yaw sweeping ±degrees and pitch ±degrees/3 over the take."""
+    T = max(frames, 1)
+    return np.stack([_yaw_pitch(np.deg2rad(degrees) * np.sin(2 * np.pi * f / T),
+                                np.deg2rad(degrees / 3) * np.sin(4 * np.pi * f / T)) for f in range(frames)])
+
+
 def _head_turn(world: np.ndarray, degrees: float, pivot: np.ndarray) -> np.ndarray:
-    """World frames turned about ``pivot``: yaw sweeping ±degrees and pitch ±degrees/3 over the take."""
-    T = len(world)
-    out = np.empty_like(world)
-    for f in range(T):
-        yaw = np.deg2rad(degrees) * np.sin(2 * np.pi * f / max(T, 1))
-        pitch = np.deg2rad(degrees / 3) * np.sin(4 * np.pi * f / max(T, 1))
-        Ry = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
-        Rx = np.array([[1, 0, 0], [0, np.cos(pitch), -np.sin(pitch)], [0, np.sin(pitch), np.cos(pitch)]])
-        out[f] = (world[f] - pivot) @ (Ry @ Rx).T + pivot
+    """World frames turned about ``pivot`` by :func:`_head_turns`."""
+    return np.einsum("fij,fvj->fvi", _head_turns(len(world), degrees), world - pivot) + pivot
+
+
+def eye_poses(eyes: list, weights: np.ndarray, gaze: np.ndarray, rotations: np.ndarray | None = None,
+              pivot: np.ndarray | None = None) -> list:
+    """Per frame the eyeballs to draw (world centre, axes, radius): each eye turned by the frame's
+    gaze — yaw and pitch (degrees) ``weights`` (T, K) @ ``gaze`` (K, E, 2), expression k turning
+    eye e by gaze[k, e] at full weight — and the head's rotation about ``pivot`` (T, 3, 3; none:
+    the head at rest)."""
+    angles = np.deg2rad(np.einsum("tk,kec->tec", weights, gaze))
+    out = []
+    for f in range(len(weights)):
+        R = np.eye(3) if rotations is None else rotations[f]
+        p = np.zeros(3) if pivot is None else pivot
+        out.append([(R @ (eye.centre - p) + p, R @ eye.axes @ _yaw_pitch(*angles[f, e]), eye.radius)
+                    for e, eye in enumerate(eyes)])
     return out
 
 
 def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, drivers: dict, take_world: np.ndarray,
                          take_weights: np.ndarray, take_names: list, *, mesh_path: str, markers_path: str,
                          layers: int = 5, size: int = 512, texture_size: int = 512, turn_degrees: float = 15.0,
-                         noise: float = 0.005, seed: int = 0, progress=None) -> dict:
+                         noise: float = 0.005, seed: int = 0, progress=None, eyes: dict | None = None,
+                         gaze: dict | None = None) -> dict:
     """Write footage of a known performance and an appearance config for it into ``out_dir``.
 
     expressions : name → (V, 3) positions at weight 1; drivers : region → expression names.
     take_world (T, V, 3), take_weights (T, K) with take_names: the performance.
+    eyes : region → the rim (vertex loop) of the eye opening it looks into: an eyeball is drawn
+    behind each (:func:`eyes_behind`) and the region is a card across the opening; gaze :
+    expression → (region, yaw, pitch), the degrees it turns that region's eyeball at full weight.
     Writes ``camera.json``, ``examples/`` (per region, its drivers at ``layers`` strengths from 0 to
     1, frame 0 neutral; then every expression that drives no region at full strength, the
     config's ``rest_frames``: the range of motion an actor would show) with ``examples.npz``,
@@ -317,44 +420,74 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     faces = mesh.faces
     corner_uv = mesh.uvs[mesh.face_uvs]
     names = list(drivers)
+    eyes, gaze = eyes or {}, gaze or {}
     disp = np.stack([np.mean([expressions[d] - rest for d in drivers[r]], axis=0) for r in names])
-    layout = region_layout(rest, faces, corner_uv, disp)
+    surface = [r for r, name in enumerate(names) if name not in eyes]
+    on_skin = iter(region_layout(rest, faces, corner_uv, disp[surface]))
+    # a card's template: the middle of its own square (the card fills it with the opening)
+    layout = [{"vertices": np.asarray(eyes[name]), "template": [0.2, 0.2, 0.8, 0.8], "card": True} if name in eyes
+              else next(on_skin) for name in names]
     skin = skin_texture(texture_size, seed)
-    fields = wrinkle_fields(texture_size, layout)
+    fields = np.zeros((len(names), texture_size, texture_size), dtype=np.float32)
+    fields[surface] = wrinkle_fields(texture_size, [layout[r] for r in surface])
+    eye_names = list(eyes)
+    eyeballs = eyes_behind(rest, [eyes[n] for n in eye_names])
     scene = make_scene(rest, size)
     (out / "camera.json").write_text(scene_json(scene))
 
     # examples: neutral, then each region's drivers at increasing strength, alone
     strengths = np.linspace(0.0, 1.0, layers)[1:]
-    ex_world, ex_act, frames = [rest], [np.zeros(len(names))], {}
+    expression_names = sorted(expressions)
+    column = {n: k for k, n in enumerate(expression_names)}
+    no_weights = np.zeros(len(expression_names))
+    ex_world, ex_act, ex_weights, frames = [rest], [np.zeros(len(names))], [no_weights], {}
     for r, name in enumerate(names):
         frames[name] = [0]
         for s in strengths:
-            ex_world.append(rest + s * disp[r] * len(drivers[name]) / len(drivers[name]))
+            ex_world.append(rest + s * disp[r])  # each driver at s / (its region's drivers)
             a = np.zeros(len(names))
             a[r] = s
             ex_act.append(a)
+            w = no_weights.copy()
+            w[[column[d] for d in drivers[name]]] = s / len(drivers[name])
+            ex_weights.append(w)
             frames[name].append(len(ex_world) - 1)
     driving = {d for ds in drivers.values() for d in ds}
     rest_frames = []
     for name in sorted(set(expressions) - driving):  # other expressions: every region at rest
         ex_world.append(expressions[name])
         ex_act.append(np.zeros(len(names)))
+        w = no_weights.copy()
+        w[column[name]] = 1.0
+        ex_weights.append(w)
         rest_frames.append(len(ex_world) - 1)
     ex_world = np.asarray(ex_world)
+
+    def gaze_table(expression_list):  # (K, E, 2): the degrees each expression turns each eyeball
+        table = np.zeros((len(expression_list), len(eye_names), 2))
+        for k, n in enumerate(expression_list):
+            if n in gaze:
+                region, yaw, pitch = gaze[n]
+                table[k, eye_names.index(region)] = (yaw, pitch)
+        return table
+
+    ex_eyes = eye_poses(eyeballs, np.asarray(ex_weights), gaze_table(expression_names)) if eyes else None
     write_appearance_footage(out / "examples", ex_world, np.asarray(ex_act), faces, corner_uv, skin, fields, scene,
-                             noise=noise, seed=seed + 1, progress=progress)
+                             noise=noise, seed=seed + 1, progress=progress, eyes=ex_eyes)
     _save_geometry(out / "examples.npz", ex_world, np.arange(len(ex_world)))
 
     truth = _activations(take_weights, take_names, drivers)
     pivot = np.array([0.5 * (rest[:, 0].min() + rest[:, 0].max()), rest[:, 1].min(), rest[:, 2].min()])
     turned_scene = Scene(scene.matrix, scene.distortion, scene.width, scene.height, scene.rotation, scene.translation,
                          np.array([0.6, -0.2, -0.8]) / np.linalg.norm([0.6, -0.2, -0.8]), (1.0, 0.9, 0.75), 0.3)
-    variants = {"take": (take_world, scene), "take_turned": (_head_turn(take_world, turn_degrees, pivot), turned_scene)}
-    for k, (world, sc) in enumerate(variants.values()):
+    turns = _head_turns(len(take_world), turn_degrees)
+    variants = {"take": (take_world, scene, None),
+                "take_turned": (_head_turn(take_world, turn_degrees, pivot), turned_scene, turns)}
+    for k, (world, sc, rotations) in enumerate(variants.values()):
         key = list(variants)[k]
+        take_eyes = eye_poses(eyeballs, take_weights, gaze_table(take_names), rotations, pivot) if eyes else None
         write_appearance_footage(out / key, world, truth, faces, corner_uv, skin, fields, sc, noise=noise,
-                                 seed=seed + 2 + k, progress=progress)
+                                 seed=seed + 2 + k, progress=progress, eyes=take_eyes)
         _save_geometry(out / f"{key}.npz", world, np.arange(len(world)))
         _write_truth(out / f"{key}_truth.csv", names, truth)
     for name, o in zip(names, layout):
@@ -385,5 +518,5 @@ def _config_text(mesh_path, markers_path, names, layout, frames, scene: Scene, t
     for name, o in zip(names, layout):
         lines += [f"[appearance.regions.{name}]", f'vertices = "regions/{name}.txt"',
                   f"template = [{', '.join(f'{x:.5f}' for x in o['template'])}]",
-                  f"frames = {frames[name]}", ""]
+                  f"frames = {frames[name]}"] + (["card = true"] if o.get("card") else []) + [""]
     return "\n".join(lines)

@@ -48,7 +48,7 @@ def classify_command(model_path, footage, geometry, output, fps, rep):
     from facepipe.pipeline.appearance import _read_geometry, classify_frames
 
     model = load_appearance(model_path)
-    positions, numbers = _read_geometry(geometry, int(model.faces.max()) + 1)
+    positions, numbers = _read_geometry(geometry, model.n_vertices)
     times = numbers / fps
     with rep.bar(len(numbers), desc="classify") as bar:
         result = classify_frames(model, footage, positions, numbers, times, progress=bar.update)

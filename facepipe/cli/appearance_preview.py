@@ -57,7 +57,7 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     if model.corner_uv is None:
         raise InputError("the appearance model has no UVs to render its texture with", path=model_path or info["model"],
                          hint="build it again with this facepipe version: facepipe appearance build CONFIG")
-    positions, geo_numbers = _read_geometry(info["geometry"], int(model.faces.max()) + 1)
+    positions, geo_numbers = _read_geometry(info["geometry"], model.n_vertices)
     index = _shown(numbers, q, frame_numbers, strip)
     row_of = {int(n): i for i, n in enumerate(geo_numbers)}
     images = {n: (image, problem) for n, image, problem in read_frames(open_footage(info["footage"]),
@@ -79,7 +79,7 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
         world = positions[row_of[n]]
         texture = np.ascontiguousarray(compose_texture(model.neutral, model.volumes, model.alphas, model.boxes, q[i]),
                                        dtype=np.float32)
-        rendered = render_frame(world, model.faces, corner_uv, texture, scene, background=1.0)
+        rendered = render_frame(model.with_cards(world), model.faces, corner_uv, texture, scene, background=1.0)
         image, problem = images.get(n, (None, "not read"))
         x0, x1, y0, y1 = _window(model, world)
         for c, (picture, title) in enumerate(((image, f"frame {n}: input"),

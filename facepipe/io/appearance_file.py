@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from facepipe.core.camera import Camera
+from facepipe.core.hole_cards import card_positions
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
@@ -43,6 +44,9 @@ class AppearanceModel:
     (to render the layered texture; None in models before it);
     rest_floor : (R,) the highest Q each region read at rest in the examples, which
     classification measures Q from (None: 0, models before it or built without it);
+    card_rest (N, 3), card_stable (K,), card_stable_rest (K, 3) : cards across holes
+    (:mod:`facepipe.core.hole_cards`): vertex V + i of ``faces`` is ``card_rest[i]`` moved by the
+    rigid motion of the rest mesh's vertices ``card_stable`` from ``card_stable_rest`` (None: no cards);
     neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
     boxes : (R, 2) top-left texel of each volume.
     """
@@ -76,9 +80,26 @@ class AppearanceModel:
     template_facing: np.ndarray | None = None
     template_mask: np.ndarray | None = None
     rest_floor: np.ndarray | None = None
+    card_rest: np.ndarray | None = None
+    card_stable: np.ndarray | None = None
+    card_stable_rest: np.ndarray | None = None
+
+    @property
+    def n_vertices(self) -> int:
+        """The rest mesh's vertex count (``faces`` also index the cards' vertices after them)."""
+        return int(self.faces.max()) + 1 - (0 if self.card_rest is None else len(self.card_rest))
+
+    def with_cards(self, world: np.ndarray) -> np.ndarray:
+        """Positions (..., V, 3) of the rest mesh's vertices with the cards' after them."""
+        world = np.asarray(world, dtype=np.float64)
+        if self.card_rest is None:
+            return world
+        return np.concatenate([world, card_positions(world, self.card_stable, self.card_stable_rest,
+                                                     self.card_rest)], axis=-2)
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
-        return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
+        """Camera-space positions of the rest mesh's vertices (..., V, 3) and the cards'."""
+        return self.with_cards(world) @ self.rotation.T + self.translation
 
     @property
     def layer_counts(self) -> list:
@@ -104,6 +125,8 @@ def save_appearance(path, model) -> None:
         arrays["template_mask"] = model.template_mask
     if model.rest_floor is not None:
         arrays["rest_floor"] = model.rest_floor
+    if model.card_rest is not None:
+        arrays.update(card_rest=model.card_rest, card_stable=model.card_stable, card_stable_rest=model.card_stable_rest)
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     for r in range(len(model.names)):
@@ -137,7 +160,8 @@ def load_appearance(path):
                                float(s[4]) if len(s) > 4 else 0.5, bool(s[5]) if len(s) > 5 else False,
                                float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"),
                                None if d.get("template_mask") is None else d["template_mask"].astype(bool),
-                               d.get("rest_floor"))
+                               d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
+                               d.get("card_stable_rest"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None

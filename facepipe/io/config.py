@@ -78,12 +78,15 @@ class TuneConfig:
 @dataclass
 class AppearanceRegion:
     """One ``[appearance.regions.NAME]`` table: the region's vertex group, its template's UV
-    rectangle [u0, v0, u1, v1] and its example frames from neutral to extreme."""
+    rectangle [u0, v0, u1, v1] and its example frames from neutral to extreme; with ``card``, the
+    region is a card across the hole whose rim the group holds, its template in the card's own
+    square (0 … 1)."""
 
     name: str
     vertices: Path
     template: list
     frames: list
+    card: bool = False  # the region is a card across the hole its vertex group rims (an eye opening)
 
 
 @dataclass
@@ -157,7 +160,8 @@ _TYPES: dict[str, dict[str, object]] = {
                    "regions": dict},
     "video": {"landmarks": str},
 }
-_REGION_TYPES = {"vertices": str, "template": list, "frames": list}
+_REGION_TYPES = {"vertices": str, "template": list, "frames": list, "card": bool}
+_REGION_OPTIONAL = {"card"}
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm",
@@ -295,20 +299,25 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         if not isinstance(values, dict):
             raise InputError(f"[{where}] is not a table", path=path, hint=f"write its keys under [{where}]")
         unknown = set(values) - set(_REGION_TYPES)
-        missing = set(_REGION_TYPES) - set(values)
+        missing = set(_REGION_TYPES) - _REGION_OPTIONAL - set(values)
         if unknown or missing:
             raise InputError(f"[{where}] unknown {sorted(unknown)} / missing {sorted(missing)} keys", path=path,
-                             hint="each region takes vertices, template = [u0, v0, u1, v1], frames = [...]")
-        v = {k: checked_value(values[k], t, path, where, k) for k, t in _REGION_TYPES.items()}
+                             hint="each region takes vertices, template = [u0, v0, u1, v1], frames = [...] "
+                                  "(and card = true for a hole)")
+        v = {k: checked_value(values[k], t, path, where, k) for k, t in _REGION_TYPES.items() if k in values}
         template = [checked_value(x, float, path, where, "template") for x in v["template"]]
         frames = [checked_value(x, int, path, where, "frames") for x in v["frames"]]
         if len(template) != 4 or not (template[0] < template[2] and template[1] < template[3]):
             raise InputError(f"[{where}] template = {template} is not [u0, v0, u1, v1] with u0 < u1, v0 < v1",
                              path=path)
+        card = v.get("card", False)
+        if card and not all(0.0 <= x <= 1.0 for x in template):
+            raise InputError(f"[{where}] template = {template}: a card's template is in the card's own square, "
+                             "0 … 1", path=path, hint="e.g. template = [0.2, 0.2, 0.8, 0.8], the card's middle")
         if len(frames) < 3:
             raise InputError(f"[{where}] frames = {frames}: a region needs at least three layers", path=path,
                              hint="give 3 or more example frames, neutral first (5 or 6 for smooth motion)")
-        regions.append(AppearanceRegion(name, base / v["vertices"], template, frames))
+        regions.append(AppearanceRegion(name, base / v["vertices"], template, frames, card))
     if not regions:
         raise InputError("[appearance] has no regions", path=path,
                          hint="add tables [appearance.regions.NAME] with vertices, template and frames")

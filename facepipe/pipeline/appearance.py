@@ -28,6 +28,7 @@ import numpy as np
 
 from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
+from facepipe.core.hole_cards import boundary_loops, hole_cards, stable_vertices
 from facepipe.core.occlusion import occluded_points
 from facepipe.core.raster import triangle_pixels
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
@@ -74,7 +75,7 @@ def locate_uv(points: np.ndarray, corner_uv: np.ndarray, candidates: int = 32) -
     with np.errstate(divide="ignore", invalid="ignore"):
         b1 = (d[..., 0] * e2[..., 1] - d[..., 1] * e2[..., 0]) / det
         b2 = (e1[..., 0] * d[..., 1] - e1[..., 1] * d[..., 0]) / det
-    b0 = 1 - b1 - b2
+        b0 = 1 - b1 - b2
     inside = (np.abs(det) > 1e-14) & (b0 >= -1e-9) & (b1 >= -1e-9) & (b2 >= -1e-9)
     first = np.argmax(inside, axis=1)
     found = inside[np.arange(len(points)), first]
@@ -259,6 +260,68 @@ def _check_size(image: np.ndarray, camera: Camera, number: int, source) -> None:
                          hint="use footage at the calibrated size, or a calibration for this size")
 
 
+#: Rings of triangles from a card's centre to its rim; and the smallest UV square a card may get (texels)
+CARD_RINGS = 4
+MIN_CARD_TEXELS = 16
+
+
+def free_uv_squares(corner_uv: np.ndarray, size: int, count: int, gap: int = 2) -> list:
+    """``count`` UV squares [u0, v0, u1, v1] where the layout (at ``size`` texels) has no triangle,
+    largest first, each ``gap`` texels from any triangle and the others; their sides in texels."""
+    import cv2  # OpenCV's distance transform: only where a model with cards is built
+
+    covered = texel_map(corner_uv, size)[0] >= 0
+    free = np.pad(~covered, 1).astype(np.uint8)  # the texture's border counts as used
+    squares = []
+    for _ in range(count):
+        # the chessboard distance to the nearest used texel: the half-side of the largest square there
+        half = cv2.distanceTransform(free, cv2.DIST_C, 3)[1:-1, 1:-1]
+        i, j = np.unravel_index(int(np.argmax(half)), half.shape)
+        h = int(half[i, j]) - gap
+        side = 2 * h - 1
+        squares.append(([(j - h + 1) / size, 1.0 - (i + h) / size, (j + h) / size, 1.0 - (i - h + 1) / size], side))
+        free[1 + max(i - h - gap, 0):1 + i + h + gap, 1 + max(j - h - gap, 0):1 + j + h + gap] = 0
+    return squares
+
+
+def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config_path):
+    """Cards (:func:`facepipe.core.hole_cards.hole_cards`) across the holes that the ``card``
+    regions' vertex groups rim, each in a free square of the UV layout, carried by the vertices
+    that move least over the geometry's frames ``positions`` (T, V, 3); and region name → card.
+    (None, {}) where no region is a card."""
+    wanted = [r for r in cfg.regions if r.card]
+    if not wanted:
+        return None, {}
+    loops = boundary_loops(mesh.faces)
+    chosen, card_of = [], {}
+    for region in wanted:
+        in_group = np.zeros(mesh.n_vertices, dtype=bool)
+        in_group[_read_group(region, mesh.n_vertices, config_path)] = True
+        share = [float(in_group[loop].mean()) for loop in loops]
+        best = int(np.argmax(share)) if share else -1
+        if best < 0 or share[best] < 0.5:
+            raise InputError(f"region {region.name}: card = true, but its vertex group holds at most "
+                             f"{max(share, default=0):.0%} of any hole's rim (the mesh has {len(loops)} holes or "
+                             f"open borders)", path=region.vertices,
+                             hint="list the vertices around the hole the card spans (an eye's lid rims), or "
+                                  "leave card out for a region on the surface")
+        for other, c in card_of.items():
+            if chosen[c] == best:
+                raise InputError(f"regions {other} and {region.name} are cards across the same hole",
+                                 path=config_path, hint="one card region per hole")
+        card_of[region.name] = len(chosen)
+        chosen.append(best)
+    squares = free_uv_squares(corner_uv, cfg.texture_size, len(chosen))
+    for (square, side), region in zip(squares, wanted):
+        if side < MIN_CARD_TEXELS:
+            raise InputError(f"region {region.name}: the UV layout has room for a card of {max(side, 0)} texels at "
+                             f"texture_size = {cfg.texture_size}, under {MIN_CARD_TEXELS}", path=config_path,
+                             hint="raise texture_size, or leave free space in the UV layout for the cards")
+    cards = hole_cards(mesh.vertices, [loops[b] for b in chosen], np.array([sq for sq, _ in squares]),
+                       stable_vertices(mesh.vertices, positions), CARD_RINGS)
+    return cards, card_of
+
+
 def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[AppearanceModel, dict]:
     """Build the appearance model from a config's ``[appearance]`` table (see the module docstring)."""
     cfg = config.appearance
@@ -269,6 +332,11 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     R = np.asarray(cfg.camera_rotation, dtype=np.float64)
     t = np.asarray(cfg.camera_translation, dtype=np.float64)
     positions, numbers = _read_geometry(cfg.geometry, mesh.n_vertices)
+    cards, card_of = region_cards(cfg, mesh, corner_uv, positions, config.path)
+    if cards is not None:  # the cards' triangles after the mesh's, their vertices after its vertices
+        faces = np.concatenate([faces, cards.faces])
+        corner_uv = np.concatenate([corner_uv, cards.corner_uv])
+        positions = cards.extend(positions)
     needed = {cfg.neutral_frame} | {f for r in cfg.regions for f in r.frames} | set(cfg.rest_frames)
     frames = _example_frames(cfg, needed, positions, numbers, camera)
     cam_pos = {n: positions_world @ R.T + t for n, (_, positions_world) in frames.items()}
@@ -288,9 +356,22 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
     facing_examples, masks = [], []
     for region in cfg.regions:
-        vol, alpha, box = _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral,
-                                         cfg, normal_sign)
-        face, bary = _region_template(region, corner_uv, cfg.template_size, config.path)
+        if region.name in card_of:
+            triangles = np.zeros(len(faces), dtype=bool)
+            triangles[len(mesh.faces):] = cards.card == card_of[region.name]
+            square = cards.squares[card_of[region.name]]
+            u0, v0, u1, v1 = region.template  # in the card's own square
+            rect = [square[0] + u0 * (square[2] - square[0]), square[1] + v0 * (square[3] - square[1]),
+                    square[0] + u1 * (square[2] - square[0]), square[1] + v1 * (square[3] - square[1])]
+        else:
+            in_group = np.zeros(mesh.n_vertices, dtype=bool)
+            in_group[_read_group(region, mesh.n_vertices, config.path)] = True
+            triangles = np.zeros(len(faces), dtype=bool)
+            triangles[:len(mesh.faces)] = in_group[mesh.faces].all(axis=1)
+            rect = region.template
+        vol, alpha, box = _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face, texel_bary,
+                                         camera, neutral, cfg, normal_sign)
+        face, bary = _region_template(region, rect, corner_uv, cfg.template_size, config.path)
         gray = [to_gray(frames[f][0]) for f in region.frames]
         patches = []
         facing_examples.append(np.min([point_facing(cam_pos[f], faces, face, bary, normal_sign)
@@ -335,9 +416,18 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             neutral.astype(np.float32), volumes, alphas, np.asarray(boxes, dtype=np.int64),
                             cfg.shading, *((light["face"], light["bary"], light["albedo"]) if light else (None,) * 3),
                             corner_uv.astype(np.float32), cfg.min_seen, cfg.occlusion, cfg.min_point_facing,
-                            np.stack(facing_examples).astype(np.float32), np.stack(masks))
+                            np.stack(facing_examples).astype(np.float32), np.stack(masks),
+                            card_rest=None if cards is None else cards.rest,
+                            card_stable=None if cards is None else cards.stable,
+                            card_stable_rest=None if cards is None else cards.stable_rest)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
-    return model, {"regions": names, "layers": model.layer_counts, "texture_size": S, "rest": rest, "notes": notes}
+    info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "rest": rest, "notes": notes}
+    if cards is not None:
+        info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
+                                "rim_vertices": int((cards.card == c).sum()) // (2 * CARD_RINGS - 1),
+                                "carried_by_vertices": int(len(cards.stable))}
+                         for name, c in card_of.items()}
+    return model, info
 
 
 #: A rest floor is kept to at most this many layers; above half a layer the build says so.
@@ -470,13 +560,11 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
     return {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": albedo[keep]}
 
 
-def _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg, normal_sign):
-    """A region's texture volume (n, h, w, 3) over its UV box, its alpha (h, w) and the box's corner."""
-    group = _read_group(region, mesh.n_vertices, config.path)
-    in_group = np.zeros(mesh.n_vertices, dtype=bool)
-    in_group[group] = True
-    tri_in = in_group[mesh.faces].all(axis=1)
-    mask = (texel_face >= 0) & tri_in[np.maximum(texel_face, 0)]
+def _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg,
+                   normal_sign):
+    """A region's texture volume (n, h, w, 3) over its UV box, its alpha (h, w) and the box's
+    corner: the texels of its ``triangles`` (F,) (a mask over ``faces``)."""
+    mask = (texel_face >= 0) & triangles[np.maximum(texel_face, 0)]
     if not mask.any():
         raise InputError(f"region {region.name}: its vertex group covers no texel of the UV layout", path=config.path,
                          hint="the group needs whole triangles with UVs (or a larger texture_size)")
@@ -484,7 +572,7 @@ def _region_volume(region, config, mesh, frames, cam_pos, texel_face, texel_bary
     rows, cols = slice(r_idx.min(), r_idx.max() + 1), slice(c_idx.min(), c_idx.max() + 1)
     layers = []
     for f in region.frames:
-        colours, seen = unwrap(frames[f][0], cam_pos[f], mesh.faces, texel_face, texel_bary, camera, rows, cols,
+        colours, seen = unwrap(frames[f][0], cam_pos[f], faces, texel_face, texel_bary, camera, rows, cols,
                                cfg.min_facing, normal_sign)
         layers.append(np.where(seen[..., None], colours, neutral[rows, cols]))
     alpha = ap.region_alpha(mask[rows, cols], cfg.ramp)
@@ -509,8 +597,8 @@ def _read_group(region, n_vertices: int, config_path) -> np.ndarray:
     return np.asarray(values, dtype=np.int64)
 
 
-def _region_template(region, corner_uv, size: int, config_path) -> tuple[np.ndarray, np.ndarray]:
-    pts = template_points(region.template, size)
+def _region_template(region, rect, corner_uv, size: int, config_path) -> tuple[np.ndarray, np.ndarray]:
+    pts = template_points(rect, size)
     face, bary = locate_uv(pts.reshape(-1, 2), corner_uv)
     if (face < 0).any():
         k = int(np.argmax(face < 0))

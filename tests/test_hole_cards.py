@@ -1,0 +1,168 @@
+"""Cards across holes: the rim loops, the card's winding, positions and UVs; and an appearance
+region on a card, end to end on rendered footage of an eyeball turning behind a hole."""
+
+import numpy as np
+import pytest
+from scipy.stats import spearmanr
+
+from facepipe.core.hole_cards import boundary_loops, hole_cards, stable_vertices
+
+
+def _grid_with_hole(n: int = 12, hole: float = 0.25):
+    """A unit square grid (z = a gentle bulge) in triangles, with the triangles inside a centred
+    ellipse removed; planar UVs in [0.05, 0.95]."""
+    xs = np.linspace(0.0, 1.0, n + 1)
+    X, Y = np.meshgrid(xs, xs)
+    P = np.stack([X.ravel(), Y.ravel(), 0.1 * np.exp(-8 * ((X - 0.5) ** 2 + (Y - 0.5) ** 2)).ravel()], axis=1)
+    idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    centre = P[faces].mean(axis=1)
+    keep = ((centre[:, 0] - 0.5) / 1.4) ** 2 + (centre[:, 1] - 0.5) ** 2 > hole ** 2
+    uv = 0.05 + 0.9 * P[:, :2]
+    return P, faces[keep], uv
+
+
+def _half_edges(faces):
+    return set(map(tuple, np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).tolist()))
+
+
+def test_boundary_loops_and_a_card_across_the_hole():
+    P, faces, _ = _grid_with_hole()
+    loops = boundary_loops(faces)
+    assert len(loops) == 2 and len(loops[0]) == 48  # the border, then the hole
+    hole = loops[1]
+    edges = _half_edges(faces)
+    assert all((int(hole[i]), int(hole[(i + 1) % len(hole)])) in edges for i in range(len(hole)))
+    stable = stable_vertices(P, P[None])
+    cards = hole_cards(P, [hole], np.array([[0.4, 0.4, 0.6, 0.6]]), stable, rings=3, depth=0.1)
+    X = cards.extend(P)
+    L = len(hole)
+    assert X.shape == (len(P) + 1 + 3 * L, 3)
+    assert np.allclose(X[:len(P)], P)
+    # its outer ring is the rim set back along the card's normal; its centre the rim's mean, set back
+    width = np.ptp(P[hole][:, 0])  # the hole is widest along x: 0.1 × its width along its widest axis
+    span = np.linalg.norm(P[hole][:, None] - P[hole][None], axis=-1).max()
+    back = X[len(P) + 1 + 2 * L:] - P[hole]
+    assert np.allclose(back, back[0]) and 0.1 * width <= np.linalg.norm(back[0]) <= 0.1 * span
+    assert abs(back[0][2]) > 0.99 * np.linalg.norm(back[0])  # along the card's normal, into the hole
+    assert np.allclose(X[len(P)], P[hole].mean(axis=0) + back[0])
+    # the card winds as the mesh around the rim: its outer edges run against the rim's boundary edges
+    copy = {len(P) + 1 + 2 * L + i: int(v) for i, v in enumerate(hole)}
+    outer = [(copy[a], copy[b]) for a, b in np.concatenate([cards.faces[:, [0, 1]], cards.faces[:, [1, 2]],
+                                                             cards.faces[:, [2, 0]]]).tolist()
+             if a in copy and b in copy]
+    assert len(outer) == L and all((b, a) in edges for a, b in outer)
+    assert [len(loop) for loop in boundary_loops(cards.faces)] == [L]
+    # the normals of the card face the mesh's side; its UVs fill its square, wound the same way
+    tri = X[cards.faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    mesh_n = np.cross(P[faces][:, 1] - P[faces][:, 0], P[faces][:, 2] - P[faces][:, 0]).sum(axis=0)
+    assert (n @ mesh_n > 0).all()
+    uv = cards.corner_uv
+    area = (uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1]) - (uv[:, 1, 1] - uv[:, 0, 1]) * (uv[:, 2, 0]
+                                                                                                       - uv[:, 0, 0])
+    assert (area >= 0).all() and area.sum() > 0.9 * 0.2 * 0.2 * 0.96 ** 2  # most of the square
+    assert uv.min() >= 0.4 and uv.max() <= 0.6
+
+
+def test_cards_move_with_the_head_not_with_the_lids():
+    P, faces, _ = _grid_with_hole()
+    hole = boundary_loops(faces)[1]
+    rng = np.random.default_rng(0)
+    # "expressions": the vertices near the hole move, the rest do not
+    near = np.linalg.norm(P[:, :2] - 0.5, axis=1) < 0.4
+    frames = np.stack([P + near[:, None] * rng.normal(scale=0.03, size=P.shape) for _ in range(4)])
+    stable = stable_vertices(P, frames, share=0.3)
+    assert not near[stable].any()
+    cards = hole_cards(P, [hole], np.array([[0.0, 0.0, 0.2, 0.2]]), stable)
+    rest_card = cards.extend(P)[len(P):]
+    assert np.allclose(cards.extend(frames)[:, len(P):], rest_card)  # lids moving: the card stays
+    angle = 0.3
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    turned = frames[0] @ R.T + [1.0, 2.0, 3.0]
+    assert np.allclose(cards.extend(turned)[len(P):], rest_card @ R.T + [1.0, 2.0, 3.0])  # the head turning
+    with pytest.raises(ValueError):
+        cards.extend(P[:-1])
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160):
+    """Footage of a grid with a hole, an eyeball behind it turning by the given yaws (degrees):
+    the examples (neutral first) and a take, with their geometry and an appearance config with
+    one card region."""
+    from facepipe.appearance_sample import (_save_geometry, eye_poses, eyes_behind, make_scene, scene_json,
+                                            skin_texture, write_appearance_footage)
+    from facepipe.io.mesh_write import save_obj
+    from facepipe.core.mesh import Mesh
+
+    P, faces, uv = _grid_with_hole(24)
+    P = P * 6.0  # a 6-unit patch, the hole about 2 × 3 units
+    hole = boundary_loops(faces)[1]
+    mesh = Mesh(P, np.arange(len(faces) + 1) * 3, faces.ravel(), uv, faces.ravel())
+    save_obj(tmp_path / "patch.obj", mesh)
+    (tmp_path / "rim.txt").write_text("".join(f"{v}\n" for v in hole))
+    (tmp_path / "markers.csv").write_text("name,vertex\nA,0\nB,1\nC,2\n")
+    scene = make_scene(P, size)
+    (tmp_path / "camera.json").write_text(scene_json(scene))
+    corner_uv = uv[faces]
+    skin = skin_texture(256)
+    eyes = eyes_behind(P, [hole])
+    no_fields = np.zeros((1, 256, 256), dtype=np.float32)
+    for name, yaws in (("examples", yaws_examples), ("take", yaws_take)):
+        yaws = np.asarray(yaws, dtype=np.float64)
+        world = np.repeat(P[None], len(yaws), axis=0)
+        gaze = np.zeros((1, 1, 2))
+        gaze[0, 0] = (1.0, 0.0)
+        poses = eye_poses(eyes, yaws[:, None], gaze)
+        write_appearance_footage(tmp_path / name, world, np.zeros((len(yaws), 1)), faces, corner_uv, skin, no_fields,
+                                 scene, eyes=poses, seed=3 if name == "take" else 1)
+        _save_geometry(tmp_path / f"{name}.npz", world, np.arange(len(yaws)))
+    frames = list(range(len(yaws_examples)))
+    (tmp_path / "appearance.toml").write_text("\n".join([
+        "[rig]", 'mesh = "patch.obj"', 'markers = "markers.csv"', "", "[appearance]", 'camera = "camera.json"',
+        f"camera_rotation = {scene.rotation.tolist()}", f"camera_translation = {scene.translation.tolist()}",
+        'footage = "examples/frame_%04d.png"', 'geometry = "examples.npz"', "neutral_frame = 0",
+        "texture_size = 256", "", "[appearance.regions.eyeball]", 'vertices = "rim.txt"',
+        "template = [0.2, 0.2, 0.8, 0.8]", f"frames = {frames}", "card = true", ""]))
+    return tmp_path
+
+
+@pytest.mark.slow
+def test_an_eyeball_region_on_a_card_follows_the_gaze(tmp_path, capsys):
+    from facepipe.cli.commands import main
+    from facepipe.io.appearance_file import load_appearance
+
+    def run(*args):
+        with pytest.raises(SystemExit) as exc:
+            main([str(a) for a in args])
+        return exc.value.code
+
+    rng = np.random.default_rng(5)
+    take = np.concatenate([[0.0, 24.0], rng.uniform(0.0, 24.0, 22)])
+    kit = _eye_kit(tmp_path, [0.0, 6.0, 12.0, 18.0, 24.0], take)
+    assert run("appearance", "build", kit / "appearance.toml", "-o", kit / "app.npz", "-q") == 0
+    model = load_appearance(kit / "app.npz")
+    assert model.card_rest is not None and model.n_vertices == 25 * 25
+    assert run("appearance", "classify", kit / "app.npz", kit / "take" / "frame_%04d.png", "--geometry",
+               kit / "take.npz", "-o", kit / "cls", "-q") == 0
+    q = np.loadtxt(kit / "cls" / "appearance.csv", delimiter=",", skiprows=1)[:, 2]
+    assert spearmanr(q, take).statistic > 0.95
+    assert np.abs(q - take / 6.0).max() < 0.75  # the layer index, continuous between the examples' yaws
+    # the layered texture's card square carries the eye; the preview renders the card
+    assert run("export", kit / "cls", "--format", "textures", "-o", kit / "tex", "-q") == 0
+    assert run("preview", kit / "cls", "-o", kit / "preview.png", "-q") == 0
+    capsys.readouterr()
+
+
+def test_a_card_region_must_rim_a_hole(tmp_path, capsys):
+    from facepipe.cli.commands import main
+
+    kit = _eye_kit(tmp_path, [0.0, 10.0, 20.0], [5.0], size=96)
+    (kit / "rim.txt").write_text("0\n1\n2\n")  # corner vertices of the border: no hole's rim
+    with pytest.raises(SystemExit) as exc:
+        main(["appearance", "build", str(kit / "appearance.toml"), "-o", str(kit / "app.npz"), "-q"])
+    assert exc.value.code == 2
+    assert "rim" in capsys.readouterr().err
