@@ -87,6 +87,10 @@ def _edited_config(kit, tmp_path, old, new):
     ("texture_size = 512", "texture_size = 512.0", "expected an integer"),
     ("rest_frames = [", "rest_frames = [1.5, ", "expected an integer"),
     ("rest_frames = [", "rest_frames = [999, ", "example frame 999"),
+    # a card across a hole: the sample face has none its groups rim; a card's template is in its square
+    ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 4]\ncard = true", "rim"),
+    ("template = [", "card = true\ntemplate = [0.5, 0.5, 1.5, 1.5] #", "card's own square"),
+    ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 4]\ncard = 1", "expected"),
 ])
 def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)

@@ -35,6 +35,10 @@ def build_command(config_path, output, rep, write_json) -> dict:
     write_json(report, info)
     rep.say(f"{len(info['regions'])} regions ({', '.join(f'{n} {k}' for n, k in zip(info['regions'], info['layers']))}"
             f" layers), texture {info['texture_size']}²; wrote {output} and {report}")
+    for name, card in info.get("cards", {}).items():
+        u0, v0, u1, v1 = card["uv_square"]
+        rep.say(f"card {name}: across a hole of {card['rim_vertices']} rim vertices, textured in UV "
+                f"[{u0:.4f}, {v0:.4f}, {u1:.4f}, {v1:.4f}], carried by {card['carried_by_vertices']} vertices")
     if info.get("rest"):
         rep.say("rest floors (Q read at rest in the examples, measured from): "
                 + ", ".join(f"{n} {v['floor']:.2f}" for n, v in info["rest"].items()))
