@@ -26,10 +26,11 @@ import imageio.v3 as iio
 import numpy as np
 
 from facepipe.core.render import rasterize
+from facepipe.core.rigid import rigid_fit
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.io.atomic import atomic_path
 
-__all__ = ["Scene", "Eye", "eyes_behind", "eye_poses", "iris_colour", "make_scene", "uv_scales", "region_layout",
+__all__ = ["Scene", "Eye", "eyes_behind", "eye_poses", "head_motion", "iris_colour", "make_scene", "uv_scales", "region_layout",
            "skin_texture", "wrinkle_fields", "render_frame",
            "write_appearance_footage"]
 
@@ -379,18 +380,29 @@ def _head_turn(world: np.ndarray, degrees: float, pivot: np.ndarray) -> np.ndarr
     return np.einsum("fij,fvj->fvi", _head_turns(len(world), degrees), world - pivot) + pivot
 
 
+def head_motion(rest: np.ndarray, expressions: dict, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The head's rigid motion (T, 3, 3), (T, 3) in frames (T, V, 3): world = R @ head + t, fitted
+    to the vertices no expression moves (the back of the head; the tenth that move least where
+    every vertex moves)."""
+    moved = np.max([np.linalg.norm(e - rest, axis=1) for e in expressions.values()], axis=0)
+    still = np.flatnonzero(moved <= 1e-9 * np.ptp(rest))
+    if len(still) < 3:
+        still = np.argsort(moved)[:max(3, len(rest) // 10)]
+    return rigid_fit(rest[still], np.asarray(world, dtype=np.float64)[:, still])
+
+
 def eye_poses(eyes: list, weights: np.ndarray, gaze: np.ndarray, rotations: np.ndarray | None = None,
-              pivot: np.ndarray | None = None) -> list:
+              translations: np.ndarray | None = None) -> list:
     """Per frame the eyeballs to draw (world centre, axes, radius): each eye turned by the frame's
     gaze — yaw and pitch (degrees) ``weights`` (T, K) @ ``gaze`` (K, E, 2), expression k turning
-    eye e by gaze[k, e] at full weight — and the head's rotation about ``pivot`` (T, 3, 3; none:
-    the head at rest)."""
+    eye e by gaze[k, e] at full weight — and carried by the head's motion (T, 3, 3), (T, 3)
+    (world = R @ head + t; none: the head at rest)."""
     angles = np.deg2rad(np.einsum("tk,kec->tec", weights, gaze))
     out = []
     for f in range(len(weights)):
         R = np.eye(3) if rotations is None else rotations[f]
-        p = np.zeros(3) if pivot is None else pivot
-        out.append([(R @ (eye.centre - p) + p, R @ eye.axes @ _yaw_pitch(*angles[f, e]), eye.radius)
+        t = np.zeros(3) if translations is None else translations[f]
+        out.append([(R @ eye.centre + t, R @ eye.axes @ _yaw_pitch(*angles[f, e]), eye.radius)
                     for e, eye in enumerate(eyes)])
     return out
 
@@ -480,12 +492,12 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     pivot = np.array([0.5 * (rest[:, 0].min() + rest[:, 0].max()), rest[:, 1].min(), rest[:, 2].min()])
     turned_scene = Scene(scene.matrix, scene.distortion, scene.width, scene.height, scene.rotation, scene.translation,
                          np.array([0.6, -0.2, -0.8]) / np.linalg.norm([0.6, -0.2, -0.8]), (1.0, 0.9, 0.75), 0.3)
-    turns = _head_turns(len(take_world), turn_degrees)
-    variants = {"take": (take_world, scene, None),
-                "take_turned": (_head_turn(take_world, turn_degrees, pivot), turned_scene, turns)}
-    for k, (world, sc, rotations) in enumerate(variants.values()):
+    variants = {"take": (take_world, scene), "take_turned": (_head_turn(take_world, turn_degrees, pivot), turned_scene)}
+    for k, (world, sc) in enumerate(variants.values()):
         key = list(variants)[k]
-        take_eyes = eye_poses(eyeballs, take_weights, gaze_table(take_names), rotations, pivot) if eyes else None
+        # the eyeballs move with the head: the take's own head motion, and the turn
+        take_eyes = eye_poses(eyeballs, take_weights, gaze_table(take_names),
+                              *head_motion(rest, expressions, world)) if eyes else None
         write_appearance_footage(out / key, world, truth, faces, corner_uv, skin, fields, sc, noise=noise,
                                  seed=seed + 2 + k, progress=progress, eyes=take_eyes)
         _save_geometry(out / f"{key}.npz", world, np.arange(len(world)))

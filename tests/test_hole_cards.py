@@ -166,3 +166,24 @@ def test_a_card_region_must_rim_a_hole(tmp_path, capsys):
         main(["appearance", "build", str(kit / "appearance.toml"), "-o", str(kit / "app.npz"), "-q"])
     assert exc.value.code == 2
     assert "rim" in capsys.readouterr().err
+
+
+def test_rendered_eyeballs_move_with_the_head_and_turn_with_the_gaze():
+    from facepipe.appearance_sample import eye_poses, eyes_behind, head_motion
+
+    P, faces, _ = _grid_with_hole()
+    hole = boundary_loops(faces)[1]
+    near = np.linalg.norm(P[:, :2] - 0.5, axis=1) < 0.4
+    expression = P + near[:, None] * 0.05  # moves only the vertices near the hole
+    angle = 0.4
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    world = np.stack([P, expression @ R.T + [0.5, -1.0, 2.0]])
+    Rs, ts = head_motion(P, {"e": expression}, world)
+    assert np.allclose(Rs[0], np.eye(3)) and np.allclose(Rs[1], R) and np.allclose(ts[1], [0.5, -1.0, 2.0])
+    (eye,) = eyes_behind(P, [hole])
+    assert eye.centre[2] < P[hole][:, 2].mean()  # behind the opening
+    gaze = np.array([[[30.0, 0.0]]])  # expression 0 turns eye 0 by 30° of yaw
+    poses = eye_poses([eye], np.array([[0.0], [1.0]]), gaze, Rs, ts)
+    (c0, a0, r0), (c1, a1, r1) = poses[0][0], poses[1][0]
+    assert np.allclose(c0, eye.centre) and np.allclose(c1, R @ eye.centre + [0.5, -1.0, 2.0]) and r0 == r1
+    assert np.isclose(np.degrees(np.arccos((R @ a0[:, 2]) @ a1[:, 2])), 30.0)  # the gaze turned 30° in the head
