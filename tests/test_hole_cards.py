@@ -134,6 +134,7 @@ def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160):
 def test_an_eyeball_region_on_a_card_follows_the_gaze(tmp_path, capsys):
     from facepipe.cli.commands import main
     from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.mesh_read import load_mesh
 
     def run(*args):
         with pytest.raises(SystemExit) as exc:
@@ -152,6 +153,10 @@ def test_an_eyeball_region_on_a_card_follows_the_gaze(tmp_path, capsys):
     assert spearmanr(q, take).statistic > 0.95
     assert np.abs(q - take / 6.0).max() < 0.75  # the layer index, continuous between the examples' yaws
     # the layered texture's card square carries the eye; the preview renders the card
+    cards = load_mesh(kit / "app_cards.obj")  # the card at rest with its UVs, for the user's scene
+    assert np.allclose(cards.vertices, model.card_rest, atol=1e-6)
+    assert cards.n_polygons == (model.faces >= 25 * 25).all(axis=1).sum()
+    assert cards.uvs.min() >= 0 and cards.uvs.max() <= 1
     assert run("export", kit / "cls", "--format", "textures", "-o", kit / "tex", "-q") == 0
     assert run("preview", kit / "cls", "-o", kit / "preview.png", "-q") == 0
     capsys.readouterr()

@@ -31,6 +31,8 @@ def build_command(config_path, output, rep, write_json) -> dict:
     with rep.bar(len(config.appearance.regions), unit="region", desc="regions") as bar:
         model, info = build_appearance(config, mesh, camera, progress=bar.update)
     save_appearance(output, model)
+    if model.card_rest is not None:  # the cards at rest with their UVs, for the user's scene (parented to the head)
+        info["cards_obj"] = str(write_cards_obj(Path(output).with_name(Path(output).stem + "_cards.obj"), model))
     report = Path(output).with_suffix(".json")
     write_json(report, info)
     rep.say(f"{len(info['regions'])} regions ({', '.join(f'{n} {k}' for n, k in zip(info['regions'], info['layers']))}"
@@ -39,12 +41,30 @@ def build_command(config_path, output, rep, write_json) -> dict:
         u0, v0, u1, v1 = card["uv_square"]
         rep.say(f"card {name}: across a hole of {card['rim_vertices']} rim vertices, textured in UV "
                 f"[{u0:.4f}, {v0:.4f}, {u1:.4f}, {v1:.4f}], carried by {card['carried_by_vertices']} vertices")
+    if "cards_obj" in info:
+        rep.say(f"the cards at rest, with their UVs: {info['cards_obj']}")
     if info.get("rest"):
         rep.say("rest floors (Q read at rest in the examples, measured from): "
                 + ", ".join(f"{n} {v['floor']:.2f}" for n, v in info["rest"].items()))
     for note in info["notes"]:
         rep.say(f"note: {note}")
     return info
+
+
+def write_cards_obj(path: Path, model) -> Path:
+    """The model's cards at rest (their own vertices, triangles and UVs) as an OBJ, atomically:
+    the layered textures' card squares map onto it; it moves rigidly with the head."""
+    from facepipe.core.mesh import Mesh
+    from facepipe.io.mesh_write import save_obj
+
+    V = model.n_vertices
+    on_card = model.faces.min(axis=1) >= V  # the cards' triangles use only the cards' vertices
+    faces = model.faces[on_card] - V
+    corner_uv = np.asarray(model.corner_uv[on_card], dtype=np.float64).reshape(-1, 2)
+    mesh = Mesh(np.asarray(model.card_rest, dtype=np.float64), np.arange(len(faces) + 1, dtype=np.int64) * 3,
+                faces.ravel().astype(np.int64), corner_uv, np.arange(len(corner_uv), dtype=np.int64))
+    save_obj(path, mesh)
+    return path
 
 
 def classify_command(model_path, footage, geometry, output, fps, rep):
