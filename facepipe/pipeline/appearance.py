@@ -8,7 +8,11 @@ an alpha ramp into the neutral texture at its border. Its template is a template
 UV points in the template rectangle, located in the UV triangles once (fixed barycentric
 coordinates), also shifted diagonally by half a grid step for the offset samples; the
 templates are those points' samples in the example frames. Each region's rest floor is the
-highest Q it reads in the example frames where it is at rest (:func:`calibrate_rest`).
+highest Q it reads in the example frames where it is at rest (:func:`calibrate_rest`). A
+``card`` region (an eye) lies on a card across the hole its vertex group rims
+(:func:`region_cards`, :mod:`facepipe.core.hole_cards`): the cards' triangles follow the mesh's,
+their vertices its vertices, in a free square of the UV layout, and every frame's positions are
+extended with them (:meth:`AppearanceModel.with_cards`).
 
 **Classification** (``facepipe appearance classify``): per frame the template points are put on
 the animated surface through their barycentric coordinates, projected through the camera
