@@ -164,7 +164,8 @@ def stage_bytes(V: int, H: int, P: int, K: float, chunk: int, method: str) -> di
 
 def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repeats: int = 3, chunk: int = 32,
               n_markers: int | None = None, n_examples: int = 6, device: str | None = None,
-              numpy_frames: int = 8, baseline_frames: int = 8, bake_repeats: int = 3, log=print) -> dict:
+              numpy_frames: int = 8, baseline_frames: int = 8, bake_repeats: int = 3, use_kit: bool = True,
+              exr_resolution: int = 2048, log=print) -> dict:
     """Generate a sample rig, bake it, and time replay (OpenCL, NumPy) and the per-frame solve baseline.
 
     Parameters
@@ -177,6 +178,9 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
         is one long run that a busy moment of a shared machine can stretch.
     chunk : frames per OpenCL launch.
     numpy_frames, baseline_frames : frames for the slow paths (NumPy reference, per-frame solve).
+    use_kit : measure exports and the 2D lift on the ICT kit when ../shared is there (a real scan
+        and take); False: on the generated rig alone (a quick run).
+    exr_resolution : the displacement maps' size per UDIM tile in the export figures.
 
     Returns
     -------
@@ -297,12 +301,12 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
     from bench.export_speed import run_export_bench
 
     results["export"] = run_export_bench(work_dir / "export", mesh_path=rig_dir / "neutral.obj", repeats=repeats,
-                                         log=log)
+                                         resolution=exr_resolution, prefer_ict=use_kit, log=log)
     # ---- lifting a 2D landmark take (68 landmarks, 26 examples): on the ICT kit's video take when
     # ../shared is there, else on the sample rig filmed by a synthetic camera
     from bench.video_lift import lift_speed
 
-    results["video_lift"] = lift_speed(work_dir / "video", repeats=max(repeats, 3), log=log)
+    results["video_lift"] = lift_speed(work_dir / "video", repeats=max(repeats, 3), use_kit=use_kit, log=log)
     return results
 
 
@@ -483,13 +487,17 @@ def _json_value(o):
 @click.option("--examples", default=6, show_default=True, help="Example poses of the generated rig.")
 @click.option("--chunk", default=32, show_default=True, help="Frames per OpenCL launch.")
 @click.option("--device", default=None, help="OpenCL device (as replay --device).")
+@click.option("--kit/--no-kit", default=True, show_default=True,
+              help="Exports and the 2D lift on the ICT kit in ../shared when it is there; --no-kit: on the generated rig alone.")
+@click.option("--exr-resolution", default=2048, show_default=True, help="EXR displacement maps' size per UDIM tile.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
-def main(output, vertices, frames, repeats, bake_repeats, work, markers, examples, chunk, device, quiet):
+def main(output, vertices, frames, repeats, bake_repeats, work, markers, examples, chunk, device, kit, exr_resolution,
+         quiet):
     """Measure bake and replay speed on a generated rig; write the figures as JSON."""
     say = (lambda text: None) if quiet else click.echo
     results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, chunk=chunk,
                         n_markers=markers, n_examples=examples, device=device, bake_repeats=bake_repeats,
-                        log=say)
+                        use_kit=kit, exr_resolution=exr_resolution, log=say)
     with atomic_path(Path(output)) as tmp:
         tmp.write_text(json.dumps(results, indent=2, default=_json_value))
     say(f"wrote {output}")

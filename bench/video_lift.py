@@ -97,17 +97,18 @@ def main() -> None:
         Path(args.json).write_text(json.dumps(result, indent=2))
 
 
-def lift_speed(work_dir: Path, repeats: int = 3, log=print) -> dict:
+def lift_speed(work_dir: Path, repeats: int = 3, use_kit: bool = True, log=print) -> dict:
     """Frames per second of the default lift alone (reading, the rig set-up and the replay
     excluded; the median of ``repeats`` runs): on the ICT kit's video take (68 landmarks, 26
     examples) when ../shared is there, else on a take of the sample rig filmed by a made-up camera
-    (68 landmarks, 26 examples as well). For ``make bench`` (:mod:`bench.paper_scale`)."""
+    (68 landmarks, 26 examples as well), or with ``use_kit`` False. For ``make bench``
+    (:mod:`bench.paper_scale`)."""
     from bench.timing import median_time
     from facepipe.pipeline.video_lift import LiftOptions, lift_rig, lift_take
 
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
-    if (VIDEO / "video_openface.csv").is_file():
+    if use_kit and (VIDEO / "video_openface.csv").is_file():
         from bench.noisy_take import load_or_bake
         from facepipe.io.camera_file import read_camera
         from facepipe.io.landmark_map import read_landmark_map
