@@ -17,6 +17,7 @@ Used by ``facepipe sample --appearance`` (the synthetic rig) and ``bench/appeara
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +31,8 @@ from facepipe.core.rigid import rigid_fit
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.io.atomic import atomic_path
 
-__all__ = ["Scene", "Eye", "eyes_behind", "eye_poses", "head_motion", "iris_colour", "make_scene", "uv_scales", "region_layout",
+__all__ = ["Scene", "Eye", "eyes_behind", "eye_poses", "head_motion", "iris_colour", "make_scene", "neck_pivot",
+           "other_light", "uv_scales", "region_layout",
            "skin_texture", "wrinkle_fields", "render_frame",
            "write_appearance_footage"]
 
@@ -375,6 +377,17 @@ def _head_turns(frames: int, degrees: float) -> np.ndarray:
                                 np.deg2rad(degrees / 3) * np.sin(4 * np.pi * f / T)) for f in range(frames)])
 
 
+def neck_pivot(rest: np.ndarray) -> np.ndarray:
+    """The point the test footage turns the head about: bottom, back and middle of the rest mesh."""
+    return np.array([0.5 * (rest[:, 0].min() + rest[:, 0].max()), rest[:, 1].min(), rest[:, 2].min()])
+
+
+def other_light(scene: Scene) -> Scene:
+    """The scene lit as the turned take is: a warm light from the other side, more ambient."""
+    return dataclasses.replace(scene, light=np.array([0.6, -0.2, -0.8]) / np.linalg.norm([0.6, -0.2, -0.8]),
+                               light_rgb=(1.0, 0.9, 0.75), ambient=0.3)
+
+
 def _head_turn(world: np.ndarray, degrees: float, pivot: np.ndarray) -> np.ndarray:
     """World frames turned about ``pivot`` by :func:`_head_turns`."""
     return np.einsum("fij,fvj->fvi", _head_turns(len(world), degrees), world - pivot) + pivot
@@ -489,10 +502,8 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     _save_geometry(out / "examples.npz", ex_world, np.arange(len(ex_world)))
 
     truth = _activations(take_weights, take_names, drivers)
-    pivot = np.array([0.5 * (rest[:, 0].min() + rest[:, 0].max()), rest[:, 1].min(), rest[:, 2].min()])
-    turned_scene = Scene(scene.matrix, scene.distortion, scene.width, scene.height, scene.rotation, scene.translation,
-                         np.array([0.6, -0.2, -0.8]) / np.linalg.norm([0.6, -0.2, -0.8]), (1.0, 0.9, 0.75), 0.3)
-    variants = {"take": (take_world, scene), "take_turned": (_head_turn(take_world, turn_degrees, pivot), turned_scene)}
+    variants = {"take": (take_world, scene),
+                "take_turned": (_head_turn(take_world, turn_degrees, neck_pivot(rest)), other_light(scene))}
     for k, (world, sc) in enumerate(variants.values()):
         key = list(variants)[k]
         # the eyeballs move with the head: the take's own head motion, and the turn
