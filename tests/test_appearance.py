@@ -366,3 +366,29 @@ def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
     # a model saved without floors (as before them) loads with none
     save_appearance(tmp_path / "old.npz", raw)
     assert load_appearance(tmp_path / "old.npz").rest_floor is None
+
+
+def test_frames_classified_on_threads_equal_one_chunk_after_another(kit):
+    """classify_decoded shares the chunks among facepipe's threads: the same Q and visibility,
+    bit for bit, as classify_chunk over each chunk in turn (frames whose masks differ, so the
+    templates' mask cache is filled and read from both threads)."""
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.footage import to_gray
+    from facepipe.parallel import set_thread_count
+    from facepipe.pipeline.appearance import _read_geometry, classify_chunk, classify_decoded, region_bank
+
+    model = load_appearance(kit / "app.npz")
+    positions, numbers = _read_geometry(kit / "appearance" / "take_turned.npz", model.n_vertices)
+    footage = open_footage(kit / "appearance" / "take_turned" / "frame_%04d.png")
+    grays = np.stack([to_gray(image) for _, image, _ in read_frames(footage, numbers)])
+    cams = model.to_camera(positions)
+    one = [classify_chunk(grays[i:i + 4], cams[i:i + 4], model, region_bank(model)) for i in range(0, len(grays), 4)]
+    try:
+        set_thread_count(3)
+        q, visible = classify_decoded(grays, cams, model, region_bank(model), chunk=4)
+    finally:
+        set_thread_count(None)
+    np.testing.assert_array_equal(q, np.concatenate([c[0] for c in one]))
+    np.testing.assert_array_equal(visible, np.concatenate([c[1] for c in one]))
+    empty_q, empty_visible = classify_decoded(grays[:0], cams[:0], model)
+    assert empty_q.shape == (0, len(model.names)) and empty_visible.shape == (0, len(model.names))

@@ -343,10 +343,16 @@ class RegionBank:
         kept (up to ``MASK_CACHE`` of them)."""
         keys = [(int(r), bool(shading), k.tobytes()) for r, k in zip(region, masks)]
         cache = self._mask_cache
-        new = {}
+        # each key looked up once: another thread classifying other frames may clear the cache
+        kept, new = {}, {}
         for i, key in enumerate(keys):
-            if key not in cache and key not in new:
+            if key in kept or key in new:
+                continue
+            hit = cache.get(key)
+            if hit is None:
                 new[key] = i
+            else:
+                kept[key] = hit
         found = {}
         if new:
             first = np.fromiter(new.values(), dtype=np.int64, count=len(new))
@@ -356,7 +362,7 @@ class RegionBank:
             floor = np.maximum(0.1 * np.abs(mean), 1e-6)
             normalised = np.where(m, templates * self.plane_all[region[first]] / np.maximum(plane_seen, floor), 0.0)
             found = dict(zip(new, normalised))
-        out = np.stack([found[k] if k in found else cache[k] for k in keys])
+        out = np.stack([found[k] if k in found else kept[k] for k in keys])
         if len(cache) + len(found) > self.MASK_CACHE:
             cache.clear()
         cache.update(found)
