@@ -368,6 +368,21 @@ def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
     assert load_appearance(tmp_path / "old.npz").rest_floor is None
 
 
+def test_classify_reports_its_speed_and_the_streams_bit_rate(kit, tmp_path, capsys):
+    from facepipe.core.appearance import stream_bits
+    from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance
+
+    out = tmp_path / "cls"
+    assert _run("appearance", "classify", kit / "app.npz", kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", kit / "appearance" / "take.npz", "-o", out, "--fps", 24) == 0
+    said = capsys.readouterr().out
+    info = json.loads((out / "appearance.json").read_text())
+    bits = int(stream_bits(load_appearance(kit / "app.npz").layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    assert info["stream_bits_per_frame"] == bits and info["stream_kbit_s"] == pytest.approx(bits * 24 / 1000)
+    assert info["fps"] == 24 and info["seconds"] > 0
+    assert info["frames_per_second"] == pytest.approx(info["frames"] / info["seconds"])
+    assert "frames/s" in said and f"{bits * 24 / 1000:.2f} kbit/s at 24 Hz" in said
+
 def test_frames_classified_on_threads_equal_one_chunk_after_another(kit):
     """classify_decoded shares the chunks among facepipe's threads: the same Q and visibility,
     bit for bit, as classify_chunk over each chunk in turn (frames whose masks differ, so the

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -68,22 +69,30 @@ def write_cards_obj(path: Path, model) -> Path:
 
 
 def classify_command(model_path, footage, geometry, output, fps, rep):
-    from facepipe.io.appearance_file import load_appearance, write_stream
+    from facepipe.core.appearance import stream_bits
+    from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
     from facepipe.pipeline.appearance import _read_geometry, classify_frames
 
     model = load_appearance(model_path)
     positions, numbers = _read_geometry(geometry, model.n_vertices)
     times = numbers / fps
+    start = time.perf_counter()
     with rep.bar(len(numbers), desc="classify") as bar:
         result = classify_frames(model, footage, positions, numbers, times, progress=bar.update)
+    seconds = time.perf_counter() - start
+    bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    figures = {"seconds": seconds, "frames_per_second": len(numbers) / max(seconds, 1e-9), "fps": fps,
+               "stream_bits_per_frame": bits, "stream_kbit_s": bits * fps / 1000.0}
     for n, problem in result.problems:
         rep.say(f"frame {n}: {problem}; skipped (held, decaying to neutral)")
     never = [name for r, name in enumerate(model.names) if not result.visible[:, r].any()]
     if never:
         rep.say(f"note: never visible, kept neutral: {', '.join(never)}")
     path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
-                        geometry=geometry)
-    rep.say(f"{len(numbers)} frames, {len(model.names)} regions; wrote {path}")
+                        geometry=geometry, figures=figures)
+    rep.say(f"{len(numbers)} frames, {len(model.names)} regions in {seconds:.1f} s "
+            f"({figures['frames_per_second']:.0f} frames/s, reading included); Q stream {bits} bits a frame = "
+            f"{figures['stream_kbit_s']:.2f} kbit/s at {fps:g} Hz; wrote {path}")
     return result
 
 

@@ -167,9 +167,11 @@ def load_appearance(path):
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
 
 
-def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None) -> Path:
+def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None,
+                 figures: dict | None = None) -> Path:
     """``appearance.csv`` (frame, time, Q per region) and ``appearance.json`` (the model, the
-    footage and geometry classified, missing frames)."""
+    footage and geometry classified, missing frames, and ``figures``: the run's speed and the
+    stream's bit rate)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     c = classification
@@ -181,7 +183,7 @@ def write_stream(folder, model_path, classification, layer_counts, footage=None,
             "footage": str(footage) if footage is not None else None,
             "geometry": str(Path(geometry).resolve()) if geometry is not None else None, "layers": list(map(int, layer_counts)),
             "frames": len(c.numbers), "hidden_fraction": float(1 - c.visible.mean()),
-            "skipped_frames": [{"frame": int(n), "problem": p} for n, p in c.problems]}
+            "skipped_frames": [{"frame": int(n), "problem": p} for n, p in c.problems], **(figures or {})}
     with atomic_path(folder / "appearance.json") as tmp:
         Path(tmp).write_text(json.dumps(info, indent=1))
     return csv
