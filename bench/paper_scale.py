@@ -489,7 +489,8 @@ def _json_value(o):
 @click.option("--device", default=None, help="OpenCL device (as replay --device).")
 @click.option("--kit/--no-kit", default=True, show_default=True,
               help="Exports and the 2D lift on the ICT kit in ../shared when it is there; --no-kit: on the generated rig alone.")
-@click.option("--exr-resolution", default=2048, show_default=True, help="EXR displacement maps' size per UDIM tile.")
+@click.option("--exr-resolution", default=2048, show_default=True, type=click.IntRange(min=16),
+              help="EXR displacement maps' size per UDIM tile.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def main(output, vertices, frames, repeats, bake_repeats, work, markers, examples, chunk, device, kit, exr_resolution,
          quiet):

@@ -39,6 +39,7 @@ def test_boundary_loops_and_a_card_across_the_hole():
     X = cards.extend(P)
     L = len(hole)
     assert X.shape == (len(P) + 1 + 3 * L, 3)
+    assert cards.rim_sizes.tolist() == [L]
     assert np.allclose(X[:len(P)], P)
     # its outer ring is the rim set back along the card's normal; its centre the rim's mean, set back
     width = np.ptp(P[hole][:, 0])  # the hole is widest along x: 0.1 × its width along its widest axis

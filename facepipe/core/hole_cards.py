@@ -64,7 +64,8 @@ class HoleCards:
     stable_rest (K, 3) : the mesh's vertices that carry the cards — the head's least moving
     ones, their rest positions — whose rigid motion each frame moves the cards; faces : (T, 3)
     the cards' triangles (indices V … V + N − 1); corner_uv : (T, 3, 2); card : (T,) which card
-    each triangle belongs to; squares : (C, 4) each card's UV square [u0, v0, u1, v1].
+    each triangle belongs to; squares : (C, 4) each card's UV square [u0, v0, u1, v1];
+    rim_sizes : (C,) the vertices of each card's rim.
     """
 
     n_vertices: int
@@ -75,6 +76,7 @@ class HoleCards:
     corner_uv: np.ndarray
     card: np.ndarray
     squares: np.ndarray
+    rim_sizes: np.ndarray
 
     def extend(self, positions: np.ndarray) -> np.ndarray:
         """Positions (..., V, 3) with the cards' vertices after the mesh's: (..., V + N, 3)."""
@@ -173,4 +175,5 @@ def hole_cards(rest: np.ndarray, loops: list[np.ndarray], squares: np.ndarray, s
                      np.concatenate(faces) if faces else np.zeros((0, 3), dtype=np.int64),
                      np.concatenate(uvs) if uvs else np.zeros((0, 3, 2)),
                      np.concatenate(card) if card else np.zeros(0, dtype=np.int64),
-                     np.asarray(squares, dtype=np.float64).reshape(-1, 4))
+                     np.asarray(squares, dtype=np.float64).reshape(-1, 4),
+                     np.array([len(loop) for loop in loops], dtype=np.int64))

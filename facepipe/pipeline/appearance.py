@@ -429,7 +429,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "rest": rest, "notes": notes}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
-                                "rim_vertices": int((cards.card == c).sum()) // (2 * CARD_RINGS - 1),
+                                "rim_vertices": int(cards.rim_sizes[c]),
                                 "carried_by_vertices": int(len(cards.stable))}
                          for name, c in card_of.items()}
     return model, info
