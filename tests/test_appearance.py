@@ -383,6 +383,15 @@ def test_classify_reports_its_speed_and_the_streams_bit_rate(kit, tmp_path, caps
     assert info["frames_per_second"] == pytest.approx(info["frames"] / info["seconds"])
     assert "frames/s" in said and f"{bits * 24 / 1000:.2f} kbit/s at 24 Hz" in said
 
+
+def test_footage_that_is_not_there_is_refused_before_any_progress(kit, tmp_path, capsys):
+    assert _run("appearance", "classify", kit / "app.npz", tmp_path / "nowhere",
+                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls") == 2
+    said = capsys.readouterr()
+    assert "nowhere" in said.err and "classify:" not in said.err + said.out
+    assert not (tmp_path / "cls").exists()
+
+
 def test_frames_classified_on_threads_equal_one_chunk_after_another(kit):
     """classify_decoded shares the chunks among facepipe's threads: the same Q and visibility,
     bit for bit, as classify_chunk over each chunk in turn (frames whose masks differ, so the

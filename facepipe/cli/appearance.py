@@ -71,14 +71,16 @@ def write_cards_obj(path: Path, model) -> Path:
 def classify_command(model_path, footage, geometry, output, fps, rep):
     from facepipe.core.appearance import stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
+    from facepipe.io.footage import open_footage
     from facepipe.pipeline.appearance import _read_geometry, classify_frames
 
     model = load_appearance(model_path)
     positions, numbers = _read_geometry(geometry, model.n_vertices)
     times = numbers / fps
     start = time.perf_counter()
+    opened = open_footage(footage)  # its errors before the progress bar opens
     with rep.bar(len(numbers), desc="classify") as bar:
-        result = classify_frames(model, footage, positions, numbers, times, progress=bar.update)
+        result = classify_frames(model, opened, positions, numbers, times, progress=bar.update)
     seconds = time.perf_counter() - start
     bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
     figures = {"seconds": seconds, "frames_per_second": len(numbers) / max(seconds, 1e-9), "fps": fps,

@@ -20,7 +20,7 @@ import numpy as np
 
 from facepipe.core.rigid import rigid_fit
 
-__all__ = ["boundary_loops", "HoleCards", "hole_cards", "card_positions", "stable_vertices"]
+__all__ = ["boundary_loops", "HoleCards", "hole_cards", "card_positions", "with_card_vertices", "stable_vertices"]
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
@@ -83,8 +83,14 @@ class HoleCards:
         positions = np.asarray(positions, dtype=np.float64)
         if positions.shape[-2] != self.n_vertices:
             raise ValueError(f"positions of {positions.shape[-2]} vertices for a mesh of {self.n_vertices}")
-        return np.concatenate([positions, card_positions(positions, self.stable, self.stable_rest, self.rest)],
-                              axis=-2)
+        return with_card_vertices(positions, self.stable, self.stable_rest, self.rest)
+
+
+def with_card_vertices(positions: np.ndarray, stable: np.ndarray, stable_rest: np.ndarray,
+                       rest: np.ndarray) -> np.ndarray:
+    """Positions (..., V, 3) with the cards' vertices (:func:`card_positions`) after them: (..., V + N, 3)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    return np.concatenate([positions, card_positions(positions, stable, stable_rest, rest)], axis=-2)
 
 
 def card_positions(positions: np.ndarray, stable: np.ndarray, stable_rest: np.ndarray, rest: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from facepipe.core.camera import Camera
-from facepipe.core.hole_cards import card_positions
+from facepipe.core.hole_cards import with_card_vertices
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
@@ -94,8 +94,7 @@ class AppearanceModel:
         world = np.asarray(world, dtype=np.float64)
         if self.card_rest is None:
             return world
-        return np.concatenate([world, card_positions(world, self.card_stable, self.card_stable_rest,
-                                                     self.card_rest)], axis=-2)
+        return with_card_vertices(world, self.card_stable, self.card_stable_rest, self.card_rest)
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         """Camera-space positions of the rest mesh's vertices (..., V, 3) and the cards'."""

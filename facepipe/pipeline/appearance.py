@@ -39,7 +39,7 @@ from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
 from facepipe.parallel import map_blocks, serial_blas, thread_count
 from facepipe.io.appearance_file import AppearanceModel
-from facepipe.io.footage import open_footage, read_frames, to_gray
+from facepipe.io.footage import Footage, open_footage, read_frames, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
            "classify_chunk",
@@ -651,13 +651,14 @@ class Classification:
 
 def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
                     times: np.ndarray, progress=None, chunk: int = 8) -> Classification:
-    """Classify every frame of the geometry (world positions (T, V, 3), frame numbers (T,)) in the footage.
+    """Classify every frame of the geometry (world positions (T, V, 3), frame numbers (T,)) in the
+    footage (a path, pattern or folder, or a :class:`~facepipe.io.footage.Footage` already opened).
 
     The next frames are read and decoded in a worker thread while these are classified (image
     decoding releases the GIL); ``chunk`` frames are classified at once, all their regions and
     offsets in the same products, a chunk on each of facepipe's threads (:func:`classify_decoded`).
     """
-    footage = open_footage(footage_source)
+    footage = footage_source if isinstance(footage_source, Footage) else open_footage(footage_source)
     T, Rn = len(numbers), len(model.names)
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
@@ -683,7 +684,7 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
                 progress(1)
             continue
         if image.shape[:2] != (model.camera.height, model.camera.width):
-            _check_size(image, model.camera, n, footage_source)
+            _check_size(image, model.camera, n, footage.source)
         rows.append(row_of[n])
         grays.append(to_gray(image))
         if len(rows) == batch:
