@@ -498,12 +498,12 @@ def export_exr(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], 
                   "facepipe/channels": ("R,G,B = x,y,z" if space == "object" else "R,G,B = t,b,n")
                   if mode == "vector" else "Y = n"})
 
-    def values(s, e):
-        return detail(head[s:e], None if rot is None else rot[s:e])
-
     if replay.large_scale_from_cache:
         # a mesh cache's large scale is its own surface: the stored layers give the details added to it
         values = StoredDetailLayer(replay, model, space, mesh)
+    else:
+        def values(s, e):
+            return detail(head[s:e], None if rot is None else rot[s:e])
 
     samples: dict = {}
     with options.make_bar(replay.n_frames, "export exr") as bar:
