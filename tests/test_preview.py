@@ -159,3 +159,20 @@ def test_export_bench_figures(tmp_path):
         assert r[name]["bytes"] > 0 and r[name]["megabytes_per_second"] > 0
     assert r["mdd"]["bytes"] == 8 + 2 * 4 + 2 * 20 * 12 and r["pc2"]["bytes"] == 32 + 2 * 20 * 12
     assert r["obj_vs_trimesh"] > 0 and not r["mesh"]["ict"]
+
+
+def test_appearance_reconstruction_is_put_over_the_input_frame():
+    """The classified take's preview draws the layered texture over the frame: the frame where no
+    face is drawn, the face where it covers the pixel, the two blended through its silhouette."""
+    from facepipe.cli.appearance_preview import over_footage
+
+    frame = np.random.default_rng(0).uniform(size=(4, 5, 3)).astype(np.float32)
+    face = np.full((4, 5, 3), 0.6, dtype=np.float32)
+    coverage = np.zeros((4, 5, 3), dtype=np.float32)
+    coverage[1:3, 1:4] = 1.0
+    coverage[0, 0] = 0.25  # a silhouette pixel, a quarter covered
+    out = over_footage(face * coverage, coverage, frame)
+    np.testing.assert_array_equal(out[3], frame[3])
+    np.testing.assert_allclose(out[1:3, 1:4], 0.6)
+    np.testing.assert_allclose(out[0, 0], 0.25 * 0.6 + 0.75 * frame[0, 0], rtol=1e-6)
+    np.testing.assert_array_equal(over_footage(face * coverage, coverage, None)[3], 1.0)  # no frame: white

@@ -1,8 +1,8 @@
 """``facepipe preview`` of a classified take (a folder with ``appearance.csv``): per chosen frame
 the input frame and the face rendered through the same camera with the layered texture at that
-frame's Q (the texture unlit: its layers hold the footage's own shading), side by side over the
-face's window of the image; below them the Q curves of every region over the take, the shown
-frames marked. The footage, geometry and model are the ones ``appearance.json`` names.
+frame's Q (the texture unlit: its layers hold the footage's own shading) over the input frame,
+side by side over the face's window of the image; below them the Q curves of every region over
+the take, the shown frames marked. The footage, geometry and model are the ones ``appearance.json`` names.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from facepipe.io.appearance_file import load_appearance, read_stream
 from facepipe.io.footage import open_footage, read_frames
 from facepipe.pipeline.appearance import _read_geometry
 
-__all__ = ["render_appearance_preview", "is_classified"]
+__all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 
 
 def is_classified(folder) -> bool:
@@ -79,11 +79,16 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
         world = positions[row_of[n]]
         texture = np.ascontiguousarray(compose_texture(model.neutral, model.volumes, model.alphas, model.boxes, q[i]),
                                        dtype=np.float32)
-        rendered = render_frame(model.with_cards(world), model.faces, corner_uv, texture, scene, background=1.0)
         image, problem = images.get(n, (None, "not read"))
+        drawn = model.with_cards(world)
+        # over black, and the share of each pixel the face covers (a white texture): the face's
+        # colour premultiplied by its coverage, so its silhouette blends into the frame
+        rendered = over_footage(render_frame(drawn, model.faces, corner_uv, texture, scene, background=0.0),
+                                render_frame(drawn, model.faces, corner_uv, np.ones_like(texture), scene,
+                                             background=0.0), image)
         x0, x1, y0, y1 = _window(model, world)
         for c, (picture, title) in enumerate(((image, f"frame {n}: input"),
-                                              (rendered, "layered texture at Q, through the camera"))):
+                                              (rendered, "layered texture at Q, over the input frame"))):
             ax = fig.add_subplot(grid[k, c])
             if picture is None:
                 ax.text(0.5, 0.5, f"no image: {problem}", ha="center", va="center", fontsize=8)
@@ -103,6 +108,16 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     _save(fig, path, force)
     return {"frames": [int(numbers[i]) for i in index], "q": q[index].tolist(), "path": str(path),
             "view": "appearance"}
+
+
+def over_footage(rendered: np.ndarray, coverage: np.ndarray, image: np.ndarray | None) -> np.ndarray:
+    """The reconstruction over the input frame (both (H, W, 3)): ``rendered`` over black, i.e.
+    premultiplied by ``coverage``, the share of each pixel the face covers. The frame shows where
+    the face is not drawn (background, hair, the mouth's and eyes' openings) and through its
+    silhouette, so the two panels differ only where the face's texture does; white stands in for
+    a frame that could not be read."""
+    under = np.ones_like(rendered) if image is None else np.asarray(image, dtype=np.float32)[..., :3]
+    return rendered + (1.0 - np.clip(coverage, 0.0, 1.0)) * under
 
 
 def _window(model, world: np.ndarray, margin: float = 0.08) -> tuple[int, int, int, int]:
