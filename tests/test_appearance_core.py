@@ -408,3 +408,36 @@ def test_above_rest_is_zero_below_the_floor_monotone_and_keeps_the_extreme():
     # a zero floor changes nothing, a hidden region stays NaN
     assert np.isnan(out[5, 1])
     np.testing.assert_array_equal(np.delete(out[:, 1], 5), np.delete(q[:, 1], 5))
+
+
+def test_unseen_texels_continue_the_texture_around_them():
+    """Push-pull fill: seen texels untouched, a constant kept exactly (to float32), a hole in a
+    linear ramp filled close to the ramp and within the values at its border, a hole's fill
+    nearer the colour beside it than the image's mean (what a flat fill gives)."""
+    from facepipe.core.appearance import fill_unseen
+
+    rng = np.random.default_rng(1)
+    image = rng.uniform(size=(37, 53, 3))
+    seen = np.ones((37, 53), dtype=bool)
+    seen[5:20, 10:40] = False
+    out = fill_unseen(image, seen)
+    assert out.dtype == image.dtype
+    np.testing.assert_array_equal(out[seen], image[seen])
+    np.testing.assert_allclose(fill_unseen(np.full((37, 53, 3), 0.3), seen), 0.3, atol=1e-6)
+
+    y, x = np.mgrid[0:64, 0:64]
+    ramp = np.repeat((x / 63.0)[..., None], 3, axis=-1)
+    hole = np.ones((64, 64), dtype=bool)
+    hole[20:30, 20:30] = False
+    filled = fill_unseen(ramp, hole)[~hole]
+    assert np.abs(filled - ramp[~hole]).max() < 0.02
+    assert filled.min() >= 19 / 63.0 - 1e-6 and filled.max() <= 30 / 63.0 + 1e-6
+
+    halves = np.zeros((32, 64, 1))
+    halves[:, 32:] = 1.0  # dark left, bright right; a hole in the bright half, next to nothing dark
+    gap = np.ones((32, 64), dtype=bool)
+    gap[10:20, 44:54] = False
+    assert fill_unseen(halves, gap)[~gap].min() > 0.9  # a flat fill would give the mean, about 0.5
+
+    nothing = np.zeros((4, 4), dtype=bool)
+    np.testing.assert_array_equal(fill_unseen(image[:4, :4], nothing), image[:4, :4])

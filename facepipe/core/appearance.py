@@ -44,7 +44,7 @@ from scipy import ndimage
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS",
-           "sh_basis", "fit_light", "light_shading"]
+           "sh_basis", "fit_light", "light_shading", "fill_unseen"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
 DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
@@ -576,3 +576,33 @@ def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -
     ``floor`` times its median (a point the light fit calls dark is not divided into noise)."""
     shade = sh_basis(normals) @ light
     return np.maximum(shade, floor * max(float(np.median(shade)), 1e-9))
+
+
+def fill_unseen(image: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """``image`` (H, W, C) with its texels not ``seen`` (H, W) filled by push-pull (Gortler et al.
+    1996): each coarser level averages the seen texels under it, and a texel nobody saw takes,
+    level by level back up, the finest average around it. A hole's fill continues the colours at
+    its border and shades smoothly into those further off, where one flat colour would meet the
+    seen texture at a hard seam. Seen texels are returned as they are; with none seen, the image."""
+    import cv2  # lazy: only a build needs it
+
+    seen = np.asarray(seen, dtype=bool)
+    if seen.all() or not seen.any():
+        return np.array(image, copy=True)
+    weight = seen.astype(np.float32)
+    acc = np.asarray(image, dtype=np.float32) * weight[..., None]
+    levels = [(acc, weight)]
+    while max(weight.shape) > 1:
+        size = (max(1, (weight.shape[1] + 1) // 2), max(1, (weight.shape[0] + 1) // 2))
+        acc = cv2.resize(acc, size, interpolation=cv2.INTER_AREA).reshape(size[::-1] + acc.shape[2:])
+        weight = cv2.resize(weight, size, interpolation=cv2.INTER_AREA)
+        levels.append((acc, weight))
+    acc, weight = levels[-1]
+    filled = acc / np.maximum(weight, 1e-12)[..., None]  # the coarsest level: the mean of the seen texels
+    for acc, weight in reversed(levels[:-1]):
+        up = cv2.resize(filled, (weight.shape[1], weight.shape[0]), interpolation=cv2.INTER_LINEAR)
+        up = up.reshape(weight.shape + acc.shape[2:])
+        covered = np.clip(weight, 0.0, 1.0)[..., None]
+        filled = np.where(covered > 0, acc / np.maximum(weight, 1e-12)[..., None], 0.0) * covered \
+            + (1.0 - covered) * up
+    return np.where(seen[..., None], image, filled.astype(np.asarray(image).dtype))

@@ -354,7 +354,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     normal_sign = 1.0 if np.median(cos) >= 0 else -1.0
     neutral, seen = unwrap(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_face, texel_bary, camera,
                            min_facing=cfg.min_facing, normal_sign=normal_sign)
-    neutral[~seen] = neutral[seen].mean(axis=0) if seen.any() else 0.5
+    # texels the neutral frame does not show (edge-on, behind the head) continue the skin around them
+    neutral = ap.fill_unseen(neutral, seen) if seen.any() else np.full_like(neutral, 0.5)
     light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign) if cfg.light_fit \
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
