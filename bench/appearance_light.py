@@ -45,8 +45,7 @@ def rest_readings(model, gray: np.ndarray, camera_positions: np.ndarray, scene, 
     points = pa.template_positions(camera_positions, model)
     patches, _, seen = pa.sample_template_frames(gray, camera_positions, model, points)
     fitted, normals = pa.frame_shading(gray, camera_positions, model, with_normals=True)
-    # the renderer's shading: ambient + (1 - ambient) |n . l|, n the template points' normals
-    exact = (scene.ambient + (1.0 - scene.ambient) * np.abs(normals @ scene.light)).reshape(fitted.shape)
+    exact = scene.shading(normals).reshape(fitted.shape)  # the renderer's, at the template points' normals
     out = {}
     for name, shading in (("fitted", fitted), ("exact", exact)):
         q, _ = ap.classify_regions(patches / shading, bank, model.shading, seen, model.min_seen)

@@ -54,6 +54,11 @@ class Scene:
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
 
+    def shading(self, normals: np.ndarray) -> np.ndarray:
+        """The light's intensity (...) on unit normals (..., 3) in camera coordinates: ambient plus
+        two-sided Lambert (the inside of lips and lids is lit too), before the light's colour."""
+        return self.ambient + (1.0 - self.ambient) * np.abs(normals @ self.light)
+
 
 def make_scene(rest: np.ndarray, size: int = 512, fill: float = 0.75, distortion=(-0.05, 0.02, 0.0, 0.0, 0.0),
                light=(-0.4, -0.5, -1.0)) -> Scene:
@@ -298,9 +303,8 @@ def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, te
             d = (point[sel] - centre) / radius
             d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
             colour[sel] = iris_colour(d @ axes)
-            shade[sel] = np.abs((d @ scene.rotation.T) @ scene.light)
-        img[on_eye] = colour * ((scene.ambient + (1 - scene.ambient) * shade)[:, None]
-                                * np.asarray(scene.light_rgb, dtype=np.float32))
+            shade[sel] = scene.shading(d @ scene.rotation.T)
+        img[on_eye] = colour * (shade[:, None] * np.asarray(scene.light_rgb, dtype=np.float32))
         face = np.where(on_eye, -1, face)
     hit = face >= 0
     f, b = face[hit], bary[hit]
@@ -315,8 +319,7 @@ def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, te
     normals = vertex_normals(cam[:n_skin], faces[:n_faces])
     n = np.einsum("nk,nkc->nc", b, normals[faces[f]])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    shade = scene.ambient + (1 - scene.ambient) * np.abs(n @ scene.light)
-    img[hit] = albedo * (shade[:, None] * np.asarray(scene.light_rgb))
+    img[hit] = albedo * (scene.shading(n)[:, None] * np.asarray(scene.light_rgb))
     mx, my = maps if maps is not None else _distortion_maps(scene)
     return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 

@@ -601,8 +601,7 @@ def fill_unseen(image: np.ndarray, seen: np.ndarray) -> np.ndarray:
     filled = acc / np.maximum(weight, 1e-12)[..., None]  # the coarsest level: the mean of the seen texels
     for acc, weight in reversed(levels[:-1]):
         up = cv2.resize(filled, (weight.shape[1], weight.shape[0]), interpolation=cv2.INTER_LINEAR)
-        up = up.reshape(weight.shape + acc.shape[2:])
-        covered = np.clip(weight, 0.0, 1.0)[..., None]
-        filled = np.where(covered > 0, acc / np.maximum(weight, 1e-12)[..., None], 0.0) * covered \
-            + (1.0 - covered) * up
+        # a level's own average (acc / weight) where it saw the share ``weight`` of its texels, the
+        # coarser one for the rest: acc is that average already weighted
+        filled = acc + (1.0 - weight[..., None]) * up.reshape(weight.shape + acc.shape[2:])
     return np.where(seen[..., None], image, filled.astype(np.asarray(image).dtype))
