@@ -392,7 +392,7 @@ def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half,
 @click.option("--view", type=click.Choice(["auto", "camera", "head", "appearance"]), default="auto", show_default=True,
               help="camera: a 2D take's replayed face through the footage's camera with the tracked and reprojected "
                    "landmarks; head: large scale vs final (and --truth) in head space; appearance: a classified "
-                   "take's input frames, the layered texture at Q rendered through the camera, the Q curves; auto: "
+                   "take's input frames, the layered texture at Q drawn over them through the camera, the Q curves; auto: "
                    "appearance for a folder of appearance classify, camera for a 2D take (head with --truth).")
 @click.option("--force", is_flag=True, help="Overwrite an existing image.")
 @click.option("--movie", default=None, type=click.Path(dir_okay=False),
