@@ -140,11 +140,37 @@ def test_takes_from_files_folders_and_patterns(tmp_path):
         plan_jobs(expand_takes([tmp_path / "a.csv", tmp_path / "sub" / "a.trc"]), tmp_path / "out")
 
 
+def test_mesh_caches_and_obj_sequences_are_takes(tmp_path):
+    (tmp_path / "a.csv").write_text("x")
+    (tmp_path / "b.mdd").write_bytes(b"x")
+    (tmp_path / "rig.usda").write_text("x")
+    seq = tmp_path / "shot_010"
+    seq.mkdir()
+    for n in (1, 2, 3):
+        (seq / f"head_{n:04d}.obj").write_text(f"v 0 0 {n}\n")
+    found = expand_takes([tmp_path])
+    assert [p.name for p in found] == ["a.csv", "b.mdd", "rig.usda", "shot_010"]  # the sequence is one take
+    assert expand_takes([seq]) == [seq.resolve()]  # a folder of OBJ files alone is a sequence
+    pattern = expand_takes([str(seq / "head_%04d.obj")])
+    jobs = plan_jobs(found, tmp_path / "out")
+    assert [j.name for j in jobs] == ["a", "b", "rig", "shot_010"]
+    assert plan_jobs(pattern, tmp_path / "out")[0].name == "shot_010"  # a pattern is named after its folder
+    with pytest.raises(InputError, match="two takes would write"):
+        plan_jobs([seq.resolve(), pattern[0]], tmp_path / "out")
+    # a sequence's digest is its frames': a frame changed, the take is another
+    before = plan_jobs([seq.resolve()], tmp_path / "out")[0].digest
+    assert plan_jobs(pattern, tmp_path / "out")[0].digest == before
+    (seq / "head_0002.obj").write_text("v 0 0 7\n")
+    assert plan_jobs([seq.resolve()], tmp_path / "out")[0].digest != before
+
+
 def test_options_fingerprint_ignores_where_it_runs_only():
     base = ReplayOptions().fingerprint()
     assert ReplayOptions(device="gpu", chunk=64).fingerprint() == base
     assert ReplayOptions(smooth=1.0).fingerprint() != base
     assert ReplayOptions(head_motion="remove").fingerprint() != base
+    assert ReplayOptions(large_scale="shell").fingerprint() != base
+    assert "large_scale" not in base  # stamps written before caches were takes stay valid
 
 
 def test_threads_share_the_host_among_its_slots(monkeypatch):
@@ -376,6 +402,49 @@ def test_corrupt_take_is_reported_and_the_rest_go_on(takes, cluster, tmp_path):
     report = json.loads((out / "batch.json").read_text())
     assert [t["status"] for t in report["takes"]] == ["ok"] * 3 and all(_same_as_serial(root, out, t) for t in good)
     assert report["scheduler"] == cluster.address
+
+
+def test_mesh_caches_replay_as_serially_beside_marker_takes(takes, cluster, tmp_path):
+    """An MDD cache and an OBJ sequence (folder) batched with a marker take: each is the serial
+    `facepipe replay` of it, to the bit (BLAS on one thread, as on Dask's workers); a batch again
+    skips them, and --large-scale shell (an option of the caches') replays them again."""
+    from threadpoolctl import threadpool_limits
+
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.io.mesh_write import save_obj
+    from facepipe.io.point_caches import read_mdd
+
+    root, model, paths = takes
+    mdd = root / "rig" / "take_smooth.mdd"
+    rest = load_mesh(root / "rig" / "neutral.obj")
+    seq = tmp_path / "shot_obj"
+    seq.mkdir()
+    for n, frame in enumerate(read_mdd(mdd)[1][:8]):
+        save_obj(seq / f"shot_{n + 1:04d}.obj", rest, frame)
+    serial = {}
+    for take, mode in ((mdd, "take"), (seq, "take"), (mdd, "shell")):
+        dest = tmp_path / "serial" / f"{take.name}-{mode}"
+        with threadpool_limits(1):
+            assert run_cli("--quiet", "replay", take, "-m", model, "-o", dest, "--backend", "numpy",
+                           "--large-scale", mode) == 0
+        serial[take.name, mode] = np.load(dest / "positions.npy")
+    out = tmp_path / "out"
+    args = ["--quiet", "batch", paths[0], mdd, seq, "-m", model, "-o", out, "--scheduler", cluster.address,
+            "--backend", "numpy"]
+    assert run_cli(*args) == 0, _errors(out)
+    report = json.loads((out / "batch.json").read_text())
+    assert [(t["name"], t["status"], t["frames"]) for t in report["takes"]] == [
+        (paths[0].stem, "ok", N_FRAMES), ("take_smooth", "ok", N_FRAMES), ("shot_obj", "ok", 8)]
+    assert _same_as_serial(root, out, paths[0])
+    assert np.array_equal(np.load(out / "take_smooth" / "positions.npy"), serial["take_smooth.mdd", "take"])
+    assert np.array_equal(np.load(out / "shot_obj" / "positions.npy"), serial["shot_obj", "take"])
+    cache_report = json.loads((out / "take_smooth" / "replay.json").read_text())
+    assert cache_report["cache"]["large_scale"] == "take" and "bands" in cache_report["cache"]
+    assert run_cli(*args) == 0
+    assert [t["status"] for t in json.loads((out / "batch.json").read_text())["takes"]] == ["skipped"] * 3
+    assert run_cli(*args[:5], "-m", model, "-o", out, "--scheduler", cluster.address, "--backend", "numpy",
+                   "--large-scale", "shell") == 0, _errors(out)
+    assert np.array_equal(np.load(out / "take_smooth" / "positions.npy"), serial["take_smooth.mdd", "shell"])
 
 
 @pytest.mark.slow

@@ -47,12 +47,17 @@ from facepipe.io.atomic import atomic_path
 from facepipe.io.model_file import load_model
 from facepipe.io.replay_folder import ReplayDir
 from facepipe.mocap import registry as take_registry
+from facepipe.mocap.registry import mesh_cache_format
+from facepipe.mocap import parse_frame_slice
 from facepipe.mocap.landmarks2d import is_landmark_take
+from facepipe.mocap.mesh_cache import obj_sequence_files
 from facepipe.mocap.marker_take import MarkerTakeOptions, read_marker_take
 from facepipe.batch.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
 from facepipe.batch.take_lock import take_lock
 from facepipe.batch.worker_memory import reuse_freed_arrays
-from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
+from facepipe.pipeline.backend import cache_evaluator, marker_evaluator
+from facepipe.pipeline.cache_replay import replay_mesh_cache
+from facepipe.pipeline.replay import replay_windows
 
 STAMP_NAME = "batch_take.json"
 ATTEMPTS_NAME = "batch_attempts.jsonl"
@@ -60,6 +65,8 @@ REPORT_NAME = "batch.json"
 # PoCL's CPU driver's threads per process (read when the driver starts): PoCL 3's pthread
 # device, and the name PoCL 4 and later read
 POCL_THREADS_ENV = ("POCL_MAX_PTHREAD_COUNT", "POCL_CPU_MAX_CU_COUNT")
+# the options that concern mesh caches alone
+CACHE_OPTIONS = ("large_scale", "rest_frame", "cache_fps")
 
 
 # ============================================================================= what a take's task gets
@@ -67,7 +74,9 @@ POCL_THREADS_ENV = ("POCL_MAX_PTHREAD_COUNT", "POCL_CPU_MAX_CU_COUNT")
 
 @dataclass(frozen=True)
 class ReplayOptions:
-    """``facepipe replay``'s options for a marker take (their defaults are replay's)."""
+    """``facepipe replay``'s options for the takes of a batch (their defaults are replay's): the
+    marker takes' (subject, cleaning, stabilising, neutral) and the mesh caches' (large_scale,
+    rest_frame, cache_fps), each applied to the takes it concerns."""
 
     backend: str = "auto"
     device: str | None = None
@@ -82,12 +91,17 @@ class ReplayOptions:
     stabilise: bool = True
     clean: bool = True
     smooth: float = 0.0
+    large_scale: str | None = None  # mesh caches: "take" (None: the default) or "shell"
+    rest_frame: int | None = None
+    cache_fps: float | None = None
 
     def fingerprint(self) -> dict:
         """What decides the outputs: every option but where the evaluation runs (the backend and
         device give the same positions to rounding; chunk none at all), and the neutral take's
-        content rather than its path."""
-        key = {k: v for k, v in asdict(self).items() if k not in ("device", "chunk", "neutral_take")}
+        content rather than its path. The mesh caches' options count where given (a batch of
+        marker takes keeps the stamps it wrote before they were options)."""
+        key = {k: v for k, v in asdict(self).items()
+               if k not in ("device", "chunk", "neutral_take") and not (k in CACHE_OPTIONS and v is None)}
         key["neutral_take_digest"] = file_digest(self.neutral_take) if self.neutral_take else None
         return key
 
@@ -151,17 +165,26 @@ def file_digest(path, block: int = 1 << 22) -> str:
 
 
 def expand_takes(specs) -> list[Path]:
-    """Take files from files, folders (their take files, sorted) and glob patterns, each once."""
+    """Takes from files, folders and glob patterns, each once. A folder is a take of its own when
+    it is an OBJ sequence (OBJ files and no other take), else its takes are its take files and
+    mesh caches (sorted) and its subfolders that are OBJ sequences; a ``frame_%04d.obj`` pattern
+    is an OBJ sequence."""
     suffixes = {s for fmt in take_registry.FORMATS.values() for s in fmt.suffixes}
+    suffixes |= {s for fmt in take_registry.MESH_CACHES.values() if fmt.match is None for s in fmt.suffixes}
     found: list[Path] = []
     for spec in specs:
         spec = str(spec)
         path = Path(spec)
         if path.is_dir():
-            matches = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+            files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+            if not files and _is_obj_folder(path):
+                matches = [path]
+            else:
+                matches = sorted(files + [p for p in path.iterdir() if p.is_dir() and _is_obj_folder(p)])
             if not matches:
-                raise InputError(f"no take files ({', '.join(sorted(suffixes))}) in this folder", path=path)
-        elif path.is_file():
+                raise InputError(f"no takes ({', '.join(sorted(suffixes))} files, or folders of an OBJ sequence) in "
+                                 "this folder", path=path)
+        elif path.is_file() or (not path.exists() and mesh_cache_format(path) is not None):  # (an OBJ pattern)
             matches = [path]
         elif glob.has_magic(spec):
             matches = sorted(Path(p) for p in glob.glob(spec, recursive=True) if Path(p).is_file())
@@ -176,15 +199,39 @@ def expand_takes(specs) -> list[Path]:
     return unique
 
 
+def _is_obj_folder(path: Path) -> bool:
+    return any(p.suffix.lower() == ".obj" for p in path.iterdir() if p.is_file())
+
+
+def take_name(take: Path) -> str:
+    """A take's name in the batch (its output folder): a file's stem, an OBJ sequence's folder."""
+    if take.is_dir():
+        return take.name
+    if not take.exists():  # an OBJ sequence's pattern
+        return take.parent.name
+    return take.stem
+
+
+def take_digest(take: Path) -> str:
+    """SHA-256 of a take: its file's bytes, or an OBJ sequence's files (names and bytes, in frame order)."""
+    if take.is_file():
+        return file_digest(take)
+    h = hashlib.sha256()
+    for number, path in obj_sequence_files(take):
+        h.update(f"{number}:{path.name}:{file_digest(path)}".encode())
+    return h.hexdigest()
+
+
 def plan_jobs(takes: list[Path], out: Path, batch: str | None = None) -> list[TakeJob]:
-    """A job per take of the batch ``batch``, its folder ``out/<stem>``; two takes of one stem are refused."""
+    """A job per take of the batch ``batch``, its folder ``out/<name>``; two takes of one name are refused."""
     by_name: dict[str, Path] = {}
     for take in takes:
-        if take.stem in by_name:
-            raise InputError(f"two takes would write to {out / take.stem}: {by_name[take.stem]} and {take}",
+        name = take_name(take)
+        if name in by_name:
+            raise InputError(f"two takes would write to {out / name}: {by_name[name]} and {take}",
                              hint="batch them into different -o folders, or rename one")
-        by_name[take.stem] = take
-    return [TakeJob(str(take), take.stem, str(out / take.stem), file_digest(take), batch) for take in takes]
+        by_name[name] = take
+    return [TakeJob(str(take), name, str(out / name), take_digest(take), batch) for name, take in by_name.items()]
 
 
 def export_destination(out_dir: Path, name: str, fmt: str) -> Path:
@@ -278,23 +325,9 @@ def cached_model(ref: ModelRef):
 
 def make_evaluator(model, backend: str, device: str | None, chunk: int):
     """The replay evaluator as ``facepipe replay`` chooses it, and a note when auto fell back."""
-    if backend == "numpy":
-        return NumpyEvaluator(model), None
-    # imported here, once the take's task has put PoCL's thread count in the environment
-    from facepipe.opencl import OpenCLEvaluator, OpenCLUnavailable
-
-    try:
-        return OpenCLEvaluator(model, device=device, chunk=chunk), None
-    except InputError:
-        raise
-    except OpenCLUnavailable as exc:
-        if backend == "opencl":
-            raise
-        return NumpyEvaluator(model), f"{str(exc).splitlines()[0]}; replayed with the NumPy backend"
-    except Exception as exc:  # a driver that lists a device but cannot build or run the kernels
-        if backend == "opencl":
-            raise
-        return NumpyEvaluator(model), f"OpenCL failed ({exc.__class__.__name__}: {exc}); replayed with NumPy"
+    notes = []
+    evaluator = marker_evaluator(model, backend, device, chunk, note=notes.append)
+    return evaluator, (notes[0] if notes else None)
 
 
 def cached_evaluator(ref: ModelRef, model, options: ReplayOptions):
@@ -318,17 +351,48 @@ def _reset_counters(evaluator) -> None:
             gate.unconverged_fits = 0
 
 
-def replay_into(take_path: str, out_dir: Path, model, evaluator, options: ReplayOptions, extra: dict) -> dict:
-    """Replay a marker take into ``out_dir`` as ``facepipe replay`` does; its replay.json report."""
+def replay_into(take_path: str, out_dir: Path, model, model_ref: ModelRef, options: ReplayOptions, extra: dict) -> dict:
+    """Replay a take (markers or a mesh cache) into ``out_dir`` as ``facepipe replay`` does; its
+    replay.json report. The marker evaluator is this process's for the model (held while it
+    evaluates); a mesh cache replayed as a take has an evaluator of its own."""
     if is_landmark_take(take_path):
-        raise InputError("a 2D landmark take: batch replays marker takes", path=take_path,
+        raise InputError("a 2D landmark take: batch replays marker takes and mesh caches", path=take_path,
                          hint="replay it with 'facepipe replay TAKE --camera … --landmarks …'")
-    marker_take = read_marker_take(take_path, model, options.marker_take())
-    _reset_counters(evaluator)
-    result = replay_windows(model, marker_take.prepared.windows(), marker_take.take.frames, marker_take.take.times,
-                            out_dir, chunk=options.chunk, evaluator=evaluator, head_motion=options.head_motion,
-                            extra_report=lambda: {**marker_take.report(), **extra}, save_large=options.save_large)
+    cache = mesh_cache_format(take_path) is not None
+    mode = options.large_scale or "take"
+    if cache and mode == "take":
+        batch = dict(extra["batch"], note=None)  # replay.json's, filled in before it is written
+
+        def engine(details):
+            notes = []
+            evaluator = cache_evaluator(details, options.backend, options.device, options.chunk, note=notes.append)
+            batch["note"] = notes[0] if notes else None
+            return evaluator
+
+        return replay_mesh_cache(model, take_path, out_dir, large_scale=mode, rest_frame=options.rest_frame,
+                                 take_units=options.take_units, cache_fps=options.cache_fps,
+                                 frames=_frame_slice(options.frames), head_motion=options.head_motion,
+                                 chunk=options.chunk, save_large=options.save_large, take_engine=engine,
+                                 extra_report={"batch": batch}).report
+    evaluator, lock, note = cached_evaluator(model_ref, model, options)
+    extra = {"batch": dict(extra["batch"], note=note)}
+    with lock:
+        _reset_counters(evaluator)
+        if cache:
+            return replay_mesh_cache(model, take_path, out_dir, large_scale=mode, rest_frame=options.rest_frame,
+                                     take_units=options.take_units, cache_fps=options.cache_fps,
+                                     frames=_frame_slice(options.frames), head_motion=options.head_motion,
+                                     chunk=options.chunk, save_large=options.save_large,
+                                     marker_evaluator=lambda m: evaluator, extra_report=extra).report
+        marker_take = read_marker_take(take_path, model, options.marker_take())
+        result = replay_windows(model, marker_take.prepared.windows(), marker_take.take.frames, marker_take.take.times,
+                                out_dir, chunk=options.chunk, evaluator=evaluator, head_motion=options.head_motion,
+                                extra_report=lambda: {**marker_take.report(), **extra}, save_large=options.save_large)
     return result.report
+
+
+def _frame_slice(text: str | None):
+    return parse_frame_slice(text) if text else None
 
 
 def _log_attempt(out_dir: Path, worker: str) -> str:
@@ -466,10 +530,8 @@ def _attempt_take(job: TakeJob, model_ref: ModelRef, options: ReplayOptions, exp
         else:
             (out_dir / STAMP_NAME).unlink(missing_ok=True)  # the folder is incomplete until the new stamp
             model, record.model_loaded = cached_model(model_ref)
-            evaluator, lock, note = cached_evaluator(model_ref, model, options)
-            extra = {"batch": {"worker": worker, "threads": threads, "attempt": len(attempts), "note": note}}
-            with lock:
-                report = replay_into(job.take, out_dir, model, evaluator, options, extra)
+            extra = {"batch": {"worker": worker, "threads": threads, "attempt": len(attempts)}}
+            report = replay_into(job.take, out_dir, model, model_ref, options, extra)
             record.frames, record.replayed, done_exports = report["frames"], True, {}
             stamp = {"take": job.take, "take_digest": job.digest, "model": model_ref.path,
                      "model_digest": model_ref.digest, "options": options_key, "frames": record.frames}

@@ -52,13 +52,24 @@ from facepipe.export import registry as export_formats
 @click.option("--no-clean", is_flag=True, help="No prior-based cleaning: gaps only interpolated (PCHIP).")
 @click.option("--smooth", type=float, default=0.0, show_default=True,
               help="Temporal smoothing of the cleaned markers: Gaussian sigma in frames (0 = off).")
+@click.option("--large-scale", type=click.Choice(["take", "shell"]), default=None,
+              help="Mesh caches, as for replay: take = the cache's surface plus the band of details it lacks "
+                   "[default]; shell = its handle vertices replayed as markers.")
+@click.option("--rest-frame", type=int, default=None,
+              help="Mesh caches: frame number checked against the model's rest mesh [default: the first].")
+@click.option("--cache-fps", type=float, default=None,
+              help="Mesh caches: frame rate, for PC2 and OBJ sequences that store none (30), or overriding the file's.")
 @_common
 @click.pass_context
 def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler_file, force, retries, connect_timeout,
           backend, device, frames_text, chunk, head_motion, save_large_scale, neutral_frame, neutral_take, take_units,
-          subject, no_stabilise, no_clean, smooth, quiet, verbose):
+          subject, no_stabilise, no_clean, smooth, large_scale, rest_frame, cache_fps, quiet, verbose):
     """Replay every TAKE (files, folders of takes, glob patterns) onto MODEL on a Dask cluster, as
     'facepipe replay' would one by one: OUTPUT/<take stem>/positions.npy and replay.json.
+
+    Takes are marker takes and mesh caches (USD, MDD, PC2; an OBJ sequence is a folder of OBJ
+    files or a frame_%04d.obj pattern, named after its folder); each option applies to the takes
+    it concerns.
 
     Takes whose outputs exist from the same model, take and options are skipped (--force redoes
     them); a take whose worker dies runs again elsewhere; a bad take is reported and the rest go on.
@@ -70,7 +81,8 @@ def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler
     rep = _reporter(ctx, quiet, verbose)
     checks = [(workers is None or workers >= 1, "--workers must be at least 1"), (chunk >= 1, "--chunk must be at least 1"),
               (smooth >= 0, "--smooth must be 0 (off) or a positive number of frames"),
-              (retries >= 0, "--retries must be 0 or more"), (connect_timeout > 0, "--connect-timeout must be positive")]
+              (retries >= 0, "--retries must be 0 or more"), (connect_timeout > 0, "--connect-timeout must be positive"),
+              (cache_fps is None or cache_fps > 0, "--cache-fps must be positive")]
     for ok, message in checks:
         if not ok:
             raise InputError(message)
@@ -78,7 +90,7 @@ def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler
                             save_large=save_large_scale, neutral_frame=neutral_frame,
                             neutral_take=str(Path(neutral_take).resolve()) if neutral_take else None,
                             take_units=take_units, subject=subject, stabilise=not no_stabilise, clean=not no_clean,
-                            smooth=smooth)
+                            smooth=smooth, large_scale=large_scale, rest_frame=rest_frame, cache_fps=cache_fps)
     cluster = ClusterSpec(workers=workers, scheduler=scheduler, scheduler_file=scheduler_file,
                           connect_timeout=connect_timeout)
     bars = []  # opened once the takes and the model are found good, so bad input is said alone

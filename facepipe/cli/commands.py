@@ -138,15 +138,16 @@ def bake(ctx, source, output, tune, quiet, verbose):
 
 def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Reporter):
     """The replay evaluator: OpenCL when asked for, or (auto) when a device works; else NumPy."""
-    from facepipe.pipeline.replay import NumpyEvaluator
+    from facepipe.pipeline.backend import marker_evaluator
 
-    if backend == "numpy":
-        return NumpyEvaluator(model)
-    from facepipe.cli.backend import opencl_or_fallback
-    from facepipe.opencl import OpenCLEvaluator
+    return _said_device(rep, marker_evaluator(model, backend, device, chunk, note=lambda text: rep.say(f"note: {text}")))
 
-    return opencl_or_fallback(rep, backend, lambda: OpenCLEvaluator(model, device=device, chunk=chunk),
-                              lambda: NumpyEvaluator(model))
+
+def _said_device(rep: Reporter, evaluator):
+    """``evaluator``, its OpenCL device told to the user."""
+    if evaluator.backend == "opencl":
+        rep.say(f"OpenCL device: {evaluator.device}")
+    return evaluator
 
 
 def _refuse_options_not_for(kind, take, given):

@@ -21,9 +21,11 @@ as they follow the marker replay's.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -32,6 +34,9 @@ from facepipe.core.rigid import robust_rigid_fit, stable_marker_pose
 from facepipe.core.shell import marker_spacing
 from facepipe.core.strain import strain_features
 from facepipe.core.tangent_frames import local_frames, to_world, vertex_face_matrix
+from facepipe.errors import InputError
+from facepipe.mocap.mesh_cache import read_mesh_cache
+from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
 
 #: Frames of the cache the band estimate looks at (evenly spread): the α's are a handful of
 #: numbers over the whole take, so a sample of frames determines them.
@@ -211,3 +216,81 @@ class CacheDetails:
     def close(self) -> None:
         if self.bands is not None:
             self.bands.close()
+
+
+def replay_mesh_cache(model, take, output, *, large_scale: str = "take", rest_frame: int | None = None,
+                      take_units: str | None = None, cache_fps: float | None = None, frames=None,
+                      head_motion: str = "keep", chunk: int = 32, save_large: bool = False, marker_evaluator=None,
+                      take_engine=None, say=None, open_bar=None, extra_report=None):
+    """Replay the mesh cache ``take`` (USD, MDD, PC2, OBJ sequence) onto ``model``'s face into the
+    folder ``output``, as ``facepipe replay`` and ``facepipe batch`` do; the
+    :class:`~facepipe.pipeline.replay.ReplayResult`.
+
+    large_scale : "take" (the cache's surface plus the band of details it lacks, estimated on the
+        cache) or "shell" (the handle vertices replayed as markers, with ``marker_evaluator(model)``).
+    take_engine : ``take_engine(details)`` the evaluator for "take" given the NumPy one
+        (:class:`CacheDetails`, with its bands chosen): e.g. the OpenCL cache engine; None: NumPy.
+    frames : a slice of the cache's frames, or None. ``say(text)``: what the user is told;
+    ``open_bar(total)``: a progress bar (a context manager with ``update(n)``), or None.
+    extra_report : more for replay.json (e.g. the batch's worker).
+
+    Raises InputError (a cache that is not the rest mesh's, of another scale, with NaNs, ...).
+    """
+    say = say or (lambda text: None)
+    if large_scale not in ("take", "shell"):
+        raise InputError(f"large scale {large_scale!r}: 'take' (the cache's surface) or 'shell' (its handles as markers)")
+    if cache_fps is not None and cache_fps <= 0:
+        raise InputError(f"--cache-fps {cache_fps} must be positive")
+    cache, check = read_mesh_cache(take, model.rest, units=model.meta.get("units"), take_units=take_units,
+                                   rest_frame=rest_frame, fps=cache_fps, frames=frames)
+    say(f"{cache.format} cache: {cache.n_frames} frames × {cache.n_vertices} vertices at {cache.fps:g} frames/s "
+        f"({cache.source_units or 'units not stated'}" + (f", × {cache.scale:g} to {cache.units}" if cache.scale != 1
+                                                          else "") + f"); frame {check['frame']} matches the rest "
+        f"mesh (scale {check['scale']:.4f}, median vertex {check['median_distance']:.3g} off)")
+    for note in cache.notes or []:
+        say(f"note: {note}")
+    pose = cache_pose(model, cache)
+    for note in pose.notes:
+        say(f"note: {note}")
+    report = {"take": str(take), "cache": {"format": cache.format, "fps": cache.fps, "units": cache.units,
+                                           "source_units": cache.source_units, "scale": cache.scale,
+                                           "rest_check": check, "notes": list(cache.notes or []) + pose.notes,
+                                           "large_scale": large_scale, "source": cache_source(take)},
+              **(extra_report or {})}
+    details = None
+    try:
+        if large_scale == "shell":
+            evaluator = (marker_evaluator or NumpyEvaluator)(model)
+        else:
+            details = evaluator = CacheDetails(model, cache, pose)
+            band = details.estimate()
+            report["cache"]["bands"] = band
+            if band.get("method") == "bands":
+                added = [w for w, a in zip(band["band_wavelengths"], band["added"]) if a]
+                say(f"details added: {', '.join(added) if added else 'none'} (wavelength bands, rig units; "
+                    f"{100 * band['added_fraction']:.0f} % of the details' energy); the cache's own amplitude per "
+                    "band, relative to the details': " + ", ".join(f"{r:.2f}" for r in band["amplitude_ratio"]))
+            nothing_to_add = model.method == "none" or (details.keep is not None and not details.keep.any())
+            if take_engine is not None and not nothing_to_add:  # (none added: the cache is written as it is)
+                evaluator = take_engine(details)
+        # the cache's surface is the large scale of "take": exports read it back from the cache
+        # (replay.json says where and what it was), so it is written again only when asked
+        bar = open_bar(cache.n_frames) if open_bar is not None else contextlib.nullcontext()
+        with bar as progress:
+            return replay_windows(model, [(pose.head, pose.rotation, pose.translation)], cache.frames, cache.times,
+                                  Path(output), evaluator=evaluator, chunk=chunk, head_motion=head_motion,
+                                  progress=None if progress is None else progress.update, extra_report=report,
+                                  save_large=save_large)
+    finally:
+        if details is not None:
+            details.close()
+
+
+def cache_source(take) -> dict:
+    """Where the cache is and what it was (a file's size and modification time), so exports can read
+    its surface back and tell when it has changed since."""
+    path = Path(take).resolve()
+    if not path.is_file():  # an OBJ sequence (folder or pattern)
+        return {"path": str(path)}
+    stat = path.stat()
+    return {"path": str(path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
