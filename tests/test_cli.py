@@ -111,7 +111,11 @@ def test_frames_option(pipeline, tmp_path):
 def test_bad_inputs_exit_2_with_message(pipeline, tmp_path, capsys, monkeypatch):
     d = pipeline
     assert run("fit", tmp_path / "missing.toml") == 2
-    assert "config file not found" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "config file not found" in err and "fit:" not in err  # said alone: no steps' bar opened first
+    assert run("bake", tmp_path / "missing.npz", "-o", tmp_path / "m.npz") == 2
+    err = capsys.readouterr().err
+    assert "fit file not found" in err and "bake:" not in err
     bad = tmp_path / "bad.toml"
     bad.write_text((d / "rig" / "sample.toml").read_text().replace('markers = "markers.csv"',
                                                                      'markers = "nope.csv"'))

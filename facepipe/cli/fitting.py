@@ -11,6 +11,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from facepipe.errors import InputError
+from facepipe.io.config import load_config
 from facepipe.io.outputs import check_output_path
 from facepipe.io.model_file import fit_to_model, model_arrays, save_fit, save_model
 from facepipe.cli.progress import StageBar
@@ -35,6 +37,7 @@ def run_fit(config, rep, tune: bool = True):
     def progress(method, n, curve):
         rep.detail(f"  {method}: {n:2d} poses  mean RMS {curve['mean_rms']:.4f}  max {curve['max_rms']:.4f}")
 
+    config = load_config(config)  # a missing or malformed config is said alone, before any bar
     # the validation's bars appear under the steps' bar, in its second step
     with StageBar(len(FIT_STAGES), "fit", quiet=rep.quiet) as steps:
         rig, fit = fit_config(config, progress=progress, prepare=prepare, stage=steps.step)
@@ -183,6 +186,9 @@ def bake_command(rep, source: str, output: str, tune: bool) -> None:
     check_output_path(output, kind="file", what="model file")
     t0 = time.perf_counter()
     if source.endswith(".npz"):
+        if not Path(source).is_file():
+            raise InputError("fit file not found", path=source, hint="write it with 'facepipe fit CONFIG -o FIT.npz', "
+                                                                     "or bake from the config itself")
         with StageBar(2, "bake", quiet=rep.quiet) as steps:
             meta = fit_to_model(source, output, stage=steps.step)
         shell = meta.get("shell", {})
