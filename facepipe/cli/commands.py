@@ -444,6 +444,10 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
 @click.option("--vertices", "vertex_range", default=None, help="Vertex range A:B (default: all).")
 @click.option("--large-scale", is_flag=True, help="Also evaluate the large-scale layer (large_scale.npy where the replay wrote "
               "it; a mesh cache's own surface, read back from the cache).")
+@click.option("--space", type=click.Choice(["auto", "take", "head"]), default="auto", show_default=True,
+              help="Compare in the take's space (positions as written and the truth as given) or in head space (the "
+                   "head's motion out of both: the replay's from handles.npz, the truth's from its 'rotation' and "
+                   "'translation'); auto: head for a 2D take's replay (written in camera coordinates), else take.")
 @click.option("--compare", "compare_config", default=None, type=click.Path(dir_okay=False),
               help="CONFIG.toml: also fit it and compare baselines (shell, RBF morph, global and local blend "
                    "shapes, PSD and WPSD by basis size) on this replay's handles; writes compare.json/.png.")
@@ -451,9 +455,12 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
               help="With --compare: fit the config with its parameters validated, as 'fit' does (default).")
 @_common
 @click.pass_context
-def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, quiet, verbose):
-    """Per-frame RMS and max vertex error of a replay against ground truth."""
-    from facepipe.io.npz_file import read_truth
+def eval_(ctx, outdir, truth, vertex_range, large_scale, space, compare_config, tune, quiet, verbose):
+    """Per-frame RMS and max vertex error of a replay against ground truth.
+
+    The truth's frames are the replay's by frame number, or by time where the numbers differ and
+    both have times (a tracker's frames counted from 1, the truth's from 0)."""
+    from facepipe.io.npz_file import read_truth, read_truth_extras
     from facepipe.io.replay_folder import ReplayDir
     from facepipe.pipeline.evaluate import frame_errors, match_frames, parse_vertex_range, summarize
 
@@ -464,18 +471,26 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, q
     truth_pos, truth_frames = read_truth(truth)
     if truth_pos.shape[1:] != positions.shape[1:]:
         raise InputError(f"truth has shape {truth_pos.shape}, the replay {positions.shape}", path=truth)
-    index = match_frames(np.asarray(info["frame_numbers"]), np.asarray(truth_frames), truth)
+    extras = read_truth_extras(truth)
+    matched: dict = {}
+    index = match_frames(np.asarray(info["frame_numbers"]), np.asarray(truth_frames), truth, info.get("times"),
+                         extras.get("time"), matched)
+    if matched["frames_matched_by"] == "time":
+        rep.say("note: the take's frame numbers are not the truth's: frames matched by time")
     truth_sel = np.asarray(truth_pos)[index] if len(index) < 4096 else truth_pos[index]
     vertices = parse_vertex_range(vertex_range, positions.shape[1])
     units = info.get("units") or "rig units"  # (replays before units were recorded: the rig's)
-    result = {"vertices": [vertices.start, vertices.stop], "truth": str(truth), "units": units}
+    space = space if space != "auto" else "head" if str(info.get("coordinates", "")).startswith("camera") else "take"
+    pose, truth_pose = _eval_poses(outdir, info, truth, extras, index) if space == "head" else (None, None)
+    result = {"vertices": [vertices.start, vertices.stop], "truth": str(truth), "units": units, "space": space,
+              **matched}
     sources = [("final", "positions.npy")]
     if large_scale:
         sources.append(("large_scale", "large_scale.npy"))
     for label, name in sources:
         # (a mesh cache's large scale is the cache: read back from it where the replay kept no copy)
         pos = _load_positions(outdir, name) if label == "final" else ReplayDir(outdir).layer("large")
-        rms, mx = frame_errors(pos, truth_sel, vertices)
+        rms, mx = frame_errors(pos, truth_sel, vertices, pose=pose, truth_pose=truth_pose)
         result[label] = dict(summarize(rms, mx), per_frame_rms=rms.tolist(), per_frame_max=mx.tolist())
         if verbose:
             for f, a, b in zip(info["frame_numbers"], rms, mx):
@@ -489,6 +504,23 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, compare_config, tune, q
                 f"{s['rms_mean']:.5f} {units}, p95 {s['rms_p95']:.5f} {units}, max frame {s['rms_max']:.5f} {units}; "
                 f"largest vertex error {s['max_error']:.5f} {units}")
     rep.say(f"wrote {outdir / 'eval.json'}")
+
+
+def _eval_poses(outdir: Path, info: dict, truth, extras: dict, index: np.ndarray):
+    """The head's pose in the replay (None where it wrote head space) and in the truth, per replayed
+    frame, for comparing both in head space."""
+    if "rotation" not in extras or "translation" not in extras:
+        raise InputError("the truth has no head pose ('rotation' and 'translation' per frame) to compare in head space",
+                         path=truth, hint="compare in the take's space: --space take")
+    truth_pose = (extras["rotation"][index], extras["translation"][index])
+    if info.get("head_motion", "keep") == "remove":
+        return None, truth_pose
+    path = outdir / "handles.npz"
+    if not path.is_file():
+        raise InputError("no handles.npz here (the head's pose of every frame)", path=outdir,
+                         hint="re-run 'facepipe replay' with this version")
+    with np.load(path) as handles:
+        return (handles["rotation"].astype(np.float64), handles["translation"].astype(np.float64)), truth_pose
 
 
 def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertices: slice, tune: bool = False) -> None:

@@ -124,7 +124,7 @@ class _HeadFrames:
 
     def __init__(self, replay, model, size, truth_path, with_large):
         from facepipe.core.render import view_direction
-        from facepipe.pipeline.evaluate import load_truth, to_head_space
+        from facepipe.pipeline.evaluate import replay_truth, to_head_space
 
         self.replay, self.model = replay, model
         self.faces = model.triangles.astype(np.int64)
@@ -141,8 +141,7 @@ class _HeadFrames:
         self.panels = (["large scale"] if with_large else []) + ["final"]
         self.note = ""
         if truth_path is not None:
-            positions, index = load_truth(truth_path, replay.frame_numbers, model.n_vertices)
-            self.truth = (positions, index)
+            self.truth = replay_truth(truth_path, replay, model.n_vertices)
             self.color_max, self.largest = self._error_scale()
             self.norm = PowerNorm(0.5, 0.0, self.color_max)
             self.cmap = colormaps["YlOrRd"]
@@ -153,9 +152,7 @@ class _HeadFrames:
         return self.to_head_space(x, self.R[i], self.t[i]) if self.keep else np.asarray(x, dtype=np.float64)
 
     def _error(self, i) -> np.ndarray:
-        positions, index = self.truth
-        return np.linalg.norm(np.asarray(self.replay.positions[i], np.float64)
-                              - np.asarray(positions[index[i]], np.float64), axis=1)
+        return np.linalg.norm(self._head(self.replay.positions[i], i) - self.truth.head(i, self._head), axis=1)
 
     def _error_scale(self) -> tuple[float, float]:
         """One colour scale for the movie: the 99.5th percentile of the final error over up to 60
@@ -183,8 +180,7 @@ class _HeadFrames:
             images.append(render(large, self.faces, self.camera))
         images.append(render(final, self.faces, self.camera))
         if self.truth is not None:
-            positions, index = self.truth
-            truth = self._head(positions[index[i]], i)
+            truth = self.truth.head(i, self._head)
             images.append(render(truth, self.faces, self.camera))
             colors = self.cmap(self.norm(self._error(i)))[:, :3]
             images.append(render(truth, self.faces, self.camera, colors=colors))

@@ -25,7 +25,7 @@ from facepipe.errors import InputError
 from facepipe.core.render import frame_camera, render, view_direction
 from facepipe.export.common import check_targets
 from facepipe.io.outputs import check_output_path
-from facepipe.pipeline.evaluate import load_truth, to_head_space
+from facepipe.pipeline.evaluate import replay_truth, to_head_space
 from facepipe.pipeline.replay import NumpyEvaluator
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")
@@ -333,8 +333,8 @@ def _head_space_surfaces(replay, model, index: np.ndarray, truth_path) -> tuple[
         large = list(lg)
     truth = None
     if truth_path is not None:
-        tpos, tindex = load_truth(truth_path, replay.frame_numbers, model.n_vertices)
-        truth = [to_head(tpos[tindex[i]], i) for i in index]
+        known = replay_truth(truth_path, replay, model.n_vertices)
+        truth = [known.head(i, to_head) for i in index]
     return final, large, truth
 
 

@@ -69,6 +69,27 @@ def open_npz(path, expected: str, hint: str | None = None):
 TRUTH_EXPECTED = "a truth .npz with 'positions' (frames × vertices × 3) and optionally 'frame' (the take's frame numbers)"
 
 
+def read_truth_extras(path) -> dict:
+    """What else a truth file says of its frames, where it says it: ``time`` (F,) seconds, and the
+    head's pose ``rotation`` (F, 3, 3) and ``translation`` (F, 3) (world = R · head + t).
+
+    Raises
+    ------
+    InputError
+        A member of the wrong shape.
+    """
+    out = {}
+    with open_npz(path, TRUTH_EXPECTED) as data:
+        n = data["positions"].shape[0] if "positions" in data.files else None
+        for name, tail in (("time", ()), ("rotation", (3, 3)), ("translation", (3,))):
+            if name in data.files:
+                value = np.asarray(data[name], dtype=np.float64)
+                if value.shape != (n,) + tail:
+                    raise InputError(f"the truth's '{name}' has shape {value.shape}, expected {(n,) + tail}", path=path)
+                out[name] = value
+    return out
+
+
 def read_truth(path) -> tuple[np.ndarray, np.ndarray]:
     """A truth file's positions (F, V, 3) and frame numbers (F,) (0, 1, … when it has none).
 

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from facepipe.errors import InputError
-from facepipe.io.npz_file import read_truth
+from facepipe.io.npz_file import read_truth, read_truth_extras
 
 
 def parse_vertex_range(text: str | None, n_vertices: int) -> slice:
@@ -30,12 +32,14 @@ def parse_vertex_range(text: str | None, n_vertices: int) -> slice:
 
 
 def frame_errors(positions: np.ndarray, truth: np.ndarray, vertices: slice = slice(None),
-                 chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
+                 chunk: int = 64, pose=None, truth_pose=None) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame RMS and max vertex distance over a vertex subset, chunked (memmaps welcome).
 
     Parameters
     ----------
-    positions, truth : (T, V, 3) in the same space and units.
+    positions, truth : (T, V, 3) in the same space and units; or each in its own space, with
+        ``pose``, ``truth_pose`` = (rotation (T, 3, 3), translation (T, 3)) of the head in it
+        (world = R · head + t): then both are compared in head space.
 
     Returns
     -------
@@ -45,12 +49,23 @@ def frame_errors(positions: np.ndarray, truth: np.ndarray, vertices: slice = sli
     rms = np.empty(T)
     mx = np.empty(T)
     for s in range(0, T, chunk):
-        d = np.asarray(positions[s:s + chunk, vertices], dtype=np.float64) - np.asarray(
-            truth[s:s + chunk, vertices], dtype=np.float64)
+        rows = slice(s, s + chunk)
+        a = np.asarray(positions[rows, vertices], dtype=np.float64)
+        b = np.asarray(truth[rows, vertices], dtype=np.float64)
+        if pose is not None:
+            a = in_head_space(a, pose[0][rows], pose[1][rows])
+        if truth_pose is not None:
+            b = in_head_space(b, truth_pose[0][rows], truth_pose[1][rows])
+        d = a - b
         dist2 = np.einsum("tvc,tvc->tv", d, d)
-        rms[s:s + chunk] = np.sqrt(dist2.mean(axis=1))
-        mx[s:s + chunk] = np.sqrt(dist2.max(axis=1))
+        rms[rows] = np.sqrt(dist2.mean(axis=1))
+        mx[rows] = np.sqrt(dist2.max(axis=1))
     return rms, mx
+
+
+def in_head_space(x: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Frames of positions (T, V, 3) in head space: Rᵀ (x − t) per frame (world = R · head + t)."""
+    return np.einsum("tji,tvj->tvi", rotation, x - translation[:, None, :])
 
 
 def summarize(rms: np.ndarray, mx: np.ndarray) -> dict:
@@ -65,22 +80,54 @@ def summarize(rms: np.ndarray, mx: np.ndarray) -> dict:
     }
 
 
-def match_frames(replay_frames: np.ndarray, truth_frames: np.ndarray, path: str = "") -> np.ndarray:
-    """Index into the truth for each replayed frame number; InputError naming a frame it lacks."""
+def match_frames(replay_frames: np.ndarray, truth_frames: np.ndarray, path: str = "", replay_times=None,
+                 truth_times=None, report: dict | None = None) -> np.ndarray:
+    """Index into the truth for each replayed frame: by frame number; or, where the truth lacks some
+    of the replay's numbers but both have times and every replayed frame's time is within a
+    quarter frame of one of the truth's (trackers number frames from 1, many files from 0), by
+    time. ``report["frames_matched_by"]`` says which ("number" or "time"). InputError naming a
+    frame the truth lacks otherwise."""
     lookup = {int(f): i for i, f in enumerate(truth_frames)}
     missing = [int(f) for f in replay_frames if int(f) not in lookup]
-    if missing:
-        raise InputError(f"the truth has no frame {missing[0]} ({len(missing)} replayed frames missing)", path=path)
-    return np.array([lookup[int(f)] for f in replay_frames], dtype=np.int64)
+    report = {} if report is None else report
+    if not missing:
+        report["frames_matched_by"] = "number"
+        return np.array([lookup[int(f)] for f in replay_frames], dtype=np.int64)
+    by_time = _match_times(replay_times, truth_times)
+    if by_time is not None:
+        report["frames_matched_by"] = "time"
+        return by_time
+    hint = ("the truth's frame numbers must be the take's (or both must have times: 'time' in the truth)"
+            if truth_times is None else "the take's frames are not the truth's, by number or by time")
+    raise InputError(f"the truth has no frame {missing[0]} ({len(missing)} replayed frames missing)", path=path,
+                     hint=hint)
 
 
-def load_truth(path, frame_numbers: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+def _match_times(replay_times, truth_times) -> np.ndarray | None:
+    if replay_times is None or truth_times is None or len(truth_times) < 2:
+        return None
+    a = np.asarray(replay_times, dtype=np.float64)
+    b = np.asarray(truth_times, dtype=np.float64)
+    order = np.argsort(b)
+    sorted_b = b[order]
+    step = float(np.median(np.diff(sorted_b)))
+    if not (step > 0 and np.isfinite(a).all() and np.isfinite(b).all()):
+        return None
+    after = np.clip(np.searchsorted(sorted_b, a), 1, len(b) - 1)
+    nearest = np.where(np.abs(sorted_b[after - 1] - a) <= np.abs(sorted_b[after] - a), after - 1, after)
+    index = order[nearest]
+    return index.astype(np.int64) if (np.abs(b[index] - a) <= 0.25 * step).all() else None
+
+
+def load_truth(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=None,
+               report: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The truth of a replay: its positions and, per replayed frame, the truth's row.
 
     Parameters
     ----------
-    path : .npz with ``positions`` (F, V, 3) in the take's space and optionally ``frame`` (F,).
-    frame_numbers : (T,) the replay's frame numbers.
+    path : .npz with ``positions`` (F, V, 3) in the take's space and optionally ``frame`` (F,)
+        and ``time`` (F,).
+    frame_numbers, frame_times : (T,) the replay's frame numbers and times (see :func:`match_frames`).
     n_vertices : V of the model.
 
     Returns
@@ -96,7 +143,37 @@ def load_truth(path, frame_numbers: np.ndarray, n_vertices: int) -> tuple[np.nda
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
                          f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
-    return positions, match_frames(np.asarray(frame_numbers), frames, str(path))
+    times = read_truth_extras(path).get("time") if frame_times is not None else None
+    return positions, match_frames(np.asarray(frame_numbers), frames, str(path), frame_times, times, report)
+
+
+@dataclass
+class ReplayTruth:
+    """The truth of a replay's frames: the truth file's ``positions`` (F, V, 3), the row ``index``
+    (T,) of each replayed frame, and the truth's own head pose per replayed frame where the file
+    has one (``rotation`` (T, 3, 3), ``translation`` (T, 3); else None)."""
+
+    positions: np.ndarray
+    index: np.ndarray
+    rotation: np.ndarray | None = None
+    translation: np.ndarray | None = None
+
+    def head(self, i: int, replay_head) -> np.ndarray:
+        """Replayed frame ``i``'s truth in head space (V, 3): by the truth's own pose where it has
+        one, else by ``replay_head(x, i)`` (the replay's pose: the truth is in the take's space)."""
+        x = self.positions[self.index[i]]
+        if self.rotation is None:
+            return replay_head(x, i)
+        return to_head_space(x, self.rotation[i], self.translation[i])
+
+
+def replay_truth(path, replay, n_vertices: int) -> ReplayTruth:
+    """:func:`load_truth` for a replay folder (its frame numbers, else its times), with the truth's head pose."""
+    positions, index = load_truth(path, replay.frame_numbers, n_vertices, replay.times)
+    extras = read_truth_extras(path)
+    if "rotation" in extras and "translation" in extras:
+        return ReplayTruth(positions, index, extras["rotation"][index], extras["translation"][index])
+    return ReplayTruth(positions, index)
 
 
 def to_head_space(x, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
