@@ -447,6 +447,47 @@ def test_mesh_caches_replay_as_serially_beside_marker_takes(takes, cluster, tmp_
     assert np.array_equal(np.load(out / "take_smooth" / "positions.npy"), serial["take_smooth.mdd", "shell"])
 
 
+def test_2d_takes_replay_as_serially_with_the_shoots_camera(takes, cluster, tmp_path):
+    """A 2D landmark take (OpenFace CSV) of the rig's replayed face, filmed by a camera, batched
+    with --camera and --landmarks: the serial `facepipe replay` of it, to the bit, with its video
+    record; without --camera it fails saying what to give, the other takes go on."""
+    from threadpoolctl import threadpool_limits
+
+    from facepipe.core.camera import project_distorted
+    from facepipe.io.camera_file import write_camera
+    from tests.test_video import CAMERA, FACING, _openface_text
+
+    root, model, paths = takes
+    face = np.load(root / "serial" / paths[0].stem / "positions.npy").astype(np.float64)
+    rest = face[0]
+    front = np.flatnonzero(rest[:, 2] > np.percentile(rest[:, 2], 50))
+    vertices = front[np.linspace(0, len(front) - 1, 30).astype(int)]
+    (tmp_path / "landmarks.csv").write_text("name,vertex\n" + "".join(f"{i},{v}\n" for i, v in enumerate(vertices)))
+    camera = tmp_path / "camera.yml"
+    write_camera(camera, CAMERA)
+    seen = np.einsum("ij,tvj->tvi", FACING, face[:, vertices]) + np.array([0.0, 0.0, 60.0])
+    take = tmp_path / "shot_2d.csv"
+    times = np.arange(len(face)) / 30.0
+    take.write_text(_openface_text(np.arange(1, len(face) + 1), times, project_distorted(CAMERA, seen)))
+    with threadpool_limits(1):
+        assert run_cli("--quiet", "replay", take, "-m", model, "-o", tmp_path / "serial", "--backend", "numpy",
+                       "--camera", camera, "--landmarks", tmp_path / "landmarks.csv") == 0
+    out = tmp_path / "out"
+    args = ["--quiet", "batch", take, paths[1], "-m", model, "-o", out, "--scheduler", cluster.address,
+            "--backend", "numpy"]
+    assert run_cli(*args) == 2  # no camera: that take fails, saying what to give; the marker take is done
+    status = {t["name"]: t for t in json.loads((out / "batch.json").read_text())["takes"]}
+    assert status["shot_2d"]["status"] == "failed" and "--camera" in status["shot_2d"]["error"]
+    assert status[paths[1].stem]["status"] == "ok"
+    assert run_cli(*args, "--camera", camera, "--landmarks", tmp_path / "landmarks.csv") == 0, _errors(out)
+    assert np.array_equal(np.load(out / "shot_2d" / "positions.npy"), np.load(tmp_path / "serial" / "positions.npy"))
+    assert (out / "shot_2d" / "video.npz").is_file()
+    report = json.loads((out / "shot_2d" / "replay.json").read_text())
+    assert report["coordinates"].startswith("camera") and report["video"]["reprojection_px"]["mean"] < 1.0
+    assert run_cli("--quiet", "batch", take, "-m", model, "-o", out, "--backend", "numpy", "--camera",
+                   tmp_path / "nothere.yml") == 2  # a missing camera is said before any cluster
+
+
 @pytest.mark.slow
 def test_scheduler_from_the_environment_and_model_read_once_per_worker(takes, cluster, tmp_path, monkeypatch):
     root, model, paths = takes

@@ -44,6 +44,7 @@ from facepipe.errors import InputError
 from facepipe.export import registry as export_registry
 from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_path
+from facepipe.io.camera_file import read_camera
 from facepipe.io.model_file import load_model
 from facepipe.io.replay_folder import ReplayDir
 from facepipe.mocap import registry as take_registry
@@ -58,6 +59,7 @@ from facepipe.batch.worker_memory import reuse_freed_arrays
 from facepipe.pipeline.backend import cache_evaluator, marker_evaluator
 from facepipe.pipeline.cache_replay import replay_mesh_cache
 from facepipe.pipeline.replay import replay_windows
+from facepipe.pipeline.video_replay import landmark_map_for, replay_landmark_take
 
 STAMP_NAME = "batch_take.json"
 ATTEMPTS_NAME = "batch_attempts.jsonl"
@@ -65,8 +67,9 @@ REPORT_NAME = "batch.json"
 # PoCL's CPU driver's threads per process (read when the driver starts): PoCL 3's pthread
 # device, and the name PoCL 4 and later read
 POCL_THREADS_ENV = ("POCL_MAX_PTHREAD_COUNT", "POCL_CPU_MAX_CU_COUNT")
-# the options that concern mesh caches alone
-CACHE_OPTIONS = ("large_scale", "rest_frame", "cache_fps")
+# the options of mesh caches and 2D takes: in a fingerprint only where given (stamps written
+# before they were options stay valid)
+NEWER_OPTIONS = ("large_scale", "rest_frame", "cache_fps", "lift", "min_confidence")
 
 
 # ============================================================================= what a take's task gets
@@ -75,8 +78,9 @@ CACHE_OPTIONS = ("large_scale", "rest_frame", "cache_fps")
 @dataclass(frozen=True)
 class ReplayOptions:
     """``facepipe replay``'s options for the takes of a batch (their defaults are replay's): the
-    marker takes' (subject, cleaning, stabilising, neutral) and the mesh caches' (large_scale,
-    rest_frame, cache_fps), each applied to the takes it concerns."""
+    marker takes' (subject, cleaning, stabilising, neutral), the mesh caches' (large_scale,
+    rest_frame, cache_fps) and the 2D takes' (camera, landmarks, lift, min_confidence), each
+    applied to the takes it concerns."""
 
     backend: str = "auto"
     device: str | None = None
@@ -94,15 +98,24 @@ class ReplayOptions:
     large_scale: str | None = None  # mesh caches: "take" (None: the default) or "shell"
     rest_frame: int | None = None
     cache_fps: float | None = None
+    camera: str | None = None  # 2D landmark takes: the camera's calibration
+    landmarks: str | None = None  # 2D takes: name,vertex map (None: the model's)
+    lift: str | None = None  # 2D takes: "model" (None: the default) or "heuristic"
+    min_confidence: float | None = None  # 2D takes: None: replay's default
 
     def fingerprint(self) -> dict:
         """What decides the outputs: every option but where the evaluation runs (the backend and
         device give the same positions to rounding; chunk none at all), and the neutral take's
-        content rather than its path. The mesh caches' options count where given (a batch of
-        marker takes keeps the stamps it wrote before they were options)."""
+        content rather than its path (the camera's and landmark map's too). The mesh caches' and 2D
+        takes' options count where given (a batch of marker takes keeps the stamps it wrote before
+        they were options)."""
         key = {k: v for k, v in asdict(self).items()
-               if k not in ("device", "chunk", "neutral_take") and not (k in CACHE_OPTIONS and v is None)}
+               if k not in ("device", "chunk", "neutral_take", "camera", "landmarks")
+               and not (k in NEWER_OPTIONS and v is None)}
         key["neutral_take_digest"] = file_digest(self.neutral_take) if self.neutral_take else None
+        for name in ("camera", "landmarks"):
+            if getattr(self, name):
+                key[f"{name}_digest"] = file_digest(getattr(self, name))
         return key
 
     def marker_take(self) -> MarkerTakeOptions:
@@ -355,10 +368,9 @@ def replay_into(take_path: str, out_dir: Path, model, model_ref: ModelRef, optio
     """Replay a take (markers or a mesh cache) into ``out_dir`` as ``facepipe replay`` does; its
     replay.json report. The marker evaluator is this process's for the model (held while it
     evaluates); a mesh cache replayed as a take has an evaluator of its own."""
-    if is_landmark_take(take_path):
-        raise InputError("a 2D landmark take: batch replays marker takes and mesh caches", path=take_path,
-                         hint="replay it with 'facepipe replay TAKE --camera … --landmarks …'")
     cache = mesh_cache_format(take_path) is not None
+    if not cache and is_landmark_take(take_path):
+        return _replay_2d(take_path, out_dir, model, model_ref, options, extra)
     mode = options.large_scale or "take"
     if cache and mode == "take":
         batch = dict(extra["batch"], note=None)  # replay.json's, filled in before it is written
@@ -388,6 +400,25 @@ def replay_into(take_path: str, out_dir: Path, model, model_ref: ModelRef, optio
         result = replay_windows(model, marker_take.prepared.windows(), marker_take.take.frames, marker_take.take.times,
                                 out_dir, chunk=options.chunk, evaluator=evaluator, head_motion=options.head_motion,
                                 extra_report=lambda: {**marker_take.report(), **extra}, save_large=options.save_large)
+    return result.report
+
+
+def _replay_2d(take_path: str, out_dir: Path, model, model_ref: ModelRef, options: ReplayOptions, extra: dict) -> dict:
+    """A 2D landmark take replayed as ``facepipe replay TAKE --camera …`` does; its replay.json report."""
+    if options.camera is None:
+        raise InputError("a 2D landmark take needs the camera's calibration", path=take_path,
+                         hint="batch 2D takes with --camera CALIBRATION.yml (OpenCV FileStorage) or .json")
+    min_confidence = 0.5 if options.min_confidence is None else options.min_confidence
+    camera = read_camera(options.camera)
+    landmark_map = landmark_map_for(model, options.landmarks, take_path)
+    evaluator, lock, note = cached_evaluator(model_ref, model, options)
+    with lock:
+        _reset_counters(evaluator)
+        result, _ = replay_landmark_take(model, take_path, out_dir, camera, landmark_map, lambda m: evaluator,
+                                         lift=options.lift or "model", frames=_frame_slice(options.frames),
+                                         head_motion=options.head_motion, chunk=options.chunk,
+                                         save_large=options.save_large, min_confidence=min_confidence,
+                                         extra_report={"batch": dict(extra["batch"], note=note)})
     return result.report
 
 
@@ -626,7 +657,11 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
         export_registry.get_format(fmt)
     batch_id = uuid.uuid4().hex[:8]  # task keys unique on a long-lived cluster; attempts know their batch
     jobs = plan_jobs(expand_takes(take_specs), out, batch_id)
-    load_model(model_path)  # a bad model is the user's to fix (exit 2), before any cluster starts
+    model = load_model(model_path)  # a bad model is the user's to fix (exit 2), before any cluster starts
+    if options.camera is not None:  # so are the 2D takes' camera and landmark map
+        read_camera(options.camera)
+    if options.landmarks is not None:
+        landmark_map_for(model, options.landmarks, None)
     model_ref = ModelRef(str(Path(model_path).resolve()), file_digest(model_path))
     options_key = options.fingerprint()
     progress = progress or (lambda record: None)

@@ -59,17 +59,26 @@ from facepipe.export import registry as export_formats
               help="Mesh caches: frame number checked against the model's rest mesh [default: the first].")
 @click.option("--cache-fps", type=float, default=None,
               help="Mesh caches: frame rate, for PC2 and OBJ sequences that store none (30), or overriding the file's.")
+@click.option("--camera", "camera_path", default=None, type=click.Path(dir_okay=False),
+              help="2D landmark takes: the camera's calibration (OpenCV FileStorage .yml/.xml, or .json), for all of them.")
+@click.option("--landmarks", "landmarks_path", default=None, type=click.Path(dir_okay=False),
+              help="2D takes: name,vertex CSV from the tracker's point names to rig vertices [default: the model's].")
+@click.option("--lift", type=click.Choice(["model", "heuristic"]), default=None,
+              help="2D takes, as for replay [default: model].")
+@click.option("--min-confidence", type=float, default=None,
+              help="2D takes (OpenFace): rows below this tracking confidence are missing frames [default: 0.5].")
 @_common
 @click.pass_context
 def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler_file, force, retries, connect_timeout,
           backend, device, frames_text, chunk, head_motion, save_large_scale, neutral_frame, neutral_take, take_units,
-          subject, no_stabilise, no_clean, smooth, large_scale, rest_frame, cache_fps, quiet, verbose):
+          subject, no_stabilise, no_clean, smooth, large_scale, rest_frame, cache_fps, camera_path, landmarks_path, lift,
+          min_confidence, quiet, verbose):
     """Replay every TAKE (files, folders of takes, glob patterns) onto MODEL on a Dask cluster, as
     'facepipe replay' would one by one: OUTPUT/<take stem>/positions.npy and replay.json.
 
-    Takes are marker takes and mesh caches (USD, MDD, PC2; an OBJ sequence is a folder of OBJ
-    files or a frame_%04d.obj pattern, named after its folder); each option applies to the takes
-    it concerns.
+    Takes are marker takes, mesh caches (USD, MDD, PC2; an OBJ sequence is a folder of OBJ files
+    or a frame_%04d.obj pattern, named after its folder) and 2D landmark takes (with --camera);
+    each option applies to the takes it concerns.
 
     Takes whose outputs exist from the same model, take and options are skipped (--force redoes
     them); a take whose worker dies runs again elsewhere; a bad take is reported and the rest go on.
@@ -82,15 +91,18 @@ def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler
     checks = [(workers is None or workers >= 1, "--workers must be at least 1"), (chunk >= 1, "--chunk must be at least 1"),
               (smooth >= 0, "--smooth must be 0 (off) or a positive number of frames"),
               (retries >= 0, "--retries must be 0 or more"), (connect_timeout > 0, "--connect-timeout must be positive"),
-              (cache_fps is None or cache_fps > 0, "--cache-fps must be positive")]
+              (cache_fps is None or cache_fps > 0, "--cache-fps must be positive"),
+              (min_confidence is None or 0.0 <= min_confidence <= 1.0, "--min-confidence must be within 0..1")]
     for ok, message in checks:
         if not ok:
             raise InputError(message)
     options = ReplayOptions(backend=backend, device=device, frames=frames_text, chunk=chunk, head_motion=head_motion,
                             save_large=save_large_scale, neutral_frame=neutral_frame,
-                            neutral_take=str(Path(neutral_take).resolve()) if neutral_take else None,
+                            neutral_take=_absolute(neutral_take),
                             take_units=take_units, subject=subject, stabilise=not no_stabilise, clean=not no_clean,
-                            smooth=smooth, large_scale=large_scale, rest_frame=rest_frame, cache_fps=cache_fps)
+                            smooth=smooth, large_scale=large_scale, rest_frame=rest_frame, cache_fps=cache_fps,
+                            camera=_absolute(camera_path), landmarks=_absolute(landmarks_path), lift=lift,
+                            min_confidence=min_confidence)
     cluster = ClusterSpec(workers=workers, scheduler=scheduler, scheduler_file=scheduler_file,
                           connect_timeout=connect_timeout)
     bars = []  # opened once the takes and the model are found good, so bad input is said alone
@@ -112,6 +124,11 @@ def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler
             bar.close()
     _summary(rep, result, Path(output))
     return result.exit_status
+
+
+def _absolute(path: str | None) -> str | None:
+    """A path as every worker finds it, whatever its working directory."""
+    return str(Path(path).resolve()) if path else None
 
 
 def _summary(rep, result, out: Path) -> None:
