@@ -103,7 +103,9 @@ def detect_format(path: Path, name: str | None = None) -> Format:
         f"unknown mocap format {path.suffix or '(no suffix)'!r}",
         path=path,
         hint=f"supported: {', '.join(sorted({s for f in FORMATS.values() for s in f.suffixes}))} "
-        "(a facepipe CSV starts with 'frame,time,')",
+        "(a facepipe CSV starts with 'frame,time,')" + (
+            f"; mesh caches: {', '.join(sorted({s for f in MESH_CACHES.values() if f.match is None for s in f.suffixes}))}"
+            ", or an OBJ sequence (a folder of OBJ files, or frame_%04d.obj)" if MESH_CACHES else ""),
     )
 
 
