@@ -142,6 +142,30 @@ def _classified(kit):
     return out
 
 
+def test_a_2d_takes_replay_is_classified_through_its_camera(kit, tmp_path, capsys):
+    """The take's geometry as a 2D take's replay writes it (camera coordinates, replay.json says
+    so) reads the same Q as the take in world space through the model's camera transform."""
+    from facepipe.io.appearance_file import load_appearance
+
+    model = load_appearance(kit / "app.npz")
+    with np.load(kit / "appearance" / "take.npz") as geometry:
+        world, frames = geometry["positions"], geometry["frame"]
+    replay = tmp_path / "replay"
+    replay.mkdir()
+    np.save(replay / "positions.npy", (world @ model.rotation.T + model.translation).astype(np.float32))
+    (replay / "replay.json").write_text(json.dumps({"frame_numbers": frames.tolist(), "times": (frames / 30).tolist(),
+                                                    "coordinates": "camera (OpenCV axes, rig units)"}))
+    out = tmp_path / "cls"
+    assert _run("appearance", "classify", kit / "app.npz", kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", replay, "-o", out) == 0
+    assert "classified through that camera" in capsys.readouterr().out
+    q_camera = np.loadtxt(out / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    q_world = np.loadtxt(_classified(kit) / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    assert np.abs(q_camera - q_world).max() < 0.02  # (the positions rounded to float32)
+    # as a replay in the model's world space (no coordinates said) it would be through the model's transform
+    assert np.abs(q_world).max() > 1.0
+
+
 def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
     import cv2
 

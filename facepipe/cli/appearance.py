@@ -72,10 +72,12 @@ def classify_command(model_path, footage, geometry, output, fps, rep):
     from facepipe.core.appearance import stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
     from facepipe.io.footage import open_footage
-    from facepipe.pipeline.appearance import _read_geometry, classify_frames
+    from facepipe.pipeline.appearance import classify_frames, take_geometry
 
     model = load_appearance(model_path)
-    positions, numbers = _read_geometry(geometry, model.n_vertices)
+    positions, numbers, model, note = take_geometry(geometry, model)
+    if note:
+        rep.say(f"note: {note}")
     times = numbers / fps
     start = time.perf_counter()
     opened = open_footage(footage)  # its errors before the progress bar opens

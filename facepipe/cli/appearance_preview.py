@@ -19,7 +19,7 @@ from facepipe.core.camera import project_distorted_fast
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import load_appearance, read_stream
 from facepipe.io.footage import open_footage, read_frames
-from facepipe.pipeline.appearance import _read_geometry
+from facepipe.pipeline.appearance import take_geometry
 
 __all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 
@@ -57,7 +57,7 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     if model.corner_uv is None:
         raise InputError("the appearance model has no UVs to render its texture with", path=model_path or info["model"],
                          hint="build it again with this facepipe version: facepipe appearance build CONFIG")
-    positions, geo_numbers = _read_geometry(info["geometry"], model.n_vertices)
+    positions, geo_numbers, model, _ = take_geometry(info["geometry"], model)
     index = _shown(numbers, q, frame_numbers, strip)
     row_of = {int(n): i for i, n in enumerate(geo_numbers)}
     images = {n: (image, problem) for n, image, problem in read_frames(open_footage(info["footage"]),

@@ -24,6 +24,8 @@ frame is missing keeps its last value, decaying to neutral.
 
 from __future__ import annotations
 
+import dataclasses
+
 import queue
 import threading
 from dataclasses import dataclass
@@ -239,6 +241,34 @@ def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"positions have shape {positions.shape}, the rest mesh has {n_vertices} vertices",
                          path=path, hint="give the geometry of this rig's mesh")
     return positions, np.asarray(numbers, dtype=np.int64)
+
+
+def take_geometry(path, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray, AppearanceModel, str | None]:
+    """The geometry of a take to classify (an .npz or a replay folder, see :func:`_read_geometry`):
+    positions (T, V, 3), frame numbers (T,), the model to classify them with, and a note or None.
+
+    A 2D take's replay is written in its camera's coordinates (``replay.json``: ``coordinates``)
+    and its footage is that camera's: the model classifies it through that camera, its positions
+    taken as they are (the model's world-to-camera transform, which is the example footage's, is
+    the identity here). The note says so, and where that calibration is not the model's."""
+    from pathlib import Path
+
+    from facepipe.io.replay_folder import ReplayDir
+
+    positions, numbers = _read_geometry(path, model.n_vertices)
+    if not Path(path).is_dir():
+        return positions, numbers, model, None
+    replay = ReplayDir(path)
+    if not str(replay.info.get("coordinates", "")).startswith("camera"):
+        return positions, numbers, model, None
+    video = replay.video
+    camera = model.camera if video is None else video.camera
+    same = (camera.width, camera.height) == (model.camera.width, model.camera.height) and np.allclose(
+        camera.matrix, model.camera.matrix) and np.allclose(np.ravel(camera.distortion), np.ravel(model.camera.distortion))
+    note = ("the geometry is a 2D take's replay, in its camera's coordinates: classified through that camera"
+            + ("" if same else " (not the calibration the model was built with: its footage is that camera's)"))
+    through = dataclasses.replace(model, rotation=np.eye(3), translation=np.zeros(3), camera=camera)
+    return positions, numbers, through, note
 
 
 def _example_frames(cfg, footage_numbers_needed, positions, numbers, camera: Camera) -> dict:
