@@ -365,42 +365,50 @@ def _reset_counters(evaluator) -> None:
 
 
 def replay_into(take_path: str, out_dir: Path, model, model_ref: ModelRef, options: ReplayOptions, extra: dict) -> dict:
-    """Replay a take (markers or a mesh cache) into ``out_dir`` as ``facepipe replay`` does; its
-    replay.json report. The marker evaluator is this process's for the model (held while it
-    evaluates); a mesh cache replayed as a take has an evaluator of its own."""
-    cache = mesh_cache_format(take_path) is not None
-    if not cache and is_landmark_take(take_path):
+    """Replay a take (markers, a mesh cache or a 2D landmark take) into ``out_dir`` as ``facepipe
+    replay`` does; its replay.json report. The marker evaluator is this process's for the model
+    (held while it evaluates); a mesh cache replayed as a take has an evaluator of its own."""
+    if mesh_cache_format(take_path) is not None:
+        return _replay_cache(take_path, out_dir, model, model_ref, options, extra)
+    if is_landmark_take(take_path):
         return _replay_2d(take_path, out_dir, model, model_ref, options, extra)
-    mode = options.large_scale or "take"
-    if cache and mode == "take":
-        batch = dict(extra["batch"], note=None)  # replay.json's, filled in before it is written
+    evaluator, lock, note = cached_evaluator(model_ref, model, options)
+    extra = {"batch": dict(extra["batch"], note=note)}
+    with lock:
+        _reset_counters(evaluator)
+        marker_take = read_marker_take(take_path, model, options.marker_take())
+        result = replay_windows(model, marker_take.prepared.windows(), marker_take.take.frames, marker_take.take.times,
+                                out_dir, chunk=options.chunk, evaluator=evaluator, head_motion=options.head_motion,
+                                extra_report=lambda: {**marker_take.report(), **extra}, save_large=options.save_large)
+    return result.report
 
+
+def _replay_cache(take_path: str, out_dir: Path, model, model_ref: ModelRef, options: ReplayOptions,
+                  extra: dict) -> dict:
+    """A mesh cache replayed as ``facepipe replay CACHE`` does: as a take (an evaluator of its own,
+    OpenCL where the backend allows) or through the shell (this process's marker evaluator)."""
+    mode = options.large_scale or "take"
+    batch = dict(extra["batch"], note=None)  # replay.json's, filled in before it is written
+
+    def replay(**evaluators):
+        return replay_mesh_cache(model, take_path, out_dir, large_scale=mode, rest_frame=options.rest_frame,
+                                 take_units=options.take_units, cache_fps=options.cache_fps,
+                                 frames=_frame_slice(options.frames), head_motion=options.head_motion,
+                                 chunk=options.chunk, save_large=options.save_large, extra_report={"batch": batch},
+                                 **evaluators).report
+
+    if mode == "take":
         def engine(details):
             notes = []
             evaluator = cache_evaluator(details, options.backend, options.device, options.chunk, note=notes.append)
             batch["note"] = notes[0] if notes else None
             return evaluator
 
-        return replay_mesh_cache(model, take_path, out_dir, large_scale=mode, rest_frame=options.rest_frame,
-                                 take_units=options.take_units, cache_fps=options.cache_fps,
-                                 frames=_frame_slice(options.frames), head_motion=options.head_motion,
-                                 chunk=options.chunk, save_large=options.save_large, take_engine=engine,
-                                 extra_report={"batch": batch}).report
-    evaluator, lock, note = cached_evaluator(model_ref, model, options)
-    extra = {"batch": dict(extra["batch"], note=note)}
+        return replay(take_engine=engine)
+    evaluator, lock, batch["note"] = cached_evaluator(model_ref, model, options)
     with lock:
         _reset_counters(evaluator)
-        if cache:
-            return replay_mesh_cache(model, take_path, out_dir, large_scale=mode, rest_frame=options.rest_frame,
-                                     take_units=options.take_units, cache_fps=options.cache_fps,
-                                     frames=_frame_slice(options.frames), head_motion=options.head_motion,
-                                     chunk=options.chunk, save_large=options.save_large,
-                                     marker_evaluator=lambda m: evaluator, extra_report=extra).report
-        marker_take = read_marker_take(take_path, model, options.marker_take())
-        result = replay_windows(model, marker_take.prepared.windows(), marker_take.take.frames, marker_take.take.times,
-                                out_dir, chunk=options.chunk, evaluator=evaluator, head_motion=options.head_motion,
-                                extra_report=lambda: {**marker_take.report(), **extra}, save_large=options.save_large)
-    return result.report
+        return replay(marker_evaluator=lambda m: evaluator)
 
 
 def _replay_2d(take_path: str, out_dir: Path, model, model_ref: ModelRef, options: ReplayOptions, extra: dict) -> dict:
