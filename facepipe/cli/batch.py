@@ -12,6 +12,7 @@ from pathlib import Path
 import click
 
 from facepipe.cli.commands import _common, _reporter
+from facepipe.cli.take_options import landmark_take_options, mesh_cache_options
 from facepipe.errors import InputError
 from facepipe.export import registry as export_formats
 
@@ -52,21 +53,8 @@ from facepipe.export import registry as export_formats
 @click.option("--no-clean", is_flag=True, help="No prior-based cleaning: gaps only interpolated (PCHIP).")
 @click.option("--smooth", type=float, default=0.0, show_default=True,
               help="Temporal smoothing of the cleaned markers: Gaussian sigma in frames (0 = off).")
-@click.option("--large-scale", type=click.Choice(["take", "shell"]), default=None,
-              help="Mesh caches, as for replay: take = the cache's surface plus the band of details it lacks "
-                   "[default]; shell = its handle vertices replayed as markers.")
-@click.option("--rest-frame", type=int, default=None,
-              help="Mesh caches: frame number checked against the model's rest mesh [default: the first].")
-@click.option("--cache-fps", type=float, default=None,
-              help="Mesh caches: frame rate, for PC2 and OBJ sequences that store none (30), or overriding the file's.")
-@click.option("--camera", "camera_path", default=None, type=click.Path(dir_okay=False),
-              help="2D landmark takes: the camera's calibration (OpenCV FileStorage .yml/.xml, or .json), for all of them.")
-@click.option("--landmarks", "landmarks_path", default=None, type=click.Path(dir_okay=False),
-              help="2D takes: name,vertex CSV from the tracker's point names to rig vertices [default: the model's].")
-@click.option("--lift", type=click.Choice(["model", "heuristic"]), default=None,
-              help="2D takes, as for replay [default: model].")
-@click.option("--min-confidence", type=float, default=None,
-              help="2D takes (OpenFace): rows below this tracking confidence are missing frames [default: 0.5].")
+@mesh_cache_options
+@landmark_take_options
 @_common
 @click.pass_context
 def batch(ctx, takes, model_path, output, exports, workers, scheduler, scheduler_file, force, retries, connect_timeout,

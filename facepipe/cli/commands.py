@@ -20,6 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from facepipe.cli.interrupts import terminate_as_interrupt
+from facepipe.cli.take_options import DEFAULT_LIFT, DEFAULT_MIN_CONFIDENCE, landmark_take_options, mesh_cache_options
 from facepipe.errors import InputError
 from facepipe.export import registry as export_formats  # names the formats without importing them
 from facepipe.io.atomic import atomic_path
@@ -187,23 +188,10 @@ def _refuse_options_not_for(kind, take, given):
               help="No prior-based cleaning (noise, outliers, long gaps): gaps are only interpolated (PCHIP).")
 @click.option("--smooth", type=float, default=0.0, show_default=True,
               help="Temporal smoothing of the cleaned markers: Gaussian sigma in frames (0 = off).")
-@click.option("--camera", "camera_path", default=None, type=click.Path(dir_okay=False),
-              help="2D takes: the camera's calibration (OpenCV FileStorage .yml/.xml, or .json).")
-@click.option("--landmarks", "landmarks_path", default=None, type=click.Path(dir_okay=False),
-              help="2D takes: name,vertex CSV from the tracker's point names to rig vertices.")
-@click.option("--lift", type=click.Choice(["model", "heuristic"]), default="model", show_default=True,
-              help="2D takes: pose and expression through the rig's examples, or Fidaleo et al.'s heuristic.")
-@click.option("--min-confidence", type=float, default=0.5, show_default=True,
-              help="2D takes (OpenFace): rows below this tracking confidence are missing frames.")
+@landmark_take_options
 @click.option("--force", is_flag=True, help="Replace an earlier replay in OUTPUT (its results, eval.json included, "
               "are removed).")
-@click.option("--large-scale", "large_scale", type=click.Choice(["take", "shell"]), default=None,
-              help="Mesh caches (USD, MDD, PC2, OBJ sequence): take = the cache's surface plus the band of details it "
-                   "lacks (estimated on the cache) [default]; shell = its handle vertices replayed as markers.")
-@click.option("--rest-frame", type=int, default=None,
-              help="Mesh caches: frame number checked against the model's rest mesh [default: the first].")
-@click.option("--cache-fps", type=float, default=None,
-              help="Mesh caches: frame rate, for PC2 and OBJ sequences that store none (30), or overriding the file's.")
+@mesh_cache_options
 @_common
 @click.pass_context
 def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, head_motion, save_large_scale, edits_path,
@@ -247,8 +235,8 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         "--no-stabilise": no_stabilise and kind != "marker take",
         "--no-clean": no_clean and kind != "marker take",
         "--smooth": smooth != 0 and kind != "marker take",
-        "--lift": lift != "model" and kind != "2D landmark take",
-        "--min-confidence": min_confidence != 0.5 and kind != "2D landmark take",
+        "--lift": lift is not None and kind != "2D landmark take",
+        "--min-confidence": min_confidence is not None and kind != "2D landmark take",
     })
     if kind == "mesh cache":
         from facepipe.cli.cache_replay import replay_cache
@@ -265,8 +253,9 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         from facepipe.cli.video import replay_video
 
         return replay_video(rep, take, model_path, output, camera_path=camera_path, landmarks_path=landmarks_path,
-                            lift=lift, frames_text=frames_text, head_motion=head_motion, chunk=chunk,
-                            save_large=save_large_scale, min_confidence=min_confidence,
+                            lift=lift or DEFAULT_LIFT, frames_text=frames_text, head_motion=head_motion, chunk=chunk,
+                            save_large=save_large_scale,
+                            min_confidence=DEFAULT_MIN_CONFIDENCE if min_confidence is None else min_confidence,
                             make_evaluator=lambda model: _make_evaluator(model, backend, device, chunk, rep))
     if smooth < 0:
         raise InputError("--smooth must be 0 (off) or a positive number of frames")
