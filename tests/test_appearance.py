@@ -166,6 +166,41 @@ def test_a_2d_takes_replay_is_classified_through_its_camera(kit, tmp_path, capsy
     assert np.abs(q_world).max() > 1.0
 
 
+def test_one_camera_gives_geometry_and_appearance(kit, tmp_path):
+    """Fidaleo et al.'s monocular take end to end: landmarks tracked in the footage (the truth's
+    projected through the kit's camera, 0.3 px noise) replayed as a 2D take, and the same
+    footage classified with that replay's geometry: Q tracks the truth activation about as well
+    as with the truth geometry."""
+    import tomllib
+
+    from facepipe.core.camera import project_distorted
+    from facepipe.io.camera_file import read_camera
+    from tests.test_video import _openface_text
+
+    app = kit / "appearance"
+    config = tomllib.loads((app / "appearance.toml").read_text())["appearance"]
+    R, t = np.array(config["camera_rotation"]), np.array(config["camera_translation"])
+    camera = read_camera(app / "camera.json")
+    with np.load(app / "take.npz") as geometry:
+        world, frames = geometry["positions"], geometry["frame"]
+    front = np.flatnonzero(world[0, :, 2] > np.percentile(world[0, :, 2], 60))
+    vertices = front[np.linspace(0, len(front) - 1, 68).astype(int)]
+    (tmp_path / "landmarks.csv").write_text("name,vertex\n" + "".join(f"{i},{v}\n" for i, v in enumerate(vertices)))
+    pixels = project_distorted(camera, world[:, vertices] @ R.T + t)
+    pixels += np.random.default_rng(0).normal(scale=0.3, size=pixels.shape)
+    (tmp_path / "tracked.csv").write_text(_openface_text(frames, frames / 30.0, pixels))
+    assert _run("bake", kit / "sample.toml", "--no-tune", "-o", tmp_path / "model.npz", "-q") == 0
+    assert _run("replay", tmp_path / "tracked.csv", "-m", tmp_path / "model.npz", "--camera", app / "camera.json",
+                "--landmarks", tmp_path / "landmarks.csv", "-o", tmp_path / "replay", "-q") == 0
+    assert _run("appearance", "classify", kit / "app.npz", app / "take" / "frame_%04d.png", "--geometry",
+                tmp_path / "replay", "-o", tmp_path / "cls", "-q") == 0
+    q = np.loadtxt(tmp_path / "cls" / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    q_truth_geometry, truth = _q_and_truth(kit, "take")
+    rho = [spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])]
+    rho_truth_geometry = [spearmanr(q_truth_geometry[:, r], truth[:, r]).statistic for r in range(q.shape[1])]
+    assert np.median(rho) > 0.85 and np.median(rho) > np.median(rho_truth_geometry) - 0.08, (rho, rho_truth_geometry)
+
+
 def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
     import cv2
 
