@@ -228,6 +228,35 @@ def test_camera_files(tmp_path):
         read_camera(tmp_path / "garbage.yml")
 
 
+def test_calibrations_other_tools_write(tmp_path):
+    """JSON that OpenCV's FileStorage writes (opencv-matrix objects), and the names other tools
+    give the intrinsics, read as the same camera."""
+    import cv2
+
+    from facepipe.io.camera_file import read_camera
+
+    fs = cv2.FileStorage(str(tmp_path / "opencv.json"), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", 1280)
+    fs.write("image_height", 720)
+    fs.write("camera_matrix", MATRIX)
+    fs.write("distortion_coefficients", DIST.reshape(1, -1))
+    fs.release()
+    fx, fy, cx, cy = MATRIX[0, 0], MATRIX[1, 1], MATRIX[0, 2], MATRIX[1, 2]
+    variants = {"opencv.json": None,
+                "k.json": {"K": MATRIX.tolist(), "dist": DIST.tolist(), "resolution": [1280, 720]},
+                "focal.json": {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "D": DIST.tolist(), "width": 1280,
+                               "height": 720}}
+    for name, content in variants.items():
+        if content is not None:
+            (tmp_path / name).write_text(json.dumps(content))
+        cam = read_camera(tmp_path / name)
+        assert np.allclose(cam.matrix, MATRIX) and np.allclose(cam.distortion, DIST), name
+        assert (cam.width, cam.height) == (1280, 720), name
+    (tmp_path / "nomatrix.json").write_text(json.dumps({"width": 640, "height": 480}))
+    with pytest.raises(InputError, match="lacks 'camera_matrix'"):
+        read_camera(tmp_path / "nomatrix.json")
+
+
 def test_landmark_map_errors(tmp_path):
     from facepipe.io.landmark_map import read_landmark_map
 

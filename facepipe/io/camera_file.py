@@ -1,8 +1,9 @@
 """Camera calibration files: OpenCV FileStorage (YAML/XML, as ``cv2.FileStorage`` writes) or JSON.
 
 Keys: ``image_width``, ``image_height``, ``camera_matrix`` (3 × 3) and ``distortion_coefficients``
-(FileStorage) or ``dist_coeffs`` (JSON; ``distortion_coefficients`` is accepted too). The
-FileStorage form is read by OpenCV itself, so whatever ``cv2.FileStorage`` writes reads back.
+(FileStorage) or ``dist_coeffs`` (JSON; ``distortion_coefficients`` is accepted too, and the
+names other tools use: see :func:`_read_json`). The FileStorage form is read by OpenCV itself,
+so whatever ``cv2.FileStorage`` writes reads back, in YAML, XML or JSON.
 """
 
 from __future__ import annotations
@@ -43,23 +44,46 @@ def read_camera(path) -> Camera:
     return _checked(path, matrix, dist, width, height)
 
 
+#: names calibration tools give the same things in JSON, first the ones facepipe writes
+_MATRIX_KEYS = ("camera_matrix", "K", "intrinsics", "intrinsic_matrix")
+_DISTORTION_KEYS = ("dist_coeffs", "distortion_coefficients", "dist", "distortion", "D")
+_SIZE_KEYS = (("image_width", "image_height"), ("width", "height"))
+_SIZE_PAIR_KEYS = ("image_size", "resolution", "size")
+
+
 def _read_json(path: Path):
+    """A JSON calibration: facepipe's (image_width, image_height, camera_matrix, dist_coeffs), one
+    OpenCV's FileStorage wrote (its matrices as ``opencv-matrix`` objects: read by OpenCV), or the
+    same under the names other tools use (K / intrinsics, or fx fy cx cy; dist / distortion / D;
+    width and height, or image_size / resolution [w, h])."""
     try:
         data = json.loads(path.read_text(encoding="utf-8-sig"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"not a readable JSON calibration ({exc})", path=path, hint=_HINT) from None
     if not isinstance(data, dict):
         raise InputError("the JSON calibration is not an object of keys", path=path, hint=_HINT)
-    dist = data.get("dist_coeffs", data.get("distortion_coefficients", []))
-    for key in ("image_width", "image_height", "camera_matrix"):
-        if key not in data:
-            raise InputError(f"the calibration lacks {key!r}", path=path, hint=_HINT)
+    if any(isinstance(v, dict) and v.get("type_id") == "opencv-matrix" for v in data.values()):
+        return _read_filestorage(path)
+    matrix = next((data[k] for k in _MATRIX_KEYS if k in data), None)
+    if matrix is None and all(k in data for k in ("fx", "fy", "cx", "cy")):
+        matrix = [[data["fx"], data.get("skew", 0.0), data["cx"]], [0.0, data["fy"], data["cy"]], [0.0, 0.0, 1.0]]
+    if matrix is None:
+        raise InputError("the calibration lacks 'camera_matrix' (or K, or fx fy cx cy)", path=path, hint=_HINT)
+    dist = next((data[k] for k in _DISTORTION_KEYS if k in data), [])
+    size = next(((data[w], data[h]) for w, h in _SIZE_KEYS if w in data and h in data), None)
+    if size is None:
+        pair = next((data[k] for k in _SIZE_PAIR_KEYS if k in data), None)
+        if isinstance(pair, (list, tuple)) and len(pair) == 2:
+            size = tuple(pair)
+    if size is None:
+        raise InputError("the calibration lacks 'image_width' and 'image_height' (or image_size [w, h])", path=path,
+                         hint=_HINT)
     try:
-        matrix = np.asarray(data["camera_matrix"], dtype=np.float64)
+        matrix = np.asarray(matrix, dtype=np.float64)
         dist = np.asarray(dist if dist is not None else [], dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError("camera_matrix and dist_coeffs must be arrays of numbers", path=path, hint=_HINT) from None
-    return matrix, dist, data["image_width"], data["image_height"]
+    return matrix, dist, size[0], size[1]
 
 
 def _read_filestorage(path: Path):
