@@ -275,8 +275,10 @@ def iris_colour(local: np.ndarray) -> np.ndarray:
 
 
 def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, texture: np.ndarray, scene: Scene,
-                 maps=None, background: float = 0.12, eyes=()) -> np.ndarray:
-    """(H, W, 3) float image of the textured, lit mesh through the scene's camera (before noise).
+                 maps=None, background: float = 0.12, eyes=(), with_coverage: bool = False):
+    """(H, W, 3) float image of the textured, lit mesh through the scene's camera (before noise);
+    with ``with_coverage`` also the share (H, W) of each pixel the mesh covers (its silhouette
+    through the lens distortion's resampling).
 
     world : (V, 3); faces : (F, 3); corner_uv : (F, 3, 2) UVs of the triangles' corners.
     eyes : eyeballs (world centre (3,), world axes (3, 3) with the gaze as the third column,
@@ -291,6 +293,7 @@ def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, te
     K = scene.matrix
     pixels = np.stack([K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2]], 1)
     face, bary = rasterize(pixels, -cam[:, 2], faces, scene.width, scene.height)
+    drawn = (face >= 0).astype(np.float32)
     img = np.full((scene.height, scene.width, 3), background, dtype=np.float32)
     if len(eyes):
         on_eye = face >= n_faces
@@ -321,7 +324,10 @@ def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, te
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
     img[hit] = albedo * (scene.shading(n)[:, None] * np.asarray(scene.light_rgb))
     mx, my = maps if maps is not None else _distortion_maps(scene)
-    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    image = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if not with_coverage:
+        return image
+    return image, cv2.remap(drawn, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def _write_png(path: Path, image: np.ndarray, rng: np.random.Generator, noise: float) -> None:

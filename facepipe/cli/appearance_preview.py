@@ -81,11 +81,11 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
                                        dtype=np.float32)
         image, problem = images.get(n, (None, "not read"))
         drawn = model.with_cards(world)
-        # over black, and the share of each pixel the face covers (a white texture): the face's
-        # colour premultiplied by its coverage, so its silhouette blends into the frame
-        rendered = over_footage(render_frame(drawn, model.faces, corner_uv, texture, scene, background=0.0),
-                                render_frame(drawn, model.faces, corner_uv, np.ones_like(texture), scene,
-                                             background=0.0), image)
+        # over black, with the share of each pixel the face covers: the face's colour
+        # premultiplied by its coverage, so its silhouette blends into the frame
+        face, coverage = render_frame(drawn, model.faces, corner_uv, texture, scene, background=0.0,
+                                      with_coverage=True)
+        rendered = over_footage(face, coverage[..., None], image)
         x0, x1, y0, y1 = _window(model, world)
         for c, (picture, title) in enumerate(((image, f"frame {n}: input"),
                                               (rendered, "layered texture at Q, over the input frame"))):
