@@ -162,6 +162,12 @@ def test_mesh_caches_and_obj_sequences_are_takes(tmp_path):
     assert plan_jobs(pattern, tmp_path / "out")[0].digest == before
     (seq / "head_0002.obj").write_text("v 0 0 7\n")
     assert plan_jobs([seq.resolve()], tmp_path / "out")[0].digest != before
+    # a sequence with a frame missing is a take that fails, saying which frame; not the batch's end
+    (seq / "head_0004.obj").write_text("v 0 0 4\n")
+    (seq / "head_0002.obj").unlink()  # frames 1, 3, 4
+    job = plan_jobs([seq.resolve(), found[0]], tmp_path / "out")
+    assert job[0].digest is None and "frame 2 of the OBJ sequence is missing" in job[0].error
+    assert job[1].error is None and job[1].digest
 
 
 def test_options_fingerprint_ignores_where_it_runs_only():

@@ -135,13 +135,15 @@ class ModelRef:
 
 @dataclass(frozen=True)
 class TakeJob:
-    """One take of the batch: its file, digest and output folder, and the batch's id."""
+    """One take of the batch: its file, digest and output folder, and the batch's id; ``error``:
+    why it cannot run at all (an OBJ sequence with a frame missing), reported as it failing."""
 
     take: str
     name: str
     out_dir: str
-    digest: str
+    digest: str | None
     batch: str | None = None
+    error: str | None = None
 
 
 @dataclass
@@ -244,7 +246,13 @@ def plan_jobs(takes: list[Path], out: Path, batch: str | None = None) -> list[Ta
             raise InputError(f"two takes would write to {out / name}: {by_name[name]} and {take}",
                              hint="batch them into different -o folders, or rename one")
         by_name[name] = take
-    return [TakeJob(str(take), name, str(out / name), take_digest(take), batch) for name, take in by_name.items()]
+    jobs = []
+    for name, take in by_name.items():
+        try:
+            jobs.append(TakeJob(str(take), name, str(out / name), take_digest(take), batch))
+        except InputError as exc:  # this take alone is bad: the others go on
+            jobs.append(TakeJob(str(take), name, str(out / name), None, batch, error=str(exc)))
+    return jobs
 
 
 def export_destination(out_dir: Path, name: str, fmt: str) -> Path:
@@ -679,6 +687,10 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
     records: dict[str, TakeRecord] = {}
     to_run = []
     for job in jobs:
+        if job.error is not None:
+            records[job.name] = _failed_record(job, job.error)
+            progress(records[job.name])
+            continue
         skipped = None if force else skipped_record(job, model_ref, options_key, exports)
         if skipped:
             records[job.name] = skipped
