@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 
 def replay_cache(rep, take: str, model_path: str, output: str, *, large_scale: str | None, rest_frame: int | None,
                  take_units: str | None, cache_fps: float | None, frames_text: str | None, head_motion: str,
@@ -18,7 +16,7 @@ def replay_cache(rep, take: str, model_path: str, output: str, *, large_scale: s
     """
     from facepipe.io.model_file import load_model
     from facepipe.mocap import parse_frame_slice
-    from facepipe.cli.commands import _said_device
+    from facepipe.cli.commands import _said_device, say_replayed
     from facepipe.pipeline.backend import cache_evaluator
     from facepipe.pipeline.cache_replay import replay_mesh_cache
 
@@ -31,9 +29,5 @@ def replay_cache(rep, take: str, model_path: str, output: str, *, large_scale: s
         take_engine=lambda details: _said_device(rep, cache_evaluator(details, backend, device, chunk,
                                                                       note=lambda text: rep.say(f"note: {text}"))),
         say=rep.say, open_bar=lambda total: rep.bar(total, desc="replay"))
-    r = result.report
-    rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, large scale from the "
-            f"{'cache' if mode == 'take' else 'shell'}, {r['backend']}) at {r['frames_per_second']:.1f} frames/s")
-    rep.say(f"head motion up to {r['head_rotation_deg_max']:.1f}° / {r['head_translation_max']:.2f}")
-    rep.say(f"wrote {result.positions_path} and {Path(output) / 'replay.json'}")
-    return r
+    say_replayed(rep, result, large_scale_from="cache" if mode == "take" else "shell")
+    return result.report

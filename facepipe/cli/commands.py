@@ -137,6 +137,23 @@ def bake(ctx, source, output, tune, quiet, verbose):
 # ----------------------------------------------------------------------------- replay
 
 
+def say_replayed(rep: Reporter, result, lines=(), large_scale_from: str | None = None, head_motion: bool = True,
+                 space: str = "") -> None:
+    """The summary of a replay: frames, vertices, method, backend and speed (and where the large
+    scale came from, for a mesh cache), then ``lines`` (the take's own report), the head's motion,
+    and what was written (``space``: in which coordinates, where that needs saying)."""
+    r = result.report
+    source = f", large scale from the {large_scale_from}" if large_scale_from else ""
+    rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}{source}, {r['backend']}) "
+            f"at {r['frames_per_second']:.1f} frames/s")
+    for line in lines:
+        rep.say(line)
+    if head_motion:
+        rep.say(f"head motion up to {r['head_rotation_deg_max']:.1f}° rotation, {r['head_translation_max']:.2f} "
+                f"{r.get('units') or 'rig units'} translation")
+    rep.say(f"wrote {result.positions_path} and {result.positions_path.parent / 'replay.json'}{space}")
+
+
 def _make_evaluator(model, backend: str, device: str | None, chunk: int, rep: Reporter):
     """The replay evaluator: OpenCL when asked for, or (auto) when a device works; else NumPy."""
     from facepipe.pipeline.backend import marker_evaluator
@@ -289,15 +306,7 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         result = replay_windows(model, windows, take_data.frames, take_data.times,
                                 Path(output), chunk=chunk, evaluator=evaluator, head_motion=head_motion,
                                 progress=bar.update, extra_report=marker_take.report, save_large=save_large_scale)
-    gap_report = prepared.report()
-    r = result.report
-    rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
-            f"at {r['frames_per_second']:.1f} frames/s")
-    for line in summary_lines(gap_report):
-        rep.say(line)
-    rep.say(f"head motion up to {r['head_rotation_deg_max']:.1f}° rotation, {r['head_translation_max']:.2f} "
-            f"{r.get('units') or 'rig units'} translation")
-    rep.say(f"wrote {result.positions_path} and {Path(output) / 'replay.json'}")
+    say_replayed(rep, result, summary_lines(prepared.report()))
 
 
 # ----------------------------------------------------------------------------- export / eval

@@ -37,10 +37,7 @@ def replay_video(rep, take_path, model_path, output, *, camera_path, landmarks_p
         model, take_path, output, camera, lmap, make_evaluator, lift=lift,
         frames=parse_frame_slice(frames_text) if frames_text else None, head_motion=head_motion, chunk=chunk,
         save_large=save_large, min_confidence=min_confidence, open_bar=lambda total: rep.bar(total, desc="replay"))
-    r = out.report
-    rep.say(f"replayed {r['frames']} frames × {r['vertices']} vertices ({r['method']}, {r['backend']}) "
-            f"at {r['frames_per_second']:.1f} frames/s")
-    for line in summary_lines(report):
-        rep.say(line)
-    rep.say(f"wrote {out.positions_path} and {Path(output) / 'replay.json'}"
-            + (" (camera coordinates)" if head_motion == "keep" else " (rig space)"))
+    from facepipe.cli.commands import say_replayed
+
+    say_replayed(rep, out, summary_lines(report), head_motion=False,
+                 space=" (camera coordinates)" if head_motion == "keep" else " (rig space)")
