@@ -10,7 +10,7 @@ from scipy.stats import spearmanr
 
 from facepipe.cli.commands import main
 from facepipe.errors import InputError
-from facepipe.io.footage import open_footage, read_frames
+from facepipe.io.footage import frames_at, open_footage, read_frames
 
 pytestmark = pytest.mark.slow
 
@@ -133,6 +133,33 @@ def test_footage_patterns_folders_and_video(tmp_path):
         open_footage(tmp_path / "nothing_%04d.png")
     with pytest.raises(InputError):
         open_footage(tmp_path / "missing.mp4")
+    # a take numbered from 1 with its own times (a tracker's) finds the video's frames by time
+    assert fv.fps == pytest.approx(30.0)
+    at, note = frames_at(fv, np.array([1, 2, 3]), np.array([0.0, 1 / 30, 2 / 30]))
+    assert at.tolist() == [0, 1, 2] and "by time" in note
+    assert frames_at(fv, np.array([1, 2]), None)[0].tolist() == [1, 2]  # no times: by number
+    assert frames_at(fp, np.array([3, 4]), np.array([0.0, 0.1]))[0].tolist() == [3, 4]  # images: by number
+
+
+def test_video_footage_and_a_take_numbered_from_1_classify_as_from_0(kit, tmp_path, capsys):
+    """The footage as a video (frames from 0) and the geometry of a take numbered from 1 with its
+    own times, as a tracker's replay is: the same Q as the take numbered from 0 (by number)."""
+    frames = [iio.imread(p) for p in sorted((kit / "appearance" / "take").glob("frame_*.png"))]
+    video = tmp_path / "take.mp4"
+    iio.imwrite(video, np.stack(frames), fps=30)
+    with np.load(kit / "appearance" / "take.npz") as geometry:
+        positions, numbers = geometry["positions"], geometry["frame"]
+    np.savez(tmp_path / "from0.npz", positions=positions, frame=numbers)
+    np.savez(tmp_path / "from1.npz", positions=positions, frame=numbers + 1, time=numbers / 30.0)
+    q = {}
+    for name in ("from0", "from1"):
+        assert _run("appearance", "classify", kit / "app.npz", video, "--geometry", tmp_path / f"{name}.npz",
+                    "-o", tmp_path / name) == 0
+        q[name] = np.loadtxt(tmp_path / name / "appearance.csv", delimiter=",", skiprows=1)
+    out = capsys.readouterr().out
+    assert "matched to the take's by time" in out and "skipped" not in out
+    assert np.array_equal(q["from1"][:, 0], numbers + 1) and np.array_equal(q["from0"][:, 2:], q["from1"][:, 2:])
+    assert q["from0"][:, 2:].max() > 1.0  # (the take is active)
 
 
 def _classified(kit):

@@ -71,18 +71,27 @@ def write_cards_obj(path: Path, model) -> Path:
 def classify_command(model_path, footage, geometry, output, fps, rep):
     from facepipe.core.appearance import stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
-    from facepipe.io.footage import open_footage
-    from facepipe.pipeline.appearance import classify_frames, take_geometry
+    from facepipe.io.footage import frames_at, open_footage
+    from facepipe.pipeline.appearance import classify_frames, take_geometry, take_times
 
     model = load_appearance(model_path)
     positions, numbers, model, note = take_geometry(geometry, model)
     if note:
         rep.say(f"note: {note}")
-    times = numbers / fps
+    own_times = take_times(geometry)
+    if own_times is not None and len(own_times) == len(numbers):
+        times = own_times
+        if len(times) > 1 and np.median(np.diff(times)) > 0:
+            fps = float(1.0 / np.median(np.diff(times)))  # the take's own rate (for the stream's bit rate)
+    else:
+        times = numbers / fps
     start = time.perf_counter()
     opened = open_footage(footage)  # its errors before the progress bar opens
+    at, matched = frames_at(opened, numbers, own_times)
+    if matched:
+        rep.say(f"note: {matched}")
     with rep.bar(len(numbers), desc="classify") as bar:
-        result = classify_frames(model, opened, positions, numbers, times, progress=bar.update)
+        result = classify_frames(model, opened, positions, numbers, times, progress=bar.update, footage_numbers=at)
     seconds = time.perf_counter() - start
     bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
     figures = {"seconds": seconds, "frames_per_second": len(numbers) / max(seconds, 1e-9), "fps": fps,

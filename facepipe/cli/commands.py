@@ -671,7 +671,9 @@ def appearance_build(ctx, config, output, quiet, verbose):
               help="The take's geometry: a replay folder or an .npz with positions (T, V, 3) and frame (T,).")
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False),
               help="Folder for appearance.csv (frame, time, Q per region) and appearance.json.")
-@click.option("--fps", default=30.0, show_default=True, help="Frame rate (frame times = number / fps).")
+@click.option("--fps", default=30.0, show_default=True,
+              help="Frame rate of a geometry that records no frame times (times = number / fps; a replay folder "
+                   "has its own).")
 @_common
 @click.pass_context
 def appearance_classify(ctx, model, footage, geometry, output, fps, quiet, verbose):

@@ -39,13 +39,15 @@ class Footage:
     """An opened source: frame numbers and where each frame comes from.
 
     source : what was given; kind : "images" or "video"; numbers : (N,) int64 frame numbers;
-    paths : per frame its image file (images), empty for a video.
+    paths : per frame its image file (images), empty for a video; fps : a video's frame rate
+    where its container says it (None for images).
     """
 
     source: str
     kind: str
     numbers: np.ndarray
     paths: list = field(default_factory=list)
+    fps: float | None = None
 
     def __len__(self) -> int:
         return len(self.numbers)
@@ -119,7 +121,26 @@ def _video(text: str, path: Path) -> Footage:
             count = sum(1 for _ in iio.imiter(path))
         except Exception as exc:
             raise InputError(f"cannot read the video ({exc})", path=path) from None
-    return Footage(text, "video", np.arange(count, dtype=np.int64))
+    try:
+        fps = float(iio.immeta(path).get("fps") or 0.0)
+    except Exception:  # noqa: BLE001 - a container without the rate: frames by number only
+        fps = 0.0
+    return Footage(text, "video", np.arange(count, dtype=np.int64), fps=fps if np.isfinite(fps) and fps > 0 else None)
+
+
+def frames_at(footage: Footage, numbers: np.ndarray, times: np.ndarray | None) -> tuple[np.ndarray, str | None]:
+    """The footage's frame for each frame of a take (numbers (T,), and its times (T,) seconds where
+    the take has its own): a video's frame at each time (index = round(time × its rate)), whatever
+    the take numbers its frames from (a tracker counts from 1, a video from 0); an image
+    sequence's frame of the same number. A note says where times decided."""
+    numbers = np.asarray(numbers, dtype=np.int64)
+    if footage.kind != "video" or footage.fps is None or times is None:
+        return numbers, None
+    at = np.rint(np.asarray(times, dtype=np.float64) * footage.fps).astype(np.int64)
+    if np.array_equal(at, numbers):
+        return numbers, None
+    return at, (f"the video's frames matched to the take's by time at its {footage.fps:g} frames/s (take frame "
+                f"{int(numbers[0])} is video frame {int(at[0])})")
 
 
 def _as_float(image: np.ndarray) -> np.ndarray:

@@ -245,7 +245,8 @@ def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
 
 def take_geometry(path, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray, AppearanceModel, str | None]:
     """The geometry of a take to classify (an .npz or a replay folder, see :func:`_read_geometry`):
-    positions (T, V, 3), frame numbers (T,), the model to classify them with, and a note or None.
+    positions (T, V, 3), frame numbers (T,), the model to classify them with, and a note or None
+    (its own frame times: :func:`take_times`).
 
     A 2D take's replay is written in its camera's coordinates (``replay.json``: ``coordinates``)
     and its footage is that camera's: the model classifies it through that camera, its positions
@@ -269,6 +270,23 @@ def take_geometry(path, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray,
             + ("" if same else " (not the calibration the model was built with: its footage is that camera's)"))
     through = dataclasses.replace(model, rotation=np.eye(3), translation=np.zeros(3), camera=camera)
     return positions, numbers, through, note
+
+
+def take_times(path) -> np.ndarray | None:
+    """The frame times (T,) seconds a take's geometry records (a replay folder's, an .npz's
+    ``time``), or None where it records none."""
+    from pathlib import Path
+
+    from facepipe.io.replay_folder import ReplayDir
+
+    path = Path(path)
+    if path.is_dir():
+        return ReplayDir(path).times
+    try:
+        with np.load(path) as data:
+            return np.asarray(data["time"], dtype=np.float64) if "time" in data.files else None
+    except (OSError, ValueError):
+        return None
 
 
 def _example_frames(cfg, footage_numbers_needed, positions, numbers, camera: Camera) -> dict:
@@ -681,9 +699,11 @@ class Classification:
 
 
 def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
-                    times: np.ndarray, progress=None, chunk: int = 8) -> Classification:
+                    times: np.ndarray, progress=None, chunk: int = 8, footage_numbers=None) -> Classification:
     """Classify every frame of the geometry (world positions (T, V, 3), frame numbers (T,)) in the
-    footage (a path, pattern or folder, or a :class:`~facepipe.io.footage.Footage` already opened).
+    footage (a path, pattern or folder, or a :class:`~facepipe.io.footage.Footage` already opened):
+    each geometry frame's image is the footage's frame of the same number, or of
+    ``footage_numbers`` (T,) where given (e.g. :func:`facepipe.io.footage.frames_at`).
 
     The next frames are read and decoded in a worker thread while these are classified (image
     decoding releases the GIL); ``chunk`` frames are classified at once, all their regions and
@@ -694,7 +714,10 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
     problems = []
-    row_of = {int(n): i for i, n in enumerate(numbers)}
+    read = np.asarray(numbers if footage_numbers is None else footage_numbers, dtype=np.int64)
+    rows_of: dict = {}  # footage frame → the geometry rows it shows (several where the take is faster)
+    for i, n in enumerate(read):
+        rows_of.setdefault(int(n), []).append(i)
     bank = region_bank(model)
     rows, grays = [], []
     batch = chunk * thread_count()  # a chunk for each of facepipe's threads
@@ -708,18 +731,21 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
         rows.clear()
         grays.clear()
 
-    for n, image, problem in _read_ahead(read_frames(footage, numbers)):
+    for n, image, problem in _read_ahead(read_frames(footage, list(rows_of))):
         if image is None:
-            problems.append((n, problem))
+            for i in rows_of[n]:  # said by the take's frame numbers
+                problems.append((int(numbers[i]), problem))
             if progress is not None:
-                progress(1)
+                progress(len(rows_of[n]))
             continue
         if image.shape[:2] != (model.camera.height, model.camera.width):
             _check_size(image, model.camera, n, footage.source)
-        rows.append(row_of[n])
-        grays.append(to_gray(image))
-        if len(rows) == batch:
-            flush()
+        gray = to_gray(image)
+        for i in rows_of[n]:
+            rows.append(i)
+            grays.append(gray)
+            if len(rows) == batch:
+                flush()
     flush()
     q = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
     return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems)
