@@ -160,6 +160,11 @@ def test_video_footage_and_a_take_numbered_from_1_classify_as_from_0(kit, tmp_pa
     assert "matched to the take's by time" in out and "skipped" not in out
     assert np.array_equal(q["from1"][:, 0], numbers + 1) and np.array_equal(q["from0"][:, 2:], q["from1"][:, 2:])
     assert q["from0"][:, 2:].max() > 1.0  # (the take is active)
+    # the preview shows the last frame's own image (video frame 39, not a 40th there is not)
+    last = int(numbers[-1]) + 1
+    assert _run("preview", tmp_path / "from1", "-o", tmp_path / "p.png", "--frame", last) == 0
+    out = capsys.readouterr().out
+    assert f"frame {last}; Q" in out and "no input image" not in out
 
 
 def _classified(kit):

@@ -18,8 +18,8 @@ from facepipe.core.appearance import compose_texture
 from facepipe.core.camera import project_distorted_fast
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import load_appearance, read_stream
-from facepipe.io.footage import open_footage, read_frames
-from facepipe.pipeline.appearance import take_geometry
+from facepipe.io.footage import frames_at, open_footage, read_frames
+from facepipe.pipeline.appearance import take_geometry, take_times
 
 __all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 
@@ -60,8 +60,12 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     positions, geo_numbers, model, _ = take_geometry(info["geometry"], model)
     index = _shown(numbers, q, frame_numbers, strip)
     row_of = {int(n): i for i, n in enumerate(geo_numbers)}
-    images = {n: (image, problem) for n, image, problem in read_frames(open_footage(info["footage"]),
-                                                                       numbers[index])}
+    footage = open_footage(info["footage"])
+    own_times = take_times(info["geometry"])  # a video's frames by the take's own times, as classified
+    at, _ = frames_at(footage, numbers, own_times if own_times is not None and len(own_times) == len(numbers)
+                      else None)
+    read = {int(a): int(n) for a, n in zip(at[index], numbers[index])}
+    images = {read[a]: (image, problem) for a, image, problem in read_frames(footage, list(read))}
     cam = model.camera
     # unlit: ambient 1 shows the texture's own values (the layers carry the footage's shading)
     scene = Scene(cam.matrix, cam.distortion, cam.width, cam.height, model.rotation, model.translation,
@@ -107,7 +111,8 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     ax.legend(fontsize=6, ncol=4, loc="upper right", frameon=False)
     _save(fig, path, force)
     return {"frames": [int(numbers[i]) for i in index], "q": q[index].tolist(), "path": str(path),
-            "view": "appearance"}
+            "view": "appearance",
+            "unread": {int(n): problem for n, (image, problem) in images.items() if image is None}}
 
 
 def over_footage(rendered: np.ndarray, coverage: np.ndarray, image: np.ndarray | None) -> np.ndarray:

@@ -429,6 +429,8 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
                 if "rms" in s else "")
         if s.get("view") == "appearance":
             errs = "; Q " + " ".join(f"{x:.2f}" for x in s["q"][k])
+            if f in s.get("unread", {}):
+                errs += f"; no input image: {s['unread'][f]}"
         if s.get("view") == "camera":
             px = s["reprojection_px"][k]
             errs = "; tracker lost the face" if px is None else f"; landmark reprojection RMS {px:.3f} px"
