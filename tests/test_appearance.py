@@ -1,6 +1,7 @@
 """Appearance from footage end to end on the rendered sample rig, the footage reader and bad input."""
 
 import json
+import re
 import shutil
 
 import imageio.v3 as iio
@@ -139,6 +140,36 @@ def test_footage_patterns_folders_and_video(tmp_path):
     assert at.tolist() == [0, 1, 2] and "by time" in note
     assert frames_at(fv, np.array([1, 2]), None)[0].tolist() == [1, 2]  # no times: by number
     assert frames_at(fp, np.array([3, 4]), np.array([0.0, 0.1]))[0].tolist() == [3, 4]  # images: by number
+
+
+def test_examples_from_a_video_and_a_geometry_numbered_from_1(kit, tmp_path):
+    """Example footage as a video and example geometry numbered from 1 with its own times (a
+    tracker's replay): the same model as with the geometry numbered from 0."""
+    from facepipe.io.appearance_file import load_appearance
+
+    examples = kit / "appearance" / "examples"
+    frames = [iio.imread(p) for p in sorted(examples.glob("frame_*.png"))]
+    iio.imwrite(tmp_path / "examples.mp4", np.stack(frames), fps=30)
+    with np.load(kit / "appearance" / "examples.npz") as geometry:
+        positions, numbers = geometry["positions"], geometry["frame"]
+    assert numbers.tolist() == list(range(len(frames)))
+    np.savez(tmp_path / "from1.npz", positions=positions, frame=numbers + 1, time=numbers / 30.0)
+    models = {}
+    for name, geometry, shift in (("from0", kit / "appearance" / "examples.npz", 0), ("from1", tmp_path / "from1.npz", 1)):
+        cfg = _edited_config(kit, tmp_path / name, 'footage = "examples/frame_%04d.png"',
+                             f'footage = "{tmp_path / "examples.mp4"}"')
+        text = cfg.read_text().replace('geometry = "examples.npz"', f'geometry = "{geometry}"')
+        if shift:  # the config names the example frames by the geometry's numbers
+            text = re.sub(r"(frames|rest_frames) = \[([0-9, ]*)\]",
+                          lambda m: f"{m.group(1)} = [{', '.join(str(int(v) + 1) for v in m.group(2).split(','))}]",
+                          text)
+            text = text.replace("neutral_frame = 0", "neutral_frame = 1")
+        cfg.write_text(text)
+        assert _run("appearance", "build", cfg, "-o", tmp_path / f"{name}.npz", "-q") == 0
+        models[name] = load_appearance(tmp_path / f"{name}.npz")
+    a, b = models["from0"], models["from1"]
+    assert all(np.array_equal(x, y) for x, y in zip(a.templates, b.templates))
+    assert all(np.array_equal(x, y) for x, y in zip(a.volumes, b.volumes))
 
 
 def test_video_footage_and_a_take_numbered_from_1_classify_as_from_0(kit, tmp_path, capsys):

@@ -41,7 +41,7 @@ from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
 from facepipe.parallel import map_blocks, serial_blas, thread_count
 from facepipe.io.appearance_file import AppearanceModel
-from facepipe.io.footage import Footage, open_footage, read_frames, to_gray
+from facepipe.io.footage import Footage, frames_at, open_footage, read_frames, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
            "classify_chunk",
@@ -290,19 +290,29 @@ def take_times(path) -> np.ndarray | None:
 
 
 def _example_frames(cfg, footage_numbers_needed, positions, numbers, camera: Camera) -> dict:
-    """The example frames the regions name: frame number → (RGB image, camera-space positions)."""
+    """The example frames the regions name: frame number → (RGB image, camera-space positions).
+    Each is the footage's frame of that number, or a video's at the geometry's own time for it
+    (:func:`facepipe.io.footage.frames_at`)."""
     index = {int(n): i for i, n in enumerate(numbers)}
     footage = open_footage(cfg.footage)
+    needed = np.array(sorted(footage_numbers_needed), dtype=np.int64)
+    times = take_times(cfg.geometry)
+    own = times is not None and len(times) == len(numbers) and all(int(n) in index for n in needed)
+    at, _ = frames_at(footage, needed, times[[index[int(n)] for n in needed]] if own else None)
+    take_numbers: dict = {}  # footage frame → the example frames it shows
+    for a, n in zip(at, needed):
+        take_numbers.setdefault(int(a), []).append(int(n))
     frames = {}
-    for n, image, problem in read_frames(footage, sorted(footage_numbers_needed)):
-        if image is None:
-            raise InputError(f"example frame {n}: {problem}", path=cfg.footage,
-                             hint="every frame an [appearance.regions] table names must be readable")
-        if n not in index:
-            raise InputError(f"example frame {n} has no geometry", path=cfg.geometry,
-                             hint="the geometry's frame numbers must include the example frames")
-        _check_size(image, camera, n, cfg.footage)
-        frames[n] = (image, positions[index[n]])
+    for a, image, problem in read_frames(footage, list(take_numbers)):
+        for n in take_numbers[a]:
+            if image is None:
+                raise InputError(f"example frame {n}: {problem}", path=cfg.footage,
+                                 hint="every frame an [appearance.regions] table names must be readable")
+            if n not in index:
+                raise InputError(f"example frame {n} has no geometry", path=cfg.geometry,
+                                 hint="the geometry's frame numbers must include the example frames")
+            _check_size(image, camera, n, cfg.footage)
+            frames[n] = (image, positions[index[n]])
     return frames
 
 
