@@ -227,6 +227,10 @@ def test_a_2d_takes_replay_is_classified_through_its_camera(kit, tmp_path, capsy
     assert np.abs(q_camera - q_world).max() < 0.02  # (the positions rounded to float32)
     # as a replay in the model's world space (no coordinates said) it would be through the model's transform
     assert np.abs(q_world).max() > 1.0
+    # example geometry in camera coordinates moved again by the config's camera pose: refused
+    cfg = _edited_config(kit, tmp_path / "build", 'geometry = "examples.npz"', f'geometry = "{replay}"')
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "m.npz") == 2
+    assert "already in its camera's coordinates" in capsys.readouterr().err
 
 
 def test_one_camera_gives_geometry_and_appearance(kit, tmp_path):

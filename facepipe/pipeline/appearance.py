@@ -29,6 +29,7 @@ import dataclasses
 import queue
 import threading
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -219,8 +220,6 @@ def grid_points_hidden(grid: np.ndarray, camera_positions: np.ndarray, faces: np
 def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """Positions (T, V, 3) and frame numbers (T,) from an .npz (``positions``, optional ``frame``)
     or a replay folder (``positions.npy`` and ``replay.json``)."""
-    from pathlib import Path
-
     from facepipe.io.replay_folder import ReplayDir
 
     path = Path(path)
@@ -252,17 +251,12 @@ def take_geometry(path, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray,
     and its footage is that camera's: the model classifies it through that camera, its positions
     taken as they are (the model's world-to-camera transform, which is the example footage's, is
     the identity here). The note says so, and where that calibration is not the model's."""
-    from pathlib import Path
-
     from facepipe.io.replay_folder import ReplayDir
 
     positions, numbers = _read_geometry(path, model.n_vertices)
-    if not Path(path).is_dir():
+    if not _in_camera_coordinates(path):
         return positions, numbers, model, None
-    replay = ReplayDir(path)
-    if not str(replay.info.get("coordinates", "")).startswith("camera"):
-        return positions, numbers, model, None
-    video = replay.video
+    video = ReplayDir(path).video
     camera = model.camera if video is None else video.camera
     same = (camera.width, camera.height) == (model.camera.width, model.camera.height) and np.allclose(
         camera.matrix, model.camera.matrix) and np.allclose(np.ravel(camera.distortion), np.ravel(model.camera.distortion))
@@ -272,11 +266,16 @@ def take_geometry(path, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray,
     return positions, numbers, through, note
 
 
+def _in_camera_coordinates(path) -> bool:
+    """Whether a take's geometry is a replay folder written in its camera's coordinates (a 2D take's)."""
+    from facepipe.io.replay_folder import ReplayDir
+
+    return Path(path).is_dir() and str(ReplayDir(path).info.get("coordinates", "")).startswith("camera")
+
+
 def take_times(path) -> np.ndarray | None:
     """The frame times (T,) seconds a take's geometry records (a replay folder's, an .npz's
     ``time``), or None where it records none."""
-    from pathlib import Path
-
     from facepipe.io.replay_folder import ReplayDir
 
     path = Path(path)
@@ -395,6 +394,10 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     R = np.asarray(cfg.camera_rotation, dtype=np.float64)
     t = np.asarray(cfg.camera_translation, dtype=np.float64)
     positions, numbers = _read_geometry(cfg.geometry, mesh.n_vertices)
+    if _in_camera_coordinates(cfg.geometry) and not (np.allclose(R, np.eye(3)) and np.allclose(t, 0.0)):
+        raise InputError("the example geometry is a 2D take's replay, already in its camera's coordinates, and the "
+                         "config moves it again by camera_rotation/camera_translation", path=config.path,
+                         hint="leave camera_rotation and camera_translation out of [appearance] for this geometry")
     cards, card_of = region_cards(cfg, mesh, corner_uv, positions, config.path)
     if cards is not None:  # the cards' triangles after the mesh's, their vertices after its vertices
         faces = np.concatenate([faces, cards.faces])
