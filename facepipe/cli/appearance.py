@@ -79,7 +79,8 @@ def classify_command(model_path, footage, geometry, output, fps, rep):
     if note:
         rep.say(f"note: {note}")
     own_times = take_times(geometry)
-    if own_times is not None and len(own_times) == len(numbers):
+    own_times = own_times if own_times is not None and len(own_times) == len(numbers) else None
+    if own_times is not None:
         times = own_times
         if len(times) > 1 and np.median(np.diff(times)) > 0:
             fps = float(1.0 / np.median(np.diff(times)))  # the take's own rate (for the stream's bit rate)
