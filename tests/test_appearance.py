@@ -140,6 +140,10 @@ def test_footage_patterns_folders_and_video(tmp_path):
     assert at.tolist() == [0, 1, 2] and "by time" in note
     assert frames_at(fv, np.array([1, 2]), None)[0].tolist() == [1, 2]  # no times: by number
     assert frames_at(fp, np.array([3, 4]), np.array([0.0, 0.1]))[0].tolist() == [3, 4]  # images: by number
+    # images the take's numbers miss (a tracker counted them from 1): the images in order, by time
+    at, note = frames_at(fp, np.array([1, 2, 3]), np.array([0.0, 1 / 30, 2 / 30]))
+    assert at.tolist() == [3, 4, 10] and "images in order" in note
+    assert frames_at(fp, np.array([7, 8]), np.array([5.0, 5.1]))[0].tolist() == [7, 8]  # times past them: by number
 
 
 def test_examples_from_a_video_and_a_geometry_numbered_from_1(kit, tmp_path):

@@ -130,17 +130,37 @@ def _video(text: str, path: Path) -> Footage:
 
 def frames_at(footage: Footage, numbers: np.ndarray, times: np.ndarray | None) -> tuple[np.ndarray, str | None]:
     """The footage's frame for each frame of a take (numbers (T,), and its times (T,) seconds where
-    the take has its own): a video's frame at each time (index = round(time × its rate)), whatever
-    the take numbers its frames from (a tracker counts from 1, a video from 0); an image
-    sequence's frame of the same number. A note says where times decided."""
+    the take records its own), and a note where times decided.
+
+    Trackers number frames from 1 (OpenFace, of a video or of an image sequence), a video counts
+    from 0, image files carry numbers of their own; the times a tracker writes start at the
+    footage's first frame. So: a video's frame at each time (index = round(time × its rate)); an
+    image sequence's frame of the same number where it has every one, else the image at each time
+    (its k-th image at k / the take's rate) where the take's times fall on its images; otherwise
+    by number (a frame the footage lacks is reported and skipped by the caller)."""
     numbers = np.asarray(numbers, dtype=np.int64)
-    if footage.kind != "video" or footage.fps is None or times is None:
+    if times is None or len(numbers) == 0:
         return numbers, None
-    at = np.rint(np.asarray(times, dtype=np.float64) * footage.fps).astype(np.int64)
+    times = np.asarray(times, dtype=np.float64)
+    if footage.kind == "video":
+        rate = footage.fps
+    elif np.isin(numbers, footage.numbers).all():
+        return numbers, None
+    else:
+        steps = np.diff(times)
+        rate = 1.0 / float(np.median(steps)) if len(steps) and np.median(steps) > 0 else None
+    if rate is None:
+        return numbers, None
+    index = np.rint(times * rate).astype(np.int64)
+    if index.min() < 0 or index.max() >= len(footage):
+        return numbers, None
+    at = footage.numbers[index]
     if np.array_equal(at, numbers):
         return numbers, None
-    return at, (f"the video's frames matched to the take's by time at its {footage.fps:g} frames/s (take frame "
-                f"{int(numbers[0])} is video frame {int(at[0])})")
+    what = f"the video's frames, at its {rate:g} frames/s" if footage.kind == "video" else \
+        f"the images in order, at the take's {rate:g} frames/s"
+    return at, (f"{what}, matched to the take's by time (take frame {int(numbers[0])} is footage frame "
+                f"{int(at[0])})")
 
 
 def _as_float(image: np.ndarray) -> np.ndarray:
