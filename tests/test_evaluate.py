@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from facepipe.errors import InputError
-from facepipe.pipeline.evaluate import frame_errors, in_head_space, match_frames
+from facepipe.pipeline.evaluate import frame_errors, match_frames, to_head_space
 from tests.conftest import run_cli as run
 
 
@@ -37,7 +37,7 @@ def test_head_space_errors_undo_each_sides_own_motion():
     t1, t2 = rng.normal(size=(T, 3)), rng.normal(size=(T, 3))
     moved = np.einsum("tij,tvj->tvi", R1, head) + t1[:, None]
     truth_moved = np.einsum("tij,tvj->tvi", R2, truth_head) + t2[:, None]
-    assert np.allclose(in_head_space(moved, R1, t1), head)
+    assert np.allclose(to_head_space(moved, R1, t1), head)
     direct = frame_errors(head, truth_head)
     both = frame_errors(moved, truth_moved, pose=(R1, t1), truth_pose=(R2, t2))
     assert np.allclose(direct, both)

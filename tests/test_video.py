@@ -434,6 +434,9 @@ def test_bad_takes_exit_2_naming_what_is_wrong(filmed, tmp_path, capsys):
     check("ok2.csv", _openface_text(frames, f.tt, good), r"camera_matrix has shape \(1, 3\)", camera=bad)
     check("ok3.csv", _openface_text(frames, f.tt, good), r"camera calibration not found",
           camera=tmp_path / "nowhere.yml")
+    (tmp_path / "ok4.csv").write_text(_openface_text(frames, f.tt, good))
+    _expect_error(f, tmp_path, tmp_path / "ok4.csv", None, "--min-confidence", "2")
+    assert "--min-confidence 2.0 is outside 0..1" in capsys.readouterr().err
 
 
 def test_a_2d_take_without_camera_is_refused(filmed, tmp_path, capsys):

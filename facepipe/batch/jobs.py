@@ -363,6 +363,16 @@ def cached_evaluator(ref: ModelRef, model, options: ReplayOptions):
         return entry
 
 
+@contextlib.contextmanager
+def _held_evaluator(model_ref: ModelRef, model, options: ReplayOptions):
+    """This process's marker evaluator for the model and the note of its choice, held for one take
+    (another thread's take waits) with its counters reset."""
+    evaluator, lock, note = cached_evaluator(model_ref, model, options)
+    with lock:
+        _reset_counters(evaluator)
+        yield evaluator, note
+
+
 def _reset_counters(evaluator) -> None:
     # the counters replay.json reports are per take; a shared evaluator would add them up
     evaluator.stage_seconds = dict.fromkeys(evaluator.stage_seconds, 0.0)
@@ -380,10 +390,8 @@ def replay_into(take_path: str, out_dir: Path, model, model_ref: ModelRef, optio
         return _replay_cache(take_path, out_dir, model, model_ref, options, extra)
     if is_landmark_take(take_path):
         return _replay_2d(take_path, out_dir, model, model_ref, options, extra)
-    evaluator, lock, note = cached_evaluator(model_ref, model, options)
-    extra = {"batch": dict(extra["batch"], note=note)}
-    with lock:
-        _reset_counters(evaluator)
+    with _held_evaluator(model_ref, model, options) as (evaluator, note):
+        extra = {"batch": dict(extra["batch"], note=note)}
         marker_take = read_marker_take(take_path, model, options.marker_take())
         result = replay_windows(model, marker_take.prepared.windows(), marker_take.take.frames, marker_take.take.times,
                                 out_dir, chunk=options.chunk, evaluator=evaluator, head_motion=options.head_motion,
@@ -413,9 +421,7 @@ def _replay_cache(take_path: str, out_dir: Path, model, model_ref: ModelRef, opt
             return evaluator
 
         return replay(take_engine=engine)
-    evaluator, lock, batch["note"] = cached_evaluator(model_ref, model, options)
-    with lock:
-        _reset_counters(evaluator)
+    with _held_evaluator(model_ref, model, options) as (evaluator, batch["note"]):
         return replay(marker_evaluator=lambda m: evaluator)
 
 
@@ -424,16 +430,13 @@ def _replay_2d(take_path: str, out_dir: Path, model, model_ref: ModelRef, option
     if options.camera is None:
         raise InputError("a 2D landmark take needs the camera's calibration", path=take_path,
                          hint="batch 2D takes with --camera CALIBRATION.yml (OpenCV FileStorage) or .json")
-    min_confidence = 0.5 if options.min_confidence is None else options.min_confidence
     camera = read_camera(options.camera)
     landmark_map = landmark_map_for(model, options.landmarks, take_path)
-    evaluator, lock, note = cached_evaluator(model_ref, model, options)
-    with lock:
-        _reset_counters(evaluator)
+    with _held_evaluator(model_ref, model, options) as (evaluator, note):
         result, _ = replay_landmark_take(model, take_path, out_dir, camera, landmark_map, lambda m: evaluator,
-                                         lift=options.lift or "model", frames=_frame_slice(options.frames),
+                                         lift=options.lift, frames=_frame_slice(options.frames),
                                          head_motion=options.head_motion, chunk=options.chunk,
-                                         save_large=options.save_large, min_confidence=min_confidence,
+                                         save_large=options.save_large, min_confidence=options.min_confidence,
                                          extra_report={"batch": dict(extra["batch"], note=note)})
     return result.report
 

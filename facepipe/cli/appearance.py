@@ -68,31 +68,29 @@ def write_cards_obj(path: Path, model) -> Path:
     return path
 
 
-def classify_command(model_path, footage, geometry, output, fps, rep):
+def classify_command(model_path, footage, geometry_path, output, fps, rep):
     from facepipe.core.appearance import stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
     from facepipe.io.footage import frames_at, open_footage
-    from facepipe.pipeline.appearance import classify_frames, take_geometry, take_times
+    from facepipe.pipeline.appearance import classify_frames, take_geometry
 
     model = load_appearance(model_path)
-    positions, numbers, model, note = take_geometry(geometry, model)
+    geometry, model, note = take_geometry(geometry_path, model)
     if note:
         rep.say(f"note: {note}")
-    own_times = take_times(geometry)
-    own_times = own_times if own_times is not None and len(own_times) == len(numbers) else None
-    if own_times is not None:
-        times = own_times
-        if len(times) > 1 and np.median(np.diff(times)) > 0:
-            fps = float(1.0 / np.median(np.diff(times)))  # the take's own rate (for the stream's bit rate)
-    else:
+    numbers, times = geometry.numbers, geometry.times
+    if times is None:
         times = numbers / fps
+    elif len(times) > 1 and np.median(np.diff(times)) > 0:
+        fps = float(1.0 / np.median(np.diff(times)))  # the take's own rate (for the stream's bit rate)
     start = time.perf_counter()
     opened = open_footage(footage)  # its errors before the progress bar opens
-    at, matched = frames_at(opened, numbers, own_times)
+    at, matched = frames_at(opened, numbers, geometry.times)
     if matched:
         rep.say(f"note: {matched}")
     with rep.bar(len(numbers), desc="classify") as bar:
-        result = classify_frames(model, opened, positions, numbers, times, progress=bar.update, footage_numbers=at)
+        result = classify_frames(model, opened, geometry.positions, numbers, times, progress=bar.update,
+                                 footage_numbers=at)
     seconds = time.perf_counter() - start
     bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
     figures = {"seconds": seconds, "frames_per_second": len(numbers) / max(seconds, 1e-9), "fps": fps,
@@ -103,7 +101,7 @@ def classify_command(model_path, footage, geometry, output, fps, rep):
     if never:
         rep.say(f"note: never visible, kept neutral: {', '.join(never)}")
     path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
-                        geometry=geometry, figures=figures)
+                        geometry=geometry_path, figures=figures)
     rep.say(f"{len(numbers)} frames, {len(model.names)} regions in {seconds:.1f} s "
             f"({figures['frames_per_second']:.0f} frames/s, reading included); Q stream {bits} bits a frame = "
             f"{figures['stream_kbit_s']:.2f} kbit/s at {fps:g} Hz; wrote {path}")

@@ -18,8 +18,8 @@ from facepipe.core.appearance import compose_texture
 from facepipe.core.camera import project_distorted_fast
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import load_appearance, read_stream
-from facepipe.io.footage import frames_at, open_footage, read_frames
-from facepipe.pipeline.appearance import take_geometry, take_times
+from facepipe.io.footage import frames_at, open_footage, read_frames_of
+from facepipe.pipeline.appearance import take_geometry
 
 __all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 
@@ -57,15 +57,16 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     if model.corner_uv is None:
         raise InputError("the appearance model has no UVs to render its texture with", path=model_path or info["model"],
                          hint="build it again with this facepipe version: facepipe appearance build CONFIG")
-    positions, geo_numbers, model, _ = take_geometry(info["geometry"], model)
+    geometry, model, _ = take_geometry(info["geometry"], model)
+    positions = geometry.positions
     index = _shown(numbers, q, frame_numbers, strip)
-    row_of = {int(n): i for i, n in enumerate(geo_numbers)}
+    row_of = {int(n): i for i, n in enumerate(geometry.numbers)}
     footage = open_footage(info["footage"])
-    own_times = take_times(info["geometry"])  # a video's frames by the take's own times, as classified
-    at, _ = frames_at(footage, numbers, own_times if own_times is not None and len(own_times) == len(numbers)
-                      else None)
-    read = {int(a): int(n) for a, n in zip(at[index], numbers[index])}
-    images = {read[a]: (image, problem) for a, image, problem in read_frames(footage, list(read))}
+    # the footage's frames as classification found them (by the take's own times where it has them)
+    at, _ = frames_at(footage, geometry.numbers, geometry.times)
+    shown_at = np.array([at[row_of[int(numbers[i])]] if int(numbers[i]) in row_of else numbers[i] for i in index])
+    images = {int(numbers[index[k]]): (image, problem)
+              for rows, image, problem in read_frames_of(footage, shown_at) for k in rows}
     cam = model.camera
     # unlit: ambient 1 shows the texture's own values (the layers carry the footage's shading)
     scene = Scene(cam.matrix, cam.distortion, cam.width, cam.height, model.rotation, model.translation,

@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from facepipe.cli.interrupts import terminate_as_interrupt
-from facepipe.cli.take_options import DEFAULT_LIFT, DEFAULT_MIN_CONFIDENCE, landmark_take_options, mesh_cache_options
+from facepipe.cli.take_options import landmark_take_options, mesh_cache_options
 from facepipe.errors import InputError
 from facepipe.export import registry as export_formats  # names the formats without importing them
 from facepipe.io.atomic import atomic_path
@@ -270,9 +270,8 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
         from facepipe.cli.video import replay_video
 
         return replay_video(rep, take, model_path, output, camera_path=camera_path, landmarks_path=landmarks_path,
-                            lift=lift or DEFAULT_LIFT, frames_text=frames_text, head_motion=head_motion, chunk=chunk,
-                            save_large=save_large_scale,
-                            min_confidence=DEFAULT_MIN_CONFIDENCE if min_confidence is None else min_confidence,
+                            lift=lift, frames_text=frames_text, head_motion=head_motion, chunk=chunk,
+                            save_large=save_large_scale, min_confidence=min_confidence,
                             make_evaluator=lambda model: _make_evaluator(model, backend, device, chunk, rep))
     if smooth < 0:
         raise InputError("--smooth must be 0 (off) or a positive number of frames")
@@ -460,21 +459,15 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, space, compare_config, 
 
     The truth's frames are the replay's by frame number, or by time where the numbers differ and
     both have times (a tracker's frames counted from 1, the truth's from 0)."""
-    from facepipe.io.npz_file import read_truth, read_truth_extras
     from facepipe.io.replay_folder import ReplayDir
-    from facepipe.pipeline.evaluate import frame_errors, match_frames, parse_vertex_range, summarize
+    from facepipe.pipeline.evaluate import frame_errors, parse_vertex_range, summarize, truth_rows
 
     rep = _reporter(ctx, quiet, verbose)
     outdir = Path(outdir)
     info = _replay_info(outdir)
     positions = _load_positions(outdir)
-    truth_pos, truth_frames = read_truth(truth)
-    if truth_pos.shape[1:] != positions.shape[1:]:
-        raise InputError(f"truth has shape {truth_pos.shape}, the replay {positions.shape}", path=truth)
-    extras = read_truth_extras(truth)
     matched: dict = {}
-    index = match_frames(np.asarray(info["frame_numbers"]), np.asarray(truth_frames), truth, info.get("times"),
-                         extras.get("time"), matched)
+    truth_pos, index, extras = truth_rows(truth, info["frame_numbers"], positions.shape[1], info.get("times"), matched)
     if matched["frames_matched_by"] == "time":
         rep.say("note: the take's frame numbers are not the truth's: frames matched by time")
     truth_sel = np.asarray(truth_pos)[index] if len(index) < 4096 else truth_pos[index]

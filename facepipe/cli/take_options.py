@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import click
 
-#: what a 2D take's replay does without --lift and --min-confidence
-DEFAULT_LIFT = "model"
-DEFAULT_MIN_CONFIDENCE = 0.5
+from facepipe.pipeline.video_replay import DEFAULT_LIFT, DEFAULT_MIN_CONFIDENCE
 
 
 def mesh_cache_options(command):

@@ -15,8 +15,8 @@ from facepipe.pipeline.video_replay import landmark_map_for, replay_landmark_tak
 __all__ = ["replay_video"]
 
 
-def replay_video(rep, take_path, model_path, output, *, camera_path, landmarks_path, lift: str, frames_text,
-                 head_motion: str, chunk: int, save_large: bool, make_evaluator, min_confidence: float) -> None:
+def replay_video(rep, take_path, model_path, output, *, camera_path, landmarks_path, lift: str | None, frames_text,
+                 head_motion: str, chunk: int, save_large: bool, make_evaluator, min_confidence: float | None) -> None:
     """Replay a 2D take: ``make_evaluator(model)`` gives the replay evaluator (as for 3D takes)."""
     take_path = Path(take_path)
     if not take_path.is_file():
@@ -28,8 +28,6 @@ def replay_video(rep, take_path, model_path, output, *, camera_path, landmarks_p
     if camera_path is None:
         raise InputError("a 2D landmark take needs the camera's calibration", path=take_path,
                          hint="pass --camera CALIBRATION.yml (OpenCV FileStorage) or .json")
-    if not 0.0 <= min_confidence <= 1.0:
-        raise InputError(f"--min-confidence {min_confidence} is outside 0..1")
     camera = read_camera(camera_path)
     model = load_model(model_path)
     lmap = landmark_map_for(model, landmarks_path, take_path)  # --landmarks overrides the model's

@@ -16,6 +16,7 @@ frame that cannot be read is reported by :func:`read_frames` and skipped, never 
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -202,6 +203,17 @@ def read_frames(footage: Footage, wanted=None):
             yield int(n), _read_image(p), None
         except Exception as exc:  # a truncated or corrupt file: report it, go on
             yield int(n), None, f"{p.name} cannot be read ({type(exc).__name__}: {exc})"
+
+
+def read_frames_of(footage: Footage, at) -> Iterator[tuple[list, np.ndarray | None, str | None]]:
+    """Yield (rows, image or None, problem or None): each footage frame of ``at`` (T,) (the
+    footage's frame for each row of a take, e.g. :func:`frames_at`) read once, in order, with the
+    rows it shows (several where the take is faster than the footage)."""
+    rows_of: dict = {}
+    for i, n in enumerate(np.asarray(at, dtype=np.int64).tolist()):
+        rows_of.setdefault(n, []).append(i)
+    for n, image, problem in read_frames(footage, list(rows_of)):
+        yield rows_of[n], image, problem
 
 
 def _video_frames(footage: Footage, numbers: np.ndarray):

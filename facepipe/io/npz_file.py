@@ -69,9 +69,10 @@ def open_npz(path, expected: str, hint: str | None = None):
 TRUTH_EXPECTED = "a truth .npz with 'positions' (frames × vertices × 3) and optionally 'frame' (the take's frame numbers)"
 
 
-def read_truth_extras(path) -> dict:
-    """What else a truth file says of its frames, where it says it: ``time`` (F,) seconds, and the
-    head's pose ``rotation`` (F, 3, 3) and ``translation`` (F, 3) (world = R · head + t).
+def read_truth_extras(path, n_frames: int) -> dict:
+    """What else a truth file of ``n_frames`` frames says of them, where it says it: ``time`` (F,)
+    seconds, and the head's pose ``rotation`` (F, 3, 3) and ``translation`` (F, 3) (world = R ·
+    head + t).
 
     Raises
     ------
@@ -79,8 +80,8 @@ def read_truth_extras(path) -> dict:
         A member of the wrong shape.
     """
     out = {}
+    n = int(n_frames)
     with open_npz(path, TRUTH_EXPECTED) as data:
-        n = data["positions"].shape[0] if "positions" in data.files else None
         for name, tail in (("time", ()), ("rotation", (3, 3)), ("translation", (3,))):
             if name in data.files:
                 value = np.asarray(data[name], dtype=np.float64)

@@ -24,11 +24,9 @@ frame is missing keeps its last value, decaying to neutral.
 
 from __future__ import annotations
 
-import dataclasses
-
 import queue
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +40,7 @@ from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
 from facepipe.parallel import map_blocks, serial_blas, thread_count
 from facepipe.io.appearance_file import AppearanceModel
-from facepipe.io.footage import Footage, frames_at, open_footage, read_frames, to_gray
+from facepipe.io.footage import Footage, frames_at, open_footage, read_frames_of, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
            "classify_chunk",
@@ -217,20 +215,40 @@ def grid_points_hidden(grid: np.ndarray, camera_positions: np.ndarray, faces: np
     return hidden.reshape(F, G, N)
 
 
-def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (T, V, 3) and frame numbers (T,) from an .npz (``positions``, optional ``frame``)
-    or a replay folder (``positions.npy`` and ``replay.json``)."""
+@dataclass
+class TakeGeometry:
+    """A take's geometry as read once: positions (T, V, 3), frame numbers (T,), its own frame
+    times (T,) seconds where it records them (else None), whether the positions are in a camera's
+    coordinates (a 2D take's replay; else world positions) and that camera where the replay
+    recorded it."""
+
+    positions: np.ndarray
+    numbers: np.ndarray
+    times: np.ndarray | None = None
+    in_camera: bool = False
+    camera: Camera | None = None
+
+
+def read_take_geometry(path, n_vertices: int) -> TakeGeometry:
+    """:class:`TakeGeometry` from an .npz (``positions``, optional ``frame`` and ``time``) or a replay
+    folder (``positions.npy`` and ``replay.json``; ``video.npz`` for a 2D take's camera)."""
     from facepipe.io.replay_folder import ReplayDir
 
     path = Path(path)
+    times = camera = None
+    in_camera = False
     if path.is_dir():
         replay = ReplayDir(path)
-        positions, numbers = replay.positions, replay.frame_numbers
+        positions, numbers, times = replay.positions, replay.frame_numbers, replay.times
+        in_camera = str(replay.info.get("coordinates", "")).startswith("camera")
+        video = replay.video if in_camera else None
+        camera = None if video is None else video.camera
     elif path.is_file():
         try:
             with np.load(path) as data:
                 positions = np.asarray(data["positions"])
                 numbers = np.asarray(data["frame"]) if "frame" in data else np.arange(len(positions))
+                times = np.asarray(data["time"], dtype=np.float64) if "time" in data else None
         except (OSError, ValueError, KeyError) as exc:
             raise InputError(f"not a geometry .npz with 'positions' ({exc})", path=path,
                              hint="positions (T, V, 3) and frame (T,), or a replay folder") from None
@@ -239,79 +257,58 @@ def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"positions have shape {positions.shape}, the rest mesh has {n_vertices} vertices",
                          path=path, hint="give the geometry of this rig's mesh")
-    return positions, np.asarray(numbers, dtype=np.int64)
+    if times is not None and times.shape != (len(positions),):
+        times = None  # not one a frame: the frames' numbers alone say which footage is theirs
+    return TakeGeometry(positions, np.asarray(numbers, dtype=np.int64), times, in_camera, camera)
 
 
-def take_geometry(path, model: AppearanceModel) -> tuple[np.ndarray, np.ndarray, AppearanceModel, str | None]:
-    """The geometry of a take to classify (an .npz or a replay folder, see :func:`_read_geometry`):
-    positions (T, V, 3), frame numbers (T,), the model to classify them with, and a note or None
-    (its own frame times: :func:`take_times`).
+def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (T, V, 3) and frame numbers (T,) of a take's geometry (:func:`read_take_geometry`)."""
+    geometry = read_take_geometry(path, n_vertices)
+    return geometry.positions, geometry.numbers
+
+
+def take_geometry(path, model: AppearanceModel) -> tuple[TakeGeometry, AppearanceModel, str | None]:
+    """The geometry of a take to classify (:func:`read_take_geometry`), the model to classify it
+    with, and a note or None.
 
     A 2D take's replay is written in its camera's coordinates (``replay.json``: ``coordinates``)
     and its footage is that camera's: the model classifies it through that camera, its positions
     taken as they are (the model's world-to-camera transform, which is the example footage's, is
     the identity here). The note says so, and where that calibration is not the model's."""
-    from facepipe.io.replay_folder import ReplayDir
-
-    positions, numbers = _read_geometry(path, model.n_vertices)
-    if not _in_camera_coordinates(path):
-        return positions, numbers, model, None
-    video = ReplayDir(path).video
-    camera = model.camera if video is None else video.camera
+    geometry = read_take_geometry(path, model.n_vertices)
+    if not geometry.in_camera:
+        return geometry, model, None
+    camera = geometry.camera or model.camera  # (a replay without its camera's record: the model's)
     same = (camera.width, camera.height) == (model.camera.width, model.camera.height) and np.allclose(
         camera.matrix, model.camera.matrix) and np.allclose(np.ravel(camera.distortion), np.ravel(model.camera.distortion))
     note = ("the geometry is a 2D take's replay, in its camera's coordinates: classified through that camera"
             + ("" if same else " (not the calibration the model was built with: its footage is that camera's)"))
-    through = dataclasses.replace(model, rotation=np.eye(3), translation=np.zeros(3), camera=camera)
-    return positions, numbers, through, note
+    return geometry, replace(model, rotation=np.eye(3), translation=np.zeros(3), camera=camera), note
 
 
-def _in_camera_coordinates(path) -> bool:
-    """Whether a take's geometry is a replay folder written in its camera's coordinates (a 2D take's)."""
-    from facepipe.io.replay_folder import ReplayDir
-
-    return Path(path).is_dir() and str(ReplayDir(path).info.get("coordinates", "")).startswith("camera")
-
-
-def take_times(path) -> np.ndarray | None:
-    """The frame times (T,) seconds a take's geometry records (a replay folder's, an .npz's
-    ``time``), or None where it records none."""
-    from facepipe.io.replay_folder import ReplayDir
-
-    path = Path(path)
-    if path.is_dir():
-        return ReplayDir(path).times
-    try:
-        with np.load(path) as data:
-            return np.asarray(data["time"], dtype=np.float64) if "time" in data.files else None
-    except (OSError, ValueError):
-        return None
-
-
-def _example_frames(cfg, footage_numbers_needed, positions, numbers, camera: Camera) -> dict:
+def _example_frames(cfg, footage_numbers_needed, geometry: TakeGeometry, camera: Camera) -> dict:
     """The example frames the regions name: frame number → (RGB image, camera-space positions).
-    Each is the footage's frame of that number, or a video's at the geometry's own time for it
+    Each is the footage's frame of that number, or the one at the geometry's own time for it
     (:func:`facepipe.io.footage.frames_at`)."""
-    index = {int(n): i for i, n in enumerate(numbers)}
-    footage = open_footage(cfg.footage)
+    index = {int(n): i for i, n in enumerate(geometry.numbers)}
     needed = np.array(sorted(footage_numbers_needed), dtype=np.int64)
-    times = take_times(cfg.geometry)
-    own = times is not None and len(times) == len(numbers) and all(int(n) in index for n in needed)
-    at, _ = frames_at(footage, needed, times[[index[int(n)] for n in needed]] if own else None)
-    take_numbers: dict = {}  # footage frame → the example frames it shows
-    for a, n in zip(at, needed):
-        take_numbers.setdefault(int(a), []).append(int(n))
+    for n in needed:
+        if int(n) not in index:
+            raise InputError(f"example frame {int(n)} has no geometry", path=cfg.geometry,
+                             hint="the geometry's frame numbers must include the example frames")
+    rows = np.array([index[int(n)] for n in needed], dtype=np.int64)
+    footage = open_footage(cfg.footage)
+    at, _ = frames_at(footage, needed, None if geometry.times is None else geometry.times[rows])
     frames = {}
-    for a, image, problem in read_frames(footage, list(take_numbers)):
-        for n in take_numbers[a]:
+    for shown, image, problem in read_frames_of(footage, at):
+        for k in shown:
+            n = int(needed[k])
             if image is None:
                 raise InputError(f"example frame {n}: {problem}", path=cfg.footage,
                                  hint="every frame an [appearance.regions] table names must be readable")
-            if n not in index:
-                raise InputError(f"example frame {n} has no geometry", path=cfg.geometry,
-                                 hint="the geometry's frame numbers must include the example frames")
             _check_size(image, camera, n, cfg.footage)
-            frames[n] = (image, positions[index[n]])
+            frames[n] = (image, geometry.positions[rows[k]])
     return frames
 
 
@@ -393,8 +390,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     corner_uv = mesh.uvs[mesh.face_uvs]
     R = np.asarray(cfg.camera_rotation, dtype=np.float64)
     t = np.asarray(cfg.camera_translation, dtype=np.float64)
-    positions, numbers = _read_geometry(cfg.geometry, mesh.n_vertices)
-    if _in_camera_coordinates(cfg.geometry) and not (np.allclose(R, np.eye(3)) and np.allclose(t, 0.0)):
+    geometry = read_take_geometry(cfg.geometry, mesh.n_vertices)
+    positions = geometry.positions
+    if geometry.in_camera and not (np.allclose(R, np.eye(3)) and np.allclose(t, 0.0)):
         raise InputError("the example geometry is a 2D take's replay, already in its camera's coordinates, and the "
                          "config moves it again by camera_rotation/camera_translation", path=config.path,
                          hint="leave camera_rotation and camera_translation out of [appearance] for this geometry")
@@ -404,7 +402,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         corner_uv = np.concatenate([corner_uv, cards.corner_uv])
         positions = cards.extend(positions)
     needed = {cfg.neutral_frame} | {f for r in cfg.regions for f in r.frames} | set(cfg.rest_frames)
-    frames = _example_frames(cfg, needed, positions, numbers, camera)
+    frames = _example_frames(cfg, needed, replace(geometry, positions=positions), camera)  # (the cards' too)
     cam_pos = {n: positions_world @ R.T + t for n, (_, positions_world) in frames.items()}
     S = cfg.texture_size
     texel_face, texel_bary = texel_map(corner_uv, S)
@@ -727,10 +725,6 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
     problems = []
-    read = np.asarray(numbers if footage_numbers is None else footage_numbers, dtype=np.int64)
-    rows_of: dict = {}  # footage frame → the geometry rows it shows (several where the take is faster)
-    for i, n in enumerate(read):
-        rows_of.setdefault(int(n), []).append(i)
     bank = region_bank(model)
     rows, grays = [], []
     batch = chunk * thread_count()  # a chunk for each of facepipe's threads
@@ -744,17 +738,17 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
         rows.clear()
         grays.clear()
 
-    for n, image, problem in _read_ahead(read_frames(footage, list(rows_of))):
+    at = numbers if footage_numbers is None else footage_numbers
+    for shown, image, problem in _read_ahead(read_frames_of(footage, at)):
         if image is None:
-            for i in rows_of[n]:  # said by the take's frame numbers
-                problems.append((int(numbers[i]), problem))
+            problems += [(int(numbers[i]), problem) for i in shown]  # said by the take's frame numbers
             if progress is not None:
-                progress(len(rows_of[n]))
+                progress(len(shown))
             continue
         if image.shape[:2] != (model.camera.height, model.camera.width):
-            _check_size(image, model.camera, n, footage.source)
+            _check_size(image, model.camera, int(at[shown[0]]), footage.source)
         gray = to_gray(image)
-        for i in rows_of[n]:
+        for i in shown:
             rows.append(i)
             grays.append(gray)
             if len(rows) == batch:

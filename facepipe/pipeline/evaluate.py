@@ -53,19 +53,14 @@ def frame_errors(positions: np.ndarray, truth: np.ndarray, vertices: slice = sli
         a = np.asarray(positions[rows, vertices], dtype=np.float64)
         b = np.asarray(truth[rows, vertices], dtype=np.float64)
         if pose is not None:
-            a = in_head_space(a, pose[0][rows], pose[1][rows])
+            a = to_head_space(a, pose[0][rows], pose[1][rows])
         if truth_pose is not None:
-            b = in_head_space(b, truth_pose[0][rows], truth_pose[1][rows])
+            b = to_head_space(b, truth_pose[0][rows], truth_pose[1][rows])
         d = a - b
         dist2 = np.einsum("tvc,tvc->tv", d, d)
         rms[rows] = np.sqrt(dist2.mean(axis=1))
         mx[rows] = np.sqrt(dist2.max(axis=1))
     return rms, mx
-
-
-def in_head_space(x: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Frames of positions (T, V, 3) in head space: Rᵀ (x − t) per frame (world = R · head + t)."""
-    return np.einsum("tji,tvj->tvi", rotation, x - translation[:, None, :])
 
 
 def summarize(rms: np.ndarray, mx: np.ndarray) -> dict:
@@ -121,18 +116,27 @@ def _match_times(replay_times, truth_times) -> np.ndarray | None:
 
 def load_truth(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=None,
                report: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The truth of a replay: its positions and, per replayed frame, the truth's row.
+    """The truth of a replay: its positions and, per replayed frame, the truth's row
+    (:func:`truth_rows`)."""
+    positions, index, _ = truth_rows(path, frame_numbers, n_vertices, frame_times, report)
+    return positions, index
+
+
+def truth_rows(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=None,
+               report: dict | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The truth of a replay: its positions, per replayed frame the truth's row, and what else the
+    file says of its frames (:func:`facepipe.io.npz_file.read_truth_extras`), each read once.
 
     Parameters
     ----------
-    path : .npz with ``positions`` (F, V, 3) in the take's space and optionally ``frame`` (F,)
-        and ``time`` (F,).
+    path : .npz with ``positions`` (F, V, 3) in the take's space and optionally ``frame`` (F,),
+        ``time`` (F,) and the head's ``rotation``/``translation``.
     frame_numbers, frame_times : (T,) the replay's frame numbers and times (see :func:`match_frames`).
     n_vertices : V of the model.
 
     Returns
     -------
-    positions : (F, V, 3) memmap-backed array; index : (T,) int64 rows of ``positions``.
+    positions : (F, V, 3); index : (T,) int64 rows of ``positions``; extras : dict.
 
     Raises
     ------
@@ -143,8 +147,10 @@ def load_truth(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=Non
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
                          f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
-    times = read_truth_extras(path).get("time") if frame_times is not None else None
-    return positions, match_frames(np.asarray(frame_numbers), frames, str(path), frame_times, times, report)
+    extras = read_truth_extras(path, len(positions))
+    index = match_frames(np.asarray(frame_numbers), frames, str(path), frame_times,
+                         extras.get("time") if frame_times is not None else None, report)
+    return positions, index, extras
 
 
 @dataclass
@@ -169,13 +175,13 @@ class ReplayTruth:
 
 def replay_truth(path, replay, n_vertices: int) -> ReplayTruth:
     """:func:`load_truth` for a replay folder (its frame numbers, else its times), with the truth's head pose."""
-    positions, index = load_truth(path, replay.frame_numbers, n_vertices, replay.times)
-    extras = read_truth_extras(path)
+    positions, index, extras = truth_rows(path, replay.frame_numbers, n_vertices, replay.times)
     if "rotation" in extras and "translation" in extras:
         return ReplayTruth(positions, index, extras["rotation"][index], extras["translation"][index])
     return ReplayTruth(positions, index)
 
 
 def to_head_space(x, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Take-space positions (V, 3) of a frame in head space (world = R head + t)."""
-    return (np.asarray(x, dtype=np.float64) - translation) @ rotation
+    """Take-space positions (V, 3) of a frame in head space (world = R head + t): Rᵀ (x − t); or
+    of frames, (T, V, 3) with rotations (T, 3, 3) and translations (T, 3)."""
+    return (np.asarray(x, dtype=np.float64) - np.asarray(translation)[..., None, :]) @ rotation

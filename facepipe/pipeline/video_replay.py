@@ -16,7 +16,11 @@ from facepipe.mocap.landmarks2d import check_in_image, read_landmark_take
 from facepipe.pipeline.replay import replay_windows
 from facepipe.pipeline.video_lift import LiftOptions, lift_rig, lift_take, reprojection_of_output
 
-__all__ = ["landmark_map_for", "replay_landmark_take"]
+__all__ = ["DEFAULT_LIFT", "DEFAULT_MIN_CONFIDENCE", "landmark_map_for", "replay_landmark_take"]
+
+#: what a 2D take's replay does without a lift or a confidence floor given
+DEFAULT_LIFT = "model"
+DEFAULT_MIN_CONFIDENCE = 0.5
 
 
 def landmark_map_for(model, landmarks_path, take_path):
@@ -30,19 +34,24 @@ def landmark_map_for(model, landmarks_path, take_path):
     return lmap
 
 
-def replay_landmark_take(model, take_path, output, camera, landmark_map, make_evaluator, *, lift: str = "model",
+def replay_landmark_take(model, take_path, output, camera, landmark_map, make_evaluator, *, lift: str | None = None,
                          frames=None, head_motion: str = "keep", chunk: int = 32, save_large: bool = False,
-                         min_confidence: float = 0.5, open_bar=None, extra_report=None):
+                         min_confidence: float | None = None, open_bar=None, extra_report=None):
     """Replay the 2D take ``take_path`` seen by ``camera`` (:class:`~facepipe.core.camera.Camera`),
     its tracker's points mapped to rig vertices by ``landmark_map``, into the folder ``output``
     with ``make_evaluator(model)`` (called once the take is read and checked); the :class:`~facepipe.pipeline.replay.ReplayResult` and the video report
     (replay.json's ``video``).
 
+    lift : "model" or "heuristic"; min_confidence : the tracker's confidence floor (None: the defaults).
     frames : a slice of the take's rows, or None; ``open_bar(total)``: a progress bar (a context
     manager with ``update(n)``), or None; extra_report : more for replay.json.
 
     Raises InputError (landmarks outside the camera's image, a map the take lacks, ...).
     """
+    lift = DEFAULT_LIFT if lift is None else lift
+    min_confidence = DEFAULT_MIN_CONFIDENCE if min_confidence is None else min_confidence
+    if not 0.0 <= min_confidence <= 1.0:
+        raise InputError(f"--min-confidence {min_confidence} is outside 0..1")
     take = read_landmark_take(take_path, landmark_map.names, frames, min_confidence=min_confidence)
     check_in_image(take, camera.width, camera.height, str(camera.path))
     evaluator = make_evaluator(model)
