@@ -235,6 +235,7 @@ def test_a_2d_takes_replay_is_classified_through_its_camera(kit, tmp_path, capsy
     cfg = _edited_config(kit, tmp_path / "build", 'geometry = "examples.npz"', f'geometry = "{replay}"')
     assert _run("appearance", "build", cfg, "-o", tmp_path / "m.npz") == 2
     assert "already in its camera's coordinates" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
 
 
 def test_one_camera_gives_geometry_and_appearance(kit, tmp_path):

@@ -485,6 +485,7 @@ def test_2d_takes_replay_as_serially_with_the_shoots_camera(takes, cluster, tmp_
     status = {t["name"]: t for t in json.loads((out / "batch.json").read_text())["takes"]}
     assert status["shot_2d"]["status"] == "failed" and "--camera" in status["shot_2d"]["error"]
     assert status[paths[1].stem]["status"] == "ok"
+    assert not (out / "shot_2d" / "positions.npy").exists() and not (out / "shot_2d" / "replay.json").exists()
     assert run_cli(*args, "--camera", camera, "--landmarks", tmp_path / "landmarks.csv") == 0, _errors(out)
     assert np.array_equal(np.load(out / "shot_2d" / "positions.npy"), np.load(tmp_path / "serial" / "positions.npy"))
     assert (out / "shot_2d" / "video.npz").is_file()
