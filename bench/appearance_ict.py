@@ -28,7 +28,7 @@ from scipy.stats import pearsonr, spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's facepipe, however it is run
 
 from facepipe.appearance_sample import write_appearance_kit
-from facepipe.core.appearance import stream_bits
+from facepipe.core.appearance import light_bits, stream_bits
 from facepipe.core.hole_cards import boundary_loops
 from facepipe.io.appearance_file import STREAM_DECIMALS
 from facepipe.io.camera_file import read_camera
@@ -121,11 +121,13 @@ def throughput(model, out: Path, take: str, positions: np.ndarray, numbers: np.n
 
 
 def texture_ratio(model, mesh, out: Path, take: str, positions: np.ndarray, numbers: np.ndarray, q: np.ndarray,
-                  q_truth: np.ndarray) -> dict:
+                  q_truth: np.ndarray, light) -> dict:
     """RMS of (layered texture at Q − the frame's texels) over that of (neutral − the frame's
     texels), on the regions' texels, over the take; in all and per region; with the classified Q
-    and with the truth activation as Q (what the layered texture itself reaches: shading of the
-    other expressions' geometry and of the lips and eyes opening is in no region's layers)."""
+    and with the truth activation as Q (what the layered texture itself reaches). The
+    reconstruction is the frame's texture as facepipe exports it: the layered albedo shaded by the
+    frame's geometry under the light classification fitted to the frame (``light``: (T, 9), or None
+    for a model that holds the footage's values)."""
     texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0])  # the cards' squares too
     sums = np.zeros((2, len(model.names), 3))
     active = np.zeros((2, len(model.names), 3))  # each region's sums over the frames it is active in
@@ -133,7 +135,7 @@ def texture_ratio(model, mesh, out: Path, take: str, positions: np.ndarray, numb
     for i, (_, image, _) in enumerate(read_frames(footage, numbers)):
         cam = model.to_camera(positions[i])
         for k, qq in enumerate((q[i], q_truth[i])):
-            d = texture_differences(model, texel_face, texel_bary, image, cam, qq)
+            d = texture_differences(model, texel_face, texel_bary, image, cam, qq, None if light is None else light[i])
             sums[k] += d
             active[k] += d * (q_truth[i] > 0)[:, None]
     # in a frame where a region is neutral the layered texture at Q = 0 is the neutral texture:
@@ -180,10 +182,13 @@ def main() -> None:
         render_s = time.perf_counter() - t0
     config = load_config(out / "appearance.toml")
     model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
-    bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    q_bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS) if model.light_face is not None else 0)
     result = {"take": args.take, "render_seconds": render_s, "regions": model.names, "shading": model.shading,
+              "albedo_layers": model.albedo,
               "rest_floor": None if model.rest_floor is None else dict(zip(model.names, model.rest_floor.tolist())),
-              "stream_bits_per_frame": bits, "stream_kbit_s_at_30hz": bits * 30 / 1000.0}
+              "stream_bits_per_frame": bits, "q_bits_per_frame": q_bits, "light_bits_per_frame": bits - q_bits,
+              "stream_kbit_s_at_30hz": bits * 30 / 1000.0}
     for take in ("take", "take_turned"):
         positions, numbers = _read_geometry(out / f"{take}.npz", mesh.n_vertices)
         t0 = time.perf_counter()
@@ -196,7 +201,7 @@ def main() -> None:
         if take == "take":
             result[take].update(throughput(model, out, take, positions, numbers))
             q_truth = act * (np.asarray(model.layer_counts) - 1)  # the examples: activation 0 … 1 over the layers
-            result[take].update(texture_ratio(model, mesh, out, take, positions, numbers, q, q_truth))
+            result[take].update(texture_ratio(model, mesh, out, take, positions, numbers, q, q_truth, c.light))
         r = result[take]
         print(take, "spearman", " ".join(f"{n} {v:.3f}" for n, v in r["spearman"].items()))
         print(take, "pearson ", " ".join(f"{n} {v:.3f}" for n, v in r["pearson"].items()))

@@ -64,6 +64,12 @@ def test_missing_frame_is_skipped_and_wrong_size_refused(kit, tmp_path):
                 "-o", out, "-q") == 0
     assert '"frame": 5' in (out / "appearance.json").read_text()
     assert '"frame": 6' in (out / "appearance.json").read_text()
+    # the skipped frames hold the light of the frame before them: a texture for every frame
+    light = np.loadtxt(out / "light.csv", delimiter=",", skiprows=1)
+    row = {int(n): k for k, n in enumerate(light[:, 0])}
+    np.testing.assert_array_equal(light[row[5], 2:], light[row[4], 2:])
+    np.testing.assert_array_equal(light[row[6], 2:], light[row[4], 2:])
+    assert np.isfinite(light).all() and not np.array_equal(light[row[7], 2:], light[row[4], 2:])
     img = iio.imread(frames / "frame_0007.png")
     iio.imwrite(frames / "frame_0007.png", img[:-2])
     assert _run("appearance", "classify", kit / "app.npz", frames, "--geometry", kit / "appearance" / "take.npz",
@@ -280,22 +286,24 @@ def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
 
     cls = _classified(kit)
     dest = tmp_path / "tex"
-    assert _run("export", cls, "--format", "textures", "-o", dest) == 0
+    assert _run("export", cls, "--format", "textures", "--layer", "albedo", "-o", dest) == 0
     said = capsys.readouterr().out
     assert "kbit/s" in said
     summary = json.loads((dest / "textures.json").read_text())
     q = np.loadtxt(dest / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
-    assert summary["frames"] == len(q) and summary["bit_rate_kbit_s"] <= 12.0
-    # 8 regions × 16 bits (Q in 1e-4 steps over 4 layers needs 40001 values) at 30 Hz
-    assert summary["bits_per_frame"] == 8 * 16 and abs(summary["bit_rate_kbit_s"] - 3.84) < 0.01
+    assert summary["frames"] == len(q) and summary["bit_rate_kbit_s"] <= 12.0 and summary["shading"] == "albedo"
+    # 8 regions × 16 bits (Q in 1e-4 steps over 4 layers needs 40001 values) and the light's 9
+    # coefficients × 16 bits (1e-4 steps over a span of 4) at 30 Hz
+    assert summary["bits_per_frame"] == 8 * 16 + 9 * 16 and abs(summary["bit_rate_kbit_s"] - 8.16) < 0.01
     model = load_appearance(kit / "app.npz")
+    assert model.albedo
     t = int(np.argmax(q.sum(axis=1)))
     got = cv2.imread(str(dest / f"frame_{t + 1:04d}.png"), cv2.IMREAD_UNCHANGED)[..., ::-1] / 65535.0
-    # outside every region's box the texture is the neutral one
+    # outside every region's box the texture is the neutral albedo
     outside = np.ones(model.neutral.shape[:2], dtype=bool)
     for alpha, (r0, c0) in zip(model.alphas, model.boxes):
         outside[r0:r0 + alpha.shape[0], c0:c0 + alpha.shape[1]] = False
-    np.testing.assert_allclose(got[outside], model.neutral[outside], atol=1e-4)
+    np.testing.assert_allclose(got[outside], np.clip(model.neutral_albedo[outside], 0, 1), atol=1e-4)
     # inside a region (alpha 1, no other region there) it is the linear blend of its two layers
     # around Q, computed here by hand: the most active region with such texels of its own
     def own_texels(r):
@@ -316,6 +324,82 @@ def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
     (r0, c0), alpha = model.boxes[r], model.alphas[r]
     window = got[r0:r0 + alpha.shape[0], c0:c0 + alpha.shape[1]]
     np.testing.assert_allclose(window[inner], expected[inner], atol=1e-4)
+
+
+def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_light(kit, tmp_path):
+    """The default textures are the layered albedo times the shading of the frame's own surface
+    under the frame's light (light.csv's row). And that shading is the footage's: on the turned
+    take (the head turned up to 15° under another light) the skin outside every region, where the
+    layers change nothing, is far closer to the frame's own texels than the neutral texture as
+    the footage showed it. The renderer lights the face with ambient plus two-sided Lambert and a
+    coloured light, not the grey nine-term light the classification fits: an independent check."""
+    import cv2
+
+    from facepipe.io.appearance_file import load_appearance, read_light, read_stream
+    from facepipe.pipeline.appearance import skin_texels, texel_map, texel_shading, unwrap
+
+    cls = kit / "cls_take_turned"
+    if not (cls / "appearance.csv").is_file():
+        _q_and_truth(kit, "take_turned")
+    shaded, albedo = tmp_path / "shaded", tmp_path / "albedo"
+    assert _run("export", cls, "--format", "textures", "-o", shaded, "-q") == 0
+    assert _run("export", cls, "--format", "textures", "--layer", "albedo", "-o", albedo, "-q") == 0
+    assert json.loads((shaded / "textures.json").read_text())["shading"] == "frame"
+    model = load_appearance(kit / "app.npz")
+    _, numbers, _, q = read_stream(cls)
+    light = read_light(cls, numbers)
+    with np.load(kit / "appearance" / "take_turned.npz") as geometry:
+        world = geometry["positions"]
+    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0])
+    outside = skin_texels(model, texel_face)
+    for alpha, (r0, c0) in zip(model.alphas, model.boxes):
+        outside[r0:r0 + alpha.shape[0], c0:c0 + alpha.shape[1]] = False
+    footage = open_footage(kit / "appearance" / "take_turned" / "frame_%04d.png")
+    errors = []
+    for t in np.linspace(0, len(numbers) - 1, 5).round().astype(int):
+        read = lambda folder: cv2.imread(str(folder / f"frame_{t + 1:04d}.png"),  # noqa: E731
+                                         cv2.IMREAD_UNCHANGED)[..., ::-1] / 65535.0
+        got, flat = read(shaded), read(albedo)
+        camera_positions = model.to_camera(world[t])
+        shading = texel_shading(model, camera_positions, light[t], texel_face, texel_bary)
+        unclipped = (flat > 1e-3) & (flat < 1 - 1e-3) & (got < 1 - 1e-3)
+        np.testing.assert_allclose(got[unclipped], (flat * shading[..., None])[unclipped], atol=2e-4)
+        image = next(im for _, im, _ in read_frames(footage, numbers[t:t + 1]))
+        truth, seen = unwrap(image, camera_positions, model.faces, texel_face, texel_bary, model.camera,
+                             min_facing=model.min_facing, normal_sign=model.normal_sign)
+        use = seen & outside
+        assert use.sum() > 1000
+        errors.append([np.sqrt(((texture - truth)[use] ** 2).mean()) for texture in (got, model.neutral)])
+    shaded_rms, neutral_rms = np.mean(errors, axis=0)
+    assert shaded_rms < 0.5 * neutral_rms, errors
+
+
+def test_the_neutral_frame_rebuilt_from_its_albedo_is_its_texture(kit):
+    """Albedo and shading undo each other: the neutral example frame's texture, rebuilt at Q = 0
+    as its albedo times the shading of its own geometry under its own light, is the neutral
+    texture as the footage showed it, on every skin texel that frame shows well (not edge-on)."""
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.config import load_config
+    from facepipe.io.footage import to_gray
+    from facepipe.pipeline.appearance import (_read_geometry, _texel_facing, frame_lights, frame_texture,
+                                              skin_texels, texel_map, unwrap)
+
+    model = load_appearance(kit / "app.npz")
+    cfg = load_config(kit / "appearance" / "appearance.toml").appearance
+    positions, numbers = _read_geometry(cfg.geometry, model.n_vertices)
+    n = cfg.neutral_frame
+    camera_positions = model.to_camera(positions[list(numbers).index(n)])
+    image = next(image for _, image, _ in read_frames(open_footage(cfg.footage), np.array([n])))
+    light = frame_lights(to_gray(image)[None], camera_positions[None], model)[0]
+    texels = texel_map(model.corner_uv, model.neutral.shape[0])
+    rebuilt = frame_texture(model, np.zeros(len(model.names)), camera_positions, light, texels)
+    _, seen = unwrap(image, camera_positions, model.faces, *texels, model.camera, min_facing=model.min_facing,
+                     normal_sign=model.normal_sign)
+    facing = _texel_facing(model, camera_positions, *texels, slice(None), slice(None))
+    use = seen & skin_texels(model, texels[0]) & (facing > max(cfg.min_facing, cfg.min_point_facing))
+    assert use.sum() > 0.5 * seen.sum()
+    # the regions' alpha ramps blend layer 0 (the same frame) into the neutral albedo: the same values
+    np.testing.assert_allclose(rebuilt[use], model.neutral[use], rtol=2e-3, atol=2e-4)
 
 
 def test_texture_export_refuses_overwrite_resumes_and_writes_exr(kit, tmp_path):
@@ -343,24 +427,26 @@ def test_texture_export_refuses_overwrite_resumes_and_writes_exr(kit, tmp_path):
 
 
 def test_reconstructed_texture_is_closer_to_the_frames_than_neutral(kit):
-    # the layered texture at the classified Q against each frame's own texels (unwrapped through
-    # its truth geometry), relative to the neutral texture's difference, over the regions' texels
-    from facepipe.io.appearance_file import load_appearance
+    # the frame's texture at the classified Q (the layered albedo shaded by its geometry under the
+    # light fitted to it) against each frame's own texels (unwrapped through its truth geometry),
+    # relative to the neutral texture's difference, over the regions' texels
+    from facepipe.io.appearance_file import load_appearance, read_light, read_stream
     from facepipe.io.mesh_read import load_mesh
     from facepipe.pipeline.appearance import _read_geometry, texel_map, texture_differences
 
     model = load_appearance(kit / "app.npz")
     mesh = load_mesh(kit / "neutral.obj")
     cls = _classified(kit)
-    q = np.loadtxt(cls / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    _, stream_numbers, _, q = read_stream(cls)
+    light = read_light(cls, stream_numbers)
     truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
     positions, numbers = _read_geometry(kit / "appearance" / "take.npz", mesh.n_vertices)
     texel_face, texel_bary = texel_map(mesh.uvs[mesh.face_uvs], model.neutral.shape[0])
     sums, at_truth = np.zeros((len(model.names), 3)), np.zeros((len(model.names), 3))
     for t, (_, image, _) in enumerate(read_frames(open_footage(kit / "appearance" / "take"), numbers)):
         cam = model.to_camera(positions[t])
-        sums += texture_differences(model, texel_face, texel_bary, image, cam, q[t])
-        at_truth += texture_differences(model, texel_face, texel_bary, image, cam, truth[t] * 4)
+        sums += texture_differences(model, texel_face, texel_bary, image, cam, q[t], light[t])
+        at_truth += texture_differences(model, texel_face, texel_bary, image, cam, truth[t] * 4, light[t])
     ratio = np.sqrt(sums[:, 0].sum() / sums[:, 1].sum())
     ceiling = np.sqrt(at_truth[:, 0].sum() / at_truth[:, 1].sum())
     print("texture RMS ratio", ratio, "at the truth Q", ceiling)
@@ -500,15 +586,18 @@ def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
 
 
 def test_classify_reports_its_speed_and_the_streams_bit_rate(kit, tmp_path, capsys):
-    from facepipe.core.appearance import stream_bits
-    from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance
+    from facepipe.core.appearance import light_bits, stream_bits
+    from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, read_light, read_stream
 
     out = tmp_path / "cls"
     assert _run("appearance", "classify", kit / "app.npz", kit / "appearance" / "take" / "frame_%04d.png",
                 "--geometry", kit / "appearance" / "take.npz", "-o", out, "--fps", 24) == 0
     said = capsys.readouterr().out
     info = json.loads((out / "appearance.json").read_text())
-    bits = int(stream_bits(load_appearance(kit / "app.npz").layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    q_bits = int(stream_bits(load_appearance(kit / "app.npz").layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    bits = q_bits + light_bits(10.0 ** -STREAM_DECIMALS)  # Q per region and the frame's light
+    assert info["q_bits_per_frame"] == q_bits and info["light_bits_per_frame"] == 9 * 16
+    assert read_light(out, read_stream(out)[1]).shape == (info["frames"], 9)
     assert info["stream_bits_per_frame"] == bits and info["stream_kbit_s"] == pytest.approx(bits * 24 / 1000)
     assert info["fps"] == 24 and info["seconds"] > 0
     assert info["frames_per_second"] == pytest.approx(info["frames"] / info["seconds"])
@@ -547,3 +636,45 @@ def test_frames_classified_on_threads_equal_one_chunk_after_another(kit):
     np.testing.assert_array_equal(visible, np.concatenate([c[1] for c in one]))
     empty_q, empty_visible = classify_decoded(grays[:0], cams[:0], model)
     assert empty_q.shape == (0, len(model.names)) and empty_visible.shape == (0, len(model.names))
+
+
+def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so(kit, tmp_path, capsys):
+    """A classified folder without light.csv (classified before facepipe wrote it), or whose
+    geometry is gone, exports the layered albedo with a note; a broken light.csv, --layer albedo of
+    a model that holds the footage's values, and a geometry layer for textures are refused."""
+    from facepipe.io.appearance_file import load_appearance, save_appearance
+
+    cls = _classified(kit)
+    old = tmp_path / "old"
+    shutil.copytree(cls, old)
+    (old / "light.csv").unlink()
+    assert _run("export", old, "--format", "textures", "-o", tmp_path / "a") == 0
+    assert "no light.csv" in capsys.readouterr().out
+    assert json.loads((tmp_path / "a" / "textures.json").read_text())["shading"] == "albedo"
+
+    moved = tmp_path / "moved"
+    shutil.copytree(cls, moved)
+    info = json.loads((moved / "appearance.json").read_text())
+    info["geometry"] = str(tmp_path / "gone.npz")
+    (moved / "appearance.json").write_text(json.dumps(info))
+    assert _run("export", moved, "--format", "textures", "-o", tmp_path / "b") == 0
+    assert "gone.npz" in capsys.readouterr().out
+
+    broken = tmp_path / "broken"
+    shutil.copytree(cls, broken)
+    lines = (broken / "light.csv").read_text().splitlines()
+    (broken / "light.csv").write_text("\n".join(lines[:-1]) + "\n")  # a frame short
+    assert _run("export", broken, "--format", "textures", "-o", tmp_path / "c") == 2
+    assert "light.csv" in capsys.readouterr().err and not (tmp_path / "c").exists()
+
+    assert _run("export", cls, "--format", "textures", "--layer", "large", "-o", tmp_path / "d") == 2
+    assert "not a layer of textures" in capsys.readouterr().err
+
+    model = load_appearance(kit / "app.npz")
+    model.neutral_albedo = None  # as a model built without a light fit holds its layers
+    save_appearance(tmp_path / "footage.npz", model)
+    assert _run("export", cls, "--format", "textures", "-m", tmp_path / "footage.npz", "-o", tmp_path / "e") == 0
+    assert json.loads((tmp_path / "e" / "textures.json").read_text())["shading"] == "footage"
+    assert _run("export", cls, "--format", "textures", "-m", tmp_path / "footage.npz", "--layer", "albedo",
+                "-o", tmp_path / "f") == 2
+    assert "holds the footage's values" in capsys.readouterr().err

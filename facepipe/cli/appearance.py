@@ -38,6 +38,9 @@ def build_command(config_path, output, rep, write_json) -> dict:
     write_json(report, info)
     rep.say(f"{len(info['regions'])} regions ({', '.join(f'{n} {k}' for n, k in zip(info['regions'], info['layers']))}"
             f" layers), texture {info['texture_size']}²; wrote {output} and {report}")
+    if info.get("albedo"):
+        rep.say("layers hold albedo (each example frame's shading divided out): a frame's texture is shaded by its "
+                "own geometry under the light classification fits to it")
     for name, card in info.get("cards", {}).items():
         u0, v0, u1, v1 = card["uv_square"]
         rep.say(f"card {name}: across a hole of {card['rim_vertices']} rim vertices, textured in UV "
@@ -69,7 +72,7 @@ def write_cards_obj(path: Path, model) -> Path:
 
 
 def classify_command(model_path, footage, geometry_path, output, fps, rep):
-    from facepipe.core.appearance import stream_bits
+    from facepipe.core.appearance import light_bits, stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
     from facepipe.io.footage import frames_at, open_footage
     from facepipe.pipeline.appearance import classify_frames, take_geometry
@@ -92,9 +95,11 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
         result = classify_frames(model, opened, geometry.positions, numbers, times, progress=bar.update,
                                  footage_numbers=at)
     seconds = time.perf_counter() - start
-    bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    q_bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
+    bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS) if result.light is not None else 0)
     figures = {"seconds": seconds, "frames_per_second": len(numbers) / max(seconds, 1e-9), "fps": fps,
-               "stream_bits_per_frame": bits, "stream_kbit_s": bits * fps / 1000.0}
+               "stream_bits_per_frame": bits, "q_bits_per_frame": q_bits, "light_bits_per_frame": bits - q_bits,
+               "stream_kbit_s": bits * fps / 1000.0}
     for n, problem in result.problems:
         rep.say(f"frame {n}: {problem}; skipped (held, decaying to neutral)")
     never = [name for r, name in enumerate(model.names) if not result.visible[:, r].any()]
@@ -102,9 +107,10 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
         rep.say(f"note: never visible, kept neutral: {', '.join(never)}")
     path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
                         geometry=geometry_path, figures=figures)
+    light = f" + light {bits - q_bits}" if bits > q_bits else ""
     rep.say(f"{len(numbers)} frames, {len(model.names)} regions in {seconds:.1f} s "
-            f"({figures['frames_per_second']:.0f} frames/s, reading included); Q stream {bits} bits a frame = "
-            f"{figures['stream_kbit_s']:.2f} kbit/s at {fps:g} Hz; wrote {path}")
+            f"({figures['frames_per_second']:.0f} frames/s, reading included); stream (Q {q_bits}{light}) {bits} bits "
+            f"a frame = {figures['stream_kbit_s']:.2f} kbit/s at {fps:g} Hz; wrote {path}")
     return result
 
 

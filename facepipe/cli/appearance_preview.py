@@ -1,6 +1,7 @@
 """``facepipe preview`` of a classified take (a folder with ``appearance.csv``): per chosen frame
-the input frame and the face rendered through the same camera with the layered texture at that
-frame's Q (the texture unlit: its layers hold the footage's own shading) over the input frame,
+the input frame and the face rendered through the same camera with that frame's texture
+(:func:`facepipe.pipeline.appearance.frame_texture`: the layered albedo at its Q shaded by the
+frame's geometry under its light, or a model's layers as the footage showed them) over the input frame,
 side by side over the face's window of the image; below them the Q curves of every region over
 the take, the shown frames marked. The footage, geometry and model are the ones ``appearance.json`` names.
 """
@@ -14,12 +15,11 @@ import numpy as np
 
 from facepipe.appearance_sample import Scene, render_frame
 from facepipe.cli.preview import _figure, _save, check_image_path
-from facepipe.core.appearance import compose_texture
 from facepipe.core.camera import project_distorted_fast
 from facepipe.errors import InputError
-from facepipe.io.appearance_file import load_appearance, read_stream
+from facepipe.io.appearance_file import load_appearance, read_light, read_stream
 from facepipe.io.footage import frames_at, open_footage, read_frames_of
-from facepipe.pipeline.appearance import take_geometry
+from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
 
 __all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 
@@ -67,8 +67,11 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     shown_at = np.array([at[row_of[int(numbers[i])]] if int(numbers[i]) in row_of else numbers[i] for i in index])
     images = {int(numbers[index[k]]): (image, problem)
               for rows, image, problem in read_frames_of(footage, shown_at) for k in rows}
+    light = read_light(folder, numbers)
+    texels = texel_map(model.corner_uv, model.neutral.shape[0]) if model.albedo and light is not None else None
     cam = model.camera
-    # unlit: ambient 1 shows the texture's own values (the layers carry the footage's shading)
+    # unlit: ambient 1 shows the texture's own values (the frame's shading is in them: its light on
+    # its geometry, or the footage's own in a model without albedo layers)
     scene = Scene(cam.matrix, cam.distortion, cam.width, cam.height, model.rotation, model.translation,
                   np.array([0.0, 0.0, -1.0]), (1.0, 1.0, 1.0), 1.0)
     corner_uv = model.corner_uv
@@ -82,8 +85,8 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
         if n not in row_of:
             raise InputError(f"frame {n} has no geometry", path=info["geometry"])
         world = positions[row_of[n]]
-        texture = np.ascontiguousarray(compose_texture(model.neutral, model.volumes, model.alphas, model.boxes, q[i]),
-                                       dtype=np.float32)
+        texture = np.ascontiguousarray(frame_texture(model, q[i], model.to_camera(world),
+                                                     None if light is None else light[i], texels), dtype=np.float32)
         image, problem = images.get(n, (None, "not read"))
         drawn = model.with_cards(world)
         # over black, with the share of each pixel the face covers: the face's colour

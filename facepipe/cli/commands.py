@@ -337,9 +337,10 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
               help=export_formats.format_help())
 @click.option("-o", "--dest", required=True, type=click.Path(), help=export_formats.destination_help())
 @click.option("-m", "--model", "model_path", default=None, help="Model (default: the one replay.json names).")
-@click.option("--layer", type=click.Choice(["final", "large", "details"]), default="final", show_default=True,
+@click.option("--layer", type=click.Choice(["final", "large", "details", "albedo"]), default="final", show_default=True,
               help="Geometry formats: the final surface, the large-scale one, or the details alone (final − large, "
-                   "as vectors; both need replay --save-large-scale, or a mesh cache replayed as a take).")
+                   "as vectors; both need replay --save-large-scale, or a mesh cache replayed as a take). Textures: "
+                   "final (as the camera saw the face) or albedo (the layers without the frame's shading).")
 @click.option("--resolution", default="2048", show_default=True, help="Maps: N or WxH texels per UDIM tile.")
 @click.option("--padding", default=8, show_default=True, help="Maps: texels of edge padding around UV islands.")
 @click.option("--half/--float", "half", default=None, help="Maps: pixel type [default: exr half, wrinkle float]; textures: EXR half/float instead "
@@ -358,7 +359,7 @@ def _load_positions(outdir: Path, name: str = "positions.npy") -> np.ndarray:
 def export(ctx, outdir, fmt, dest, model_path, layer, resolution, padding, half, vector, space, start, up_axis, force,
            resume, quiet, verbose):
     """Export a replay (OUTDIR) for other tools: OBJ sequence, EXR displacement or wrinkle maps, USD, MDD, PC2;
-    or a classified take's layered textures (OUTDIR with appearance.csv; -m: the appearance model)."""
+    or a classified take's textures (OUTDIR with appearance.csv and light.csv; -m: the appearance model)."""
     from facepipe.export.dispatch import export_replay, parse_resolution
 
     rep = _reporter(ctx, quiet, verbose)
@@ -665,7 +666,8 @@ def appearance_build(ctx, config, output, quiet, verbose):
 @click.option("--geometry", required=True, type=click.Path(),
               help="The take's geometry: a replay folder or an .npz with positions (T, V, 3) and frame (T,).")
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False),
-              help="Folder for appearance.csv (frame, time, Q per region) and appearance.json.")
+              help="Folder for appearance.csv (frame, time, Q per region), light.csv (each frame's light) and "
+                   "appearance.json.")
 @click.option("--fps", default=30.0, show_default=True,
               help="Frame rate of a geometry that records no frame times (times = number / fps; a replay folder "
                    "has its own).")

@@ -43,7 +43,7 @@ from scipy import ndimage
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
-           "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "DIAGONAL_OFFSETS",
+           "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "light_bits", "LIGHT_SPAN", "DIAGONAL_OFFSETS",
            "sh_basis", "fit_light", "light_shading", "fill_unseen"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
@@ -517,6 +517,16 @@ def stream_bits(layer_counts, step: float) -> np.ndarray:
     counts = np.asarray(layer_counts, dtype=np.float64)
     levels = np.floor((counts - 1.0) / step + 0.5) + 1.0
     return np.ceil(np.log2(np.maximum(levels, 2.0))).astype(np.int64)
+
+
+#: The span a frame's light coefficients are coded over (their values lie well inside ±1: luminance in
+#: [0, 1] over albedo near 1), for the light stream's bit rate.
+LIGHT_SPAN = 4.0
+
+
+def light_bits(step: float) -> int:
+    """Bits per frame of a light (9 coefficients) sent in steps of ``step`` over :data:`LIGHT_SPAN`."""
+    return 9 * int(np.ceil(np.log2(LIGHT_SPAN / step + 1.0)))
 
 
 def sh_basis(normals: np.ndarray) -> np.ndarray:

@@ -1,12 +1,16 @@
 """The ``textures`` export: a classified take's layered texture, frame by frame, and its Q stream.
 
 Input: a folder written by ``facepipe appearance classify`` (``appearance.csv``: frame, time, Q
-per region; ``appearance.json``: the appearance model's path), or a replay folder it was
-classified into. Per frame the texture is the neutral texture with every region's volume looked
-up trilinearly at its Q (:func:`facepipe.core.appearance.compose_texture`), in the rest mesh's UV
-layout at the model's ``texture_size`` (the layers' own resolution: ``--resolution`` does not
-apply). The textures are rebuilt from the stream as written (Q to four decimals), so what the
-files show is what a receiver of the stream would render.
+per region; ``light.csv``: each frame's light; ``appearance.json``: the appearance model's and the
+geometry's paths), or a replay folder it was classified into. Per frame the texture is the
+neutral texture with every region's volume looked up trilinearly at its Q
+(:func:`facepipe.core.appearance.compose_texture`), in the rest mesh's UV layout at the model's
+``texture_size`` (the layers' own resolution: ``--resolution`` does not apply). A model that holds
+albedo (built with a light fit) gives the texture as the camera saw it: the layered albedo times
+the shading of the frame's own geometry under the frame's light
+(:func:`facepipe.pipeline.appearance.frame_texture`); ``--layer albedo`` writes the albedo alone,
+for a renderer that lights the face itself. The textures are rebuilt from the stream as written
+(to four decimals), so what the files show is what a receiver of the stream would render.
 
 Writes ``DEST/frame_NNNN.png`` (16-bit RGB, the footage's values), or ``.exr`` with ``--half`` /
 ``--float``; ``DEST/appearance.csv`` (the stream) and ``DEST/textures.json`` (regions, layers,
@@ -22,13 +26,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facepipe.core.appearance import compose_texture, stream_bits
+from facepipe.core.appearance import light_bits, stream_bits
 from facepipe.errors import InputError
 from facepipe.export.common import check_targets, frame_paths, remove_partial_files
 from facepipe.export.registry import ExportOptions
-from facepipe.io.appearance_file import STREAM_DECIMALS, format_stream, load_appearance, read_stream
+from facepipe.io.appearance_file import (STREAM_DECIMALS, format_light, format_stream, load_appearance, read_light,
+                                         read_stream)
 from facepipe.io.atomic import atomic_path
 from facepipe.io.exr import write_exr
+from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
 
 __all__ = ["export_textures", "write_texture"]
 
@@ -71,33 +77,84 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
         t, r = np.argwhere(outside)[0]
         raise InputError(f"frame {int(numbers[t])}: Q of {model.names[r]} is {q[t, r]}, outside 0..{counts[r] - 1}",
                          path=source / "appearance.csv", hint="classify the footage again with this model")
+    if options.layer not in ("final", "albedo"):
+        raise InputError(f"--layer {options.layer} is not a layer of textures", path=source,
+                         hint="textures: --layer final (as the camera saw the face) or albedo (the layers' albedo)")
     fps = _frame_rate(times, numbers, source)
+    light = read_light(source, numbers)
+    shading, positions, notes = _frame_shading(model, info, numbers, light, options.layer, source)
     suffix = ".png" if options.half is None else ".exr"
     paths = frame_paths(dest, len(numbers), options.start, suffix)
-    csv, summary = dest / "appearance.csv", dest / "textures.json"
-    check_targets(paths + [csv, summary], options.force, options.resume, folder=dest)
+    csv, light_csv, summary = dest / "appearance.csv", dest / "light.csv", dest / "textures.json"
+    streams = [csv] + ([light_csv] if light is not None else [])
+    check_targets(paths + streams + [summary], options.force, options.resume, folder=dest)
     dest.mkdir(parents=True, exist_ok=True)
     if options.resume:
-        remove_partial_files(paths + [csv, summary])
+        remove_partial_files(paths + streams + [summary])
     with atomic_path(csv) as tmp:
         Path(tmp).write_text(format_stream(model.names, numbers, times, q))
-    region_bits = stream_bits(counts, 10.0 ** -STREAM_DECIMALS)
-    bits = int(region_bits.sum())
+    if light is not None:
+        with atomic_path(light_csv) as tmp:
+            Path(tmp).write_text(format_light(numbers, times, light))
+    step = 10.0 ** -STREAM_DECIMALS
+    region_bits = stream_bits(counts, step)
+    frame_light_bits = light_bits(step) if light is not None else 0
+    bits = int(region_bits.sum()) + frame_light_bits
     written = 0
+    texels = texel_map(model.corner_uv, model.neutral.shape[0]) if shading == "frame" else None
     with options.make_bar(len(paths), "export textures") as bar:
         for t, path in enumerate(paths):
             if not (options.resume and path.exists()):
-                texture = compose_texture(model.neutral, model.volumes, model.alphas, model.boxes, q[t])
+                if shading == "frame":
+                    take_model, take_positions = positions
+                    texture = frame_texture(model, q[t], take_model.to_camera(take_positions[t]), light[t], texels)
+                else:
+                    texture = frame_texture(model, q[t])
                 write_texture(path, texture, options.half)
                 written += 1
             bar.update(1)
     details = {"frames": len(paths), "written": written, "regions": list(model.names),
                "layers": counts.tolist(), "texture_size": int(model.neutral.shape[0]),
                "pixels": "png16" if suffix == ".png" else ("exr half" if options.half else "exr float"),
-               "fps": fps, "bits_per_region": region_bits.tolist(), "bits_per_frame": bits, "bit_rate_kbit_s": bits * fps / 1000.0,
-               "stream": str(csv), "model": str(model_path.resolve())}
+               "shading": shading, "fps": fps, "bits_per_region": region_bits.tolist(),
+               "light_bits_per_frame": frame_light_bits, "bits_per_frame": bits,
+               "bit_rate_kbit_s": bits * fps / 1000.0, "stream": str(csv),
+               "light_stream": str(light_csv) if light is not None else None, "model": str(model_path.resolve())}
     with atomic_path(summary) as tmp:
         Path(tmp).write_text(json.dumps(details, indent=1))
-    details["notes"] = [f"Q stream: {len(model.names)} regions, {bits} bits a frame at {fps:g} Hz = "
-                        f"{details['bit_rate_kbit_s']:.2f} kbit/s (textures.json)"]
-    return paths + [csv, summary], details
+    light_part = f" + light {frame_light_bits}" if frame_light_bits else ""
+    details["notes"] = notes + [f"stream: {len(model.names)} regions' Q{light_part}, {bits} bits a frame at "
+                                f"{fps:g} Hz = {details['bit_rate_kbit_s']:.2f} kbit/s (textures.json)"]
+    return paths + streams + [summary], details
+
+
+#: What the written textures hold (textures.json's ``shading``).
+SHADINGS = {"frame": "the layered albedo times each frame's shading (its geometry under its light)",
+            "albedo": "the layered albedo alone (--layer albedo)",
+            "footage": "the layers as the footage showed them (a model built without a light fit)"}
+
+
+def _frame_shading(model, info: dict, numbers: np.ndarray, light, layer: str, source: Path):
+    """How the textures are shaded (a key of :data:`SHADINGS`), where each frame's own shading
+    applies the model that puts the take's geometry into camera space and the geometry's positions
+    (T, V, 3) (one frame at a time into camera space: a long take's would not fit), and notes. A model that holds albedo needs the
+    stream's light and the classified geometry for that; without either it writes the albedo, and says why."""
+    if not model.albedo:
+        if layer == "albedo":
+            raise InputError("--layer albedo: this appearance model holds the footage's values, shading included",
+                             path=info["model"], hint="build the model again (its light fit on) for albedo layers")
+        return "footage", None, []
+    if layer == "albedo":
+        return "albedo", None, []
+    if light is None:
+        return "albedo", None, ["the folder has no light.csv (classified before facepipe wrote it): the textures "
+                                "are the layered albedo, unshaded; classify again for shaded ones"]
+    geometry_path = info.get("geometry")
+    if not geometry_path or not Path(geometry_path).exists():
+        return "albedo", None, [f"the classified geometry ({geometry_path}) is not there: the textures are the "
+                                "layered albedo, unshaded"]
+    geometry, model_for_take, _ = take_geometry(geometry_path, model)
+    if not np.array_equal(np.asarray(geometry.numbers), np.asarray(numbers)):
+        raise InputError("the classified geometry's frames are not the stream's", path=geometry_path,
+                         hint="classify the footage again with this geometry")
+    return "frame", (model_for_take, geometry.positions), []

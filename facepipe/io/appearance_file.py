@@ -1,4 +1,5 @@
-"""Appearance models (``facepipe appearance build``) as .npz files, and the Q stream (appearance.csv)."""
+"""Appearance models (``facepipe appearance build``) as .npz files, the Q stream (appearance.csv)
+and each frame's light (light.csv)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
 __all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream", "format_stream",
-           "STREAM_DECIMALS"]
+           "format_light", "read_light", "STREAM_DECIMALS"]
 
 #: Q is written to this many decimals: the stream's quantisation step, and its bit rate's.
 STREAM_DECIMALS = 4
@@ -47,8 +48,13 @@ class AppearanceModel:
     card_rest (N, 3), card_stable (K,), card_stable_rest (K, 3) : cards across holes
     (:mod:`facepipe.core.hole_cards`): vertex V + i of ``faces`` is ``card_rest[i]`` moved by the
     rigid motion of the rest mesh's vertices ``card_stable`` from ``card_stable_rest`` (None: no cards);
-    neutral : (S, S, 3) texture; volumes : per region (n, h, w, 3); alphas : per region (h, w);
-    boxes : (R, 2) top-left texel of each volume.
+    neutral : (S, S, 3) texture, as the neutral frame shows it; volumes : per region (n, h, w, 3);
+    alphas : per region (h, w); boxes : (R, 2) top-left texel of each volume;
+    neutral_albedo : (S, S, 3) the neutral texture with its frame's shading divided out, and then
+    the volumes hold albedo too (each layer divided by its own frame's shading): a frame's texture
+    is the layered albedo times the shading of the frame's own geometry under its light
+    (:func:`facepipe.pipeline.appearance.frame_texture`); None (models before it, or built
+    without a light fit): the volumes hold the footage's values, shading included.
     """
 
     names: list
@@ -83,6 +89,17 @@ class AppearanceModel:
     card_rest: np.ndarray | None = None
     card_stable: np.ndarray | None = None
     card_stable_rest: np.ndarray | None = None
+    neutral_albedo: np.ndarray | None = None
+
+    @property
+    def albedo(self) -> bool:
+        """Whether the layers hold albedo (a frame's texture is shaded by its own geometry and light)."""
+        return self.neutral_albedo is not None
+
+    @property
+    def base_texture(self) -> np.ndarray:
+        """The texture the regions' volumes blend into: the neutral albedo, or the neutral texture."""
+        return self.neutral if self.neutral_albedo is None else self.neutral_albedo
 
     @property
     def n_vertices(self) -> int:
@@ -128,6 +145,8 @@ def save_appearance(path, model) -> None:
         arrays.update(card_rest=model.card_rest, card_stable=model.card_stable, card_stable_rest=model.card_stable_rest)
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
+    if model.neutral_albedo is not None:
+        arrays["neutral_albedo"] = model.neutral_albedo
     for r in range(len(model.names)):
         arrays[f"templates_{r}"] = model.templates[r]
         arrays[f"indices_{r}"] = model.indices[r]
@@ -160,7 +179,7 @@ def load_appearance(path):
                                float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"),
                                None if d.get("template_mask") is None else d["template_mask"].astype(bool),
                                d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
-                               d.get("card_stable_rest"))
+                               d.get("card_stable_rest"), d.get("neutral_albedo"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
@@ -168,9 +187,10 @@ def load_appearance(path):
 
 def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None,
                  figures: dict | None = None) -> Path:
-    """``appearance.csv`` (frame, time, Q per region) and ``appearance.json`` (the model, the
-    footage and geometry classified, missing frames, and ``figures``: the run's speed and the
-    stream's bit rate)."""
+    """``appearance.csv`` (frame, time, Q per region), ``light.csv`` (frame, time, the light's
+    nine coefficients; where the model fits one) and ``appearance.json`` (the model, the footage
+    and geometry classified, missing frames, and ``figures``: the run's speed and the stream's bit
+    rate)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     c = classification
@@ -178,6 +198,12 @@ def write_stream(folder, model_path, classification, layer_counts, footage=None,
     csv = folder / "appearance.csv"
     with atomic_path(csv) as tmp:
         Path(tmp).write_text(format_stream(names, c.numbers, c.times, c.q))
+    light = folder / "light.csv"
+    if c.light is not None:
+        with atomic_path(light) as tmp:
+            Path(tmp).write_text(format_light(c.numbers, c.times, c.light))
+    elif light.exists():  # a classification before this one's, with another model
+        light.unlink()
     info = {"model": str(Path(model_path).resolve()), "regions": names,
             "footage": str(footage) if footage is not None else None,
             "geometry": str(Path(geometry).resolve()) if geometry is not None else None, "layers": list(map(int, layer_counts)),
@@ -194,6 +220,32 @@ def format_stream(names, numbers, times, q) -> str:
     lines += [f"{int(n)},{t:.6f}," + ",".join(f"{x:.{STREAM_DECIMALS}f}" for x in row)
               for n, t, row in zip(numbers, times, q)]
     return "\n".join(lines) + "\n"
+
+
+def format_light(numbers, times, light) -> str:
+    """light.csv's text: ``frame,time,sh0…sh8``, to :data:`STREAM_DECIMALS` decimals."""
+    lines = ["frame,time," + ",".join(f"sh{k}" for k in range(9))]
+    lines += [f"{int(n)},{t:.6f}," + ",".join(f"{x:.{STREAM_DECIMALS}f}" for x in row)
+              for n, t, row in zip(numbers, times, light)]
+    return "\n".join(lines) + "\n"
+
+
+def read_light(folder, numbers: np.ndarray) -> np.ndarray | None:
+    """(T, 9) the light of each of the stream's frames ``numbers`` from a classified folder's
+    light.csv; None where the folder has none (a model without a light fit, or classified before
+    facepipe wrote it)."""
+    csv = Path(folder) / "light.csv"
+    if not csv.is_file():
+        return None
+    try:
+        data = np.loadtxt(csv, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as exc:
+        raise InputError(f"light.csv is not numeric ({exc})", path=csv) from None
+    if data.shape[1] != 11 or not np.array_equal(data[:, 0].astype(np.int64), np.asarray(numbers)) \
+            or not np.isfinite(data[:, 2:]).all():
+        raise InputError("light.csv does not hold nine finite coefficients for each of appearance.csv's frames",
+                         path=csv, hint="classify the footage again: facepipe appearance classify ... -o FOLDER")
+    return data[:, 2:]
 
 
 def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:

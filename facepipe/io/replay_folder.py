@@ -119,7 +119,8 @@ class ReplayDir:
             return large
         if name == "details":
             return _Difference(self.positions, self.layer("large"))
-        raise ValueError(f"unknown layer {name!r}")
+        raise InputError(f"--layer {name} is not a layer of a replay's surface", path=self.path,
+                         hint="final, large or details (albedo is a layer of --format textures)")
 
     @property
     def large_scale_from_cache(self) -> bool:

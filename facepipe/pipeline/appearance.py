@@ -12,14 +12,18 @@ highest Q it reads in the example frames where it is at rest (:func:`calibrate_r
 ``card`` region (an eye) lies on a card across the hole its vertex group rims
 (:func:`region_cards`, :mod:`facepipe.core.hole_cards`): the cards' triangles follow the mesh's,
 their vertices its vertices, in a free square of the UV layout, and every frame's positions are
-extended with them (:meth:`AppearanceModel.with_cards`).
+extended with them (:meth:`AppearanceModel.with_cards`). With a light fit the neutral texture
+and every layer are divided by the shading of their own frame (:func:`to_albedo`): the model holds
+the skin's albedo, and a frame's texture is that albedo at its Q times the shading of the frame's
+own geometry under its own light (:func:`frame_texture`).
 
 **Classification** (``facepipe appearance classify``): per frame the template points are put on
 the animated surface through their barycentric coordinates, projected through the camera
 (OpenCV's distortion) and sampled bilinearly from the frame's luminance; the five samples are
 classified (:func:`facepipe.core.appearance.classify`) and Q measured from the region's rest
 floor; a region whose template faces away from the camera, falls outside the image or whose
-frame is missing keeps its last value, decaying to neutral.
+frame is missing keeps its last value, decaying to neutral. Each frame's light (nine
+coefficients, :func:`frame_lights`) is part of the result: the texture's shading comes from it.
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, frames_at, open_footage, read_frames_of, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
-           "classify_chunk",
+           "classify_chunk", "frame_texture", "frame_lights", "texel_shading", "skin_texels", "to_albedo",
            "texture_differences", "well_seen_points", "region_bank"]
 
 
@@ -419,7 +423,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
-    facing_examples, masks = [], []
+    facing_examples, masks, layer_seen = [], [], []
     for region in cfg.regions:
         if region.name in card_of:
             triangles = np.zeros(len(faces), dtype=bool)
@@ -434,8 +438,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
             triangles = np.zeros(len(faces), dtype=bool)
             triangles[:len(mesh.faces)] = in_group[mesh.faces].all(axis=1)
             rect = region.template
-        vol, alpha, box = _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face, texel_bary,
-                                         camera, neutral, cfg, normal_sign)
+        vol, alpha, box, seen_in = _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face,
+                                                  texel_bary, camera, neutral, cfg, normal_sign)
+        layer_seen.append(seen_in)
         face, bary = _region_template(region, rect, corner_uv, cfg.template_size, config.path)
         gray = [to_gray(frames[f][0]) for f in region.frames]
         patches = []
@@ -485,8 +490,11 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             card_rest=None if cards is None else cards.rest,
                             card_stable=None if cards is None else cards.stable,
                             card_stable_rest=None if cards is None else cards.stable_rest)
+    if light is not None:
+        to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary))
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
-    info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "rest": rest, "notes": notes}
+    info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "albedo": model.albedo, "rest": rest,
+            "notes": notes}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
                                 "rim_vertices": int(cards.rim_sizes[c]),
@@ -528,6 +536,112 @@ def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, not
             notes.append(f"region {name} reads Q {readings[row[r], r]:.2f} at rest in example frame {frame}: its "
                          f"template sees that frame's motion; Q is measured from {floor[r]:.2f}")
     return out
+
+
+def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_seen: np.ndarray,
+              layer_seen: list, texels) -> None:
+    """Divide the shading of their own frame out of the neutral texture and every layer: the model
+    then holds the skin's albedo (``neutral_albedo``, its volumes; ``neutral`` stays the neutral
+    frame's texture as the footage showed it), and a frame's texture is that albedo at its Q
+    times the shading of its own geometry under its own light (:func:`frame_texture`) — what no
+    layer index can carry: how the face's large-scale motion (a jaw opening, a cheek raised) and
+    the head's turning under the light change the shading over every region.
+
+    Each example frame's light is fitted as a classified frame's is (:func:`frame_lights`). A
+    layer's texels that its own frame does not show hold the neutral albedo; texels the neutral
+    frame does not show are filled (:func:`facepipe.core.appearance.fill_unseen`) from those it
+    sees better than ``min_point_facing``. The cards' texels (an eye behind its opening) keep
+    their values: a card's plane is not the surface the footage shows there."""
+    texel_face, texel_bary = texels
+    used = sorted({cfg.neutral_frame} | {f for region in cfg.regions for f in region.frames})
+    # a frame at a time: the frames' positions together would be the examples' count times the mesh
+    lights = {f: frame_lights(to_gray(frames[f][0])[None], cam_pos[f][None], model)[0] for f in used}
+    skin = skin_texels(model, texel_face)
+    everywhere = (slice(None), slice(None))
+    neutral_cam = cam_pos[cfg.neutral_frame]
+    shading = texel_shading(model, neutral_cam, lights[cfg.neutral_frame], texel_face, texel_bary, *everywhere)
+    seen = neutral_seen & skin
+    albedo = np.where(seen[..., None], model.neutral / shading[..., None], model.neutral)
+    # what the neutral frame does not show is filled from the texels it shows well: one seen near
+    # edge-on is a smear of a few pixels under the light fit's least certain normals, and a fill
+    # spreads its error over everything beyond it (as a template point seen so is left out)
+    well_seen = seen & (_texel_facing(model, neutral_cam, texel_face, texel_bary, *everywhere)
+                        > max(cfg.min_facing, cfg.min_point_facing))
+    if well_seen.any():
+        albedo = np.where((skin & ~seen)[..., None], ap.fill_unseen(albedo, well_seen), albedo)
+    volumes = []
+    for r, region in enumerate(cfg.regions):
+        (h, w), (r0, c0) = model.alphas[r].shape, model.boxes[r]
+        rows, cols = slice(r0, r0 + h), slice(c0, c0 + w)
+        layers = []
+        for k, f in enumerate(region.frames):
+            own = texel_shading(model, cam_pos[f], lights[f], texel_face, texel_bary, rows, cols)
+            layer = np.where((layer_seen[r][k] & skin[rows, cols])[..., None],
+                             model.volumes[r][k] / own[..., None], albedo[rows, cols])
+            layers.append(np.where(skin[rows, cols][..., None], layer, model.volumes[r][k]))
+        volumes.append(np.stack(layers).astype(np.float32))
+    model.neutral_albedo, model.volumes = albedo.astype(np.float32), volumes
+
+
+def _texel_facing(model: AppearanceModel, camera_positions: np.ndarray, texel_face: np.ndarray,
+                  texel_bary: np.ndarray, rows, cols) -> np.ndarray:
+    """(h, w) the cosine between the smooth surface's normal at the texels [rows, cols] of one frame
+    (V, 3, camera space) and their direction to the camera; −1 off the UV layout."""
+    tf, tb = texel_face[rows, cols], texel_bary[rows, cols]
+    out = np.full(tf.shape, -1.0)
+    covered = tf >= 0
+    if covered.any():
+        out[covered] = point_facing(camera_positions, model.faces, tf[covered], tb[covered], model.normal_sign)
+    return out
+
+
+def skin_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
+    """(S, S) the texels on the rest mesh's triangles (not on a card, not outside the UV layout)."""
+    on_card = model.faces.min(axis=1) >= model.n_vertices  # a card's triangles use only its vertices
+    return (texel_face >= 0) & ~on_card[np.maximum(texel_face, 0)]
+
+
+def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, texel_face: np.ndarray,
+                  texel_bary: np.ndarray, rows=slice(None), cols=slice(None)) -> np.ndarray:
+    """(h, w) the shading of the texels [rows, cols] on one frame's surface (V, 3), camera space,
+    under its light (9,) (:func:`facepipe.core.appearance.light_shading`); 1 off the skin.
+
+    Kept within the shading of the light points the frame's light was fitted on (those facing the
+    camera): a normal the fit never saw (the face's rim, turned away) would get the nine terms'
+    extrapolation, a bright or dark band the footage does not have."""
+    tf, tb = texel_face[rows, cols], texel_bary[rows, cols]
+    out = np.ones(tf.shape)
+    on = skin_texels(model, tf)
+    if on.any():
+        normals = point_normals(camera_positions[None], model.faces, tf[on], tb[on], model.normal_sign)[0]
+        out[on] = np.clip(ap.light_shading(normals, light), *_fitted_shading_range(model, camera_positions, light))
+    return out
+
+
+def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray):
+    """(low, high) the shading of the model's light points that face the camera in this frame
+    (V, 3) under its light (9,): the normals :func:`frame_lights` fitted it on ((0, inf) where none)."""
+    X = surface_points(camera_positions, model.faces, model.light_face, model.light_bary)
+    normals = point_normals(camera_positions[None], model.faces, model.light_face, model.light_bary,
+                            model.normal_sign)[0]
+    facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
+    if not facing.any():
+        return 0.0, np.inf
+    shading = ap.light_shading(normals[facing], light)
+    return float(shading.min()), float(shading.max())
+
+
+def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.ndarray | None = None,
+                  light: np.ndarray | None = None, texels=None) -> np.ndarray:
+    """A frame's texture (S, S, 3): the layered texture at Q (R,) — for a model that holds albedo,
+    times the shading of the frame's surface (V, 3, camera space) under its light (9,) on the skin
+    (as the camera saw it); the albedo alone where either is not given. ``texels``: the model's
+    :func:`texel_map` where already made."""
+    texture = ap.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
+    if not (model.albedo and camera_positions is not None and light is not None):
+        return texture
+    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0]) if texels is None else texels
+    return texture * texel_shading(model, camera_positions, light, texel_face, texel_bary)[..., None]
 
 
 def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
@@ -608,8 +722,9 @@ def _stencil_normals(camera_positions: np.ndarray, model: AppearanceModel) -> tu
 
 def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign, samples: int = 2000):
     """The example footage's light fitted over the neutral texture's texels (their albedo taken
-    as uniform: the fit is robust to what differs), every texel's albedo under it, and
-    ``samples`` texels spread over the surface, where each frame's light will be fitted."""
+    as uniform: the fit is robust to what differs; its scale such that the median texel's shading
+    is 1), every texel's albedo under it, and ``samples`` texels spread over the surface, where
+    each frame's light will be fitted."""
     rows, cols = np.nonzero(seen & (texel_face >= 0))
     if len(rows) < 50:
         return None
@@ -619,6 +734,9 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
     normals = point_normals(neutral_cam[None], faces, face, bary, normal_sign)[0]
     lum = to_gray(neutral[rows, cols])
     light = ap.fit_light(lum, np.ones(len(lum)), normals)
+    # scaled so that the neutral frame's shading is 1 on the median texel: the albedo it gives
+    # (and the layers' albedo) is about as bright as the footage, in the range images hold
+    light = light / float(np.median(ap.light_shading(normals, light)))
     albedo = lum / ap.light_shading(normals, light)
     keep = slice(0, min(samples, len(rows)))
     return {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": albedo[keep]}
@@ -626,21 +744,23 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
 
 def _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg,
                    normal_sign):
-    """A region's texture volume (n, h, w, 3) over its UV box, its alpha (h, w) and the box's
-    corner: the texels of its ``triangles`` (F,) (a mask over ``faces``)."""
+    """A region's texture volume (n, h, w, 3) over its UV box, its alpha (h, w), the box's corner
+    and where each layer's own example frame shows its texels (n, h, w) (elsewhere the neutral
+    texture's): the texels of its ``triangles`` (F,) (a mask over ``faces``)."""
     mask = (texel_face >= 0) & triangles[np.maximum(texel_face, 0)]
     if not mask.any():
         raise InputError(f"region {region.name}: its vertex group covers no texel of the UV layout", path=config.path,
                          hint="the group needs whole triangles with UVs (or a larger texture_size)")
     r_idx, c_idx = np.nonzero(mask)
     rows, cols = slice(r_idx.min(), r_idx.max() + 1), slice(c_idx.min(), c_idx.max() + 1)
-    layers = []
+    layers, seen_in = [], []
     for f in region.frames:
         colours, seen = unwrap(frames[f][0], cam_pos[f], faces, texel_face, texel_bary, camera, rows, cols,
                                cfg.min_facing, normal_sign)
         layers.append(np.where(seen[..., None], colours, neutral[rows, cols]))
+        seen_in.append(seen)
     alpha = ap.region_alpha(mask[rows, cols], cfg.ramp)
-    return np.stack(layers), alpha, (rows.start, cols.start)
+    return np.stack(layers), alpha, (rows.start, cols.start), np.stack(seen_in)
 
 
 def _read_group(region, n_vertices: int, config_path) -> np.ndarray:
@@ -674,17 +794,19 @@ def _region_template(region, rect, corner_uv, size: int, config_path) -> tuple[n
 
 
 def texture_differences(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, image: np.ndarray,
-                        camera_positions: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """How far the layered texture at Q and the neutral texture are from a frame's own texels.
+                        camera_positions: np.ndarray, q: np.ndarray, light: np.ndarray | None = None) -> np.ndarray:
+    """How far the frame's texture at Q (:func:`frame_texture`, shaded under ``light`` (9,) where
+    the model holds albedo) and the neutral texture are from a frame's own texels.
 
     The frame (RGB image, its geometry in camera space) is unwrapped into the texture through the
     rest mesh's texel map (:func:`texel_map` at the model's texture size) as the layers were.
     Returns (R, 3) per region over its texels (alpha > 0) the frame shows: the sum of squared
-    differences of the reconstruction at ``q`` (R,), that of the neutral texture, and the count of
-    texel channels — an RMS ratio below 1 says the stream brings the texture closer to the frame.
+    differences of the reconstruction at ``q`` (R,), that of the neutral texture (as the neutral
+    frame showed it: what a face without the stream would wear), and the count of texel channels —
+    an RMS ratio below 1 says the stream brings the texture closer to the frame.
     """
     out = np.zeros((len(model.names), 3))
-    texture = ap.compose_texture(model.neutral, model.volumes, model.alphas, model.boxes, q)
+    texture = frame_texture(model, q, camera_positions, light, (texel_face, texel_bary))
     for r, (alpha, (r0, c0)) in enumerate(zip(model.alphas, model.boxes)):
         rows, cols = slice(r0, r0 + alpha.shape[0]), slice(c0, c0 + alpha.shape[1])
         truth, seen = unwrap(image, camera_positions, model.faces, texel_face, texel_bary, model.camera, rows, cols,
@@ -698,7 +820,9 @@ def texture_differences(model: AppearanceModel, texel_face: np.ndarray, texel_ba
 @dataclass
 class Classification:
     """Q (T, R) after hold and decay, raw (T, R) before (NaN where hidden), visible (T, R), frame
-    numbers (T,), times (T,), problems: (frame, text) of frames that were skipped."""
+    numbers (T,), times (T,), problems: (frame, text) of frames that were skipped; light (T, 9):
+    each frame's light (:func:`frame_lights`; a skipped frame holds the last one fitted, the first
+    ones the first), None for a model without light points."""
 
     names: list
     q: np.ndarray
@@ -707,6 +831,7 @@ class Classification:
     numbers: np.ndarray
     times: np.ndarray
     problems: list
+    light: np.ndarray | None = None
 
 
 def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
@@ -724,6 +849,7 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     T, Rn = len(numbers), len(model.names)
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
+    light = None if model.light_face is None else np.full((T, 9), np.nan)
     problems = []
     bank = region_bank(model)
     rows, grays = [], []
@@ -731,8 +857,10 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
 
     def flush():
         if rows:
-            raw[rows], visible[rows] = classify_decoded(np.stack(grays), model.to_camera(positions[rows]), model, bank,
-                                                        chunk)
+            raw[rows], visible[rows], lights = classify_decoded(np.stack(grays), model.to_camera(positions[rows]),
+                                                                model, bank, chunk, with_light=True)
+            if light is not None:
+                light[rows] = lights
             if progress is not None:
                 progress(len(rows))
         rows.clear()
@@ -755,23 +883,40 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
                 flush()
     flush()
     q = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
-    return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems)
+    return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems,
+                          None if light is None else _held(light))
+
+
+def _held(rows: np.ndarray) -> np.ndarray:
+    """Rows (T, n) with every NaN row (a frame not classified) replaced by the last finite one
+    before it, or the first after it at the start; a uniform light (1, 0, …) where none is."""
+    known = np.isfinite(rows).all(axis=1)
+    if not known.any():
+        return np.tile(np.eye(1, rows.shape[1]), (len(rows), 1))
+    index = np.maximum.accumulate(np.where(known, np.arange(len(rows)), -1))
+    index[index < 0] = int(np.argmax(known))
+    return rows[index]
 
 
 def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None,
-                     chunk: int = 8) -> tuple[np.ndarray, np.ndarray]:
+                     chunk: int = 8, with_light: bool = False):
     """:func:`classify_chunk` of decoded frames (F, H, W) with their geometry in camera space
     (F, V, 3), ``chunk`` frames at a time on facepipe's threads (:func:`facepipe.parallel.map_blocks`):
     the same numbers as one chunk after another, about 1.5 times the frames a second on two cores
-    (most of a chunk's time is in NumPy, which lets the other thread run)."""
+    (most of a chunk's time is in NumPy, which lets the other thread run). Q (F, R) and visibility
+    (F, R); with ``with_light`` also each frame's light (F, 9), None for a model without light points."""
     bank = region_bank(model) if bank is None else bank
     if len(grays) == 0:
         n = len(model.names)
-        return np.zeros((0, n)), np.zeros((0, n), dtype=bool)
+        light = None if model.light_face is None else np.zeros((0, 9))
+        return (np.zeros((0, n)), np.zeros((0, n), dtype=bool)) + ((light,) if with_light else ())
     with serial_blas():  # process-wide: entered once here, not by each thread
         parts = map_blocks(lambda i: _classify_chunk(grays[i:i + chunk], camera_positions[i:i + chunk], model, bank),
                            range(0, len(grays), chunk))
-    return np.concatenate([q for q, _ in parts]), np.concatenate([v for _, v in parts])
+    q, visible = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    if not with_light:
+        return q, visible
+    return q, visible, None if model.light_face is None else np.concatenate([p[2] for p in parts])
 
 
 def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
@@ -783,16 +928,17 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
     patches), and OpenBLAS's threads only wait on each other over them, taking CPU time from
     whatever else runs (a classification's CPU time halves)."""
     with serial_blas():
-        return _classify_chunk(grays, camera_positions, model, bank)
+        return _classify_chunk(grays, camera_positions, model, bank)[:2]
 
 
-def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank) -> tuple[np.ndarray, np.ndarray]:
+def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank):
+    """Q (F, R), visibility (F, R) and each frame's light (F, 9; None without light points)."""
     bank = region_bank(model) if bank is None else bank
     points = template_positions(camera_positions, model)
     patches, visible, seen = sample_template_frames(grays, camera_positions, model, points)
-    normals = None
+    normals = light = None
     if model.light_face is not None:
-        shading, normals = frame_shading(grays, camera_positions, model, with_normals=True)
+        shading, normals, light = frame_shading(grays, camera_positions, model, with_normals=True, with_light=True)
         patches = patches / shading
     if model.min_point_facing > 0:
         seen = seen & (template_point_facing(camera_positions, model, normals, points) > model.min_point_facing)
@@ -805,7 +951,7 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank) -> tu
     visible &= np.isfinite(q)
     if model.rest_floor is not None:
         q = ap.above_rest(q, model.rest_floor, model.layer_counts)
-    return np.where(visible, q, np.nan), visible
+    return np.where(visible, q, np.nan), visible, light
 
 
 def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, normals=None, points=None
@@ -824,27 +970,40 @@ def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, 
     return cos.reshape(cos.shape[:3] + (s, s))
 
 
-def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, with_normals: bool = False):
-    """The shading (F, R, 5, size, size) at the template points of frames: each frame's light
-    fitted over the model's light points (their albedo known, their normals from the geometry);
-    with the template points' unit normals (F, R, 5, N, 3) too if ``with_normals``."""
-    vn, local = _stencil_normals(camera_positions, model)
-    F = len(grays)
+def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, stencil=None
+                 ) -> np.ndarray:
+    """(F, 9) each frame's light, fitted (:func:`facepipe.core.appearance.fit_light`) over the
+    model's light points: their albedo known, their normals from the frame's geometry (F, V, 3,
+    camera space), their values sampled from its luminance (F, H, W) where in the image and facing
+    the camera. ``stencil``: :func:`_stencil_normals` of these frames where already computed."""
+    vn, local = _stencil_normals(camera_positions, model) if stencil is None else stencil
     X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
     normals = point_normals(camera_positions, local[model.faces], model.light_face, model.light_bary, 1.0, vn)
     pixels = project_distorted_fast(model.camera, X)
     facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
-    t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
-                              vn)  # (F, R, 5, N, 3)
     values = np.empty(X.shape[:2])
-    for f in range(F):
+    for f in range(len(grays)):
         sampled, inside = ap.bilinear_sample(grays[f], pixels[f])
         values[f] = np.where(inside & facing[f], sampled, np.nan)
-    light = ap.fit_light(values, model.light_albedo, normals)  # (F, 9)
-    out = np.stack([ap.light_shading(t_normals[f], light[f]) for f in range(F)])
+    return ap.fit_light(values, model.light_albedo, normals)
+
+
+def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, with_normals: bool = False,
+                  with_light: bool = False):
+    """The shading (F, R, 5, size, size) at the template points of frames under each frame's light
+    (:func:`frame_lights`); with the template points' unit normals (F, R, 5, N, 3) too if
+    ``with_normals``, and the lights (F, 9) if ``with_light``."""
+    stencil = _stencil_normals(camera_positions, model)
+    vn, local = stencil
+    light = frame_lights(grays, camera_positions, model, stencil)  # (F, 9)
+    t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
+                              vn)  # (F, R, 5, N, 3)
+    out = np.stack([ap.light_shading(t_normals[f], light[f]) for f in range(len(grays))])
     s = model.template_size
     out = out.reshape(out.shape[:3] + (s, s))
-    return (out, t_normals) if with_normals else out
+    if not (with_normals or with_light):
+        return out
+    return (out,) + ((t_normals,) if with_normals else ()) + ((light,) if with_light else ())
 
 
 def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
