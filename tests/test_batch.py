@@ -151,6 +151,16 @@ def test_mesh_caches_and_obj_sequences_are_takes(tmp_path):
     found = expand_takes([tmp_path])
     assert [p.name for p in found] == ["a.csv", "b.mdd", "rig.usda", "shot_010"]  # the sequence is one take
     assert expand_takes([seq]) == [seq.resolve()]  # a folder of OBJ files alone is a sequence
+    (seq / "notes.txt").write_text("shot 10, take 3\n")  # notes beside the frames are no take
+    assert expand_takes([seq]) == [seq.resolve()]
+    assert [p.name for p in expand_takes([tmp_path])] == ["a.csv", "b.mdd", "rig.usda", "shot_010"]
+    rig = tmp_path / "rig"  # a rig's meshes (no frame numbers) are no OBJ sequence
+    (rig / "expressions").mkdir(parents=True)
+    for name in ("neutral.obj", "expressions/smile.obj", "expressions/jawOpen.obj"):
+        (rig / name).write_text("v 0 0 0\n")
+    (rig / "take.csv").write_text("x")
+    assert [p.name for p in expand_takes([rig])] == ["take.csv"]
+    (seq / "notes.txt").unlink()
     pattern = expand_takes([str(seq / "head_%04d.obj")])
     jobs = plan_jobs(found, tmp_path / "out")
     assert [j.name for j in jobs] == ["a", "b", "rig", "shot_010"]

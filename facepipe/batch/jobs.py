@@ -51,7 +51,7 @@ from facepipe.mocap import registry as take_registry
 from facepipe.mocap.registry import mesh_cache_format
 from facepipe.mocap import parse_frame_slice
 from facepipe.mocap.landmarks2d import is_landmark_take
-from facepipe.mocap.mesh_cache import obj_sequence_files
+from facepipe.mocap.mesh_cache import NUMBERED_OBJ, obj_sequence_files
 from facepipe.mocap.marker_take import MarkerTakeOptions, read_marker_take
 from facepipe.batch.cluster import ClusterError, ClusterSpec, open_client, slots_by_host
 from facepipe.batch.take_lock import take_lock
@@ -181,9 +181,10 @@ def file_digest(path, block: int = 1 << 22) -> str:
 
 def expand_takes(specs) -> list[Path]:
     """Takes from files, folders and glob patterns, each once. A folder is a take of its own when
-    it is an OBJ sequence (OBJ files and no other take), else its takes are its take files and
-    mesh caches (sorted) and its subfolders that are OBJ sequences; a ``frame_%04d.obj`` pattern
-    is an OBJ sequence."""
+    it is an OBJ sequence (numbered OBJ files and no other take; text files beside them, such as
+    notes, are not read as takes there), else its takes are its take files and mesh caches
+    (sorted) and its subfolders that are OBJ sequences; a ``frame_%04d.obj`` pattern is an OBJ
+    sequence. OBJ files without frame numbers (a rig's neutral and expressions) are no take."""
     suffixes = {s for fmt in take_registry.FORMATS.values() for s in fmt.suffixes}
     suffixes |= {s for fmt in take_registry.MESH_CACHES.values() if fmt.match is None for s in fmt.suffixes}
     found: list[Path] = []
@@ -192,7 +193,7 @@ def expand_takes(specs) -> list[Path]:
         path = Path(spec)
         if path.is_dir():
             files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
-            if not files and _is_obj_folder(path):
+            if all(p.suffix.lower() == ".txt" for p in files) and _is_obj_folder(path):
                 matches = [path]
             else:
                 matches = sorted(files + [p for p in path.iterdir() if p.is_dir() and _is_obj_folder(p)])
@@ -215,7 +216,8 @@ def expand_takes(specs) -> list[Path]:
 
 
 def _is_obj_folder(path: Path) -> bool:
-    return any(p.suffix.lower() == ".obj" for p in path.iterdir() if p.is_file())
+    """Whether a folder holds numbered OBJ files (name_0001.obj …): an OBJ sequence."""
+    return any(p.is_file() and NUMBERED_OBJ.match(p.name) for p in path.iterdir())
 
 
 def take_name(take: Path) -> str:

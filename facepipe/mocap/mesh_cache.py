@@ -128,7 +128,7 @@ def read_usd_cache(path: Path, fps: float | None = None, n_vertices: int | None 
                      notes=notes)
 
 
-_NUMBERED = re.compile(r"^(.*?)(\d+)(\.obj)$", re.IGNORECASE)
+NUMBERED_OBJ = re.compile(r"^(.*?)(\d+)(\.obj)$", re.IGNORECASE)  # an OBJ sequence's frame file
 
 
 def obj_sequence_files(path: Path) -> list[tuple[int, Path]]:
@@ -153,7 +153,7 @@ def obj_sequence_files(path: Path) -> list[tuple[int, Path]]:
         candidates = sorted(folder.glob(prefix + "*" + text[m.end():]))
     numbered = []
     for p in candidates:
-        m = _NUMBERED.match(p.name)
+        m = NUMBERED_OBJ.match(p.name)
         if m and (prefix is None or m.group(1) == prefix):
             numbered.append((m.group(1), int(m.group(2)), p))
     if not numbered:
