@@ -519,14 +519,15 @@ def stream_bits(layer_counts, step: float) -> np.ndarray:
     return np.ceil(np.log2(np.maximum(levels, 2.0))).astype(np.int64)
 
 
-#: The span a frame's light coefficients are coded over (their values lie well inside ±1: luminance in
-#: [0, 1] over albedo near 1), for the light stream's bit rate.
+#: The span a frame's light values are coded over (the coefficients lie well inside ±1: luminance in
+#: [0, 1] over albedo near 1; the colour gains near 1), for the light stream's bit rate.
 LIGHT_SPAN = 4.0
 
 
-def light_bits(step: float) -> int:
-    """Bits per frame of a light (9 coefficients) sent in steps of ``step`` over :data:`LIGHT_SPAN`."""
-    return 9 * int(np.ceil(np.log2(LIGHT_SPAN / step + 1.0)))
+def light_bits(step: float, terms: int = 12) -> int:
+    """Bits per frame of a light (nine coefficients and three colour gains) sent in steps of
+    ``step`` over :data:`LIGHT_SPAN`."""
+    return terms * int(np.ceil(np.log2(LIGHT_SPAN / step + 1.0)))
 
 
 def sh_basis(normals: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
 __all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream", "format_stream",
-           "format_light", "read_light", "STREAM_DECIMALS"]
+           "format_light", "read_light", "LIGHT_COLUMNS", "STREAM_DECIMALS"]
 
 #: Q is written to this many decimals: the stream's quantisation step, and its bit rate's.
 STREAM_DECIMALS = 4
@@ -54,7 +54,9 @@ class AppearanceModel:
     the volumes hold albedo too (each layer divided by its own frame's shading): a frame's texture
     is the layered albedo times the shading of the frame's own geometry under its light
     (:func:`facepipe.pipeline.appearance.frame_texture`); None (models before it, or built
-    without a light fit): the volumes hold the footage's values, shading included.
+    without a light fit): the volumes hold the footage's values, shading included;
+    light_colour : (K, 3) the light points' RGB albedo (their colour under the grey light), over
+    which a frame's light colour is measured (None: a white light).
     """
 
     names: list
@@ -90,6 +92,7 @@ class AppearanceModel:
     card_stable: np.ndarray | None = None
     card_stable_rest: np.ndarray | None = None
     neutral_albedo: np.ndarray | None = None
+    light_colour: np.ndarray | None = None
 
     @property
     def albedo(self) -> bool:
@@ -147,6 +150,8 @@ def save_appearance(path, model) -> None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     if model.neutral_albedo is not None:
         arrays["neutral_albedo"] = model.neutral_albedo
+    if model.light_colour is not None:
+        arrays["light_colour"] = model.light_colour
     for r in range(len(model.names)):
         arrays[f"templates_{r}"] = model.templates[r]
         arrays[f"indices_{r}"] = model.indices[r]
@@ -179,7 +184,7 @@ def load_appearance(path):
                                float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"),
                                None if d.get("template_mask") is None else d["template_mask"].astype(bool),
                                d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
-                               d.get("card_stable_rest"), d.get("neutral_albedo"))
+                               d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
@@ -188,7 +193,7 @@ def load_appearance(path):
 def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None,
                  figures: dict | None = None) -> Path:
     """``appearance.csv`` (frame, time, Q per region), ``light.csv`` (frame, time, the light's
-    nine coefficients; where the model fits one) and ``appearance.json`` (the model, the footage
+    nine coefficients and colour; where the model fits one) and ``appearance.json`` (the model, the footage
     and geometry classified, missing frames, and ``figures``: the run's speed and the stream's bit
     rate)."""
     folder = Path(folder)
@@ -222,18 +227,23 @@ def format_stream(names, numbers, times, q) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: light.csv's columns after frame and time: the grey light's nine spherical-harmonic coefficients
+#: and the light's colour (a gain per channel).
+LIGHT_COLUMNS = [f"sh{k}" for k in range(9)] + ["red", "green", "blue"]
+
+
 def format_light(numbers, times, light) -> str:
-    """light.csv's text: ``frame,time,sh0…sh8``, to :data:`STREAM_DECIMALS` decimals."""
-    lines = ["frame,time," + ",".join(f"sh{k}" for k in range(9))]
+    """light.csv's text: ``frame,time,sh0…sh8,red,green,blue``, to :data:`STREAM_DECIMALS` decimals."""
+    lines = ["frame,time," + ",".join(LIGHT_COLUMNS)]
     lines += [f"{int(n)},{t:.6f}," + ",".join(f"{x:.{STREAM_DECIMALS}f}" for x in row)
               for n, t, row in zip(numbers, times, light)]
     return "\n".join(lines) + "\n"
 
 
 def read_light(folder, numbers: np.ndarray) -> np.ndarray | None:
-    """(T, 9) the light of each of the stream's frames ``numbers`` from a classified folder's
-    light.csv; None where the folder has none (a model without a light fit, or classified before
-    facepipe wrote it)."""
+    """(T, 12) the light of each of the stream's frames ``numbers`` from a classified folder's
+    light.csv (:data:`LIGHT_COLUMNS`); None where the folder has none (a model without a light fit,
+    or classified before facepipe wrote it)."""
     csv = Path(folder) / "light.csv"
     if not csv.is_file():
         return None
@@ -241,9 +251,10 @@ def read_light(folder, numbers: np.ndarray) -> np.ndarray | None:
         data = np.loadtxt(csv, delimiter=",", skiprows=1, ndmin=2)
     except ValueError as exc:
         raise InputError(f"light.csv is not numeric ({exc})", path=csv) from None
-    if data.shape[1] != 11 or not np.array_equal(data[:, 0].astype(np.int64), np.asarray(numbers)) \
+    if data.shape[1] != 2 + len(LIGHT_COLUMNS) or not np.array_equal(data[:, 0].astype(np.int64), np.asarray(numbers)) \
             or not np.isfinite(data[:, 2:]).all():
-        raise InputError("light.csv does not hold nine finite coefficients for each of appearance.csv's frames",
+        raise InputError(f"light.csv does not hold {len(LIGHT_COLUMNS)} finite values ({', '.join(LIGHT_COLUMNS)}) "
+                         "for each of appearance.csv's frames",
                          path=csv, hint="classify the footage again: facepipe appearance classify ... -o FOLDER")
     return data[:, 2:]
 

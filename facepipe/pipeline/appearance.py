@@ -47,7 +47,8 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, frames_at, open_footage, read_frames_of, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
-           "classify_chunk", "frame_texture", "frame_lights", "texel_shading", "skin_texels", "to_albedo",
+           "classify_chunk", "frame_texture", "frame_lights", "frame_colours", "texel_shading", "skin_texels",
+           "to_albedo",
            "texture_differences", "well_seen_points", "region_bank"]
 
 
@@ -489,7 +490,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             np.stack(facing_examples).astype(np.float32), np.stack(masks),
                             card_rest=None if cards is None else cards.rest,
                             card_stable=None if cards is None else cards.stable,
-                            card_stable_rest=None if cards is None else cards.stable_rest)
+                            card_stable_rest=None if cards is None else cards.stable_rest,
+                            light_colour=None if light is None else light["colour"].astype(np.float32))
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary))
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
@@ -547,7 +549,8 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     layer index can carry: how the face's large-scale motion (a jaw opening, a cheek raised) and
     the head's turning under the light change the shading over every region.
 
-    Each example frame's light is fitted as a classified frame's is (:func:`frame_lights`). A
+    Each example frame's light is fitted as a classified frame's is (:func:`frame_lights`,
+    :func:`frame_colours`). A
     layer's texels that its own frame does not show hold the neutral albedo; texels the neutral
     frame does not show are filled (:func:`facepipe.core.appearance.fill_unseen`) from those it
     sees better than ``min_point_facing``. The cards' texels (an eye behind its opening) keep
@@ -555,13 +558,17 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     texel_face, texel_bary = texels
     used = sorted({cfg.neutral_frame} | {f for region in cfg.regions for f in region.frames})
     # a frame at a time: the frames' positions together would be the examples' count times the mesh
-    lights = {f: frame_lights(to_gray(frames[f][0])[None], cam_pos[f][None], model)[0] for f in used}
+    lights = {}
+    for f in used:
+        grey = frame_lights(to_gray(frames[f][0])[None], cam_pos[f][None], model)
+        lights[f] = np.concatenate([grey, frame_colours(frames[f][0][None, ..., :3], cam_pos[f][None], model, grey)],
+                                   axis=1)[0]
     skin = skin_texels(model, texel_face)
     everywhere = (slice(None), slice(None))
     neutral_cam = cam_pos[cfg.neutral_frame]
     shading = texel_shading(model, neutral_cam, lights[cfg.neutral_frame], texel_face, texel_bary, *everywhere)
     seen = neutral_seen & skin
-    albedo = np.where(seen[..., None], model.neutral / shading[..., None], model.neutral)
+    albedo = np.where(seen[..., None], model.neutral / shading, model.neutral)
     # what the neutral frame does not show is filled from the texels it shows well: one seen near
     # edge-on is a smear of a few pixels under the light fit's least certain normals, and a fill
     # spreads its error over everything beyond it (as a template point seen so is left out)
@@ -576,8 +583,8 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
         layers = []
         for k, f in enumerate(region.frames):
             own = texel_shading(model, cam_pos[f], lights[f], texel_face, texel_bary, rows, cols)
-            layer = np.where((layer_seen[r][k] & skin[rows, cols])[..., None],
-                             model.volumes[r][k] / own[..., None], albedo[rows, cols])
+            layer = np.where((layer_seen[r][k] & skin[rows, cols])[..., None], model.volumes[r][k] / own,
+                             albedo[rows, cols])
             layers.append(np.where(skin[rows, cols][..., None], layer, model.volumes[r][k]))
         volumes.append(np.stack(layers).astype(np.float32))
     model.neutral_albedo, model.volumes = albedo.astype(np.float32), volumes
@@ -603,24 +610,28 @@ def skin_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
 
 def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, texel_face: np.ndarray,
                   texel_bary: np.ndarray, rows=slice(None), cols=slice(None)) -> np.ndarray:
-    """(h, w) the shading of the texels [rows, cols] on one frame's surface (V, 3), camera space,
-    under its light (9,) (:func:`facepipe.core.appearance.light_shading`); 1 off the skin.
+    """(h, w, 3) the shading of the texels [rows, cols] on one frame's surface (V, 3), camera
+    space, under its light (12,): the grey light's (:func:`facepipe.core.appearance.light_shading`
+    of its first nine values) times its colour (the last three; white for a light of nine); 1
+    off the skin.
 
     Kept within the shading of the light points the frame's light was fitted on (those facing the
     camera): a normal the fit never saw (the face's rim, turned away) would get the nine terms'
     extrapolation, a bright or dark band the footage does not have."""
     tf, tb = texel_face[rows, cols], texel_bary[rows, cols]
-    out = np.ones(tf.shape)
+    out = np.ones(tf.shape + (3,))
     on = skin_texels(model, tf)
     if on.any():
+        grey, colour = light[:9], (light[9:12] if len(light) >= 12 else np.ones(3))
         normals = point_normals(camera_positions[None], model.faces, tf[on], tb[on], model.normal_sign)[0]
-        out[on] = np.clip(ap.light_shading(normals, light), *_fitted_shading_range(model, camera_positions, light))
+        shading = np.clip(ap.light_shading(normals, grey), *_fitted_shading_range(model, camera_positions, grey))
+        out[on] = shading[:, None] * colour
     return out
 
 
 def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray):
     """(low, high) the shading of the model's light points that face the camera in this frame
-    (V, 3) under its light (9,): the normals :func:`frame_lights` fitted it on ((0, inf) where none)."""
+    (V, 3) under its grey light (9,): the normals :func:`frame_lights` fitted it on ((0, inf) where none)."""
     X = surface_points(camera_positions, model.faces, model.light_face, model.light_bary)
     normals = point_normals(camera_positions[None], model.faces, model.light_face, model.light_bary,
                             model.normal_sign)[0]
@@ -634,14 +645,14 @@ def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, 
 def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.ndarray | None = None,
                   light: np.ndarray | None = None, texels=None) -> np.ndarray:
     """A frame's texture (S, S, 3): the layered texture at Q (R,) — for a model that holds albedo,
-    times the shading of the frame's surface (V, 3, camera space) under its light (9,) on the skin
+    times the shading of the frame's surface (V, 3, camera space) under its light (12,) on the skin
     (as the camera saw it); the albedo alone where either is not given. ``texels``: the model's
     :func:`texel_map` where already made."""
     texture = ap.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
     if not (model.albedo and camera_positions is not None and light is not None):
         return texture
     texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0]) if texels is None else texels
-    return texture * texel_shading(model, camera_positions, light, texel_face, texel_bary)[..., None]
+    return texture * texel_shading(model, camera_positions, light, texel_face, texel_bary)
 
 
 def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
@@ -723,8 +734,8 @@ def _stencil_normals(camera_positions: np.ndarray, model: AppearanceModel) -> tu
 def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign, samples: int = 2000):
     """The example footage's light fitted over the neutral texture's texels (their albedo taken
     as uniform: the fit is robust to what differs; its scale such that the median texel's shading
-    is 1), every texel's albedo under it, and ``samples`` texels spread over the surface, where
-    each frame's light will be fitted."""
+    is 1), and ``samples`` texels spread over the surface, where each frame's light will be fitted,
+    with their albedo under it (grey, and colour: RGB over the grey shading)."""
     rows, cols = np.nonzero(seen & (texel_face >= 0))
     if len(rows) < 50:
         return None
@@ -737,9 +748,10 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
     # scaled so that the neutral frame's shading is 1 on the median texel: the albedo it gives
     # (and the layers' albedo) is about as bright as the footage, in the range images hold
     light = light / float(np.median(ap.light_shading(normals, light)))
-    albedo = lum / ap.light_shading(normals, light)
+    shading = ap.light_shading(normals, light)
     keep = slice(0, min(samples, len(rows)))
-    return {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": albedo[keep]}
+    return {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": (lum / shading)[keep],
+            "colour": (neutral[rows, cols] / shading[:, None])[keep]}
 
 
 def _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg,
@@ -820,9 +832,10 @@ def texture_differences(model: AppearanceModel, texel_face: np.ndarray, texel_ba
 @dataclass
 class Classification:
     """Q (T, R) after hold and decay, raw (T, R) before (NaN where hidden), visible (T, R), frame
-    numbers (T,), times (T,), problems: (frame, text) of frames that were skipped; light (T, 9):
-    each frame's light (:func:`frame_lights`; a skipped frame holds the last one fitted, the first
-    ones the first), None for a model without light points."""
+    numbers (T,), times (T,), problems: (frame, text) of frames that were skipped; light (T, 12):
+    each frame's grey light (:func:`frame_lights`) and its colour (:func:`frame_colours`) (a
+    skipped frame holds the last one fitted, the first ones the first), None for a model without
+    light points."""
 
     names: list
     q: np.ndarray
@@ -849,22 +862,24 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     T, Rn = len(numbers), len(model.names)
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
-    light = None if model.light_face is None else np.full((T, 9), np.nan)
+    light = None if model.light_face is None else np.full((T, 12), np.nan)
     problems = []
     bank = region_bank(model)
-    rows, grays = [], []
+    rows, grays, images = [], [], []
     batch = chunk * thread_count()  # a chunk for each of facepipe's threads
 
     def flush():
         if rows:
-            raw[rows], visible[rows], lights = classify_decoded(np.stack(grays), model.to_camera(positions[rows]),
-                                                                model, bank, chunk, with_light=True)
+            cams = model.to_camera(positions[rows])
+            raw[rows], visible[rows], lights = classify_decoded(np.stack(grays), cams, model, bank, chunk,
+                                                                with_light=True)
             if light is not None:
-                light[rows] = lights
+                light[rows] = np.concatenate([lights, frame_colours(np.stack(images), cams, model, lights)], axis=1)
             if progress is not None:
                 progress(len(rows))
         rows.clear()
         grays.clear()
+        images.clear()
 
     at = numbers if footage_numbers is None else footage_numbers
     for shown, image, problem in _read_ahead(read_frames_of(footage, at)):
@@ -879,20 +894,25 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
         for i in shown:
             rows.append(i)
             grays.append(gray)
+            images.append(image[..., :3])
             if len(rows) == batch:
                 flush()
     flush()
     q = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
     return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems,
-                          None if light is None else _held(light))
+                          None if light is None else _held(light, WHITE_LIGHT))
 
 
-def _held(rows: np.ndarray) -> np.ndarray:
+#: A uniform white light: what a frame gets when no frame of the take could be classified.
+WHITE_LIGHT = np.r_[1.0, np.zeros(8), np.ones(3)]
+
+
+def _held(rows: np.ndarray, default: np.ndarray) -> np.ndarray:
     """Rows (T, n) with every NaN row (a frame not classified) replaced by the last finite one
-    before it, or the first after it at the start; a uniform light (1, 0, …) where none is."""
+    before it, or the first after it at the start; ``default`` (n,) everywhere when none is finite."""
     known = np.isfinite(rows).all(axis=1)
     if not known.any():
-        return np.tile(np.eye(1, rows.shape[1]), (len(rows), 1))
+        return np.tile(default, (len(rows), 1))
     index = np.maximum.accumulate(np.where(known, np.arange(len(rows)), -1))
     index[index < 0] = int(np.argmax(known))
     return rows[index]
@@ -970,22 +990,51 @@ def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, 
     return cos.reshape(cos.shape[:3] + (s, s))
 
 
-def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, stencil=None
-                 ) -> np.ndarray:
-    """(F, 9) each frame's light, fitted (:func:`facepipe.core.appearance.fit_light`) over the
-    model's light points: their albedo known, their normals from the frame's geometry (F, V, 3,
-    camera space), their values sampled from its luminance (F, H, W) where in the image and facing
-    the camera. ``stencil``: :func:`_stencil_normals` of these frames where already computed."""
+def _light_point_values(images: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, stencil=None):
+    """The model's light points in frames (F, V, 3, camera space): their values sampled from the
+    images (F, H, W[, C]), NaN where outside the image or not facing the camera, and their unit
+    normals (F, K, 3). ``stencil``: :func:`_stencil_normals` of these frames where already computed."""
     vn, local = _stencil_normals(camera_positions, model) if stencil is None else stencil
     X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
     normals = point_normals(camera_positions, local[model.faces], model.light_face, model.light_bary, 1.0, vn)
     pixels = project_distorted_fast(model.camera, X)
-    facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
-    values = np.empty(X.shape[:2])
-    for f in range(len(grays)):
-        sampled, inside = ap.bilinear_sample(grays[f], pixels[f])
-        values[f] = np.where(inside & facing[f], sampled, np.nan)
+    usable = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
+    values = np.empty(X.shape[:2] + images.shape[3:])
+    for f in range(len(images)):
+        sampled, inside = ap.bilinear_sample(images[f], pixels[f])
+        usable[f] &= inside
+        values[f] = sampled
+    values[~usable] = np.nan
+    return values, normals
+
+
+def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, stencil=None
+                 ) -> np.ndarray:
+    """(F, 9) each frame's grey light, fitted (:func:`facepipe.core.appearance.fit_light`) over the
+    model's light points: their albedo known, their normals from the frame's geometry (F, V, 3,
+    camera space), their values sampled from its luminance (F, H, W) where in the image and facing
+    the camera. ``stencil``: :func:`_stencil_normals` of these frames where already computed."""
+    values, normals = _light_point_values(grays, camera_positions, model, stencil)
     return ap.fit_light(values, model.light_albedo, normals)
+
+
+def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, lights: np.ndarray
+                  ) -> np.ndarray:
+    """(F, 3) each frame's light colour: per channel the median, over the light points the frame
+    shows, of their value in the RGB frame (F, H, W, 3) over their colour albedo times their
+    shading under the frame's grey light (F, 9). About 1 for the light the examples were shot
+    under; a warmer light reads red over blue. White (1, 1, 1) where the model keeps no colour
+    albedo or too few points are seen."""
+    out = np.ones((len(images), 3))
+    if model.light_colour is None:
+        return out
+    values, normals = _light_point_values(images, camera_positions, model)  # (F, K, 3)
+    for f in range(len(images)):
+        seen = np.isfinite(values[f]).all(axis=-1)
+        if seen.sum() >= 27:  # as many as a light fit needs
+            predicted = model.light_colour[seen] * ap.light_shading(normals[f][seen], lights[f])[:, None]
+            out[f] = np.median(values[f][seen] / np.maximum(predicted, 1e-6), axis=0)
+    return out
 
 
 def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, with_normals: bool = False,
