@@ -74,7 +74,10 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     # its geometry, or the footage's own in a model without albedo layers)
     scene = Scene(cam.matrix, cam.distortion, cam.width, cam.height, model.rotation, model.translation,
                   np.array([0.0, 0.0, -1.0]), (1.0, 1.0, 1.0), 1.0)
-    corner_uv = model.corner_uv
+    # the texture is the UV layout's first tile (0..1): triangles laid out on other tiles (UDIM:
+    # a scalp, a neck) keep their own textures and are left out, the frame showing there
+    in_tile = ((model.corner_uv >= 0.0) & (model.corner_uv <= 1.0)).all(axis=(1, 2))
+    faces, corner_uv = model.faces[in_tile], model.corner_uv[in_tile]
     rows = len(index)
     panel_w = size / 100.0
     fig = _figure(2 * panel_w, rows * panel_w + 2.4)
@@ -91,8 +94,7 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
         drawn = model.with_cards(world)
         # over black, with the share of each pixel the face covers: the face's colour
         # premultiplied by its coverage, so its silhouette blends into the frame
-        face, coverage = render_frame(drawn, model.faces, corner_uv, texture, scene, background=0.0,
-                                      with_coverage=True)
+        face, coverage = render_frame(drawn, faces, corner_uv, texture, scene, background=0.0, with_coverage=True)
         rendered = over_footage(face, coverage[..., None], image)
         x0, x1, y0, y1 = _window(model, world)
         for c, (picture, title) in enumerate(((image, f"frame {n}: input"),
