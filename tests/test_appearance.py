@@ -381,9 +381,8 @@ def test_the_neutral_frame_rebuilt_from_its_albedo_is_its_texture(kit):
     texture as the footage showed it, on every skin texel that frame shows well (not edge-on)."""
     from facepipe.io.appearance_file import load_appearance
     from facepipe.io.config import load_config
-    from facepipe.io.footage import to_gray
-    from facepipe.pipeline.appearance import (_read_geometry, _texel_facing, frame_colours, frame_lights,
-                                              frame_texture, skin_texels, texel_map, unwrap)
+    from facepipe.pipeline.appearance import (_read_geometry, _texel_facing, frame_light, frame_texture,
+                                              skin_texels, texel_map, unwrap)
 
     model = load_appearance(kit / "app.npz")
     cfg = load_config(kit / "appearance" / "appearance.toml").appearance
@@ -391,8 +390,7 @@ def test_the_neutral_frame_rebuilt_from_its_albedo_is_its_texture(kit):
     n = cfg.neutral_frame
     camera_positions = model.to_camera(positions[list(numbers).index(n)])
     image = next(image for _, image, _ in read_frames(open_footage(cfg.footage), np.array([n])))
-    grey = frame_lights(to_gray(image)[None], camera_positions[None], model)
-    light = np.concatenate([grey, frame_colours(image[None, ..., :3], camera_positions[None], model, grey)], axis=1)[0]
+    light = frame_light(image, camera_positions, model)
     texels = texel_map(model.corner_uv, model.neutral.shape[0])
     rebuilt = frame_texture(model, np.zeros(len(model.names)), camera_positions, light, texels)
     _, seen = unwrap(image, camera_positions, model.faces, *texels, model.camera, min_facing=model.min_facing,
@@ -670,7 +668,7 @@ def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so
     assert "light.csv" in capsys.readouterr().err and not (tmp_path / "c").exists()
 
     assert _run("export", cls, "--format", "textures", "--layer", "large", "-o", tmp_path / "d") == 2
-    assert "not a layer of textures" in capsys.readouterr().err
+    assert "not a layer of textures" in capsys.readouterr().err and not (tmp_path / "d").exists()
 
     model = load_appearance(kit / "app.npz")
     model.neutral_albedo = None  # as a model built without a light fit holds its layers
@@ -679,4 +677,4 @@ def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so
     assert json.loads((tmp_path / "e" / "textures.json").read_text())["shading"] == "footage"
     assert _run("export", cls, "--format", "textures", "-m", tmp_path / "footage.npz", "--layer", "albedo",
                 "-o", tmp_path / "f") == 2
-    assert "holds the footage's values" in capsys.readouterr().err
+    assert "holds the footage's values" in capsys.readouterr().err and not (tmp_path / "f").exists()

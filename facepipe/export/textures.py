@@ -82,7 +82,7 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
                          hint="textures: --layer final (as the camera saw the face) or albedo (the layers' albedo)")
     fps = _frame_rate(times, numbers, source)
     light = read_light(source, numbers)
-    shading, positions, notes = _frame_shading(model, info, numbers, light, options.layer, source)
+    shading, camera_positions, notes = _frame_shading(model, info, numbers, light, options.layer)
     suffix = ".png" if options.half is None else ".exr"
     paths = frame_paths(dest, len(numbers), options.start, suffix)
     csv, light_csv, summary = dest / "appearance.csv", dest / "light.csv", dest / "textures.json"
@@ -101,13 +101,12 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
     frame_light_bits = light_bits(step) if light is not None else 0
     bits = int(region_bits.sum()) + frame_light_bits
     written = 0
-    texels = texel_map(model.corner_uv, model.neutral.shape[0]) if shading == "frame" else None
+    texels = texel_map(model.corner_uv, model.neutral.shape[0]) if camera_positions else None
     with options.make_bar(len(paths), "export textures") as bar:
         for t, path in enumerate(paths):
             if not (options.resume and path.exists()):
-                if shading == "frame":
-                    take_model, take_positions = positions
-                    texture = frame_texture(model, q[t], take_model.to_camera(take_positions[t]), light[t], texels)
+                if camera_positions:
+                    texture = frame_texture(model, q[t], camera_positions(t), light[t], texels)
                 else:
                     texture = frame_texture(model, q[t])
                 write_texture(path, texture, options.half)
@@ -128,17 +127,14 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
     return paths + streams + [summary], details
 
 
-#: What the written textures hold (textures.json's ``shading``).
-SHADINGS = {"frame": "the layered albedo times each frame's shading (its geometry under its light)",
-            "albedo": "the layered albedo alone (--layer albedo)",
-            "footage": "the layers as the footage showed them (a model built without a light fit)"}
-
-
-def _frame_shading(model, info: dict, numbers: np.ndarray, light, layer: str, source: Path):
-    """How the textures are shaded (a key of :data:`SHADINGS`), where each frame's own shading
-    applies the model that puts the take's geometry into camera space and the geometry's positions
-    (T, V, 3) (one frame at a time into camera space: a long take's would not fit), and notes. A model that holds albedo needs the
-    stream's light and the classified geometry for that; without either it writes the albedo, and says why."""
+def _frame_shading(model, info: dict, numbers: np.ndarray, light, layer: str):
+    """What the textures hold (textures.json's ``shading``: ``frame``, the layered albedo times each
+    frame's shading, its geometry under its light; ``albedo``, the layered albedo alone; ``footage``,
+    the layers as the footage showed them, a model built without a light fit), for ``frame`` a
+    function of the stream's row giving the frame's positions in camera space (one frame at a time:
+    a long take's would not fit at once), else None, and notes. A model that holds albedo needs
+    the stream's light and the classified geometry for ``frame``; without either it writes the
+    albedo, and says why."""
     if not model.albedo:
         if layer == "albedo":
             raise InputError("--layer albedo: this appearance model holds the footage's values, shading included",
@@ -157,4 +153,4 @@ def _frame_shading(model, info: dict, numbers: np.ndarray, light, layer: str, so
     if not np.array_equal(np.asarray(geometry.numbers), np.asarray(numbers)):
         raise InputError("the classified geometry's frames are not the stream's", path=geometry_path,
                          hint="classify the footage again with this geometry")
-    return "frame", (model_for_take, geometry.positions), []
+    return "frame", lambda t: model_for_take.to_camera(geometry.positions[t]), []

@@ -47,7 +47,7 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, frames_at, open_footage, read_frames_of, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
-           "classify_chunk", "frame_texture", "frame_lights", "frame_colours", "texel_shading", "skin_texels",
+           "classify_chunk", "frame_texture", "frame_light", "frame_lights", "frame_colours", "texel_shading", "skin_texels",
            "to_albedo",
            "texture_differences", "well_seen_points", "region_bank"]
 
@@ -549,8 +549,7 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     layer index can carry: how the face's large-scale motion (a jaw opening, a cheek raised) and
     the head's turning under the light change the shading over every region.
 
-    Each example frame's light is fitted as a classified frame's is (:func:`frame_lights`,
-    :func:`frame_colours`). A
+    Each example frame's light is fitted as a classified frame's is (:func:`frame_light`). A
     layer's texels that its own frame does not show hold the neutral albedo; texels the neutral
     frame does not show are filled (:func:`facepipe.core.appearance.fill_unseen`) from those it
     sees better than ``min_point_facing``. The cards' texels (an eye behind its opening) keep
@@ -558,11 +557,7 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     texel_face, texel_bary = texels
     used = sorted({cfg.neutral_frame} | {f for region in cfg.regions for f in region.frames})
     # a frame at a time: the frames' positions together would be the examples' count times the mesh
-    lights = {}
-    for f in used:
-        grey = frame_lights(to_gray(frames[f][0])[None], cam_pos[f][None], model)
-        lights[f] = np.concatenate([grey, frame_colours(frames[f][0][None, ..., :3], cam_pos[f][None], model, grey)],
-                                   axis=1)[0]
+    lights = {f: frame_light(frames[f][0], cam_pos[f], model) for f in used}
     skin = skin_texels(model, texel_face)
     everywhere = (slice(None), slice(None))
     neutral_cam = cam_pos[cfg.neutral_frame]
@@ -623,18 +618,19 @@ def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: n
     on = skin_texels(model, tf)
     if on.any():
         grey, colour = light[:9], (light[9:12] if len(light) >= 12 else np.ones(3))
-        normals = point_normals(camera_positions[None], model.faces, tf[on], tb[on], model.normal_sign)[0]
-        shading = np.clip(ap.light_shading(normals, grey), *_fitted_shading_range(model, camera_positions, grey))
+        vn = model.normal_sign * vertex_normals(camera_positions[None], model.faces)
+        normals = point_normals(camera_positions[None], model.faces, tf[on], tb[on], 1.0, vn)[0]
+        shading = np.clip(ap.light_shading(normals, grey), *_fitted_shading_range(model, camera_positions, grey, vn))
         out[on] = shading[:, None] * colour
     return out
 
 
-def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray):
+def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, vn: np.ndarray):
     """(low, high) the shading of the model's light points that face the camera in this frame
-    (V, 3) under its grey light (9,): the normals :func:`frame_lights` fitted it on ((0, inf) where none)."""
+    (V, 3; ``vn`` (1, V, 3) its vertex normals) under its grey light (9,): the normals
+    :func:`frame_lights` fitted it on ((0, inf) where none)."""
     X = surface_points(camera_positions, model.faces, model.light_face, model.light_bary)
-    normals = point_normals(camera_positions[None], model.faces, model.light_face, model.light_bary,
-                            model.normal_sign)[0]
+    normals = point_normals(camera_positions[None], model.faces, model.light_face, model.light_bary, 1.0, vn)[0]
     facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
     if not facing.any():
         return 0.0, np.inf
@@ -870,11 +866,11 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
 
     def flush():
         if rows:
-            cams = model.to_camera(positions[rows])
-            raw[rows], visible[rows], lights = classify_decoded(np.stack(grays), cams, model, bank, chunk,
-                                                                with_light=True)
+            raw[rows], visible[rows], lights = classify_decoded(np.stack(grays), model.to_camera(positions[rows]),
+                                                                model, bank, chunk, with_light=True,
+                                                                images=np.stack(images))
             if light is not None:
-                light[rows] = np.concatenate([lights, frame_colours(np.stack(images), cams, model, lights)], axis=1)
+                light[rows] = lights
             if progress is not None:
                 progress(len(rows))
         rows.clear()
@@ -919,19 +915,21 @@ def _held(rows: np.ndarray, default: np.ndarray) -> np.ndarray:
 
 
 def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None,
-                     chunk: int = 8, with_light: bool = False):
+                     chunk: int = 8, with_light: bool = False, images: np.ndarray | None = None):
     """:func:`classify_chunk` of decoded frames (F, H, W) with their geometry in camera space
     (F, V, 3), ``chunk`` frames at a time on facepipe's threads (:func:`facepipe.parallel.map_blocks`):
     the same numbers as one chunk after another, about 1.5 times the frames a second on two cores
     (most of a chunk's time is in NumPy, which lets the other thread run). Q (F, R) and visibility
-    (F, R); with ``with_light`` also each frame's light (F, 9), None for a model without light points."""
+    (F, R); with ``with_light`` also each frame's light (F, 9; (F, 12) with its colour where the
+    frames' RGB ``images`` are given), None for a model without light points."""
     bank = region_bank(model) if bank is None else bank
     if len(grays) == 0:
         n = len(model.names)
-        light = None if model.light_face is None else np.zeros((0, 9))
+        light = None if model.light_face is None else np.zeros((0, 9 if images is None else 12))
         return (np.zeros((0, n)), np.zeros((0, n), dtype=bool)) + ((light,) if with_light else ())
     with serial_blas():  # process-wide: entered once here, not by each thread
-        parts = map_blocks(lambda i: _classify_chunk(grays[i:i + chunk], camera_positions[i:i + chunk], model, bank),
+        parts = map_blocks(lambda i: _classify_chunk(grays[i:i + chunk], camera_positions[i:i + chunk], model, bank,
+                                                     None if images is None else images[i:i + chunk]),
                            range(0, len(grays), chunk))
     q, visible = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     if not with_light:
@@ -951,14 +949,14 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
         return _classify_chunk(grays, camera_positions, model, bank)[:2]
 
 
-def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank):
-    """Q (F, R), visibility (F, R) and each frame's light (F, 9; None without light points)."""
+def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, images=None):
+    """Q (F, R), visibility (F, R) and each frame's light (:func:`frame_shading`; None without light points)."""
     bank = region_bank(model) if bank is None else bank
     points = template_positions(camera_positions, model)
     patches, visible, seen = sample_template_frames(grays, camera_positions, model, points)
     normals = light = None
     if model.light_face is not None:
-        shading, normals, light = frame_shading(grays, camera_positions, model, with_normals=True, with_light=True)
+        shading, normals, light = frame_shading(grays, camera_positions, model, images)
         patches = patches / shading
     if model.min_point_facing > 0:
         seen = seen & (template_point_facing(camera_positions, model, normals, points) > model.min_point_facing)
@@ -990,45 +988,51 @@ def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, 
     return cos.reshape(cos.shape[:3] + (s, s))
 
 
-def _light_point_values(images: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, stencil=None):
-    """The model's light points in frames (F, V, 3, camera space): their values sampled from the
-    images (F, H, W[, C]), NaN where outside the image or not facing the camera, and their unit
-    normals (F, K, 3). ``stencil``: :func:`_stencil_normals` of these frames where already computed."""
+def _light_points(camera_positions: np.ndarray, model: AppearanceModel, stencil=None):
+    """The model's light points in frames (F, V, 3, camera space): their unit normals (F, K, 3),
+    pixels (F, K, 2) and whether each faces the camera (F, K). ``stencil``: :func:`_stencil_normals`
+    of these frames where already computed."""
     vn, local = _stencil_normals(camera_positions, model) if stencil is None else stencil
     X = np.einsum("kj,fkjc->fkc", model.light_bary, camera_positions[:, model.faces[model.light_face]])  # (F, K, 3)
     normals = point_normals(camera_positions, local[model.faces], model.light_face, model.light_bary, 1.0, vn)
-    pixels = project_distorted_fast(model.camera, X)
-    usable = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
-    values = np.empty(X.shape[:2] + images.shape[3:])
+    facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
+    return normals, project_distorted_fast(model.camera, X), facing
+
+
+def _light_point_values(images: np.ndarray, points) -> np.ndarray:
+    """(F, K[, C]) the light points' values (:func:`_light_points`) sampled from the images
+    (F, H, W[, C]), NaN where outside the image or not facing the camera."""
+    _, pixels, facing = points
+    values = np.empty(pixels.shape[:2] + images.shape[3:])
     for f in range(len(images)):
         sampled, inside = ap.bilinear_sample(images[f], pixels[f])
-        usable[f] &= inside
         values[f] = sampled
-    values[~usable] = np.nan
-    return values, normals
+        values[f][~(facing[f] & inside)] = np.nan
+    return values
 
 
-def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, stencil=None
+def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, points=None
                  ) -> np.ndarray:
     """(F, 9) each frame's grey light, fitted (:func:`facepipe.core.appearance.fit_light`) over the
     model's light points: their albedo known, their normals from the frame's geometry (F, V, 3,
     camera space), their values sampled from its luminance (F, H, W) where in the image and facing
-    the camera. ``stencil``: :func:`_stencil_normals` of these frames where already computed."""
-    values, normals = _light_point_values(grays, camera_positions, model, stencil)
-    return ap.fit_light(values, model.light_albedo, normals)
+    the camera. ``points``: :func:`_light_points` of these frames where already computed."""
+    points = _light_points(camera_positions, model) if points is None else points
+    return ap.fit_light(_light_point_values(grays, points), model.light_albedo, points[0])
 
 
-def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, lights: np.ndarray
-                  ) -> np.ndarray:
+def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, lights: np.ndarray,
+                  points=None) -> np.ndarray:
     """(F, 3) each frame's light colour: per channel the median, over the light points the frame
     shows, of their value in the RGB frame (F, H, W, 3) over their colour albedo times their
     shading under the frame's grey light (F, 9). About 1 for the light the examples were shot
     under; a warmer light reads red over blue. White (1, 1, 1) where the model keeps no colour
-    albedo or too few points are seen."""
+    albedo or too few points are seen. ``points``: as for :func:`frame_lights`."""
     out = np.ones((len(images), 3))
     if model.light_colour is None:
         return out
-    values, normals = _light_point_values(images, camera_positions, model)  # (F, K, 3)
+    points = _light_points(camera_positions, model) if points is None else points
+    values, normals = _light_point_values(images, points), points[0]  # (F, K, 3) both
     for f in range(len(images)):
         seen = np.isfinite(values[f]).all(axis=-1)
         if seen.sum() >= 27:  # as many as a light fit needs
@@ -1037,22 +1041,31 @@ def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: Appea
     return out
 
 
-def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, with_normals: bool = False,
-                  with_light: bool = False):
+def frame_light(image: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """(12,) one RGB frame's (H, W, 3) light with its geometry (V, 3, camera space): the grey
+    light's nine coefficients (:func:`frame_lights`) and its colour (:func:`frame_colours`)."""
+    points = _light_points(camera_positions[None], model)
+    grey = frame_lights(to_gray(image)[None], camera_positions[None], model, points)
+    return np.concatenate([grey, frame_colours(image[None, ..., :3], camera_positions[None], model, grey, points)],
+                          axis=1)[0]
+
+
+def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, images=None):
     """The shading (F, R, 5, size, size) at the template points of frames under each frame's light
-    (:func:`frame_lights`); with the template points' unit normals (F, R, 5, N, 3) too if
-    ``with_normals``, and the lights (F, 9) if ``with_light``."""
+    (:func:`frame_lights`), the template points' unit normals (F, R, 5, N, 3) and the lights: (F, 9),
+    or with the frames' RGB ``images`` (F, H, W, 3) (F, 12), their colour after them
+    (:func:`frame_colours`, from the same light points)."""
     stencil = _stencil_normals(camera_positions, model)
     vn, local = stencil
-    light = frame_lights(grays, camera_positions, model, stencil)  # (F, 9)
+    points = _light_points(camera_positions, model, stencil)
+    light = frame_lights(grays, camera_positions, model, points)  # (F, 9)
+    if images is not None:
+        light = np.concatenate([light, frame_colours(images, camera_positions, model, light, points)], axis=1)
     t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
                               vn)  # (F, R, 5, N, 3)
-    out = np.stack([ap.light_shading(t_normals[f], light[f]) for f in range(len(grays))])
+    out = np.stack([ap.light_shading(t_normals[f], light[f, :9]) for f in range(len(grays))])
     s = model.template_size
-    out = out.reshape(out.shape[:3] + (s, s))
-    if not (with_normals or with_light):
-        return out
-    return (out,) + ((t_normals,) if with_normals else ()) + ((light,) if with_light else ())
+    return out.reshape(out.shape[:3] + (s, s)), t_normals, light
 
 
 def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
