@@ -666,6 +666,12 @@ def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so
     (broken / "light.csv").write_text("\n".join(lines[:-1]) + "\n")  # a frame short
     assert _run("export", broken, "--format", "textures", "-o", tmp_path / "c") == 2
     assert "light.csv" in capsys.readouterr().err and not (tmp_path / "c").exists()
+    shutil.copy(cls / "light.csv", broken / "light.csv")
+    with open(broken / "appearance.csv", "a") as fh:
+        fh.write("999,33.3,not a number\n")
+    assert _run("export", broken, "--format", "textures", "-o", tmp_path / "c") == 2
+    err = capsys.readouterr().err
+    assert "appearance.csv" in err and f"line {len(lines) + 1}" in err and not (tmp_path / "c").exists()
 
     assert _run("export", cls, "--format", "textures", "--layer", "large", "-o", tmp_path / "d") == 2
     assert "not a layer of textures" in capsys.readouterr().err and not (tmp_path / "d").exists()

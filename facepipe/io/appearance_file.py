@@ -247,12 +247,8 @@ def read_light(folder, numbers: np.ndarray) -> np.ndarray | None:
     csv = Path(folder) / "light.csv"
     if not csv.is_file():
         return None
-    try:
-        data = np.loadtxt(csv, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as exc:
-        raise InputError(f"light.csv is not numeric ({exc})", path=csv) from None
-    if data.shape[1] != 2 + len(LIGHT_COLUMNS) or not np.array_equal(data[:, 0].astype(np.int64), np.asarray(numbers)) \
-            or not np.isfinite(data[:, 2:]).all():
+    data = _numbers_table(csv, ["frame", "time"] + LIGHT_COLUMNS)
+    if not np.array_equal(data[:, 0].astype(np.int64), np.asarray(numbers)) or not np.isfinite(data[:, 2:]).all():
         raise InputError(f"light.csv does not hold {len(LIGHT_COLUMNS)} finite values ({', '.join(LIGHT_COLUMNS)}) "
                          "for each of appearance.csv's frames",
                          path=csv, hint="classify the footage again: facepipe appearance classify ... -o FOLDER")
@@ -272,11 +268,23 @@ def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     except (json.JSONDecodeError, KeyError, TypeError) as exc:
         raise InputError(f"appearance.json is not a classification's summary ({exc})", path=meta,
                          hint="classify the footage again: facepipe appearance classify ... -o FOLDER") from None
-    try:
-        data = np.loadtxt(csv, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as exc:
-        raise InputError(f"appearance.csv is not numeric ({exc})", path=csv) from None
-    if data.shape[1] != 2 + len(info["regions"]):
-        raise InputError(f"appearance.csv has {data.shape[1] - 2} Q columns for {len(info['regions'])} regions",
-                         path=csv)
+    data = _numbers_table(csv, ["frame", "time"] + [str(n) for n in info["regions"]])
     return info, data[:, 0].astype(np.int64), data[:, 1], data[:, 2:]
+
+
+def _numbers_table(csv: Path, columns: list) -> np.ndarray:
+    """(rows, len(columns)) the numbers of a stream file written by this module (a header line,
+    then one row of numbers a frame); the first line that is not a row of them is named."""
+    rows = []
+    for line_no, line in enumerate(csv.read_text(encoding="utf-8", errors="replace").splitlines()[1:], start=2):
+        if not line.strip():
+            continue
+        try:
+            values = [float(cell) for cell in line.split(",")]
+        except ValueError:
+            values = []
+        if len(values) != len(columns):
+            raise InputError(f"line {line_no} is not a row of {len(columns)} numbers ({', '.join(columns)})",
+                             path=csv, hint="classify the footage again: facepipe appearance classify ... -o FOLDER")
+        rows.append(values)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, len(columns))
