@@ -72,7 +72,7 @@ def validate(rig, geodesics):
     validation.update(seconds=time.perf_counter() - t, validated=report["validated"],
                       chosen=report.get("chosen"), reason=report.get("reason"),
                       stages=report.get("seconds"))
-rig, fit = fit_config(sys.argv[1], prepare=validate)
+rig, fit = fit_config(sys.argv[1], prepare=validate, early_basis=sys.argv[3] != "validate")
 t2 = time.perf_counter()
 t1 = t2 - fit.report["seconds"]["total"] - validation["seconds"]
 arrays, meta = model_arrays(fit, rig)

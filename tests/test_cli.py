@@ -230,6 +230,32 @@ def test_geodesics_from_a_second_process_give_the_same_fit(pipeline, monkeypatch
     np.testing.assert_array_equal(there.gate.examples, here.gate.examples)
 
 
+def test_early_shell_basis_gives_the_same_fit_and_yields_to_validation(pipeline):
+    """The basis solved in a thread while the examples load is the one the fit would solve; where
+    validation (``prepare``) changes the shell's stiffness the fit solves the basis for the new one."""
+    import dataclasses
+
+    from facepipe.pipeline import fit as fit_module
+    from facepipe.pipeline.rig import load_rig
+
+    config = pipeline / "rig" / "sample.toml"
+    _, plain = fit_module.fit_config(config)
+    _, early = fit_module.fit_config(config, early_basis=True)
+    assert early.report["shell_basis_early"] and not plain.report["shell_basis_early"]
+    np.testing.assert_array_equal(early.geometry.B, plain.geometry.B)
+    np.testing.assert_array_equal(early.model.weights, plain.model.weights)
+
+    def stiffer(rig, geodesics):
+        rig.config = dataclasses.replace(rig.config, shell=dataclasses.replace(rig.config.shell, k_stretch=0.5))
+
+    _, changed = fit_module.fit_config(config, prepare=stiffer, early_basis=True)
+    assert not changed.report["shell_basis_early"]
+    rig = load_rig(config)
+    stiffer(rig, None)
+    np.testing.assert_allclose(changed.geometry.B, fit_module.build_geometry(rig).B, atol=1e-12)
+    assert np.abs(changed.geometry.B - plain.geometry.B).max() > 1e-6
+
+
 def test_bad_psd_counts_exit_2_without_output(pipeline, tmp_path, capsys):
     rig = pipeline / "rig"
     for key, value in (("greedy_vertices", -1),):

@@ -40,7 +40,7 @@ def run_fit(config, rep, tune: bool = True):
     config = load_config(config)  # a missing or malformed config is said alone, before any bar
     # the validation's bars appear under the steps' bar, in its second step
     with StageBar(len(FIT_STAGES), "fit", quiet=rep.quiet) as steps:
-        rig, fit = fit_config(config, progress=progress, prepare=prepare, stage=steps.step)
+        rig, fit = fit_config(config, progress=progress, prepare=prepare, stage=steps.step, early_basis=not tune)
     rep.detail(solver_line(fit.report["deformer"], fit.report["shell_solver"], fit.report["shell_solver_passed_over"]))
     report = choice["report"]
     if report["validated"]:

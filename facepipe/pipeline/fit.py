@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
 from facepipe.errors import InputError
+from facepipe.io.config import Config, load_config
 from facepipe.parallel import serial_blas
 from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
 from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
@@ -115,8 +117,9 @@ def feature_graph(rig: Rig, mesh_graph: sp.csr_matrix | None = None) -> tuple[np
 
 
 def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | None = None,
-                   graph: tuple[np.ndarray, np.ndarray] | None = None) -> Geometry:
-    """Large-scale basis and feature graph of a rig (``graph``: from :func:`feature_graph`, if at hand)."""
+                   graph: tuple[np.ndarray, np.ndarray] | None = None, basis: ShellBasis | None = None) -> Geometry:
+    """Large-scale basis and feature graph of a rig (``graph``: from :func:`feature_graph`, if at hand;
+    ``basis``: the large-scale basis of the rig's own deformer, if already solved)."""
     cfg = rig.config
     mesh = rig.mesh
     rest = mesh.vertices
@@ -128,7 +131,8 @@ def build_geometry(rig: Rig, k_stretch: float | None = None, k_bend: float | Non
     if k_stretch is not None or k_bend is not None:
         shell = dataclasses.replace(shell, k_stretch=shell.k_stretch if k_stretch is None else k_stretch,
                                     k_bend=shell.k_bend if k_bend is None else k_bend)
-    basis = solve_large_scale_basis(rest, faces, handles, rig.anchors, shell, spacing)
+    if basis is None or k_stretch is not None or k_bend is not None:
+        basis = solve_large_scale_basis(rest, faces, handles, rig.anchors, shell, spacing)
     return Geometry(rest, faces, handles, basis.B, edges, rest_lengths, frame_neighbors(faces, len(rest)), spacing,
                     solver=basis.solver, solver_passed_over=basis.passed_over)
 
@@ -197,40 +201,65 @@ FIT_STAGES = ("reading the rig", "validating parameters", "shell and local frame
               "geodesic distances", "WPSD weights", "greedy basis", "final detail model")
 
 
-def fit_config(config, progress=None, prepare=None, stage=None) -> tuple[Rig, "FitResult"]:
+def fit_config(config, progress=None, prepare=None, stage=None, early_basis: bool = False
+               ) -> tuple[Rig, "FitResult"]:
     """:func:`~facepipe.pipeline.rig.load_rig` and :func:`fit_rig`, with the geodesics from the handles
     started as soon as the rest mesh and markers are read, while the examples are still loading.
 
     ``prepare(rig, geodesics)``, if given, runs between the two (it may change ``rig.config``;
     ``geodesics.finish()`` gives the distances, which the fit then reuses). The load time is in
     ``fit.report["seconds"]["load"]``. ``stage(name)`` is called as each of :data:`FIT_STAGES` starts.
+
+    ``early_basis``: the large-scale basis of the config's own deformer is solved in a thread from
+    then on too, while the examples load (on a large mesh that wait is seconds, and the sparse
+    factorisation runs in native code, off Python's lock); the fit uses it unless ``prepare``
+    changed the deformer's parameters. Set it where validation will not run (it would compete
+    with validation for the cores, for a basis validation may discard).
     """
     stage = stage or (lambda name: None)
     t0 = time.perf_counter()
+    config = config if isinstance(config, Config) else load_config(config)
     started: list[Geodesics] = []
+    early: list = []  # (the deformer's parameters it was solved for, its Future)
+    pool = ThreadPoolExecutor(1, thread_name_prefix="shell-basis") if early_basis else None
+
+    def on_mesh(mesh, markers, anchors):
+        started.append(handle_geodesics(mesh, markers.handle_vertices))
+        if pool is not None:
+            early.append((config.shell, pool.submit(solve_large_scale_basis, mesh.vertices, mesh.faces,
+                                                    markers.handle_vertices, anchors, config.shell)))
+
     try:
         stage(FIT_STAGES[0])
-        rig = load_rig(config, on_mesh=lambda mesh, markers: started.append(
-            handle_geodesics(mesh, markers.handle_vertices)))
+        rig = load_rig(config, on_mesh=on_mesh)
         t_load = time.perf_counter() - t0
         stage(FIT_STAGES[1])
         if prepare is not None:
             prepare(rig, started[0])
-        fit = fit_rig(rig, progress=progress, geodesics=started[0], stage=stage)
+        basis = None
+        if early:
+            shell, job = early[0]
+            basis = job.result() if rig.config.shell == shell else None  # else validation chose other values
+        fit = fit_rig(rig, progress=progress, geodesics=started[0], stage=stage, basis=basis)
     finally:
         for job in started:
             job.close()
+        if pool is not None:
+            pool.shutdown(wait=False)  # an error before the basis was needed: it finishes on its own and is dropped
     fit.report["seconds"]["load"] = t_load
+    fit.report["shell_basis_early"] = basis is not None
     return rig, fit
 
 
-def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=None) -> FitResult:
+def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=None,
+            basis: ShellBasis | None = None) -> FitResult:
     """Fit the whole rig: geometry, details of every example, greedy basis for PSD and WPSD.
 
     The configured method's model is returned; the error curves of both methods are reported
     (the paper's Fig. 4: error against basis size). ``geodesics``: the Dijkstra runs from
     ``rig.handles``, if already started (:func:`fit_config`); they are started here otherwise.
     ``stage(name)`` is called as each of the :data:`FIT_STAGES` after validation starts.
+    ``basis``: the large-scale basis of the rig's deformer, if already solved (:func:`fit_config`).
     """
     stage = stage or (lambda name: None)
     cfg = rig.config.psd
@@ -252,7 +281,7 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
         stage(FIT_STAGES[2])
         graph = feature_graph(rig, geodesics.graph)
         beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
-        geo = build_geometry(rig, graph=graph)
+        geo = build_geometry(rig, graph=graph, basis=basis)
         lap("geometry")
         poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) \
             else geo.rest[None]

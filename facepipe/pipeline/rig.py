@@ -163,9 +163,10 @@ class Rig:
 def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=None) -> Rig:
     """Load and check the rest mesh, markers, anchors and example poses of a config.
 
-    ``on_mesh(mesh, markers)``, if given, is called as soon as the rest mesh and the markers are
-    read and checked, while the examples are still being read: work that needs only those two
-    starts early (:func:`facepipe.pipeline.fit.fit_config`). An error raised later is still raised.
+    ``on_mesh(mesh, markers, anchors)``, if given, is called as soon as the rest mesh, the markers
+    and the anchors are read and checked, while the examples are still being read: work that
+    needs only those starts early (:func:`facepipe.pipeline.fit.fit_config`). An error raised
+    later is still raised.
     """
     if not isinstance(config, Config):
         config = load_config(config)
@@ -186,11 +187,11 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         anchors = load_anchors(config.anchors, mesh.n_vertices)
         landmarks = None if config.landmarks is None else read_landmark_map(config.landmarks, mesh.n_vertices,
                                                                                  given_by=f"[video] landmarks in {config.path}")
-        if on_mesh is not None:
-            on_mesh(mesh, markers)
         if config.shell.method == "shell":
             # the RBF morph needs no connectivity; the shell is singular on a part without constraints
             check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+        if on_mesh is not None:  # after the checks: what it starts may factor the shell
+            on_mesh(mesh, markers, anchors)
         if paths_error is not None:
             raise paths_error
         read = reads.result()
