@@ -337,7 +337,8 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
     import cv2
 
     from facepipe.io.appearance_file import load_appearance, read_light, read_stream
-    from facepipe.pipeline.appearance import skin_texels, texel_map, texel_shading, unwrap
+    from facepipe.core.appearance import sh_basis
+    from facepipe.pipeline.appearance import point_normals, skin_texels, texel_map, texel_shading, unwrap
 
     cls = kit / "cls_take_turned"
     if not (cls / "appearance.csv").is_file():
@@ -363,6 +364,13 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
         got, flat = read(shaded), read(albedo)
         camera_positions = model.to_camera(world[t])
         shading = texel_shading(model, camera_positions, light[t], texel_face, texel_bary)
+        # a second construction: the texels' normals gathered from their corners, the nine-term basis
+        on = skin_texels(model, texel_face)
+        normals = point_normals(camera_positions[None], model.faces, texel_face[on], texel_bary[on],
+                                model.normal_sign)[0]
+        low, high = shading[on][:, 0].min() / light[t][9], shading[on][:, 0].max() / light[t][9]
+        direct = np.clip(np.maximum(sh_basis(normals) @ light[t][:9], 1e-9), low, high)
+        np.testing.assert_allclose(shading[on][:, 0], direct * light[t][9], rtol=1e-9)
         unclipped = (flat > 1e-3) & (flat < 1 - 1e-3) & (got < 1 - 1e-3)
         np.testing.assert_allclose(got[unclipped], (flat * shading)[unclipped], atol=2e-4)
         image = next(im for _, im, _ in read_frames(footage, numbers[t:t + 1]))

@@ -207,6 +207,16 @@ def test_light_fit_recovers_a_lambertian_light_despite_outliers():
     assert (light_shading(normals, -light) > 0).all()  # the floor keeps it positive
 
 
+def test_light_shading_as_a_quadratic_form_is_the_basis_product():
+    from facepipe.core.appearance import sh_basis, sh_quadratic
+
+    rng = np.random.default_rng(10)
+    normals = rng.normal(size=(4, 50, 3))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    for light in rng.normal(size=(5, 9)):
+        np.testing.assert_allclose(sh_quadratic(normals, light), sh_basis(normals) @ light, atol=1e-12)
+
+
 def test_light_fit_with_too_few_points_is_uniform():
     from facepipe.core.appearance import fit_light, light_shading
 

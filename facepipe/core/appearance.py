@@ -44,7 +44,7 @@ from scipy import ndimage
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "light_bits", "LIGHT_SPAN", "DIAGONAL_OFFSETS",
-           "sh_basis", "fit_light", "light_shading", "fill_unseen"]
+           "sh_basis", "fit_light", "sh_quadratic", "light_shading", "fill_unseen"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
 DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
@@ -585,8 +585,17 @@ def _fit_light_rows(values, albedo, normals, ok, iterations: int) -> np.ndarray:
 def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -> np.ndarray:
     """Shading (...) of unit normals (..., 3) under a light (9,) from :func:`fit_light`, kept above
     ``floor`` times its median (a point the light fit calls dark is not divided into noise)."""
-    shade = sh_basis(normals) @ light
+    shade = sh_quadratic(normals, light)
     return np.maximum(shade, floor * max(float(np.median(shade)), 1e-9))
+
+
+def sh_quadratic(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """``sh_basis(normals) @ light`` (...) evaluated as the quadratic form it is, c + b·n + nᵀMn,
+    without the (..., 9) basis: a texture's million texels are shaded in a third of the time."""
+    l0, l1, l2, l3, l4, l5, l6, l7, l8 = np.asarray(light, dtype=np.float64)[:9]
+    M = np.array([[l7, 0.5 * l4, 0.5 * l5], [0.5 * l4, -l7, 0.5 * l6], [0.5 * l5, 0.5 * l6, 3.0 * l8]])
+    n = np.asarray(normals)
+    return (l0 - l8) + n @ np.array([l1, l2, l3]) + ((n @ M) * n).sum(axis=-1)
 
 
 def fill_unseen(image: np.ndarray, seen: np.ndarray) -> np.ndarray:

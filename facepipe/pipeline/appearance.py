@@ -613,16 +613,37 @@ def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: n
     Kept within the shading of the light points the frame's light was fitted on (those facing the
     camera): a normal the fit never saw (the face's rim, turned away) would get the nine terms'
     extrapolation, a bright or dark band the footage does not have."""
-    tf, tb = texel_face[rows, cols], texel_bary[rows, cols]
-    out = np.ones(tf.shape + (3,))
-    on = skin_texels(model, tf)
+    whole = all(isinstance(i, slice) and i == slice(None) for i in (rows, cols))
+    on, interpolation = _texel_interpolation(model, texel_face[rows, cols], texel_bary[rows, cols],
+                                             texel_face if whole else None)
+    out = np.ones(on.shape + (3,))
     if on.any():
         grey, colour = light[:9], (light[9:12] if len(light) >= 12 else np.ones(3))
         vn = model.normal_sign * vertex_normals(camera_positions[None], model.faces)
-        normals = point_normals(camera_positions[None], model.faces, tf[on], tb[on], 1.0, vn)[0]
+        normals = interpolation @ vn[0]
+        normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-30)
         shading = np.clip(ap.light_shading(normals, grey), *_fitted_shading_range(model, camera_positions, grey, vn))
         out[on] = shading[:, None] * colour
     return out
+
+
+def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, key=None):
+    """The skin texels (h, w) of a texel map and the sparse matrix (N, V) that interpolates vertex
+    values at them (their barycentric weights): a frame's texel normals are one sparse product.
+    With ``key`` (the whole texel map) the pair is kept on the model for the next frame."""
+    cached = getattr(model, "_texel_interpolation", None)
+    if key is not None and cached is not None and cached[0] is key:
+        return cached[1], cached[2]
+    import scipy.sparse as sp
+
+    on = skin_texels(model, texel_face)
+    face, bary = texel_face[on], texel_bary[on]
+    n = len(face)
+    matrix = sp.csr_matrix((np.asarray(bary, dtype=np.float64).ravel(), (np.repeat(np.arange(n), 3),
+                            model.faces[face].ravel())), shape=(n, int(model.faces.max()) + 1))
+    if key is not None:
+        model._texel_interpolation = (key, on, matrix)
+    return on, matrix
 
 
 def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, vn: np.ndarray):
