@@ -136,8 +136,14 @@ def test_takes_from_files_folders_and_patterns(tmp_path):
     with pytest.raises(InputError, match="not found"):
         expand_takes([tmp_path / "missing.csv"])
     (tmp_path / "sub" / "a.trc").write_text("x")
+    (tmp_path / "sub" / "b.mdd").write_bytes(b"x")
+    # takes sharing a stem are named with their format too; the others keep their stem
+    jobs = plan_jobs(expand_takes([tmp_path / "a.csv", tmp_path / "sub" / "a.trc", tmp_path / "sub" / "b.mdd"]),
+                     tmp_path / "out")
+    assert [(j.name, Path(j.out_dir).name) for j in jobs] == [("a_csv", "a_csv"), ("a_trc", "a_trc"), ("b", "b")]
+    (tmp_path / "sub" / "a.csv").write_text("x")  # the same file name in two folders: refused
     with pytest.raises(InputError, match="two takes would write"):
-        plan_jobs(expand_takes([tmp_path / "a.csv", tmp_path / "sub" / "a.trc"]), tmp_path / "out")
+        plan_jobs(expand_takes([tmp_path / "a.csv", tmp_path / "sub" / "a.csv"]), tmp_path / "out")
 
 
 def test_mesh_caches_and_obj_sequences_are_takes(tmp_path):

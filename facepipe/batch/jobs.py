@@ -30,6 +30,7 @@ import json
 import os
 import socket
 import threading
+from collections import Counter
 import time
 import traceback
 import uuid
@@ -240,10 +241,16 @@ def take_digest(take: Path) -> str:
 
 
 def plan_jobs(takes: list[Path], out: Path, batch: str | None = None) -> list[TakeJob]:
-    """A job per take of the batch ``batch``, its folder ``out/<name>``; two takes of one name are refused."""
+    """A job per take of the batch ``batch``, its folder ``out/<name>``. Files that share a stem with
+    another take (a shot's marker take and its rig's cache, ``shot.c3d`` and ``shot.mdd``) are
+    named with their format too (``shot_c3d``, ``shot_mdd``); two takes still of one name (the
+    same file name in two folders) are refused."""
+    stems = Counter(take_name(take) for take in takes)
     by_name: dict[str, Path] = {}
     for take in takes:
         name = take_name(take)
+        if stems[name] > 1 and take.is_file() and take.suffix:
+            name = f"{name}_{take.suffix[1:].lower()}"
         if name in by_name:
             raise InputError(f"two takes would write to {out / name}: {by_name[name]} and {take}",
                              hint="batch them into different -o folders, or rename one")

@@ -22,8 +22,8 @@ from facepipe.export import registry as export_formats
 @click.option("-m", "--model", "model_path", required=True, type=click.Path(dir_okay=False),
               help="The baked model, on storage every worker reads at the same path.")
 @click.option("-o", "--output", required=True, type=click.Path(file_okay=False),
-              help="Folder for OUT/<take stem>/ (positions.npy, replay.json, exports) and OUT/batch.json; on "
-                   "storage every worker writes at the same path.")
+              help="Folder for OUT/<take stem>/ (positions.npy, replay.json, exports; takes sharing a stem: "
+                   "OUT/<stem>_<format>/) and OUT/batch.json; on storage every worker writes at the same path.")
 @click.option("--export", "exports", multiple=True, type=click.Choice(list(export_formats.FORMATS)),
               help="Also export every take in this format (repeatable): a folder OUT/<stem>/<format>/ or a file "
                    "OUT/<stem>/<stem>.<suffix>.")
