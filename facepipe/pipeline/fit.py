@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -237,9 +238,8 @@ def fit_config(config, progress=None, prepare=None, stage=None, early_basis: boo
         if prepare is not None:
             prepare(rig, started[0])
         basis = None
-        if early:
-            shell, job = early[0]
-            basis = job.result() if rig.config.shell == shell else None  # else validation chose other values
+        if early and rig.config.shell == early[0][0]:  # else validation chose other values
+            basis = early[0][1].result  # waited for in the fit's shell stage
         fit = fit_rig(rig, progress=progress, geodesics=started[0], stage=stage, basis=basis)
     finally:
         for job in started:
@@ -252,14 +252,15 @@ def fit_config(config, progress=None, prepare=None, stage=None, early_basis: boo
 
 
 def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=None,
-            basis: ShellBasis | None = None) -> FitResult:
+            basis: ShellBasis | Callable[[], ShellBasis] | None = None) -> FitResult:
     """Fit the whole rig: geometry, details of every example, greedy basis for PSD and WPSD.
 
     The configured method's model is returned; the error curves of both methods are reported
     (the paper's Fig. 4: error against basis size). ``geodesics``: the Dijkstra runs from
     ``rig.handles``, if already started (:func:`fit_config`); they are started here otherwise.
     ``stage(name)`` is called as each of the :data:`FIT_STAGES` after validation starts.
-    ``basis``: the large-scale basis of the rig's deformer, if already solved (:func:`fit_config`).
+    ``basis``: the large-scale basis of the rig's deformer, if already solved, or a function that
+    waits for it (:func:`fit_config`: solved while the examples loaded).
     """
     stage = stage or (lambda name: None)
     cfg = rig.config.psd
@@ -281,7 +282,7 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
         stage(FIT_STAGES[2])
         graph = feature_graph(rig, geodesics.graph)
         beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
-        geo = build_geometry(rig, graph=graph, basis=basis)
+        geo = build_geometry(rig, graph=graph, basis=basis() if callable(basis) else basis)
         lap("geometry")
         poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) \
             else geo.rest[None]
