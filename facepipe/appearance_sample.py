@@ -312,12 +312,12 @@ def render_frame(world: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, te
     hit = face >= 0
     f, b = face[hit], bary[hit]
     uv = np.einsum("nk,nkc->nc", b, corner_uv[f])
-    S = texture.shape[0]
+    height, width = texture.shape[:2]
     # OpenCV's remap wants maps under 32767 rows: the lookups as rows of 1024
     n_hit = uv.shape[0]
     pad = (-n_hit) % 1024
-    tx = np.r_[uv[:, 0] * S - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
-    ty = np.r_[(1.0 - uv[:, 1]) * S - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
+    tx = np.r_[uv[:, 0] * width - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
+    ty = np.r_[(1.0 - uv[:, 1]) * height - 0.5, np.zeros(pad)].astype(np.float32).reshape(-1, 1024)
     albedo = cv2.remap(texture, tx, ty, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3)[:n_hit]
     normals = vertex_normals(cam[:n_skin], faces[:n_faces])
     n = np.einsum("nk,nkc->nc", b, normals[faces[f]])

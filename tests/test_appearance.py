@@ -383,6 +383,73 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
     assert shaded_rms < 0.4 * neutral_rms, errors
 
 
+def test_a_layout_on_two_udim_tiles_exports_a_texture_per_tile(kit, tmp_path):
+    """Part of the face laid out on UDIM tile 1002 (its UVs moved one tile right, away from every
+    region): the model keeps that tile's neutral albedo and the textures export writes
+    frame_NNNN.1001.png and frame_NNNN.1002.png; the second tile's texture is its albedo shaded by
+    each frame's geometry and light, closer to the turned take's frames than the neutral texture."""
+    import cv2
+
+    from facepipe.io.appearance_file import load_appearance, read_light, read_stream
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.pipeline.appearance import texel_map, tile_texture, unwrap, uv_tiles
+
+    mesh = load_mesh(kit / "neutral.obj")
+    faces, corner = mesh.faces, mesh.face_uvs
+    regions = np.zeros(mesh.n_vertices, dtype=bool)
+    for group in (kit / "appearance" / "regions").glob("*.txt"):
+        regions[np.loadtxt(group, dtype=np.int64)] = True
+    uv = mesh.uvs[corner]
+    moved = (uv[:, :, 1].mean(axis=1) < 0.2) & ~regions[faces].any(axis=1)
+    assert 100 < moved.sum() < 0.5 * len(faces)
+    uvs = np.concatenate([mesh.uvs, mesh.uvs + [1.0, 0.0]])  # the moved triangles' corners use the copies
+    corner = np.where(moved[:, None], corner + len(mesh.uvs), corner)
+    obj = tmp_path / "two_tiles.obj"
+    obj.write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in mesh.vertices.tolist())
+                   + "".join(f"vt {u!r} {v!r}\n" for u, v in uvs.tolist())
+                   + "".join("f " + " ".join(f"{a + 1}/{b + 1}" for a, b in zip(f, c)) + "\n"
+                             for f, c in zip(faces.tolist(), corner.tolist())))
+    assert uv_tiles(uvs[corner]) == [1001, 1002]
+    cfg = _edited_config(kit, tmp_path, "mesh = ", f'mesh = "{obj}" #')
+    model_path = tmp_path / "app.npz"
+    assert _run("appearance", "build", cfg, "-o", model_path, "-q") == 0
+    model = load_appearance(model_path)
+    assert model.extra_tiles == [1002] and model.tile_albedo.shape == (1,) + model.neutral.shape
+    take = "take_turned"
+    cls = tmp_path / "cls"
+    assert _run("appearance", "classify", model_path, kit / "appearance" / take / "frame_%04d.png",
+                "--geometry", kit / "appearance" / f"{take}.npz", "-o", cls, "-q") == 0
+    out = tmp_path / "textures"
+    assert _run("export", cls, "--format", "textures", "-o", out, "-q") == 0
+    summary = json.loads((out / "textures.json").read_text())
+    assert summary["tiles"] == [1001, 1002] and summary["files"] == "frame_####.<UDIM>.png"
+    _, numbers, _, _ = read_stream(cls)
+    assert summary["written"] == 2 * len(numbers)
+    assert sorted(p.name for p in out.glob("frame_0001.*")) == ["frame_0001.1001.png", "frame_0001.1002.png"]
+    light = read_light(cls, numbers)
+    with np.load(kit / "appearance" / f"{take}.npz") as geometry:
+        world = geometry["positions"]
+    size = model.neutral.shape[0]
+    texels = texel_map(model.corner_uv, size, 1002)
+    assert (texels[0] >= 0).sum() > 1000 and (texel_map(model.corner_uv, size)[0][texels[0] >= 0] < 0).all()
+    footage = open_footage(kit / "appearance" / take / "frame_%04d.png")
+    errors = []
+    for t in np.linspace(0, len(numbers) - 1, 4).round().astype(int):
+        got = cv2.imread(str(out / f"frame_{t + 1:04d}.1002.png"), cv2.IMREAD_UNCHANGED)[..., ::-1] / 65535.0
+        camera_positions = model.to_camera(world[t])
+        np.testing.assert_allclose(got, np.clip(tile_texture(model, 0, camera_positions, light[t], texels), 0, 1),
+                                   atol=1e-4)
+        image = next(im for _, im, _ in read_frames(footage, numbers[t:t + 1]))
+        truth, seen = unwrap(image, camera_positions, model.faces, *texels, model.camera, min_facing=0.5,
+                             normal_sign=model.normal_sign)
+        assert seen.sum() > 500
+        errors.append([np.sqrt(((texture - truth)[seen] ** 2).mean()) for texture in (got, model.tile_neutral[0])])
+    shaded_rms, neutral_rms = np.mean(errors, axis=0)
+    assert shaded_rms < 0.5 * neutral_rms, errors
+    # the preview draws both tiles' textures (the second tile's triangles were left to the frame)
+    assert _run("preview", cls, "-o", tmp_path / "preview.png", "-q") == 0
+
+
 def test_the_neutral_frame_rebuilt_from_its_albedo_is_its_texture(kit):
     """Albedo and shading undo each other: the neutral example frame's texture, rebuilt at Q = 0
     as its albedo times the shading of its own geometry under its own light, is the neutral

@@ -19,7 +19,8 @@ from facepipe.core.camera import project_distorted_fast
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import load_appearance, read_light, read_stream
 from facepipe.io.footage import frames_at, open_footage, read_frames_of
-from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
+from facepipe.core.raster import udim_corner, udim_tile_numbers
+from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map, tile_texture
 
 __all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 
@@ -68,16 +69,17 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     images = {int(numbers[index[k]]): (image, problem)
               for rows, image, problem in read_frames_of(footage, shown_at) for k in rows}
     light = read_light(folder, numbers)
-    texels = texel_map(model.corner_uv, model.neutral.shape[0]) if model.albedo and light is not None else None
+    tiles = [1001] + model.extra_tiles
+    size_t = model.neutral.shape[0]
+    texels = {t: texel_map(model.corner_uv, size_t, t) for t in tiles} if model.albedo and light is not None else {}
     cam = model.camera
     # unlit: ambient 1 shows the texture's own values (the frame's shading is in them: its light on
     # its geometry, or the footage's own in a model without albedo layers)
     scene = Scene(cam.matrix, cam.distortion, cam.width, cam.height, model.rotation, model.translation,
                   np.array([0.0, 0.0, -1.0]), (1.0, 1.0, 1.0), 1.0)
-    # the texture is the UV layout's first tile (0..1): triangles laid out on other tiles (UDIM:
-    # a scalp, a neck) keep their own textures and are left out, the frame showing there
-    in_tile = ((model.corner_uv >= 0.0) & (model.corner_uv <= 1.0)).all(axis=(1, 2))
-    faces, corner_uv = model.faces[in_tile], model.corner_uv[in_tile]
+    # the model's UDIM tiles side by side in one texture (tile k at u in k..k+1 over K); triangles
+    # on a tile the model has no texture for are left out, the frame showing there
+    faces, corner_uv = _atlas_layout(model.faces, model.corner_uv, tiles)
     rows = len(index)
     panel_w = size / 100.0
     fig = _figure(2 * panel_w, rows * panel_w + 2.4)
@@ -88,8 +90,11 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
         if n not in row_of:
             raise InputError(f"frame {n} has no geometry", path=info["geometry"])
         world = positions[row_of[n]]
-        texture = np.ascontiguousarray(frame_texture(model, q[i], model.to_camera(world),
-                                                     None if light is None else light[i], texels), dtype=np.float32)
+        where, lit = model.to_camera(world), None if light is None else light[i]
+        texture = np.ascontiguousarray(np.concatenate(
+            [frame_texture(model, q[i], where, lit, texels.get(1001))]
+            + [tile_texture(model, k, where, lit, texels.get(t)) for k, t in enumerate(tiles[1:])], axis=1),
+            dtype=np.float32)
         image, problem = images.get(n, (None, "not read"))
         drawn = model.with_cards(world)
         # over black, with the share of each pixel the face covers: the face's colour
@@ -119,6 +124,18 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     return {"frames": [int(numbers[i]) for i in index], "q": q[index].tolist(), "path": str(path),
             "view": "appearance",
             "unread": {int(n): problem for n, (image, problem) in images.items() if image is None}}
+
+
+def _atlas_layout(faces: np.ndarray, corner_uv: np.ndarray, tiles: list) -> tuple[np.ndarray, np.ndarray]:
+    """The triangles (F, 3) on the UDIM ``tiles`` and their UVs (F, 3, 2) in an atlas of those tiles
+    side by side, tile k at u in [k/K, (k+1)/K] (each tile's texture is square)."""
+    tile, valid = udim_tile_numbers(corner_uv)
+    keep = valid & np.isin(tile, tiles)
+    slot = np.searchsorted(np.asarray(tiles), tile[keep])
+    corner = np.stack(udim_corner(np.asarray(tiles)[slot]), axis=1)
+    uv = corner_uv[keep] - corner[:, None, :]
+    uv[..., 0] = (uv[..., 0] + slot[:, None]) / len(tiles)
+    return faces[keep], uv
 
 
 def over_footage(rendered: np.ndarray, coverage: np.ndarray, image: np.ndarray | None) -> np.ndarray:

@@ -1,7 +1,8 @@
-"""Triangle coverage: the pixel centres inside triangles, with their barycentric coordinates.
+"""Triangle coverage: the pixel centres inside triangles, with their barycentric coordinates;
+and the UDIM tiles a UV layout's triangles lie on.
 
-Shared by the preview renderer (screen space) and the UV rasteriser of the map exports
-(texture space).
+Shared by the preview renderer (screen space), the UV rasteriser of the map exports and the
+layered textures (texture space).
 """
 
 from __future__ import annotations
@@ -55,3 +56,18 @@ def triangle_pixels(p: np.ndarray, ok: np.ndarray, x0: np.ndarray, x1: np.ndarra
         b0 = 1.0 - b1 - b2
         inside = (b0 >= -tolerance) & (b1 >= -tolerance) & (b2 >= -tolerance)
         yield t[inside], row[inside], col[inside], b0[inside], b1[inside], b2[inside]
+
+
+def udim_tile_numbers(corner_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """UDIM tile of every triangle (T, 3, 2) from its UV centroid, ``1001 + ⌊u⌋ + 10 ⌊v⌋``, and
+    whether the triangle is in the UDIM range (finite, u in [0, 10), v ≥ 0; its tile 0 if not)."""
+    centroid = np.asarray(corner_uv, dtype=np.float64).mean(axis=1)
+    valid = np.isfinite(centroid).all(axis=1)
+    cell = np.floor(np.where(valid[:, None], centroid, 0.0)).astype(np.int64)
+    valid &= (cell[:, 0] >= 0) & (cell[:, 0] <= 9) & (cell[:, 1] >= 0)
+    return np.where(valid, 1001 + cell[:, 0] + 10 * cell[:, 1], 0), valid
+
+
+def udim_corner(tile):
+    """The UV corner (u₀, v₀) of UDIM tiles (int or array): 1001 is (0, 0), 1002 (1, 0), 1011 (0, 1)."""
+    return (tile - 1001) % 10, (tile - 1001) // 10

@@ -13,7 +13,9 @@ for a renderer that lights the face itself. The textures are rebuilt from the st
 (to four decimals), so what the files show is what a receiver of the stream would render.
 
 Writes ``DEST/frame_NNNN.png`` (16-bit RGB, the footage's values), or ``.exr`` with ``--half`` /
-``--float``; ``DEST/appearance.csv`` (the stream) and ``DEST/textures.json`` (regions, layers,
+``--float``; where the rest mesh's UV layout uses more UDIM tiles than 1001 (a head's scalp and
+neck), one file per tile and frame, ``DEST/frame_NNNN.1001.png``, ``frame_NNNN.1002.png`` … (the
+other tiles hold no region: their neutral albedo shaded as the first tile's is); ``DEST/appearance.csv`` (the stream) and ``DEST/textures.json`` (regions, layers,
 frame rate and the stream's bit rate). Frames are written atomically; existing files are refused
 without ``--force`` and kept with ``--resume``.
 """
@@ -34,7 +36,7 @@ from facepipe.io.appearance_file import (STREAM_DECIMALS, format_light, format_s
                                          read_stream)
 from facepipe.io.atomic import atomic_path
 from facepipe.io.exr import write_exr
-from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
+from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map, tile_texture
 
 __all__ = ["export_textures", "write_texture"]
 
@@ -84,7 +86,11 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
     light = read_light(source, numbers)
     shading, camera_positions, notes = _frame_shading(model, info, numbers, light, options.layer)
     suffix = ".png" if options.half is None else ".exr"
-    paths = frame_paths(dest, len(numbers), options.start, suffix)
+    tiles = [1001] + model.extra_tiles
+    # one UV tile: frame_0001.png; several: the UDIM convention, frame_0001.1001.png, frame_0001.1002.png
+    by_tile = {t: frame_paths(dest, len(numbers), options.start, suffix if len(tiles) == 1 else f".{t}{suffix}")
+               for t in tiles}
+    paths = [by_tile[t][i] for i in range(len(numbers)) for t in tiles]
     csv, light_csv, summary = dest / "appearance.csv", dest / "light.csv", dest / "textures.json"
     streams = [csv] + ([light_csv] if light is not None else [])
     check_targets(paths + streams + [summary], options.force, options.resume, folder=dest)
@@ -101,19 +107,26 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
     frame_light_bits = light_bits(step) if light is not None else 0
     bits = int(region_bits.sum()) + frame_light_bits
     written = 0
-    texels = texel_map(model.corner_uv, model.neutral.shape[0]) if camera_positions else None
-    with options.make_bar(len(paths), "export textures") as bar:
-        for t, path in enumerate(paths):
-            if not (options.resume and path.exists()):
-                if camera_positions:
-                    texture = frame_texture(model, q[t], camera_positions(t), light[t], texels)
+    size = model.neutral.shape[0]
+    texels = {t: texel_map(model.corner_uv, size, t) for t in tiles} if camera_positions else {}
+    with options.make_bar(len(numbers), "export textures") as bar:
+        for i in range(len(numbers)):
+            todo = [t for t in tiles if not (options.resume and by_tile[t][i].exists())]
+            where = camera_positions(i) if camera_positions and todo else None
+            for t in todo:
+                k = tiles.index(t) - 1  # the model's other tiles, after 1001
+                if t == 1001:
+                    texture = frame_texture(model, q[i], where, None if where is None else light[i], texels.get(t))
                 else:
-                    texture = frame_texture(model, q[t])
-                write_texture(path, texture, options.half)
+                    texture = tile_texture(model, k, where, None if where is None else light[i], texels.get(t))
+                write_texture(by_tile[t][i], texture, options.half)
                 written += 1
             bar.update(1)
-    details = {"frames": len(paths), "written": written, "regions": list(model.names),
-               "layers": counts.tolist(), "texture_size": int(model.neutral.shape[0]),
+    digits = len(by_tile[1001][0].name.split(".")[0]) - len("frame_")
+    details = {"frames": len(numbers), "written": written, "tiles": tiles,
+               "files": "frame_" + "#" * digits + ("" if len(tiles) == 1 else ".<UDIM>") + suffix,
+               "regions": list(model.names),
+               "layers": counts.tolist(), "texture_size": int(size),
                "pixels": "png16" if suffix == ".png" else ("exr half" if options.half else "exr float"),
                "shading": shading, "fps": fps, "bits_per_region": region_bits.tolist(),
                "light_bits_per_frame": frame_light_bits, "bits_per_frame": bits,

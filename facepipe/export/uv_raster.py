@@ -47,7 +47,7 @@ import numpy as np
 import scipy.ndimage
 import scipy.sparse as sp
 
-from facepipe.core.raster import triangle_pixels
+from facepipe.core.raster import triangle_pixels, udim_corner, udim_tile_numbers
 from facepipe.errors import InputError
 import scipy.sparse.linalg as spla
 
@@ -214,17 +214,14 @@ def udim_tiles(corner_uv: np.ndarray, path=None) -> np.ndarray:
     InputError
         A triangle with a non-finite UV or outside the UDIM range (u in [0, 10), v ≥ 0).
     """
-    centroid = corner_uv.mean(axis=1)
-    bad = ~np.isfinite(centroid).all(axis=1)
-    cell = np.floor(np.where(bad[:, None], 0.0, centroid)).astype(np.int64)
-    bad |= (cell[:, 0] < 0) | (cell[:, 0] > 9) | (cell[:, 1] < 0)
-    if bad.any():
-        t = int(np.flatnonzero(bad)[0])
+    tiles, valid = udim_tile_numbers(corner_uv)
+    if not valid.all():
+        t = int(np.flatnonzero(~valid)[0])
         raise InputError(
-            f"{int(bad.sum())} triangles have UVs outside the UDIM range (u in [0, 10), v >= 0), "
-            f"first triangle {t} with UV centroid {centroid[t].tolist()}",
+            f"{int((~valid).sum())} triangles have UVs outside the UDIM range (u in [0, 10), v >= 0), "
+            f"first triangle {t} with UV centroid {corner_uv[t].mean(axis=0).tolist()}",
             path=path, hint="lay the UVs out in [0, 1]² or in UDIM tiles")
-    return 1001 + cell[:, 0] + 10 * cell[:, 1]
+    return tiles
 
 
 def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, width: int, height: int,
@@ -509,7 +506,7 @@ def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "v
     out = {}
     for tile in np.unique(tiles):
         sel = tiles == tile
-        offset = np.array([(tile - 1001) % 10, (tile - 1001) // 10], dtype=np.float64)
+        offset = np.array(udim_corner(int(tile)), dtype=np.float64)
         corner_slots, n_slots = (mesh.faces, mesh.n_vertices) if slots == "vertex" else (mesh.face_uvs, len(mesh.uvs))
         out[int(tile)] = uv_raster(corner_uv[sel] - offset, corner_slots[sel], n_slots, width, height, padding,
                                    fit=fit)

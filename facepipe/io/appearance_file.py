@@ -56,7 +56,10 @@ class AppearanceModel:
     (:func:`facepipe.pipeline.appearance.frame_texture`); None (models before it, or built
     without a light fit): the volumes hold the footage's values, shading included;
     light_colour : (K, 3) the light points' RGB albedo (their colour under the grey light), over
-    which a frame's light colour is measured (None: a white light).
+    which a frame's light colour is measured (None: a white light);
+    tiles : (T,) the UDIM tiles other than 1001 that the rest mesh's UV layout uses (no region
+    lies on them), with tile_neutral (T, S, S, 3) the neutral frame's texture there and
+    tile_albedo (T, S, S, 3) its albedo (None with ``neutral_albedo`` None); None: one tile.
     """
 
     names: list
@@ -93,6 +96,14 @@ class AppearanceModel:
     card_stable_rest: np.ndarray | None = None
     neutral_albedo: np.ndarray | None = None
     light_colour: np.ndarray | None = None
+    tiles: np.ndarray | None = None
+    tile_neutral: np.ndarray | None = None
+    tile_albedo: np.ndarray | None = None
+
+    @property
+    def extra_tiles(self) -> list:
+        """The UDIM tiles beside 1001 that the textures cover (``tiles``; none in older models)."""
+        return [] if self.tiles is None else [int(t) for t in self.tiles]
 
     @property
     def albedo(self) -> bool:
@@ -152,6 +163,10 @@ def save_appearance(path, model) -> None:
         arrays["neutral_albedo"] = model.neutral_albedo
     if model.light_colour is not None:
         arrays["light_colour"] = model.light_colour
+    if model.extra_tiles:
+        arrays.update(tiles=np.asarray(model.tiles, dtype=np.int64), tile_neutral=model.tile_neutral)
+        if model.tile_albedo is not None:
+            arrays["tile_albedo"] = model.tile_albedo
     for r in range(len(model.names)):
         arrays[f"templates_{r}"] = model.templates[r]
         arrays[f"indices_{r}"] = model.indices[r]
@@ -184,7 +199,8 @@ def load_appearance(path):
                                float(s[6]) if len(s) > 6 else 0.0, d.get("template_facing"),
                                None if d.get("template_mask") is None else d["template_mask"].astype(bool),
                                d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
-                               d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"))
+                               d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"),
+                               d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"))
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None

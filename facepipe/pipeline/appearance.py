@@ -39,7 +39,7 @@ from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
 from facepipe.core.hole_cards import boundary_loops, hole_cards, stable_vertices
 from facepipe.core.occlusion import occluded_points
-from facepipe.core.raster import triangle_pixels
+from facepipe.core.raster import triangle_pixels, udim_corner, udim_tile_numbers
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
 from facepipe.parallel import map_blocks, serial_blas, thread_count
@@ -47,16 +47,20 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, frames_at, open_footage, read_frames_of, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
-           "classify_chunk", "frame_texture", "frame_light", "frame_lights", "frame_colours", "texel_shading", "skin_texels",
+           "classify_chunk", "frame_texture", "tile_texture", "uv_tiles", "frame_light", "frame_lights", "frame_colours", "texel_shading", "skin_texels",
            "to_albedo",
            "texture_differences", "well_seen_points", "region_bank"]
 
 
-def texel_map(corner_uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every texel's triangle (size, size) (−1: none) and barycentric coordinates (size, size, 3).
+def texel_map(corner_uv: np.ndarray, size: int, tile: int = 1001) -> tuple[np.ndarray, np.ndarray]:
+    """Every texel's triangle (size, size) (−1: none) and barycentric coordinates (size, size, 3)
+    on the UDIM ``tile`` (1001: u, v in 0–1; 1002: u in 1–2; 1011: v in 1–2).
 
-    Texel (i, j) has its centre at UV ((j + ½)/size, 1 − (i + ½)/size) (row 0 at v = 1).
+    Texel (i, j) has its centre at UV (u₀ + (j + ½)/size, v₀ + 1 − (i + ½)/size) (row 0 at the
+    tile's top), u₀, v₀ the tile's corner.
     """
+    if tile != 1001:
+        corner_uv = corner_uv - np.asarray(udim_corner(tile), dtype=corner_uv.dtype)
     p = np.stack([corner_uv[..., 0] * size - 0.5, (1.0 - corner_uv[..., 1]) * size - 0.5], axis=-1)
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     ok = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) > 1e-12
@@ -70,6 +74,13 @@ def texel_map(corner_uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]
         face[row, col] = t
         bary[row, col] = np.stack([b0, b1, b2], axis=1)
     return face, bary
+
+
+def uv_tiles(corner_uv: np.ndarray) -> list[int]:
+    """The UDIM tiles (sorted) that triangles (F, 3, 2) lie on, each by its UV centroid (triangles
+    outside the UDIM range get no texture: they are left out)."""
+    tiles, valid = udim_tile_numbers(corner_uv)
+    return sorted({int(t) for t in np.unique(tiles[valid])})
 
 
 def locate_uv(points: np.ndarray, corner_uv: np.ndarray, candidates: int = 32) -> tuple[np.ndarray, np.ndarray]:
@@ -420,6 +431,10 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                            min_facing=cfg.min_facing, normal_sign=normal_sign)
     # texels the neutral frame does not show (edge-on, behind the head) continue the skin around them
     neutral = ap.fill_unseen(neutral, seen) if seen.any() else np.full_like(neutral, 0.5)
+    # the layout's other UDIM tiles (a head's scalp, neck, ears) hold no region: their neutral texture
+    tiles = {t: _tile_neutral(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_map(corner_uv, S, t), camera,
+                              cfg, normal_sign, np.median(neutral[seen], axis=0) if seen.any() else 0.5)
+             for t in uv_tiles(mesh.uvs[mesh.face_uvs]) if t != 1001}
     light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign) if cfg.light_fit \
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
@@ -491,9 +506,11 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             card_rest=None if cards is None else cards.rest,
                             card_stable=None if cards is None else cards.stable,
                             card_stable_rest=None if cards is None else cards.stable_rest,
-                            light_colour=None if light is None else light["colour"].astype(np.float32))
+                            light_colour=None if light is None else light["colour"].astype(np.float32),
+                            tiles=np.array(list(tiles), dtype=np.int64) if tiles else None,
+                            tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None)
     if light is not None:
-        to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary))
+        to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "albedo": model.albedo, "rest": rest,
             "notes": notes}
@@ -540,8 +557,40 @@ def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, not
     return out
 
 
+def _tile_neutral(image: np.ndarray, neutral_cam: np.ndarray, faces: np.ndarray, texels, camera: Camera, cfg,
+                  normal_sign: float, fill) -> dict:
+    """The neutral frame's texture on another UDIM tile (its texel map ``texels``), what the
+    frame does not show filled from what it does (``fill``, a colour, where it shows nothing of
+    the tile): {"texture", "seen", "texels"}."""
+    texture, seen = unwrap(image, neutral_cam, faces, *texels, camera, min_facing=cfg.min_facing,
+                           normal_sign=normal_sign)
+    texture = ap.fill_unseen(texture, seen) if seen.any() else np.broadcast_to(np.asarray(fill, dtype=np.float64),
+                                                                                 texture.shape).copy()
+    return {"texture": texture.astype(np.float32), "seen": seen, "texels": texels}
+
+
+def _neutral_albedo(model: AppearanceModel, texture: np.ndarray, seen: np.ndarray, texels, neutral_cam: np.ndarray,
+                    light: np.ndarray, cfg) -> np.ndarray:
+    """A tile's neutral texture (S, S, 3) with the neutral frame's shading divided out where the
+    frame shows the skin (``seen``); the rest filled from the texels it shows well (better than
+    ``min_point_facing``): one seen near edge-on is a smear of a few pixels under the light fit's
+    least certain normals, and a fill spreads its error over everything beyond it (as a template
+    point seen so is left out). Off the skin (a card, no triangle) the texture is kept."""
+    texel_face, texel_bary = texels
+    everywhere = (slice(None), slice(None))
+    skin = skin_texels(model, texel_face)
+    shading = texel_shading(model, neutral_cam, light, texel_face, texel_bary, *everywhere)
+    seen = seen & skin
+    albedo = np.where(seen[..., None], texture / shading, texture)
+    well_seen = seen & (_texel_facing(model, neutral_cam, texel_face, texel_bary, *everywhere)
+                        > max(cfg.min_facing, cfg.min_point_facing))
+    if well_seen.any():
+        albedo = np.where((skin & ~seen)[..., None], ap.fill_unseen(albedo, well_seen), albedo)
+    return albedo
+
+
 def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_seen: np.ndarray,
-              layer_seen: list, texels) -> None:
+              layer_seen: list, texels, tiles: dict | None = None) -> None:
     """Divide the shading of their own frame out of the neutral texture and every layer: the model
     then holds the skin's albedo (``neutral_albedo``, its volumes; ``neutral`` stays the neutral
     frame's texture as the footage showed it), and a frame's texture is that albedo at its Q
@@ -553,24 +602,19 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     layer's texels that its own frame does not show hold the neutral albedo; texels the neutral
     frame does not show are filled (:func:`facepipe.core.appearance.fill_unseen`) from those it
     sees better than ``min_point_facing``. The cards' texels (an eye behind its opening) keep
-    their values: a card's plane is not the surface the footage shows there."""
+    their values: a card's plane is not the surface the footage shows there. ``tiles``: the
+    layout's other UDIM tiles (:func:`_tile_neutral` of each), whose neutral texture becomes
+    ``tile_albedo`` the same way."""
     texel_face, texel_bary = texels
     used = sorted({cfg.neutral_frame} | {f for region in cfg.regions for f in region.frames})
     # a frame at a time: the frames' positions together would be the examples' count times the mesh
     lights = {f: frame_light(frames[f][0], cam_pos[f], model) for f in used}
     skin = skin_texels(model, texel_face)
-    everywhere = (slice(None), slice(None))
-    neutral_cam = cam_pos[cfg.neutral_frame]
-    shading = texel_shading(model, neutral_cam, lights[cfg.neutral_frame], texel_face, texel_bary, *everywhere)
-    seen = neutral_seen & skin
-    albedo = np.where(seen[..., None], model.neutral / shading, model.neutral)
-    # what the neutral frame does not show is filled from the texels it shows well: one seen near
-    # edge-on is a smear of a few pixels under the light fit's least certain normals, and a fill
-    # spreads its error over everything beyond it (as a template point seen so is left out)
-    well_seen = seen & (_texel_facing(model, neutral_cam, texel_face, texel_bary, *everywhere)
-                        > max(cfg.min_facing, cfg.min_point_facing))
-    if well_seen.any():
-        albedo = np.where((skin & ~seen)[..., None], ap.fill_unseen(albedo, well_seen), albedo)
+    neutral_cam, neutral_light = cam_pos[cfg.neutral_frame], lights[cfg.neutral_frame]
+    albedo = _neutral_albedo(model, model.neutral, neutral_seen, texels, neutral_cam, neutral_light, cfg)
+    if tiles:
+        model.tile_albedo = np.stack([_neutral_albedo(model, t["texture"], t["seen"], t["texels"], neutral_cam,
+                                                      neutral_light, cfg) for t in tiles.values()]).astype(np.float32)
     volumes = []
     for r, region in enumerate(cfg.regions):
         (h, w), (r0, c0) = model.alphas[r].shape, model.boxes[r]
@@ -630,9 +674,13 @@ def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: n
 def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, key=None):
     """The skin texels (h, w) of a texel map and the sparse matrix (N, V) that interpolates vertex
     values at them (their barycentric weights): a frame's texel normals are one sparse product.
-    With ``key`` (the whole texel map) the pair is kept on the model for the next frame."""
-    cached = getattr(model, "_texel_interpolation", None)
-    if key is not None and cached is not None and cached[0] is key:
+    With ``key`` (the whole texel map: one per UDIM tile) the pair is kept on the model for the
+    next frame."""
+    kept = getattr(model, "_texel_interpolations", None)
+    if kept is None:
+        kept = model._texel_interpolations = {}
+    cached = kept.get(id(key)) if key is not None else None
+    if cached is not None and cached[0] is key:
         return cached[1], cached[2]
     import scipy.sparse as sp
 
@@ -642,7 +690,9 @@ def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_b
     matrix = sp.csr_matrix((np.asarray(bary, dtype=np.float64).ravel(), (np.repeat(np.arange(n), 3),
                             model.faces[face].ravel())), shape=(n, int(model.faces.max()) + 1))
     if key is not None:
-        model._texel_interpolation = (key, on, matrix)
+        if len(kept) >= 16:  # a texel map per UDIM tile: a head has a few
+            kept.clear()
+        kept[id(key)] = (key, on, matrix)
     return on, matrix
 
 
@@ -670,6 +720,23 @@ def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.nd
         return texture
     texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0]) if texels is None else texels
     return texture * texel_shading(model, camera_positions, light, texel_face, texel_bary)
+
+
+def tile_texture(model: AppearanceModel, k: int, camera_positions: np.ndarray | None = None,
+                 light: np.ndarray | None = None, texels=None) -> np.ndarray:
+    """A frame's texture (S, S, 3) on the model's other UV tile ``k`` (``model.tiles[k]``; no
+    region lies there): the neutral albedo there times the shading of the frame's surface under
+    its light, as :func:`frame_texture` does on the first tile; the albedo alone where either is
+    not given, the neutral texture for a model that holds the footage's values. ``texels``: that
+    tile's :func:`texel_map` where already made."""
+    if not model.albedo:
+        return model.tile_neutral[k]
+    base = model.tile_albedo[k]
+    if camera_positions is None or light is None:
+        return base
+    if texels is None:
+        texels = texel_map(model.corner_uv, model.neutral.shape[0], int(model.tiles[k]))
+    return base * texel_shading(model, camera_positions, light, *texels)
 
 
 def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
