@@ -512,7 +512,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
-    info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "albedo": model.albedo, "rest": rest,
+    info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": [1001] + model.extra_tiles,
+            "albedo": model.albedo, "rest": rest,
             "notes": notes}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
