@@ -392,7 +392,8 @@ def test_a_layout_on_two_udim_tiles_exports_a_texture_per_tile(kit, tmp_path):
 
     from facepipe.io.appearance_file import load_appearance, read_light, read_stream
     from facepipe.io.mesh_read import load_mesh
-    from facepipe.pipeline.appearance import texel_map, tile_texture, unwrap, uv_tiles
+    from facepipe.core.raster import udim_tile_numbers
+    from facepipe.pipeline.appearance import frame_texture, texel_map, unwrap
 
     mesh = load_mesh(kit / "neutral.obj")
     faces, corner = mesh.faces, mesh.face_uvs
@@ -402,23 +403,38 @@ def test_a_layout_on_two_udim_tiles_exports_a_texture_per_tile(kit, tmp_path):
     uv = mesh.uvs[corner]
     moved = (uv[:, :, 1].mean(axis=1) < 0.2) & ~regions[faces].any(axis=1)
     assert 100 < moved.sum() < 0.5 * len(faces)
-    uvs = np.concatenate([mesh.uvs, mesh.uvs + [1.0, 0.0]])  # the moved triangles' corners use the copies
+    # the moved triangles' corners use the copies; five of them left of tile 1001, outside the UDIM range
+    uvs = np.concatenate([mesh.uvs, mesh.uvs + [1.0, 0.0], mesh.uvs - [1.0, 0.0]])
+    stray = np.flatnonzero(moved)[:5]
     corner = np.where(moved[:, None], corner + len(mesh.uvs), corner)
+    corner[stray] += len(mesh.uvs)
     obj = tmp_path / "two_tiles.obj"
     obj.write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in mesh.vertices.tolist())
                    + "".join(f"vt {u!r} {v!r}\n" for u, v in uvs.tolist())
                    + "".join("f " + " ".join(f"{a + 1}/{b + 1}" for a, b in zip(f, c)) + "\n"
                              for f, c in zip(faces.tolist(), corner.tolist())))
-    assert uv_tiles(uvs[corner]) == [1001, 1002]
+    tile_of, in_udim = udim_tile_numbers(uvs[corner])
+    assert np.unique(tile_of[in_udim]).tolist() == [1001, 1002] and (~in_udim).sum() == 5
     cfg = _edited_config(kit, tmp_path, "mesh = ", f'mesh = "{obj}" #')
     model_path = tmp_path / "app.npz"
     assert _run("appearance", "build", cfg, "-o", model_path, "-q") == 0
     model = load_appearance(model_path)
     assert model.extra_tiles == [1002] and model.tile_albedo.shape == (1,) + model.neutral.shape
+    # the stray triangles are named, not silently dropped
+    notes = json.loads((tmp_path / "app.json").read_text())["notes"]
+    assert any(f"5 triangles of the rest mesh (the first: {stray[0]})" in n and "UDIM range" in n for n in notes)
+    # a model file whose other tiles' textures are gone is refused, naming the file
+    with np.load(model_path) as d:
+        broken = {k: d[k] for k in d.files if k != "tile_albedo"}
+    np.savez(tmp_path / "broken.npz", **broken)
+    with pytest.raises(InputError, match="other UV tiles' textures are missing"):
+        load_appearance(tmp_path / "broken.npz")
     take = "take_turned"
     cls = tmp_path / "cls"
     assert _run("appearance", "classify", model_path, kit / "appearance" / take / "frame_%04d.png",
                 "--geometry", kit / "appearance" / f"{take}.npz", "-o", cls, "-q") == 0
+    assert _run("export", cls, "--format", "textures", "-m", tmp_path / "broken.npz", "-o", tmp_path / "never") == 2
+    assert not (tmp_path / "never").exists()
     out = tmp_path / "textures"
     assert _run("export", cls, "--format", "textures", "-o", out, "-q") == 0
     summary = json.loads((out / "textures.json").read_text())
@@ -437,7 +453,7 @@ def test_a_layout_on_two_udim_tiles_exports_a_texture_per_tile(kit, tmp_path):
     for t in np.linspace(0, len(numbers) - 1, 4).round().astype(int):
         got = cv2.imread(str(out / f"frame_{t + 1:04d}.1002.png"), cv2.IMREAD_UNCHANGED)[..., ::-1] / 65535.0
         camera_positions = model.to_camera(world[t])
-        np.testing.assert_allclose(got, np.clip(tile_texture(model, 0, camera_positions, light[t], texels), 0, 1),
+        np.testing.assert_allclose(got, np.clip(frame_texture(model, None, camera_positions, light[t], texels, 1002), 0, 1),
                                    atol=1e-4)
         image = next(im for _, im, _ in read_frames(footage, numbers[t:t + 1]))
         truth, seen = unwrap(image, camera_positions, model.faces, *texels, model.camera, min_facing=0.5,

@@ -252,7 +252,8 @@ def plan_jobs(takes: list[Path], out: Path, batch: str | None = None) -> list[Ta
         if stems[name] > 1 and take.is_file() and take.suffix:
             name = f"{name}_{take.suffix[1:].lower()}"
         if name in by_name:
-            raise InputError(f"two takes would write to {out / name}: {by_name[name]} and {take}",
+            same = f" (both named {take.name})" if take.name == by_name[name].name else ""
+            raise InputError(f"two takes would write to {out / name}{same}: {by_name[name]} and {take}",
                              hint="batch them into different -o folders, or rename one")
         by_name[name] = take
     jobs = []

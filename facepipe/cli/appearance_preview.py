@@ -20,7 +20,7 @@ from facepipe.errors import InputError
 from facepipe.io.appearance_file import load_appearance, read_light, read_stream
 from facepipe.io.footage import frames_at, open_footage, read_frames_of
 from facepipe.core.raster import udim_corner, udim_tile_numbers
-from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map, tile_texture
+from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
 
 __all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 
@@ -92,9 +92,7 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
         world = positions[row_of[n]]
         where, lit = model.to_camera(world), None if light is None else light[i]
         texture = np.ascontiguousarray(np.concatenate(
-            [frame_texture(model, q[i], where, lit, texels.get(1001))]
-            + [tile_texture(model, k, where, lit, texels.get(t)) for k, t in enumerate(tiles[1:])], axis=1),
-            dtype=np.float32)
+            [frame_texture(model, q[i], where, lit, texels.get(t), t) for t in tiles], axis=1), dtype=np.float32)
         image, problem = images.get(n, (None, "not read"))
         drawn = model.with_cards(world)
         # over black, with the share of each pixel the face covers: the face's colour

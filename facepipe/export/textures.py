@@ -36,7 +36,7 @@ from facepipe.io.appearance_file import (STREAM_DECIMALS, format_light, format_s
                                          read_stream)
 from facepipe.io.atomic import atomic_path
 from facepipe.io.exr import write_exr
-from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map, tile_texture
+from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
 
 __all__ = ["export_textures", "write_texture"]
 
@@ -114,11 +114,7 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
             todo = [t for t in tiles if not (options.resume and by_tile[t][i].exists())]
             where = camera_positions(i) if camera_positions and todo else None
             for t in todo:
-                k = tiles.index(t) - 1  # the model's other tiles, after 1001
-                if t == 1001:
-                    texture = frame_texture(model, q[i], where, None if where is None else light[i], texels.get(t))
-                else:
-                    texture = tile_texture(model, k, where, None if where is None else light[i], texels.get(t))
+                texture = frame_texture(model, q[i], where, None if where is None else light[i], texels.get(t), t)
                 write_texture(by_tile[t][i], texture, options.half)
                 written += 1
             bar.update(1)

@@ -188,7 +188,7 @@ def load_appearance(path):
         size = d["camera_size"]
         camera = Camera(d["camera_matrix"], d["camera_distortion"], int(size[0]), int(size[1]), str(path))
         s = d["settings"]
-        return AppearanceModel([str(x) for x in d["names"]], camera, d["rotation"], d["translation"], d["faces"],
+        model = AppearanceModel([str(x) for x in d["names"]], camera, d["rotation"], d["translation"], d["faces"],
                                float(d["normal_sign"]), d["template_face"], d["template_bary"],
                                [d[f"templates_{r}"] for r in range(n)], [d[f"indices_{r}"] for r in range(n)],
                                d["weights"], int(s[0]), float(s[1]), float(s[2]), d["neutral"],
@@ -201,6 +201,12 @@ def load_appearance(path):
                                d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
                                d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"),
                                d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"))
+        tiles = len(model.extra_tiles)
+        if tiles and not (model.tile_neutral is not None and len(model.tile_neutral) == tiles
+                          and (model.tile_albedo is None) == (model.neutral_albedo is None)
+                          and (model.tile_albedo is None or len(model.tile_albedo) == tiles)):
+            raise ValueError(f"its {tiles} other UV tiles' textures are missing or incomplete")
+        return model
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"not an appearance model ({exc})", path=path,
                          hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None

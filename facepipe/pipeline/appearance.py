@@ -47,7 +47,7 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, frames_at, open_footage, read_frames_of, to_gray
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "build_appearance", "AppearanceModel", "classify_frames", "classify_image", "classify_decoded",
-           "classify_chunk", "frame_texture", "tile_texture", "uv_tiles", "frame_light", "frame_lights", "frame_colours", "texel_shading", "skin_texels",
+           "classify_chunk", "frame_texture", "frame_light", "frame_lights", "frame_colours", "texel_shading", "skin_texels",
            "to_albedo",
            "texture_differences", "well_seen_points", "region_bank"]
 
@@ -74,13 +74,6 @@ def texel_map(corner_uv: np.ndarray, size: int, tile: int = 1001) -> tuple[np.nd
         face[row, col] = t
         bary[row, col] = np.stack([b0, b1, b2], axis=1)
     return face, bary
-
-
-def uv_tiles(corner_uv: np.ndarray) -> list[int]:
-    """The UDIM tiles (sorted) that triangles (F, 3, 2) lie on, each by its UV centroid (triangles
-    outside the UDIM range get no texture: they are left out)."""
-    tiles, valid = udim_tile_numbers(corner_uv)
-    return sorted({int(t) for t in np.unique(tiles[valid])})
 
 
 def locate_uv(points: np.ndarray, corner_uv: np.ndarray, candidates: int = 32) -> tuple[np.ndarray, np.ndarray]:
@@ -432,14 +425,18 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     # texels the neutral frame does not show (edge-on, behind the head) continue the skin around them
     neutral = ap.fill_unseen(neutral, seen) if seen.any() else np.full_like(neutral, 0.5)
     # the layout's other UDIM tiles (a head's scalp, neck, ears) hold no region: their neutral texture
+    tile_of, in_udim = udim_tile_numbers(mesh.uvs[mesh.face_uvs])
     tiles = {t: _tile_neutral(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_map(corner_uv, S, t), camera,
                               cfg, normal_sign, np.median(neutral[seen], axis=0) if seen.any() else 0.5)
-             for t in uv_tiles(mesh.uvs[mesh.face_uvs]) if t != 1001}
+             for t in np.unique(tile_of[in_udim]).tolist() if t != 1001}
     light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign) if cfg.light_fit \
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
     facing_examples, masks, layer_seen = [], [], []
+    if not in_udim.all():
+        notes.append(f"{int((~in_udim).sum())} triangles of the rest mesh (the first: {int(np.argmin(in_udim))}) have "
+                     "UVs outside the UDIM range (u in 0–10, v ≥ 0): the textures leave them out")
     for region in cfg.regions:
         if region.name in card_of:
             triangles = np.zeros(len(faces), dtype=bool)
@@ -711,33 +708,21 @@ def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, 
 
 
 def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.ndarray | None = None,
-                  light: np.ndarray | None = None, texels=None) -> np.ndarray:
-    """A frame's texture (S, S, 3): the layered texture at Q (R,) — for a model that holds albedo,
-    times the shading of the frame's surface (V, 3, camera space) under its light (12,) on the skin
-    (as the camera saw it); the albedo alone where either is not given. ``texels``: the model's
-    :func:`texel_map` where already made."""
-    texture = ap.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
+                  light: np.ndarray | None = None, texels=None, tile: int = 1001) -> np.ndarray:
+    """A frame's texture (S, S, 3) on UDIM ``tile``: on 1001 the layered texture at Q (R,), on the
+    model's other tiles (``model.tiles``, where no region lies) their neutral texture. For a model
+    that holds albedo, that albedo times the shading of the frame's surface (V, 3, camera space)
+    under its light (12,) on the skin (as the camera saw it); the albedo alone where either is not
+    given. ``texels``: the tile's :func:`texel_map` where already made."""
+    if tile == 1001:
+        texture = ap.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
+    else:
+        k = model.extra_tiles.index(tile)
+        texture = model.tile_albedo[k] if model.albedo else model.tile_neutral[k]
     if not (model.albedo and camera_positions is not None and light is not None):
         return texture
-    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0]) if texels is None else texels
+    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0], tile) if texels is None else texels
     return texture * texel_shading(model, camera_positions, light, texel_face, texel_bary)
-
-
-def tile_texture(model: AppearanceModel, k: int, camera_positions: np.ndarray | None = None,
-                 light: np.ndarray | None = None, texels=None) -> np.ndarray:
-    """A frame's texture (S, S, 3) on the model's other UV tile ``k`` (``model.tiles[k]``; no
-    region lies there): the neutral albedo there times the shading of the frame's surface under
-    its light, as :func:`frame_texture` does on the first tile; the albedo alone where either is
-    not given, the neutral texture for a model that holds the footage's values. ``texels``: that
-    tile's :func:`texel_map` where already made."""
-    if not model.albedo:
-        return model.tile_neutral[k]
-    base = model.tile_albedo[k]
-    if camera_positions is None or light is None:
-        return base
-    if texels is None:
-        texels = texel_map(model.corner_uv, model.neutral.shape[0], int(model.tiles[k]))
-    return base * texel_shading(model, camera_positions, light, *texels)
 
 
 def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
