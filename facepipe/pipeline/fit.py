@@ -225,10 +225,10 @@ def fit_config(config, progress=None, prepare=None, stage=None, early_basis: boo
     pool = ThreadPoolExecutor(1, thread_name_prefix="shell-basis") if early_basis else None
 
     def on_mesh(mesh, markers, anchors):
-        started.append(handle_geodesics(mesh, markers.handle_vertices))
-        if pool is not None:
+        if pool is not None:  # first: the longest wait, and the geodesics' start takes the main thread a while
             early.append((config.shell, pool.submit(solve_large_scale_basis, mesh.vertices, mesh.faces,
                                                     markers.handle_vertices, anchors, config.shell)))
+        started.append(handle_geodesics(mesh, markers.handle_vertices))
 
     try:
         stage(FIT_STAGES[0])
