@@ -10,7 +10,10 @@ texture's, the Q stream's bit rate, and classification speed. Writes bench/appea
 weights (most frames there have a region's activation exactly 0: tied ranks), or ``sweep``, a take
 built from the kit's expressions in which every region's drivers sweep smoothly between 0.05 and
 0.95 at their own rate and phase (no ties, every region moving at once); --reuse: classify
-footage already rendered in --out.
+footage already rendered in --out; --identity face_a|face_b: the same on one of the kit's other
+faces (identities/, same topology): its expressions and the take's frames are the kit's
+displacements from the neutral added to that face, as the kit's README defines their truth (the
+take's head motion kept), so the region layout, templates and eye openings are found afresh.
 """
 
 from __future__ import annotations
@@ -72,6 +75,20 @@ def sweep_take(rest: np.ndarray, expressions: dict, frames: int = 120) -> tuple[
             weights[:, names.index(d)] = sweep
     deltas = np.stack([expressions[n] - rest for n in names])
     return rest + np.tensordot(weights, deltas, axes=1), weights, names
+
+
+def identity_geometry(face: np.ndarray, neutral: np.ndarray, expressions: dict, world: np.ndarray,
+                      truth) -> tuple[dict, np.ndarray]:
+    """Another face's expressions and take: the kit's displacements from its neutral added to
+    ``face`` (V, 3) (an ICT expression's displacement does not depend on the identity); the take's
+    head motion (``rotation``/``translation`` in ``truth``, world = head · Rᵀ + t) is taken out
+    first and put back after."""
+    moved = {n: face + (e - neutral) for n, e in expressions.items()}
+    if "rotation" in truth and "translation" in truth:
+        R, t = np.asarray(truth["rotation"]), np.asarray(truth["translation"])
+        head = np.einsum("tvi,tij->tvj", world - t[:, None, :], R)
+        return moved, np.einsum("tvj,tij->tvi", face + (head - neutral), R) + t[:, None, :]
+    return moved, face + (world - neutral)
 
 
 def correlations(q: np.ndarray, act: np.ndarray, names: list) -> dict:
@@ -159,24 +176,32 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--take", choices=list(TAKES), default="train")
     ap.add_argument("--reuse", action="store_true", help="classify footage already rendered in --out")
+    ap.add_argument("--identity", choices=["face_a", "face_b"], default=None,
+                    help="render and classify one of the kit's other faces (identities/)")
     ap.add_argument("--json", default="bench/appearance_ict.json")
     args = ap.parse_args()
     out = Path(args.out)
-    mesh = load_mesh(KIT / "neutral.obj")
+    neutral = load_mesh(KIT / "neutral.obj")
+    mesh_path = KIT / "identities" / f"{args.identity}.obj" if args.identity else KIT / "neutral.obj"
+    mesh = load_mesh(mesh_path)
     render_s = None
     if not (args.reuse and (out / "appearance.toml").is_file()):
         if args.take == "sweep":
             needed = {d for ds in DRIVERS.values() for d in ds} | set(EYE_OPENINGS.values())
             expressions = {d: load_vertices(KIT / "expressions" / f"{d}.obj") for d in needed}
-            world, weights, names = sweep_take(mesh.vertices, expressions)
+            # on the kit's neutral: identity_geometry moves them onto another face as any take
+            world, weights, names = sweep_take(neutral.vertices, expressions)
         else:
             truth = np.load(TAKES[args.take])
             names = [str(n) for n in truth["expressions"]]
             expressions = {n: load_vertices(KIT / "expressions" / f"{n}.obj") for n in names}
             world, weights = truth["positions"], truth["weights"]
+        if args.identity:
+            expressions, world = identity_geometry(mesh.vertices, neutral.vertices, expressions, world,
+                                                   {} if args.take == "sweep" else truth)
         t0 = time.perf_counter()
         write_appearance_kit(out, mesh, mesh.vertices, expressions, DRIVERS, world, weights,
-                             names, mesh_path=str(KIT / "neutral.obj"), markers_path=str(KIT / "markers.csv"),
+                             names, mesh_path=str(mesh_path), markers_path=str(KIT / "markers.csv"),
                              size=args.size, texture_size=1024,
                              eyes=eye_rims(mesh.vertices, mesh.faces, expressions), gaze=GAZE)
         render_s = time.perf_counter() - t0
@@ -184,7 +209,7 @@ def main() -> None:
     model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
     q_bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
     bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS) if model.light_face is not None else 0)
-    result = {"take": args.take, "render_seconds": render_s, "regions": model.names, "shading": model.shading,
+    result = {"take": args.take, "identity": args.identity or "neutral", "render_seconds": render_s, "regions": model.names, "shading": model.shading,
               "albedo_layers": model.albedo,
               "rest_floor": None if model.rest_floor is None else dict(zip(model.names, model.rest_floor.tolist())),
               "stream_bits_per_frame": bits, "q_bits_per_frame": q_bits, "light_bits_per_frame": bits - q_bits,
