@@ -145,7 +145,7 @@ def texture_ratio(model, mesh, out: Path, take: str, positions: np.ndarray, numb
     reconstruction is the frame's texture as facepipe exports it: the layered albedo shaded by the
     frame's geometry under the light classification fitted to the frame (``light``: (T, 9), or None
     for a model that holds the footage's values)."""
-    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0])  # the cards' squares too
+    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0], model.tile)  # the cards' squares too
     sums = np.zeros((2, len(model.names), 3))
     active = np.zeros((2, len(model.names), 3))  # each region's sums over the frames it is active in
     footage = open_footage(out / take / "frame_%04d.png")

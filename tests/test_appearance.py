@@ -466,6 +466,79 @@ def test_a_layout_on_two_udim_tiles_exports_a_texture_per_tile(kit, tmp_path):
     assert _run("preview", cls, "-o", tmp_path / "preview.png", "-q") == 0
 
 
+def _obj_with_uvs(path, mesh, uvs, corner):
+    """The rest mesh written with other UVs (V', 2) and per-corner UV indices (F, 3)."""
+    path.write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in mesh.vertices.tolist())
+                    + "".join(f"vt {u!r} {v!r}\n" for u, v in uvs.tolist())
+                    + "".join("f " + " ".join(f"{a + 1}/{b + 1}" for a, b in zip(f, c)) + "\n"
+                              for f, c in zip(mesh.faces.tolist(), corner.tolist())))
+    return path
+
+
+def test_a_face_laid_out_on_another_udim_tile(kit, tmp_path, capsys):
+    """The whole UV layout (and the templates) one tile right, on 1002: the model is the same as on
+    1001 but for the tile (its arrays to round-off), the textures export writes
+    frame_NNNN.1002.png with the same pixels; regions on two tiles, or a region over two tiles,
+    are refused by name (exit 2)."""
+    import cv2
+
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.mesh_read import load_mesh
+
+    mesh = load_mesh(kit / "neutral.obj")
+    corner = mesh.face_uvs
+    obj = _obj_with_uvs(tmp_path / "on_1002.obj", mesh, mesh.uvs + [1.0, 0.0], corner)
+    cfg = _edited_config(kit, tmp_path, "mesh = ", f'mesh = "{obj}" #')
+    text = re.sub(r"template = \[([^,]+),([^,]+),([^,]+),",
+                  lambda m: f"template = [{float(m[1]) + 1.0:.6f},{m[2]}, {float(m[3]) + 1.0:.6f},", cfg.read_text())
+    cfg.write_text(text)
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "on_1002.npz", "-q") == 0
+    assert _run("appearance", "build", kit / "appearance" / "appearance.toml", "-o", tmp_path / "on_1001.npz",
+                "-q") == 0
+    moved, home = load_appearance(tmp_path / "on_1002.npz"), load_appearance(tmp_path / "on_1001.npz")
+    assert (moved.tile, home.tile, moved.all_tiles, moved.extra_tiles) == (1002, 1001, [1002], [])
+    np.testing.assert_array_equal(moved.boxes, home.boxes)
+    for a, b in zip(moved.volumes + moved.alphas + [moved.neutral, moved.neutral_albedo],
+                    home.volumes + home.alphas + [home.neutral, home.neutral_albedo]):
+        np.testing.assert_allclose(a, b, atol=1e-6)
+    np.testing.assert_allclose(moved.rest_floor, home.rest_floor, atol=1e-9)
+    take = kit / "appearance" / "take_turned"
+    for name in ("on_1001", "on_1002"):
+        assert _run("appearance", "classify", tmp_path / f"{name}.npz", take / "frame_%04d.png", "--geometry",
+                    kit / "appearance" / "take_turned.npz", "-o", tmp_path / f"cls_{name}", "-q") == 0
+        assert _run("export", tmp_path / f"cls_{name}", "--format", "textures", "-o", tmp_path / f"tex_{name}",
+                    "-q") == 0
+    summary = json.loads((tmp_path / "tex_on_1002" / "textures.json").read_text())
+    assert summary["tiles"] == [1002] and summary["files"] == "frame_####.<UDIM>.png"
+    for frame in (1, 12):
+        got = cv2.imread(str(tmp_path / "tex_on_1002" / f"frame_{frame:04d}.1002.png"), cv2.IMREAD_UNCHANGED)
+        want = cv2.imread(str(tmp_path / "tex_on_1001" / f"frame_{frame:04d}.png"), cv2.IMREAD_UNCHANGED)
+        assert np.abs(got.astype(int) - want.astype(int)).max() <= 2  # 16-bit levels
+    assert _run("preview", tmp_path / "cls_on_1002", "-o", tmp_path / "preview.png", "-q") == 0
+
+    # one region's triangles moved to 1002, the others left on 1001; then half of that region's
+    def whole(name):  # the triangles a region's vertex group holds whole
+        return np.isin(mesh.faces, np.loadtxt(kit / "appearance" / "regions" / f"{name}.txt", dtype=np.int64)).all(1)
+
+    names = [p.stem for p in (kit / "appearance" / "regions").glob("*.txt")]
+    # a region that shares no triangle with another (the sample's brows)
+    alone = next(n for n in sorted(names) if not any((whole(n) & whole(o)).any() for o in names if o != n))
+    inside = whole(alone)
+    uvs = np.concatenate([mesh.uvs, mesh.uvs + [1.0, 0.0]])
+    for case, (moved_faces, message) in enumerate(((inside, "regions lie on different UDIM tiles: "),
+                                 (inside & (np.cumsum(inside) <= inside.sum() // 2),
+                                  f"region {alone}: its vertex group's triangles lie on UDIM tiles 1001, 1002"))):
+        obj = _obj_with_uvs(tmp_path / "split.obj", mesh, uvs, np.where(moved_faces[:, None], corner + len(mesh.uvs),
+                                                                        corner))
+        cfg = _edited_config(kit, tmp_path / f"case{case}", "mesh = ", f'mesh = "{obj}" #')
+        out = tmp_path / "never.npz"
+        capsys.readouterr()
+        assert _run("appearance", "build", cfg, "-o", out, "-q") == 2
+        err = capsys.readouterr().err
+        assert message in err and not out.exists(), err
+        assert f"{alone} on 1002" in err or "1001, 1002" in err
+
+
 def test_the_neutral_frame_rebuilt_from_its_albedo_is_its_texture(kit):
     """Albedo and shading undo each other: the neutral example frame's texture, rebuilt at Q = 0
     as its albedo times the shading of its own geometry under its own light, is the neutral

@@ -193,3 +193,18 @@ def test_rendered_eyeballs_move_with_the_head_and_turn_with_the_gaze():
     (c0, a0, r0), (c1, a1, r1) = poses[0][0], poses[1][0]
     assert np.allclose(c0, eye.centre) and np.allclose(c1, R @ eye.centre + [0.5, -1.0, 2.0]) and r0 == r1
     assert np.isclose(np.degrees(np.arccos((R @ a0[:, 2]) @ a1[:, 2])), 30.0)  # the gaze turned 30° in the head
+
+
+def test_free_uv_squares_on_another_udim_tile():
+    """A card's square is found where the layout leaves room on the regions' tile: the layout moved
+    one tile right (1002) gives the same squares moved with it."""
+    from facepipe.pipeline.appearance import free_uv_squares
+
+    _, faces, uv = _grid_with_hole()
+    corner_uv = 0.5 * uv[faces]  # the layout in the tile's lower-left quarter: room for squares elsewhere
+    on_1001 = free_uv_squares(corner_uv, 64, 2)
+    on_1002 = free_uv_squares(corner_uv + [1.0, 0.0], 64, 2, tile=1002)
+    assert [side for _, side in on_1001] == [side for _, side in on_1002] and on_1001[0][1] > 8
+    for (a, _), (b, _) in zip(on_1001, on_1002):
+        np.testing.assert_allclose(np.asarray(b) - [1.0, 0.0, 1.0, 0.0], a, atol=1e-12)
+        assert 1.0 <= b[0] < b[2] <= 2.0 and 0.0 <= b[1] < b[3] <= 1.0

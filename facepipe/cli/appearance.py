@@ -38,7 +38,8 @@ def build_command(config_path, output, rep, write_json) -> dict:
     write_json(report, info)
     rep.say(f"{len(info['regions'])} regions ({', '.join(f'{n} {k}' for n, k in zip(info['regions'], info['layers']))}"
             f" layers), texture {info['texture_size']}²"
-            + (f" on UDIM tiles {', '.join(map(str, info['tiles']))}" if len(info["tiles"]) > 1 else "")
+            + (f" on UDIM tile{'s' if len(info['tiles']) > 1 else ''} {', '.join(map(str, info['tiles']))}"
+               if info["tiles"] != [1001] else "")
             + f"; wrote {output} and {report}")
     if info.get("albedo"):
         rep.say("layers hold albedo (each example frame's shading divided out): a frame's texture is shaded by its "

@@ -69,7 +69,7 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
     images = {int(numbers[index[k]]): (image, problem)
               for rows, image, problem in read_frames_of(footage, shown_at) for k in rows}
     light = read_light(folder, numbers)
-    tiles = [1001] + model.extra_tiles
+    tiles = model.all_tiles
     size_t = model.neutral.shape[0]
     texels = {t: texel_map(model.corner_uv, size_t, t) for t in tiles} if model.albedo and light is not None else {}
     cam = model.camera

@@ -13,9 +13,10 @@ for a renderer that lights the face itself. The textures are rebuilt from the st
 (to four decimals), so what the files show is what a receiver of the stream would render.
 
 Writes ``DEST/frame_NNNN.png`` (16-bit RGB, the footage's values), or ``.exr`` with ``--half`` /
-``--float``; where the rest mesh's UV layout uses more UDIM tiles than 1001 (a head's scalp and
-neck), one file per tile and frame, ``DEST/frame_NNNN.1001.png``, ``frame_NNNN.1002.png`` … (the
-other tiles hold no region: their neutral albedo shaded as the first tile's is); ``DEST/appearance.csv`` (the stream) and ``DEST/textures.json`` (regions, layers,
+``--float``; where the rest mesh's UV layout uses other UDIM tiles than 1001 (a head's scalp and
+neck, or a face laid out on another tile), one file per tile and frame, ``DEST/frame_NNNN.1001.png``,
+``frame_NNNN.1002.png`` … (the regions lie on one tile; the others hold their neutral albedo,
+shaded as the regions' tile is); ``DEST/appearance.csv`` (the stream) and ``DEST/textures.json`` (regions, layers,
 frame rate and the stream's bit rate). Frames are written atomically; existing files are refused
 without ``--force`` and kept with ``--resume``.
 """
@@ -86,10 +87,10 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
     light = read_light(source, numbers)
     shading, camera_positions, notes = _frame_shading(model, info, numbers, light, options.layer)
     suffix = ".png" if options.half is None else ".exr"
-    tiles = [1001] + model.extra_tiles
-    # one UV tile: frame_0001.png; several: the UDIM convention, frame_0001.1001.png, frame_0001.1002.png
-    by_tile = {t: frame_paths(dest, len(numbers), options.start, suffix if len(tiles) == 1 else f".{t}{suffix}")
-               for t in tiles}
+    tiles = model.all_tiles
+    # the first tile alone: frame_0001.png; else the UDIM convention, frame_0001.1001.png, frame_0001.1002.png
+    udim = tiles != [1001]
+    by_tile = {t: frame_paths(dest, len(numbers), options.start, f".{t}{suffix}" if udim else suffix) for t in tiles}
     paths = [by_tile[t][i] for i in range(len(numbers)) for t in tiles]
     csv, light_csv, summary = dest / "appearance.csv", dest / "light.csv", dest / "textures.json"
     streams = [csv] + ([light_csv] if light is not None else [])
@@ -118,9 +119,9 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
                 write_texture(by_tile[t][i], texture, options.half)
                 written += 1
             bar.update(1)
-    digits = len(by_tile[1001][0].name.split(".")[0]) - len("frame_")
+    digits = len(by_tile[tiles[0]][0].name.split(".")[0]) - len("frame_")
     details = {"frames": len(numbers), "written": written, "tiles": tiles,
-               "files": "frame_" + "#" * digits + ("" if len(tiles) == 1 else ".<UDIM>") + suffix,
+               "files": "frame_" + "#" * digits + (".<UDIM>" if udim else "") + suffix,
                "regions": list(model.names),
                "layers": counts.tolist(), "texture_size": int(size),
                "pixels": "png16" if suffix == ".png" else ("exr half" if options.half else "exr float"),

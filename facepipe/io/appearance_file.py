@@ -57,9 +57,11 @@ class AppearanceModel:
     without a light fit): the volumes hold the footage's values, shading included;
     light_colour : (K, 3) the light points' RGB albedo (their colour under the grey light), over
     which a frame's light colour is measured (None: a white light);
-    tiles : (T,) the UDIM tiles other than 1001 that the rest mesh's UV layout uses (no region
+    tiles : (T,) the UDIM tiles other than ``tile`` that the rest mesh's UV layout uses (no region
     lies on them), with tile_neutral (T, S, S, 3) the neutral frame's texture there and
-    tile_albedo (T, S, S, 3) its albedo (None with ``neutral_albedo`` None); None: one tile.
+    tile_albedo (T, S, S, 3) its albedo (None with ``neutral_albedo`` None); None: one tile;
+    tile : the UDIM tile the regions lie on, whose texture ``neutral``, the boxes and the layers
+    are (1001 in models before it).
     """
 
     names: list
@@ -99,11 +101,17 @@ class AppearanceModel:
     tiles: np.ndarray | None = None
     tile_neutral: np.ndarray | None = None
     tile_albedo: np.ndarray | None = None
+    tile: int = 1001
 
     @property
     def extra_tiles(self) -> list:
-        """The UDIM tiles beside 1001 that the textures cover (``tiles``; none in older models)."""
+        """The UDIM tiles beside ``tile`` that the textures cover (``tiles``; none in older models)."""
         return [] if self.tiles is None else [int(t) for t in self.tiles]
+
+    @property
+    def all_tiles(self) -> list:
+        """Every UDIM tile the textures cover, in increasing order (the regions' ``tile`` among them)."""
+        return sorted([int(self.tile)] + self.extra_tiles)
 
     @property
     def albedo(self) -> bool:
@@ -146,7 +154,7 @@ def save_appearance(path, model) -> None:
               "template_bary": model.template_bary, "weights": model.weights,
               "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading),
                                    model.min_seen, float(model.occlusion), model.min_point_facing]), "neutral": model.neutral,
-              "boxes": model.boxes}
+              "boxes": model.boxes, "tile": np.array(int(model.tile))}
     if model.corner_uv is not None:
         arrays["corner_uv"] = model.corner_uv
     if model.template_facing is not None:
@@ -200,7 +208,8 @@ def load_appearance(path):
                                None if d.get("template_mask") is None else d["template_mask"].astype(bool),
                                d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
                                d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"),
-                               d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"))
+                               d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"),
+                               int(d["tile"]) if "tile" in d else 1001)
         tiles = len(model.extra_tiles)
         if tiles and not (model.tile_neutral is not None and len(model.tile_neutral) == tiles
                           and (model.tile_albedo is None) == (model.neutral_albedo is None)

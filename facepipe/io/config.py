@@ -78,7 +78,8 @@ class TuneConfig:
 @dataclass
 class AppearanceRegion:
     """One ``[appearance.regions.NAME]`` table: the region's vertex group, its template's UV
-    rectangle [u0, v0, u1, v1] and its example frames from neutral to extreme; with ``card``, the
+    rectangle [u0, v0, u1, v1] (in the layout's own coordinates: on UDIM tile 1002, u in 1 … 2;
+    every region on one tile) and its example frames from neutral to extreme; with ``card``, the
     region is a card across the hole whose rim the group holds, its template in the card's own
     square (0 … 1)."""
 

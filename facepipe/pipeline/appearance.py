@@ -333,12 +333,14 @@ CARD_RINGS = 4
 MIN_CARD_TEXELS = 16
 
 
-def free_uv_squares(corner_uv: np.ndarray, size: int, count: int, gap: int = 2) -> list:
-    """``count`` UV squares [u0, v0, u1, v1] where the layout (at ``size`` texels) has no triangle,
-    largest first, each ``gap`` texels from any triangle and the others; their sides in texels."""
+def free_uv_squares(corner_uv: np.ndarray, size: int, count: int, gap: int = 2, tile: int = 1001) -> list:
+    """``count`` UV squares [u0, v0, u1, v1] where the layout (at ``size`` texels) has no triangle
+    on UDIM ``tile``, largest first, each ``gap`` texels from any triangle and the others; their
+    sides in texels."""
     import cv2  # OpenCV's distance transform: only where a model with cards is built
 
-    covered = texel_map(corner_uv, size)[0] >= 0
+    covered = texel_map(corner_uv, size, tile)[0] >= 0
+    u0, v0 = udim_corner(tile)
     free = np.pad(~covered, 1).astype(np.uint8)  # the texture's border counts as used
     squares = []
     for _ in range(count):
@@ -347,14 +349,15 @@ def free_uv_squares(corner_uv: np.ndarray, size: int, count: int, gap: int = 2) 
         i, j = np.unravel_index(int(np.argmax(half)), half.shape)
         h = int(half[i, j]) - gap
         side = 2 * h - 1
-        squares.append(([(j - h + 1) / size, 1.0 - (i + h) / size, (j + h) / size, 1.0 - (i - h + 1) / size], side))
+        squares.append(([u0 + (j - h + 1) / size, v0 + 1.0 - (i + h) / size, u0 + (j + h) / size,
+                         v0 + 1.0 - (i - h + 1) / size], side))
         free[1 + max(i - h - gap, 0):1 + i + h + gap, 1 + max(j - h - gap, 0):1 + j + h + gap] = 0
     return squares
 
 
-def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config_path):
+def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config_path, tile: int = 1001):
     """Cards (:func:`facepipe.core.hole_cards.hole_cards`) across the holes that the ``card``
-    regions' vertex groups rim, each in a free square of the UV layout, carried by the vertices
+    regions' vertex groups rim, each in a free square of the UV layout on ``tile``, carried by the vertices
     that move least over the geometry's frames ``positions`` (T, V, 3); and region name → card.
     (None, {}) where no region is a card."""
     wanted = [r for r in cfg.regions if r.card]
@@ -379,7 +382,7 @@ def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config
                                  path=config_path, hint="one card region per hole")
         card_of[region.name] = len(chosen)
         chosen.append(best)
-    squares = free_uv_squares(corner_uv, cfg.texture_size, len(chosen))
+    squares = free_uv_squares(corner_uv, cfg.texture_size, len(chosen), tile=tile)
     for (square, side), region in zip(squares, wanted):
         if side < MIN_CARD_TEXELS:
             raise InputError(f"region {region.name}: the UV layout has room for a card of {max(side, 0)} texels at "
@@ -388,6 +391,32 @@ def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config
     cards = hole_cards(mesh.vertices, [loops[b] for b in chosen], np.array([sq for sq, _ in squares]),
                        stable_vertices(mesh.vertices, positions), CARD_RINGS)
     return cards, card_of
+
+
+def regions_tile(cfg, mesh, tile_of: np.ndarray, in_udim: np.ndarray, config_path) -> int:
+    """The UDIM tile every region lies on (1001 where none has a triangle in the UDIM range): the
+    tile of a region's triangles (those its vertex group holds whole; a card region's, those that
+    touch its rim). A region over two tiles, or regions on different tiles, are refused: a region's
+    layers are one box of one tile's texture, and the layered texture is one tile's."""
+    where = {}
+    for region in cfg.regions:
+        in_group = np.zeros(mesh.n_vertices, dtype=bool)
+        in_group[_read_group(region, mesh.n_vertices, config_path)] = True
+        inside = in_group[mesh.faces]
+        triangles = (inside.any(axis=1) if region.card else inside.all(axis=1)) & in_udim
+        found = np.unique(tile_of[triangles])
+        if len(found) > 1:
+            raise InputError(f"region {region.name}: its vertex group's triangles lie on UDIM tiles "
+                             f"{', '.join(map(str, found))}", path=region.vertices,
+                             hint="a region's layers are one box of one tile's texture: lay the region out on one "
+                                  "tile, or split it into a region per tile")
+        if len(found):
+            where[region.name] = int(found[0])
+    if len(set(where.values())) > 1:
+        raise InputError("the regions lie on different UDIM tiles: " + ", ".join(f"{n} on {t}" for n, t in where.items()),
+                         path=config_path, hint="lay every region out on one tile (the layered texture's); the "
+                                                "other tiles keep the neutral texture")
+    return next(iter(where.values()), 1001)
 
 
 def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[AppearanceModel, dict]:
@@ -405,7 +434,10 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         raise InputError("the example geometry is a 2D take's replay, already in its camera's coordinates, and the "
                          "config moves it again by camera_rotation/camera_translation", path=config.path,
                          hint="leave camera_rotation and camera_translation out of [appearance] for this geometry")
-    cards, card_of = region_cards(cfg, mesh, corner_uv, positions, config.path)
+    # the regions' UDIM tile: their layered texture's (the others keep the neutral texture)
+    tile_of, in_udim = udim_tile_numbers(corner_uv)
+    home = regions_tile(cfg, mesh, tile_of, in_udim, config.path)
+    cards, card_of = region_cards(cfg, mesh, corner_uv, positions, config.path, home)
     if cards is not None:  # the cards' triangles after the mesh's, their vertices after its vertices
         faces = np.concatenate([faces, cards.faces])
         corner_uv = np.concatenate([corner_uv, cards.corner_uv])
@@ -414,7 +446,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     frames = _example_frames(cfg, needed, replace(geometry, positions=positions), camera)  # (the cards' too)
     cam_pos = {n: positions_world @ R.T + t for n, (_, positions_world) in frames.items()}
     S = cfg.texture_size
-    texel_face, texel_bary = texel_map(corner_uv, S)
+    texel_face, texel_bary = texel_map(corner_uv, S, home)
     neutral_cam = cam_pos[cfg.neutral_frame]
     covered = texel_face >= 0
     cos = ap.facing(triangle_normals(neutral_cam, faces, texel_face[covered]),
@@ -425,10 +457,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     # texels the neutral frame does not show (edge-on, behind the head) continue the skin around them
     neutral = ap.fill_unseen(neutral, seen) if seen.any() else np.full_like(neutral, 0.5)
     # the layout's other UDIM tiles (a head's scalp, neck, ears) hold no region: their neutral texture
-    tile_of, in_udim = udim_tile_numbers(mesh.uvs[mesh.face_uvs])
     tiles = {t: _tile_neutral(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_map(corner_uv, S, t), camera,
                               cfg, normal_sign, np.median(neutral[seen], axis=0) if seen.any() else 0.5)
-             for t in np.unique(tile_of[in_udim]).tolist() if t != 1001}
+             for t in np.unique(tile_of[in_udim]).tolist() if t != home}
     light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign) if cfg.light_fit \
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
@@ -505,11 +536,12 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             card_stable_rest=None if cards is None else cards.stable_rest,
                             light_colour=None if light is None else light["colour"].astype(np.float32),
                             tiles=np.array(list(tiles), dtype=np.int64) if tiles else None,
-                            tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None)
+                            tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None,
+                            tile=home)
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
-    info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": [1001] + model.extra_tiles,
+    info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
             "albedo": model.albedo, "rest": rest,
             "notes": notes}
     if cards is not None:
@@ -708,13 +740,15 @@ def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, 
 
 
 def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.ndarray | None = None,
-                  light: np.ndarray | None = None, texels=None, tile: int = 1001) -> np.ndarray:
-    """A frame's texture (S, S, 3) on UDIM ``tile``: on 1001 the layered texture at Q (R,), on the
-    model's other tiles (``model.tiles``, where no region lies) their neutral texture. For a model
-    that holds albedo, that albedo times the shading of the frame's surface (V, 3, camera space)
-    under its light (12,) on the skin (as the camera saw it); the albedo alone where either is not
-    given. ``texels``: the tile's :func:`texel_map` where already made."""
-    if tile == 1001:
+                  light: np.ndarray | None = None, texels=None, tile: int | None = None) -> np.ndarray:
+    """A frame's texture (S, S, 3) on UDIM ``tile``: on the regions' tile (``model.tile``, the
+    default) the layered texture at Q (R,), on the model's other tiles (``model.tiles``, where no
+    region lies) their neutral texture. For a model that holds albedo, that albedo times the
+    shading of the frame's surface (V, 3, camera space) under its light (12,) on the skin (as the
+    camera saw it); the albedo alone where either is not given. ``texels``: the tile's
+    :func:`texel_map` where already made."""
+    tile = model.tile if tile is None else tile
+    if tile == model.tile:
         texture = ap.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
     else:
         k = model.extra_tiles.index(tile)
