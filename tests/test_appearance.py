@@ -119,6 +119,32 @@ def test_never_visible_region_is_reported_and_neutral(kit, tmp_path, capsys):
     assert (q == 0).all()
 
 
+def test_regions_hidden_in_some_frames_are_named_with_their_frames(kit, tmp_path, capsys):
+    # frames 5-8 of the take seen from behind: every region hidden there, named with the span
+    geo = np.load(kit / "appearance" / "take.npz")
+    pos = geo["positions"].copy()
+    centre = pos[0].mean(axis=0)
+    pos[5:9] = (pos[5:9] - centre) * np.array([-1.0, 1.0, -1.0]) + centre
+    np.savez(tmp_path / "partly_behind.npz", positions=pos, frame=geo["frame"])
+    assert _run("appearance", "classify", kit / "app.npz", kit / "appearance" / "take",
+                "--geometry", tmp_path / "partly_behind.npz", "-o", tmp_path / "cls") == 0
+    out = capsys.readouterr().out
+    first, last = int(geo["frame"][5]), int(geo["frame"][8])
+    assert "hidden in some frames" in out and f"forehead 4 (frames {first}–{last})" in out, out
+    report = json.loads((tmp_path / "cls" / "appearance.json").read_text())
+    assert set(report["hidden_frames"].values()) == {4}
+
+
+def test_column_runs():
+    from facepipe.core.runs import column_runs
+
+    mask = np.array([[1, 0], [1, 1], [0, 1], [1, 0]], dtype=bool)
+    column, start, stop = column_runs(mask)
+    assert column.tolist() == [0, 0, 1] and start.tolist() == [0, 3, 1] and stop.tolist() == [2, 4, 3]
+    assert [a.tolist() for a in column_runs(mask[:, 0])] == [[0, 0], [0, 3], [2, 4]]
+    assert all(len(a) == 0 for a in column_runs(np.zeros((5, 2), dtype=bool)))
+
+
 def test_footage_patterns_folders_and_video(tmp_path):
     rng = np.random.default_rng(0)
     imgs = [(rng.uniform(size=(32, 48, 3)) * 255).astype(np.uint8) for _ in range(3)]

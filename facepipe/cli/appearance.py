@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facepipe.core.runs import column_runs
 from facepipe.errors import InputError
 
 __all__ = ["build_command", "check_sample_appearance", "classify_command", "sample_appearance", "SAMPLE_DRIVERS"]
@@ -108,6 +109,12 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
     never = [name for r, name in enumerate(model.names) if not result.visible[:, r].any()]
     if never:
         rep.say(f"note: never visible, kept neutral: {', '.join(never)}")
+    hidden = hidden_spans(model.names, result.visible, numbers, [n for n, _ in result.problems])
+    figures["hidden_frames"] = {name: count for name, (count, _) in hidden.items()}
+    some = [f"{name} {count} (frames {text})" for name, (count, text) in hidden.items() if name not in never and count]
+    if some:
+        rep.say("note: hidden in some frames (facing away, edge-on, behind the face or out of view; Q holds its "
+                "last value there, decaying to neutral): " + "; ".join(some))
     path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
                         geometry=geometry_path, figures=figures)
     light = f" + light {bits - q_bits}" if bits > q_bits else ""
@@ -115,6 +122,20 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
             f"({figures['frames_per_second']:.0f} frames/s, reading included); stream (Q {q_bits}{light}) {bits} bits "
             f"a frame = {figures['stream_kbit_s']:.2f} kbit/s at {fps:g} Hz; wrote {path}")
     return result
+
+
+def hidden_spans(names, visible: np.ndarray, numbers: np.ndarray, skipped=(), most: int = 3) -> dict:
+    """Per region the count of frames (T,) it was hidden in, frames skipped as unreadable left out
+    (they are reported as such), and those frames as text: its first ``most`` spans of frame
+    numbers ("72–105, 110")."""
+    hidden = ~np.asarray(visible, dtype=bool) & ~np.isin(numbers, list(skipped))[:, None]
+    column, start, stop = column_runs(hidden)
+    out = {}
+    for r, name in enumerate(names):
+        spans = [(int(numbers[a]), int(numbers[b - 1])) for a, b in zip(start[column == r], stop[column == r])]
+        text = ", ".join(str(a) if a == b else f"{a}–{b}" for a, b in spans[:most]) + (" …" if len(spans) > most else "")
+        out[name] = (int(hidden[:, r].sum()), text)
+    return out
 
 
 def _absolute_footage(footage) -> str:

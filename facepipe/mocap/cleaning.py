@@ -44,6 +44,7 @@ from scipy.spatial.transform import Rotation
 
 from facepipe.mocap.gaps import fill_gaps
 from facepipe.core.rigid import interpolate_poses, rigid_fit, rotation_from_vector, stable_marker_pose
+from facepipe.core.runs import column_runs
 from facepipe.core.temporal import noise_variance_share, smooth_series
 
 #: Orders of the differences the pose and weight smoothers penalise, chosen per signal with λ (see
@@ -535,14 +536,6 @@ def _run_stop(known: np.ndarray, t: int) -> int:
     return t
 
 
-def _runs(mask: np.ndarray):
-    """Runs of True per column of a (T, M) mask: (column, start, stop) arrays."""
-    step = np.diff(np.pad(mask.T.astype(np.int8), ((0, 0), (1, 1))), axis=1)
-    col, start = np.nonzero(step == 1)
-    _, stop = np.nonzero(step == -1)
-    return col, start, stop
-
-
 def _distance_to_visible(known: np.ndarray) -> np.ndarray:
     """(T, M) frames from each sample to the nearest known sample of its marker (0 where known)."""
     T, M = known.shape
@@ -941,7 +934,7 @@ def sample_counts(missing: np.ndarray, outliers: np.ndarray, frames_interpolated
     (H,) each marker's weight in the fit and residual scale.
     """
     T, H = missing.shape
-    col, start, stop = _runs(missing)
+    col, start, stop = column_runs(missing)
     run_len = stop - start
     gaps = np.bincount(col, minlength=H)
     longest = np.zeros(H, dtype=np.int64)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from facepipe.core.runs import column_runs
 from facepipe.errors import InputError
 
 
@@ -70,7 +71,7 @@ def fill_gaps(positions, max_gap: int | None = None, *, times=None, marker_names
     missing = np.isnan(pos).any(axis=2)  # (T, M)
     pos[missing] = np.nan
     _refuse_never_visible(missing, names, path)
-    run_m, run_start, run_stop = _missing_runs(missing)
+    run_m, run_start, run_stop = column_runs(missing)  # marker by marker
     run_len = run_stop - run_start
     to_fill = _samples_to_fill(missing, run_len, max_gap)
     for m in np.flatnonzero(to_fill.any(axis=1)):
@@ -96,14 +97,6 @@ def _refuse_never_visible(missing: np.ndarray, names: list[str], path) -> None:
             path=path,
             hint="check the marker's columns in the take, or mark the marker `ignore` in markers.csv",
         )
-
-
-def _missing_runs(missing: np.ndarray):
-    """Runs of missing frames, marker by marker (marker-major order): marker, start, stop arrays."""
-    step = np.diff(np.pad(missing.T.astype(np.int8), ((0, 0), (1, 1))), axis=1)  # +1/-1 steps, (M, T+1)
-    run_m, run_start = np.nonzero(step == 1)
-    _, run_stop = np.nonzero(step == -1)  # same marker-major order as the starts
-    return run_m, run_start, run_stop
 
 
 def _samples_to_fill(missing: np.ndarray, run_len: np.ndarray, max_gap: int | None) -> np.ndarray:

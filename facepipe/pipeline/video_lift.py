@@ -37,6 +37,7 @@ from facepipe.core.lift import (fade_fill, fit_pose_expression_2d, intersect_ray
                                 landmark_motion, landmark_weights, landmarks_to_handles, robust_sigma,
                                 soft_keep)
 from facepipe.core.rigid import interpolate_poses
+from facepipe.core.runs import column_runs
 from facepipe.errors import InputError
 from facepipe.mocap.landmarks2d import MIN_LANDMARKS, LandmarkTake
 
@@ -410,7 +411,7 @@ def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, 
     seen = used.any(axis=1)
     per_frame[seen] = np.sqrt((np.where(used, fit_px, 0.0) ** 2).sum(axis=1)[seen] / used.sum(axis=1)[seen])
     missing = ~fitted
-    lost = _runs(missing)
+    _, lost_start, lost_stop = column_runs(missing)
     return {
         "method": method,
         "format": take.format,
@@ -420,7 +421,7 @@ def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, 
         "frames_missing": int(missing.sum()),
         "frames_failed_by_tracker": int(take.failed.sum()),
         "frames_filled": int(filled.sum()),
-        "longest_gap_frames": int(max((b - a for a, b in lost), default=0)),
+        "longest_gap_frames": int((lost_stop - lost_start).max(initial=0)),
         "samples_missing": int((~visible).sum()),
         "samples_outliers": int(out_count.sum()),
         "noise_px": float(sigma),
@@ -434,15 +435,10 @@ def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, 
                          for i, n in enumerate(names)},
         "head_pose": _pose_summary(R, t),
         "expression_weights_max": C.max(axis=0).round(4).tolist() if C.size else [],
-        "notes": ([f"{int(missing.sum())} frame(s) without a tracked face ({len(lost)} gap(s), longest "
-                   f"{max((b - a for a, b in lost), default=0)}): head pose interpolated, expression faded toward "
+        "notes": ([f"{int(missing.sum())} frame(s) without a tracked face ({len(lost_start)} gap(s), longest "
+                   f"{int((lost_stop - lost_start).max(initial=0))}): head pose interpolated, expression faded toward "
                    f"neutral over {decay:g} s"] if missing.any() else []),
     }
-
-
-def _runs(mask: np.ndarray):
-    idx = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
-    return list(zip(idx[::2], idx[1::2]))
 
 
 def reprojection_of_output(camera: Camera, take: LandmarkTake, landmark_positions: np.ndarray, R: np.ndarray,

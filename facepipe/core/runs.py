@@ -1,0 +1,24 @@
+"""Runs of consecutive frames in per-frame masks: a marker's gaps, a region's hidden spans."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["column_runs"]
+
+
+def column_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The runs of True down each column of a (T, M) mask (a (T,) mask is one column).
+
+    Returns column, start and stop (exclusive) arrays of the runs, column by column, each
+    column's in frame order.
+
+    >>> column_runs(np.array([[1, 0], [1, 1], [0, 1], [1, 0]], dtype=bool))
+    (array([0, 0, 1]), array([0, 3, 1]), array([2, 4, 3]))
+    """
+    m = np.asarray(mask, dtype=bool)
+    m = m[:, None] if m.ndim == 1 else m
+    step = np.diff(np.pad(m.T.astype(np.int8), ((0, 0), (1, 1))), axis=1)  # +1 at a run's start, −1 after its end
+    column, start = np.nonzero(step == 1)
+    _, stop = np.nonzero(step == -1)  # the same column-major order as the starts
+    return column, start, stop
