@@ -355,9 +355,11 @@ def free_uv_squares(corner_uv: np.ndarray, size: int, count: int, gap: int = 2, 
     return squares
 
 
-def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config_path, tile: int = 1001):
+def region_cards(cfg, mesh, groups: dict, corner_uv: np.ndarray, positions: np.ndarray, config_path,
+                 tile: int = 1001):
     """Cards (:func:`facepipe.core.hole_cards.hole_cards`) across the holes that the ``card``
-    regions' vertex groups rim, each in a free square of the UV layout on ``tile``, carried by the vertices
+    regions' vertex groups (``groups``: region name → vertex mask, :func:`group_masks`) rim, each
+    in a free square of the UV layout on ``tile``, carried by the vertices
     that move least over the geometry's frames ``positions`` (T, V, 3); and region name → card.
     (None, {}) where no region is a card."""
     wanted = [r for r in cfg.regions if r.card]
@@ -366,9 +368,7 @@ def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config
     loops = boundary_loops(mesh.faces)
     chosen, card_of = [], {}
     for region in wanted:
-        in_group = np.zeros(mesh.n_vertices, dtype=bool)
-        in_group[_read_group(region, mesh.n_vertices, config_path)] = True
-        share = [float(in_group[loop].mean()) for loop in loops]
+        share = [float(groups[region.name][loop].mean()) for loop in loops]
         best = int(np.argmax(share)) if share else -1
         if best < 0 or share[best] < 0.5:
             raise InputError(f"region {region.name}: card = true, but its vertex group holds at most "
@@ -393,16 +393,23 @@ def region_cards(cfg, mesh, corner_uv: np.ndarray, positions: np.ndarray, config
     return cards, card_of
 
 
-def regions_tile(cfg, mesh, tile_of: np.ndarray, in_udim: np.ndarray, config_path) -> int:
+def group_masks(cfg, n_vertices: int, config_path) -> dict:
+    """Region name → (V,) mask of its vertex group, each group file read and checked once."""
+    masks = {}
+    for region in cfg.regions:
+        masks[region.name] = np.zeros(n_vertices, dtype=bool)
+        masks[region.name][_read_group(region, n_vertices, config_path)] = True
+    return masks
+
+
+def regions_tile(cfg, mesh, groups: dict, tile_of: np.ndarray, in_udim: np.ndarray, config_path) -> int:
     """The UDIM tile every region lies on (1001 where none has a triangle in the UDIM range): the
     tile of a region's triangles (those its vertex group holds whole; a card region's, those that
     touch its rim). A region over two tiles, or regions on different tiles, are refused: a region's
     layers are one box of one tile's texture, and the layered texture is one tile's."""
     where = {}
     for region in cfg.regions:
-        in_group = np.zeros(mesh.n_vertices, dtype=bool)
-        in_group[_read_group(region, mesh.n_vertices, config_path)] = True
-        inside = in_group[mesh.faces]
+        inside = groups[region.name][mesh.faces]
         triangles = (inside.any(axis=1) if region.card else inside.all(axis=1)) & in_udim
         found = np.unique(tile_of[triangles])
         if len(found) > 1:
@@ -436,8 +443,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                          hint="leave camera_rotation and camera_translation out of [appearance] for this geometry")
     # the regions' UDIM tile: their layered texture's (the others keep the neutral texture)
     tile_of, in_udim = udim_tile_numbers(corner_uv)
-    home = regions_tile(cfg, mesh, tile_of, in_udim, config.path)
-    cards, card_of = region_cards(cfg, mesh, corner_uv, positions, config.path, home)
+    groups = group_masks(cfg, mesh.n_vertices, config.path)
+    home = regions_tile(cfg, mesh, groups, tile_of, in_udim, config.path)
+    cards, card_of = region_cards(cfg, mesh, groups, corner_uv, positions, config.path, home)
     if cards is not None:  # the cards' triangles after the mesh's, their vertices after its vertices
         faces = np.concatenate([faces, cards.faces])
         corner_uv = np.concatenate([corner_uv, cards.corner_uv])
@@ -477,10 +485,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
             rect = [square[0] + u0 * (square[2] - square[0]), square[1] + v0 * (square[3] - square[1]),
                     square[0] + u1 * (square[2] - square[0]), square[1] + v1 * (square[3] - square[1])]
         else:
-            in_group = np.zeros(mesh.n_vertices, dtype=bool)
-            in_group[_read_group(region, mesh.n_vertices, config.path)] = True
             triangles = np.zeros(len(faces), dtype=bool)
-            triangles[:len(mesh.faces)] = in_group[mesh.faces].all(axis=1)
+            triangles[:len(mesh.faces)] = groups[region.name][mesh.faces].all(axis=1)
             rect = region.template
         vol, alpha, box, seen_in = _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face,
                                                   texel_bary, camera, neutral, cfg, normal_sign)

@@ -412,6 +412,7 @@ def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, 
     per_frame[seen] = np.sqrt((np.where(used, fit_px, 0.0) ** 2).sum(axis=1)[seen] / used.sum(axis=1)[seen])
     missing = ~fitted
     _, lost_start, lost_stop = column_runs(missing)
+    longest_gap = int((lost_stop - lost_start).max(initial=0))
     return {
         "method": method,
         "format": take.format,
@@ -421,7 +422,7 @@ def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, 
         "frames_missing": int(missing.sum()),
         "frames_failed_by_tracker": int(take.failed.sum()),
         "frames_filled": int(filled.sum()),
-        "longest_gap_frames": int((lost_stop - lost_start).max(initial=0)),
+        "longest_gap_frames": longest_gap,
         "samples_missing": int((~visible).sum()),
         "samples_outliers": int(out_count.sum()),
         "noise_px": float(sigma),
@@ -436,7 +437,7 @@ def _report(take, camera, R, t, C, fit_px, visible, used, outlier_rows, filled, 
         "head_pose": _pose_summary(R, t),
         "expression_weights_max": C.max(axis=0).round(4).tolist() if C.size else [],
         "notes": ([f"{int(missing.sum())} frame(s) without a tracked face ({len(lost_start)} gap(s), longest "
-                   f"{int((lost_stop - lost_start).max(initial=0))}): head pose interpolated, expression faded toward "
+                   f"{longest_gap}): head pose interpolated, expression faded toward "
                    f"neutral over {decay:g} s"] if missing.any() else []),
     }
 
