@@ -1,6 +1,8 @@
 """Local strain of a surface (core.local_strain), the detail model over it (core.strain_details),
 and the ``local_strain`` method end to end: fit, bake, replay on NumPy and OpenCL."""
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -10,6 +12,7 @@ from facepipe.core.local_strain import (StrainOperator, principal_strains, ring_
                                         ring_vertex_strain, triangle_green_strain, vertex_strain)
 from facepipe.core.strain_details import fit_strain_details
 from facepipe.io.model_file import load_model, model_from_fit
+from facepipe.io.point_caches import read_mdd, write_mdd
 from facepipe.pipeline.fit import fit_rig
 from facepipe.pipeline.replay import NumpyEvaluator
 from facepipe.pipeline.rig import load_rig
@@ -233,3 +236,66 @@ def test_wrinkle_maps_and_transfer_refuse_a_local_strain_model(strain_rig, tmp_p
     with pytest.raises(InputError, match="local-strain"):
         transfer_files(tmp_path / "model.npz", tmp_path / "other.obj", tmp_path / "a.csv", tmp_path / "b.csv",
                        tmp_path / "out.npz")
+
+
+# ----------------------------------------------------------------------------- mesh caches as takes
+
+
+def test_training_details_are_the_fitted_targets_and_bands_refit():
+    """(K + λ I) w gives back exactly what the model was fitted to; the banded refit with every
+    band added is the model itself, and with some bands it reproduces (up to the ridge) the
+    chosen bands of the training details at the training strains, the rest pose without details."""
+    from facepipe.core.detail_bands import DetailBands, banded_strain_model
+    from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_world
+
+    V, F = grid(24, 20)
+    rng = np.random.default_rng(11)
+    strains = np.concatenate([np.zeros((1, len(V), 3)), rng.normal(scale=0.05, size=(4, len(V), 3))])
+    details = rng.normal(scale=0.05, size=strains.shape)
+    details[0] = 0.0
+    model = fit_strain_details(strains, details, width=0.04, ridge=1e-3)
+    np.testing.assert_allclose(model.training_details(), details, atol=1e-12)
+    frames = local_frames(V, F, frame_neighbors(F, len(V)))
+    bands = DetailBands(V, F, spacing=1.5)
+    same = banded_strain_model(bands, model, frames, np.ones(bands.n_bands))
+    np.testing.assert_allclose(same.weights, model.weights, atol=1e-8)
+    assert (same.width, same.ridge) == (model.width, model.ridge)
+    added = np.array([1, 1, 1, 0, 0, 0, 0, 0.0])
+    sharp = fit_strain_details(strains, details, width=0.04, ridge=1e-9)
+    banded = banded_strain_model(bands, sharp, frames, added)
+    expected = bands.combine(to_world(frames, details), added)
+    expected[0] = 0.0
+    got = to_world(frames, banded.evaluate(strains))
+    np.testing.assert_allclose(got, expected, atol=1e-6 * float(np.abs(expected).max()))
+    bands.close()
+
+
+def test_cache_take_of_a_local_strain_model(strain_rig, tmp_path):
+    """A local-strain model replays mesh caches: the marker replay's own large scale as a cache
+    gets every band and gives the marker replay's face (its details follow the strain of the
+    cache's surface, which is that large scale); the smooth cache of the take gets only the bands
+    it lacks, the same on NumPy and OpenCL."""
+    d, rig, fit, truth = strain_rig
+    cfg = d / "rig" / "sample.toml"
+    model = tmp_path / "model.npz"
+    assert run("bake", cfg, "-o", model, "--no-tune", "--quiet") == 0
+    assert run("replay", d / "rig" / "take.csv", "-m", model, "-o", tmp_path / "markers", "--backend", "numpy",
+               "--save-large-scale", "--quiet") == 0
+    final = np.load(tmp_path / "markers" / "positions.npy")
+    large = np.load(tmp_path / "markers" / "large_scale.npy")
+    write_mdd(tmp_path / "large.mdd", large, np.arange(len(large)) / 24.0)
+    assert run("replay", tmp_path / "large.mdd", "-m", model, "-o", tmp_path / "take", "--backend", "numpy",
+               "--quiet") == 0
+    size = float(np.ptp(final, axis=(0, 1)).max())
+    assert np.abs(np.load(tmp_path / "take" / "positions.npy") - final).max() < 1e-4 * size
+    smooth = d / "rig" / "take_smooth.mdd"
+    assert run("replay", smooth, "-m", model, "-o", tmp_path / "np", "--backend", "numpy", "--quiet") == 0
+    bands = json.loads((tmp_path / "np" / "replay.json").read_text())["cache"]["bands"]
+    assert 0 < bands["added_fraction"] < 1
+    positions = np.load(tmp_path / "np" / "positions.npy")
+    cache_error = np.sqrt(((read_mdd(smooth)[1] - truth) ** 2).sum(-1).mean())
+    assert np.sqrt(((positions - truth) ** 2).sum(-1).mean()) < cache_error
+    if not opencl.opencl_available():
+        pytest.skip("no OpenCL device (pip install pocl-binary-distribution gives a CPU one)")
+    assert run("replay", smooth, "-m", model, "-o", tmp_path / "cl", "--backend", "opencl", "--quiet") == 0
+    assert np.abs(np.load(tmp_path / "cl" / "positions.npy") - positions).max() < 1e-5 * size

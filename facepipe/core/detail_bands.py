@@ -31,6 +31,7 @@ import scipy.sparse as sp
 
 from facepipe.core.psd import DetailModel, kernel_matrix, solve_rbf
 from facepipe.core.shell import CholeskyFactor, cotmatrix, massmatrix
+from facepipe.core.strain_details import StrainDetailModel, fit_strain_details
 
 #: Cut-off wavelengths of the band edges in marker spacings, half-octave steps up to two spacings
 #: (wrinkles are finer than the markers can see; what the shell misses between markers is at one
@@ -198,13 +199,32 @@ def banded_detail_model(bands: DetailBands, model: DetailModel, frames: np.ndarr
     frames : (V, 3, 3) local frames; added : (n_bands,) weight of each band (1: added, 0: left out).
     """
     basis = model.basis_features
-    examples = replace(model, gate=None).evaluate(basis)  # (P, V, 3) local
-    world = np.einsum("vij,pvj->pvi", frames, examples)
-    local = np.einsum("vji,pvj->pvi", frames, bands.combine(world, added))
-    local[0] = 0.0  # the rest pose's details are zero by construction (solve_rbf's row 0)
+    local = _banded_examples(bands, replace(model, gate=None).evaluate(basis), frames, added)  # (P, V, 3)
     phi = kernel_matrix(model.method, basis, basis, model.alpha)
     if phi.ndim == 3:
         phi = np.moveaxis(phi, 1, 0)  # (V, P, P)
     weights, const = solve_rbf(phi, local)
     return replace(model, weights=weights.astype(model.weights.dtype, copy=False),
                    const=const.astype(model.const.dtype, copy=False))
+
+
+def banded_strain_model(bands: DetailBands, model: StrainDetailModel, frames: np.ndarray,
+                        added: np.ndarray) -> StrainDetailModel:
+    """:func:`banded_detail_model` for the local-strain model: its training details (exactly
+    recovered from its weights, :meth:`StrainDetailModel.training_details`) split into bands once,
+    the added ones kept, and the per-vertex kernel regressions fitted again to them with the same
+    width and ridge. Linear in the training details, so between the training poses the new model
+    is the per-frame filter of the old one to the extent that the filter commutes with the kernel
+    (exactly where every vertex's neighbourhood shares its training strains)."""
+    local = _banded_examples(bands, model.training_details(), frames, added)
+    return fit_strain_details(np.moveaxis(model.samples, 1, 0), local, model.width, model.ridge)
+
+
+def _banded_examples(bands: DetailBands, examples: np.ndarray, frames: np.ndarray, added: np.ndarray) -> np.ndarray:
+    """Examples' details (P, V, 3) in local coordinates, pose 0 the rest pose: their added bands,
+    filtered as world vectors in ``frames`` (world = F @ local) and brought back; the rest pose's
+    details are zero by construction."""
+    world = np.einsum("vij,pvj->pvi", frames, examples)
+    local = np.einsum("vji,pvj->pvi", frames, bands.combine(world, added))
+    local[0] = 0.0
+    return local

@@ -40,11 +40,14 @@ class StrainDetailModel:
     samples : (V, N, 3) the training poses' local strain at every vertex (the rest pose first).
     weights : (V, N, 3) kernel weights (local-frame units).
     width : σ, the kernel's width in strain units.
+    ridge : λ the weights were fitted with (the training details are (K_v + λ I) w_v, which a
+        replay that filters them needs; models saved before it was stored read the default).
     """
 
     samples: np.ndarray
     weights: np.ndarray
     width: float
+    ridge: float = DEFAULT_RIDGE
 
     method = "local_strain"
 
@@ -62,6 +65,22 @@ class StrainDetailModel:
 
         map_blocks(block, range(0, V, chunk))
         return out
+
+    def training_details(self, chunk: int = 1024) -> np.ndarray:
+        """The details (N, V, 3) the model was fitted to, in the training poses' local frames:
+        (K_v + λ I) w_v at every vertex (exact: the weights solve that system)."""
+        V, N = self.samples.shape[:2]
+        out = np.empty((V, N, 3))
+        inv = -0.5 / self.width ** 2
+
+        def block(start):
+            stop = min(V, start + chunk)
+            s = self.samples[start:stop]
+            K = np.exp(inv * squared_distances(s, s)) + np.eye(N) * self.ridge
+            out[start:stop] = K @ self.weights[start:stop]
+
+        map_blocks(block, range(0, V, chunk))
+        return np.moveaxis(out, 1, 0)
 
 
 def kernel_values(strain: np.ndarray, samples: np.ndarray, inv: float) -> np.ndarray:
@@ -113,4 +132,4 @@ def fit_strain_details(strains: np.ndarray, details: np.ndarray, width: float = 
             weights[start:stop] = np.linalg.pinv(K, rcond=1e-10, hermitian=True) @ targets[start:stop]
 
     map_blocks(block, range(0, V, chunk))
-    return StrainDetailModel(samples, weights, float(width))
+    return StrainDetailModel(samples, weights, float(width), float(ridge))

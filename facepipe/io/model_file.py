@@ -20,7 +20,7 @@ from facepipe.io.npz_file import open_npz
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
 from facepipe.core.psd import DetailModel, NoveltyGate, edge_weight_matrix
-from facepipe.core.strain_details import StrainDetailModel
+from facepipe.core.strain_details import DEFAULT_RIDGE, StrainDetailModel
 
 FORMAT_VERSION = 1
 MODEL_KIND = "facepipe-model"
@@ -164,7 +164,8 @@ class Model:
         if self.method != "local_strain":
             return None
         return StrainDetailModel(self.strain_samples.astype(dtype), self.strain_weights.astype(dtype),
-                                 float(self.meta["strain_width"]))
+                                 float(self.meta["strain_width"]),
+                                 float(self.meta.get("strain_ridge", DEFAULT_RIDGE)))
 
     def novelty_gate(self, alpha: sp.spmatrix, dtype=np.float64) -> NoveltyGate | None:
         """The model's novelty gate with the site-to-vertex weights ``alpha`` (the model's own α,
@@ -259,7 +260,7 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
     strain = getattr(fit, "strain_model", None)
     if fit.model.method == "local_strain" and strain is not None:
         arrays.update(strain_samples=strain.samples, strain_weights=strain.weights)
-        meta["strain_width"] = strain.width
+        meta["strain_width"], meta["strain_ridge"] = strain.width, strain.ridge
     if rig.landmarks is not None:  # a 2D take replays with this map unless --landmarks gives another
         arrays["landmark_vertices"] = rig.landmarks.vertices
         meta["landmark_names"] = list(rig.landmarks.names)
@@ -394,13 +395,15 @@ def model_from_fit(fit, rig, method: str | None = None, n_poses: int | None = No
         arrays.update(basis_features=none.basis_features, rbf_weights=none.weights, rbf_const=none.const,
                       strain_samples=strain.samples, strain_weights=strain.weights)
         arrays = {k: v for k, v in arrays.items() if not k.startswith("novelty_")}
-        meta = dict(meta, method=method, basis=["rest"], strain_width=strain.width, novelty_tau=0.0)
+        meta = dict(meta, method=method, basis=["rest"], strain_width=strain.width, strain_ridge=strain.ridge,
+                    novelty_tau=0.0)
     elif method is not None or n_poses is not None:
         method = method or fit.method
         detail = fit.detail_model(method, n_poses)
         arrays.update(basis_features=detail.basis_features, rbf_weights=detail.weights, rbf_const=detail.const,
                       strain_samples=None, strain_weights=None)
         meta.pop("strain_width", None)
+        meta.pop("strain_ridge", None)
         basis = [0] if method == "none" else fit.bases[method][: None if n_poses is None else n_poses + 1]
         meta = dict(meta, method=method, basis=[fit.example_names[i] for i in basis])
     return Model.from_arrays(arrays, meta, "(in memory)")

@@ -193,8 +193,8 @@ class OpenCLEvaluator:
         a GPU (a warp covers 32 frames of one vertex).
     slots : chunks in flight (2: one computing while the previous one is written).
     detail_weights : optional (weights (V, P, 3), const (V, 3)) replacing the model's RBF weights
-        and constant (PSD/WPSD): the band of the details a point cache lacks
-        (:func:`facepipe.core.detail_bands.banded_detail_model`).
+        and constant (PSD/WPSD; a local-strain model's kernel weights and None): the band of the
+        details a point cache lacks (:func:`facepipe.core.detail_bands.banded_detail_model`).
     _stages : benchmark only: 3 (default) computes everything; 1 skips the fine scale, 2 the
         frames, 0 both (wrong results, used to time the stages by difference).
 
@@ -293,13 +293,15 @@ class OpenCLEvaluator:
             basis = np.zeros((1, F), np.float32)
         else:
             ei, ew, count = compact_edges(model.edge_index[order], model.edge_weight[order])
-            w, c = (model.rbf_weights, model.rbf_const) if detail_weights is None else detail_weights
+            w, c = (model.rbf_weights, model.rbf_const) if detail_weights is None or method == "local_strain" \
+                else detail_weights
             rbf_w = np.ascontiguousarray(np.asarray(w)[order], dtype=np.float32)
             rbf_c = np.ascontiguousarray(np.asarray(c)[order], dtype=np.float32)
             basis = np.ascontiguousarray(self.basis, dtype=np.float32)
         strain = self._local_strain_tables(model, order, inv)
-        if method == "local_strain":
-            rbf_w = np.ascontiguousarray(model.strain_weights[order], dtype=np.float32)
+        if method == "local_strain":  # (a cache take's added bands: detail_weights' kernel weights)
+            w = model.strain_weights if detail_weights is None else detail_weights[0]
+            rbf_w = np.ascontiguousarray(np.asarray(w)[order], dtype=np.float32)
         self._static = {name: self._upload(a) for name, a in {
             "B": B, "rest": rest, "ring_ptr": ptr, "ring": ring, "neighbor": neighbor, "edge_count": count,
             "edge_index": ei, "edge_weight": ew, "basis": basis, "rbf_weights": rbf_w, "rbf_const": rbf_c,

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from facepipe.core.detail_bands import DetailBands, banded_detail_model, bands_to_add
+from facepipe.core.detail_bands import DetailBands, banded_detail_model, banded_strain_model, bands_to_add
+from facepipe.core.local_strain import StrainOperator, vertex_strain
 from facepipe.core.rigid import robust_rigid_fit, stable_marker_pose
 from facepipe.core.shell import marker_spacing
 from facepipe.core.strain import strain_features
@@ -92,7 +93,8 @@ class CacheDetails:
 
     Parameters
     ----------
-    model : a baked model (psd, wpsd or none).
+    model : a baked model (psd, wpsd, local_strain or none; local_strain's details follow the
+        local strain of the cache's own surface).
     cache : facepipe.mocap.mesh_cache.MeshCache in the rig's units.
     pose : :func:`cache_pose` of the cache.
     """
@@ -112,10 +114,14 @@ class CacheDetails:
         self.rest_lengths = model.rest_lengths.astype(np.float64)
         self.rest_handles = model.rest[model.handle_vertices].astype(np.float64)
         self.details = model.detail_model(np.float64)
+        self.strain_details = model.strain_detail_model(np.float64)  # method local_strain, else None
+        self.strain_operator = None if self.strain_details is None else \
+            StrainOperator.of(model.rest.astype(np.float64), self.faces, self.neighbors)
         self.keep = None  # (bands,) fraction of each band added; None: every band whole
         self.bands: DetailBands | None = None
-        #: (weights (V, P, 3), const (V, 3)) of the added bands when only some are (see
-        #: :func:`facepipe.core.detail_bands.banded_detail_model`), else None: the model's own
+        #: (weights (V, P, 3), const (V, 3) or None) of the added bands when only some are (see
+        #: :func:`facepipe.core.detail_bands.banded_detail_model`; a local-strain model's kernel
+        #: weights and no constant), else None: the model's own
         self.detail_weights: tuple | None = None
         self.stage_seconds = {"frames": 0.0, "fine_scale": 0.0, "bands": 0.0}
 
@@ -129,8 +135,11 @@ class CacheDetails:
         t0 = time.perf_counter()
         frames = local_frames(surface, self.faces, self.neighbors, self.incidence)
         t1 = time.perf_counter()
-        f = strain_features(head, self.edges, self.rest_lengths)
-        d = to_world(frames, self.details.evaluate(f, head - self.rest_handles))
+        if self.strain_details is not None:
+            local = self.strain_details.evaluate(vertex_strain(surface, self.strain_operator))
+        else:
+            local = self.details.evaluate(strain_features(head, self.edges, self.rest_lengths), head - self.rest_handles)
+        d = to_world(frames, local)
         self.stage_seconds["frames"] += t1 - t0
         self.stage_seconds["fine_scale"] += time.perf_counter() - t1
         return d
@@ -183,8 +192,12 @@ class CacheDetails:
         t0 = time.perf_counter()
         rest = self.model.rest.astype(np.float64)
         frames = local_frames(rest, self.faces, self.neighbors, self.incidence)
-        self.details = banded_detail_model(self.bands, self.details, frames, self.keep)
-        self.detail_weights = (self.details.weights, self.details.const)
+        if self.strain_details is not None:
+            self.strain_details = banded_strain_model(self.bands, self.strain_details, frames, self.keep)
+            self.detail_weights = (self.strain_details.weights, None)
+        else:
+            self.details = banded_detail_model(self.bands, self.details, frames, self.keep)
+            self.detail_weights = (self.details.weights, self.details.const)
         self.bands.close()  # the factors are not needed again
         self.stage_seconds["bands"] += time.perf_counter() - t0
 
