@@ -299,3 +299,28 @@ def test_cache_take_of_a_local_strain_model(strain_rig, tmp_path):
         pytest.skip("no OpenCL device (pip install pocl-binary-distribution gives a CPU one)")
     assert run("replay", smooth, "-m", model, "-o", tmp_path / "cl", "--backend", "opencl", "--quiet") == 0
     assert np.abs(np.load(tmp_path / "cl" / "positions.npy") - positions).max() < 1e-5 * size
+
+
+def test_editor_evaluates_a_local_strain_model_on_the_server(strain_rig, tmp_path, capsys):
+    """The page evaluates PSD and WPSD only: a local-strain model's session is a server one (its
+    frames the replay's, details included), and asking for the page's evaluation is refused."""
+    from facepipe.cli.editor import prepared_take
+    from facepipe.editor.session import EditorSession
+    from facepipe.errors import InputError
+
+    d, *_ = strain_rig
+    model_path = tmp_path / "model.npz"
+    assert run("bake", d / "rig" / "sample.toml", "-o", model_path, "--no-tune", "--quiet") == 0
+    model = load_model(model_path)
+    take = prepared_take(d / "rig" / "take.csv", model)
+    session = EditorSession(model, take, tmp_path / "e.json")
+    assert session.mode == "server"
+    final, large = session.evaluate(session.handles(10))
+    want = NumpyEvaluator(model).evaluate(session.handles(10)[None])[0]
+    np.testing.assert_allclose(final, want, atol=1e-5)
+    assert np.abs(final - large).max() > 1e-3  # the details are there
+    session.close()
+    with pytest.raises(InputError, match="on the server"):
+        EditorSession(model, take, tmp_path / "e.json", mode="browser")
+    assert run("edit", model_path, d / "rig" / "take.csv", "--evaluate", "browser", "--port", 0) == 2
+    assert "--evaluate server" in capsys.readouterr().err

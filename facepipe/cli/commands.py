@@ -694,7 +694,8 @@ def appearance_classify(ctx, model, footage, geometry, output, fps, quiet, verbo
               help="Truth .npz of the take: the page shows the error as a heat map.")
 @click.option("--evaluate", "mode", type=click.Choice(["auto", "browser", "server"]), default="auto",
               show_default=True, help="Where the per-vertex evaluation runs: in the page (JavaScript) or on "
-                                      "the server's engine (streamed positions); auto by the size of B.")
+                                      "the server's engine (streamed positions); auto by the size of B (the "
+                                      "server for a local-strain model, which the page does not evaluate).")
 @click.option("--backend", type=click.Choice(["auto", "opencl", "numpy"]), default="auto", show_default=True,
               help="The server's engine in server mode.")
 @click.option("--take-units", default=None, help="Units of the take, overriding what the file says.")

@@ -32,11 +32,15 @@ from facepipe.core.psd import edge_weight_matrix
 from facepipe.core.strain import strain_features
 from facepipe.editor.drag_patch import DragPatch
 from facepipe.editor.edits_model import EditHistory
+from facepipe.errors import InputError
 from facepipe.io.model_file import Model
 from facepipe.pipeline.replay import NumpyEvaluator
 
 # the browser evaluates meshes whose B fits in this many bytes (float32); larger ones go to the server
 BROWSER_B_BYTES = 96 * 2 ** 20
+# the page's evaluation (static/evaluate.js) has the details of these methods; others (the
+# local-strain model) are evaluated on the server
+BROWSER_METHODS = ("none", "psd", "wpsd")
 
 
 @dataclass
@@ -156,7 +160,8 @@ class EditorSession:
     ----------
     model : the baked model; take : the prepared take (or :func:`rest_take`).
     edits_path : where Save writes EDITS.json (its edits, if it exists, are loaded by the caller).
-    mode : "browser", "server" or "auto" (browser when B fits :data:`BROWSER_B_BYTES`).
+    mode : "browser", "server" or "auto" (browser when B fits :data:`BROWSER_B_BYTES` and the page
+        has the model's method, :data:`BROWSER_METHODS`; "browser" for another method is an InputError).
     engine : the server's evaluator for server mode (default NumPy).
     truth_path : optional truth .npz for the error heat map.
     """
@@ -169,7 +174,11 @@ class EditorSession:
         self.history = EditHistory(edits)
         self.reference = NumpyEvaluator(model)
         if mode == "auto":
-            mode = "browser" if model.B.size * 4 <= BROWSER_B_BYTES else "server"
+            mode = "browser" if model.B.size * 4 <= BROWSER_B_BYTES and model.method in BROWSER_METHODS else "server"
+        if mode == "browser" and model.method not in BROWSER_METHODS:
+            raise InputError(f"the page evaluates PSD and WPSD models; this model's details ({model.method}) are "
+                             "evaluated on the server", path=model.path or None,
+                             hint="use --evaluate server (or auto, which chooses it)")
         self.mode = mode
         self.engine = engine if engine is not None else self.reference
         self.engine_lock = threading.Lock()
