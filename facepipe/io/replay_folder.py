@@ -170,7 +170,8 @@ class ReplayDir:
                              hint="pass the model with -m MODEL.npz")
         candidates = [Path(name)]
         if self.info.get("model_relative"):
-            candidates.insert(0, self.path / self.info["model_relative"])
+            # resolved as the system opens it, so messages name the file without "folder/../"
+            candidates.insert(0, (self.path / self.info["model_relative"]).resolve())
         if not Path(name).is_absolute():
             # an older replay stored the path relative to where it ran, which is most often the
             # replay folder or one of the folders above it
