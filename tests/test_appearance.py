@@ -178,6 +178,49 @@ def test_footage_patterns_folders_and_video(tmp_path):
     assert frames_at(fp, np.array([7, 8]), np.array([5.0, 5.1]))[0].tolist() == [7, 8]  # times past them: by number
 
 
+def test_video_frames_are_decoded_as_a_stream(tmp_path, monkeypatch):
+    """A video is read one frame at a time (a long HD take does not fit in memory whole): the first
+    wanted frame comes before the rest are decoded; frames asked for out of order, again, past
+    the end or before the start come right; the decoder is closed when the caller stops early."""
+    import facepipe.io.footage as footage_module
+
+    video = tmp_path / "clip.mp4"
+    iio.imwrite(video, np.stack([np.full((16, 16, 3), 10 + 20 * v, np.uint8) for v in range(10)]), fps=30)
+    fv = open_footage(video)
+    decoded, closed = [], []
+    real = footage_module.iio.imiter
+
+    def counting(path):
+        try:
+            for image in real(path):
+                decoded.append(1)
+                yield image
+        finally:
+            closed.append(1)
+
+    monkeypatch.setattr(footage_module.iio, "imiter", counting)
+    frames = read_frames(fv, [1, 4, 4, 2, 12, -1, 9])
+    assert next(frames)[0] == 1 and len(decoded) == 2  # frames 0 and 1, no more
+    got = [(n, None if image is None else round(float(image.mean()) * 255 / 10), problem)
+           for n, image, problem in frames]
+    assert [(n, level) for n, level, _ in got] == [(4, 9), (4, 9), (2, 5), (12, None), (-1, None), (9, 19)]
+    assert "beyond the end" in got[3][2] and "before the start" in got[4][2]
+    frames = read_frames(fv, [0, 5])
+    next(frames)
+    frames.close()  # the caller stops early: the decoder goes with it
+    assert len(closed) == 3  # the first pass (left for frame 2), the second (run out at 12), this one
+
+
+def test_grey_and_grey_alpha_images_read_as_rgb(tmp_path):
+    grey = (np.arange(12 * 8).reshape(12, 8) % 256).astype(np.uint8)
+    iio.imwrite(tmp_path / "frame_0001.png", grey)
+    iio.imwrite(tmp_path / "frame_0002.png", np.stack([grey, np.full_like(grey, 255)], axis=-1))
+    frames = list(read_frames(open_footage(tmp_path / "frame_%04d.png")))
+    for _, image, problem in frames:
+        assert problem is None and image.shape == (12, 8, 3)
+        np.testing.assert_allclose(image[..., 1], grey / 255.0, atol=1e-6)
+
+
 def test_examples_from_a_video_and_a_geometry_numbered_from_1(kit, tmp_path):
     """Example footage as a video and example geometry numbered from 1 with its own times (a
     tracker's replay): the same model as with the geometry numbered from 0."""

@@ -173,7 +173,9 @@ def _as_float(image: np.ndarray) -> np.ndarray:
     else:
         out = image.astype(np.float32)
     if out.ndim == 2:
-        out = np.repeat(out[..., None], 3, axis=-1)
+        out = out[..., None]
+    if out.shape[-1] < 3:  # grey, or grey and alpha: the grey as RGB (the alpha left out as for RGBA)
+        out = np.repeat(out[..., :1], 3, axis=-1)
     return out[..., :3]
 
 
@@ -217,21 +219,39 @@ def read_frames_of(footage: Footage, at) -> Iterator[tuple[list, np.ndarray | No
 
 
 def _video_frames(footage: Footage, numbers: np.ndarray):
-    wanted = set(int(n) for n in numbers)
-    got: dict = {}
+    """The video's frames of ``numbers`` in that order, decoded as a stream: one frame held at a
+    time (a long HD take does not fit in memory whole); a number before the last one read starts
+    the decoding again from the first frame."""
+    decoded, at, image, problem = None, -1, None, None
     try:
-        for i, image in enumerate(iio.imiter(footage.source)):
-            if i in wanted:
-                got[i] = _as_float(image)
-            if i >= max(wanted, default=-1):
-                break
-    except Exception as exc:  # a damaged tail: the frames before it are kept
-        problem = f"video ends unreadably ({type(exc).__name__})"
-    else:
-        problem = "beyond the end of the video"
-    for n in numbers:
-        n = int(n)
-        yield (n, got[n], None) if n in got else (n, None, problem)
+        for n in (int(n) for n in numbers):
+            if n < 0:
+                yield n, None, "before the start of the video"
+                continue
+            if n < at:  # backwards: from the start again
+                _close(decoded)
+                decoded, at, image, problem = None, -1, None, None
+            if decoded is None:
+                decoded = iter(iio.imiter(footage.source))
+            while at < n and problem is None:
+                try:
+                    image = next(decoded)
+                    at += 1
+                except StopIteration:
+                    problem = "beyond the end of the video"
+                except Exception as exc:  # noqa: BLE001 - a damaged tail: the frames before it were given
+                    problem = f"video ends unreadably ({type(exc).__name__})"
+            if at == n:
+                yield n, _as_float(image), None
+            else:
+                yield n, None, problem
+    finally:
+        _close(decoded)  # the decoder's process, also when the caller stops early
+
+
+def _close(decoded) -> None:
+    if decoded is not None and hasattr(decoded, "close"):
+        decoded.close()
 
 
 def to_gray(image: np.ndarray) -> np.ndarray:
