@@ -211,6 +211,8 @@ def test_batched_inverse_is_numpys_inverse_and_nan_where_singular():
             assert np.array_equal(i, expected)
     assert 0 < singular < len(A)
     assert batched_inverse(A[:0]).shape == (0, 5, 5)
+    regular = A[np.isfinite(inv).all(axis=(1, 2))]  # no singular one: the stack in one call, the same bits
+    assert np.array_equal(batched_inverse(regular), inv[np.isfinite(inv).all(axis=(1, 2))])
 
 
 def test_edge_weights_normalised_bounded_and_local():

@@ -263,20 +263,23 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
 def batched_inverse(A: np.ndarray) -> np.ndarray:
     """Inverses of a stack of square matrices (n, P, P), NaN where a matrix is exactly singular.
 
-    ``np.linalg.inv`` raises for the whole stack when one matrix is singular. ``slogdet``
-    factors every matrix as ``inv`` does (LAPACK's LU with partial pivoting) and tells the
-    exactly singular ones (a zero pivot: log-determinant −inf); the others are inverted in one
-    call. Each matrix is inverted on its own (LAPACK per matrix), so its inverse is the same bit
-    for bit whichever others share the stack.
+    ``np.linalg.inv`` raises for the whole stack when one matrix is singular: the stack is
+    inverted in one call, and only where that raises does ``slogdet`` (which factors every matrix
+    as ``inv`` does, LAPACK's LU with partial pivoting) tell the exactly singular ones (a zero
+    pivot: log-determinant −inf), the others then inverted in one call. Each matrix is inverted
+    on its own (LAPACK per matrix), so its inverse is the same bit for bit whichever others share
+    the stack.
     """
     inv = np.full(A.shape, np.nan)
     if A.shape[0] == 0:
         return inv
+    try:
+        return np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        pass
     _, logdet = np.linalg.slogdet(A)
     regular = np.isfinite(logdet)
     try:
-        if regular.all():
-            return np.linalg.inv(A)
         if regular.any():
             inv[regular] = np.linalg.inv(A[regular])
     except np.linalg.LinAlgError:  # pragma: no cover - a LAPACK whose LU pivots differ between the two
