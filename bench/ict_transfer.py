@@ -120,7 +120,7 @@ def main(argv=None) -> int:
     from facepipe.io.mesh_write import save_obj
     from facepipe.io.model_file import load_model
     from facepipe.core.rbf_morph import farthest_point_subset
-    from facepipe.pipeline.transfer import project_points
+    from facepipe.core.closest import project_points
     from facepipe.core.tangent_frames import vertex_normals
     from scipy.spatial import cKDTree
 

@@ -23,7 +23,8 @@ from facepipe.io.mesh_write import save_obj
 from facepipe.io.model_file import Model, load_model
 from facepipe.core.rbf_morph import farthest_point_subset
 from facepipe.pipeline.replay import NumpyEvaluator
-from facepipe.pipeline.transfer import (closest_point_on_triangles, correspond, interpolate_alpha, match_points, transfer_model)
+from facepipe.core.closest import closest_point_on_triangles
+from facepipe.pipeline.transfer import correspond, interpolate_alpha, match_points, transfer_model
 from tests.conftest import ict_or_skip, run_cli
 
 N_POINTS = 40

@@ -38,7 +38,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from facepipe.errors import InputError
-from facepipe.core.closest import MIN_NORMAL_COS, closest_point_on_triangles, project_points  # noqa: F401 (re-exported)
+from facepipe.core.closest import project_points
 from facepipe.core.nonrigid import Refinement, refine_to_surface
 from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, to_world, vertex_normals
 from facepipe.core.mesh import check_components, check_marker_vertices, check_mesh
