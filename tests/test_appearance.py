@@ -221,6 +221,17 @@ def test_grey_and_grey_alpha_images_read_as_rgb(tmp_path):
         np.testing.assert_allclose(image[..., 1], grey / 255.0, atol=1e-6)
 
 
+def test_sixteen_bit_tiff_sequences_read_scaled(tmp_path, recwarn):
+    """16-bit TIFF plates (common in film) read as floats in [0, 1], through the tifffile package
+    (imageio's own TIFF reader is deprecated: no warning of it)."""
+    plate = (np.arange(10 * 12 * 3).reshape(10, 12, 3) * 613 % 65536).astype(np.uint16)
+    iio.imwrite(tmp_path / "plate.0007.tif", plate)
+    (number, image, problem), = read_frames(open_footage(tmp_path))
+    assert number == 7 and problem is None
+    np.testing.assert_allclose(image, plate / 65535.0, atol=1e-6)
+    assert not [w for w in recwarn if "tifffile" in str(w.message)]
+
+
 def test_examples_from_a_video_and_a_geometry_numbered_from_1(kit, tmp_path):
     """Example footage as a video and example geometry numbered from 1 with its own times (a
     tracker's replay): the same model as with the geometry numbered from 0."""
