@@ -216,6 +216,27 @@ def test_missing_take_is_said_before_any_cluster(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_an_export_the_model_cannot_give_is_refused_before_any_take(takes, tmp_path, capsys):
+    """Wrinkle maps of a WPSD model, displacement maps of a model without details or without UVs:
+    no replay of any take could be exported so, so the batch stops at once (exit 2, nothing
+    written) instead of replaying every take and failing each one's export."""
+    from facepipe.io.model_file import load_model, save_model
+
+    root, model, paths = takes
+    assert run_cli("batch", paths[0], "-m", model, "-o", tmp_path / "w", "--export", "wrinkle") == 2
+    assert "wrinkle maps need one blend coefficient" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
+    m = load_model(model)
+    arrays = {f.name: getattr(m, f.name) for f in dataclasses.fields(m) if isinstance(getattr(m, f.name), np.ndarray)}
+    save_model(tmp_path / "none.npz", arrays, dict(m.meta, method="none"))
+    assert run_cli("batch", paths[0], "-m", tmp_path / "none.npz", "-o", tmp_path / "n", "--export", "exr") == 2
+    assert "no fine-scale details" in capsys.readouterr().err and not (tmp_path / "n").exists()
+    save_model(tmp_path / "no_uvs.npz", {k: v for k, v in arrays.items() if k != "uvs" and k != "polygon_uvs"},
+               m.meta)
+    assert run_cli("batch", paths[0], "-m", tmp_path / "no_uvs.npz", "-o", tmp_path / "u", "--export", "exr") == 2
+    assert "no texture coordinates" in capsys.readouterr().err and not (tmp_path / "u").exists()
+
+
 _MAPPED_BYTES = """
 import ctypes, sys
 import numpy as np

@@ -687,6 +687,8 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
     batch_id = uuid.uuid4().hex[:8]  # task keys unique on a long-lived cluster; attempts know their batch
     jobs = plan_jobs(expand_takes(take_specs), out, batch_id)
     model = load_model(model_path)  # a bad model is the user's to fix (exit 2), before any cluster starts
+    for fmt in exports:  # as is an export no replay of it can give (maps of a model without details or UVs)
+        export_registry.get_format(fmt).check_model(model)
     if options.camera is not None:  # so are the 2D takes' camera and landmark map
         read_camera(options.camera)
     if options.landmarks is not None:

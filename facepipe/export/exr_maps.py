@@ -55,8 +55,8 @@ from facepipe.errors import InputError
 from facepipe.io.exr import write_exr
 from facepipe.export.common import check_targets, frame_paths, remove_partial_files
 from facepipe.export.registry import ExportOptions
-from facepipe.export.uv_raster import TiledRaster, mesh_raster
-from facepipe.pipeline.detail_layers import DetailLayer, StoredDetailLayer
+from facepipe.export.uv_raster import TiledRaster, mesh_raster, require_uvs
+from facepipe.pipeline.detail_layers import DetailLayer, StoredDetailLayer, require_details
 
 MODES = ("vector", "scalar")
 
@@ -276,6 +276,19 @@ def gate_deviation(model, head: np.ndarray, coeff: np.ndarray, weights: np.ndarr
                     "a frame-constant blend cannot carry that factor, so the maps hold the ungated details",
             "max_abs": float(dev[worst]), "relative": float(dev[worst] / (hi - lo)) if hi > lo else 0.0,
             "worst_frame_index": worst, "per_frame_max_abs": [float(x) for x in dev]}
+
+
+def check_map_model(model) -> None:
+    """InputError unless the model can give displacement maps: details, and UVs to lay them out in
+    (the ``exr`` format's check of a model, before any take is replayed)."""
+    require_details(model)
+    require_uvs(model.mesh())
+
+
+def check_wrinkle_set_model(model) -> None:
+    """:func:`check_wrinkle_model` and UVs (the ``wrinkle`` format's check of a model)."""
+    check_wrinkle_model(model)
+    require_uvs(model.mesh())
 
 
 def check_wrinkle_model(model) -> None:

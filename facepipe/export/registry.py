@@ -82,19 +82,32 @@ class Format:
         A file format's suffixes (lower case, with the dot; the first is the default); empty
         for a format that writes a folder.
     exporter : Exporter, or ``"module:function"`` naming one (imported on first use).
+    model_check : optional ``check(model)`` (or ``"module:function"``) raising InputError for a
+        model the format cannot export from whatever the take (e.g. maps of a model without UVs),
+        so that ``facepipe batch`` refuses it before replaying any take.
     """
 
     name: str
     summary: str
     suffixes: tuple[str, ...]
     exporter: Exporter | str
+    model_check: Callable | str | None = None
 
     def export(self, replay, dest: Path, options: ExportOptions) -> tuple[list[Path], dict]:
-        exporter = self.exporter
-        if isinstance(exporter, str):
-            module, function = exporter.split(":")
-            exporter = getattr(importlib.import_module(module), function)
-        return exporter(replay, dest, options)
+        return _resolve(self.exporter)(replay, dest, options)
+
+    def check_model(self, model) -> None:
+        """InputError where this format cannot export from any replay of ``model``."""
+        if self.model_check is not None:
+            _resolve(self.model_check)(model)
+
+
+def _resolve(function):
+    """A function, or the one ``"module:function"`` names (imported on first use)."""
+    if isinstance(function, str):
+        module, name = function.split(":")
+        function = getattr(importlib.import_module(module), name)
+    return function
 
 
 #: Registered formats by name, in the order the command line lists them.
@@ -139,8 +152,10 @@ def destination_help() -> str:
 
 
 register(Format("obj", "OBJ sequence", (), "facepipe.export.common:export_obj"))
-register(Format("exr", "displacement maps per frame", (), "facepipe.export.exr_maps:export_exr"))
-register(Format("wrinkle", "wrinkle-map set (PSD)", (), "facepipe.export.exr_maps:export_wrinkle"))
+register(Format("exr", "displacement maps per frame", (), "facepipe.export.exr_maps:export_exr",
+                "facepipe.export.exr_maps:check_map_model"))
+register(Format("wrinkle", "wrinkle-map set (PSD)", (), "facepipe.export.exr_maps:export_wrinkle",
+                "facepipe.export.exr_maps:check_wrinkle_set_model"))
 register(Format("usd", ".usdc with time-sampled points", (".usdc", ".usd", ".usda"), "facepipe.export.usd:export_usd"))
 register(Format("mdd", "point caches", (".mdd",), "facepipe.export.mdd:export_mdd"))
 register(Format("pc2", "point caches", (".pc2",), "facepipe.export.pc2:export_pc2"))

@@ -493,12 +493,7 @@ def mesh_raster(mesh, width: int, height: int, padding: int = 8, slots: str = "v
     InputError
         The mesh has no UVs, or UVs outside the UDIM range.
     """
-    if mesh.uvs is None or mesh.polygon_uvs is None:
-        raise InputError("the rest mesh has no texture coordinates (UVs), so it has no map layout",
-                         path=mesh.path or None,
-                         hint="give the rig (or, for a transferred model, the transfer target) an OBJ with 'vt' "
-                              "lines and per-corner 'f v/vt' indices, then bake or transfer again; or export "
-                              "geometry (--format obj|usd|mdd|pc2)")
+    require_uvs(mesh)
     if width < 1 or height < 1:
         raise InputError(f"map resolution {width}x{height} is not positive")
     corner_uv = mesh.uvs[mesh.face_uvs]
@@ -531,3 +526,13 @@ def corner_uv_lookups(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
     tile = uv_tile[pairs[:, 1]]
     offset = np.stack([(tile - 1001) % 10, (tile - 1001) // 10], axis=1)
     return pairs[:, 0], uv - offset, tile, pairs[:, 1]
+
+
+def require_uvs(mesh) -> None:
+    """InputError unless the mesh has texture coordinates (the maps' layout)."""
+    if mesh.uvs is None or mesh.polygon_uvs is None:
+        raise InputError("the rest mesh has no texture coordinates (UVs), so it has no map layout",
+                         path=mesh.path or None,
+                         hint="give the rig (or, for a transferred model, the transfer target) an OBJ with 'vt' "
+                              "lines and per-corner 'f v/vt' indices, then bake or transfer again; or export "
+                              "geometry (--format obj|usd|mdd|pc2)")

@@ -33,6 +33,14 @@ from facepipe.pipeline.replay import NumpyEvaluator
 SPACES = ("local", "tangent", "object")
 
 
+def require_details(model) -> None:
+    """InputError for a model without fine-scale details (method "none")."""
+    if model.method == "none":
+        raise InputError("the model has no fine-scale details (method 'none'): its displacement maps are zero",
+                         path=model.path or None,
+                         hint="bake the rig with [psd] method = 'wpsd' or 'psd' to export detail maps")
+
+
 class DetailLayer:
     """Fine-scale displacements of frames of head-space handles.
 
@@ -55,10 +63,7 @@ class DetailLayer:
     """
 
     def __init__(self, model, space: str = "local", mesh=None):
-        if model.method == "none":
-            raise InputError("the model has no fine-scale details (method 'none'): its displacement maps are zero",
-                             path=model.path or None,
-                             hint="bake the rig with [psd] method = 'wpsd' or 'psd' to export detail maps")
+        require_details(model)
         if space not in SPACES:
             raise ValueError(f"unknown space {space!r}")
         if space == "tangent" and (mesh is None or mesh.uvs is None):
