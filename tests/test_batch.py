@@ -235,6 +235,9 @@ def test_an_export_the_model_cannot_give_is_refused_before_any_take(takes, tmp_p
                m.meta)
     assert run_cli("batch", paths[0], "-m", tmp_path / "no_uvs.npz", "-o", tmp_path / "u", "--export", "exr") == 2
     assert "no texture coordinates" in capsys.readouterr().err and not (tmp_path / "u").exists()
+    # layered textures need each take's classified footage, which a batch does not make
+    assert run_cli("batch", paths[0], "-m", model, "-o", tmp_path / "t", "--export", "textures") == 2
+    assert "appearance classify" in capsys.readouterr().err and not (tmp_path / "t").exists()
 
 
 _MAPPED_BYTES = """

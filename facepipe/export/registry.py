@@ -85,6 +85,8 @@ class Format:
     model_check : optional ``check(model)`` (or ``"module:function"``) raising InputError for a
         model the format cannot export from whatever the take (e.g. maps of a model without UVs),
         so that ``facepipe batch`` refuses it before replaying any take.
+    not_in_batch : why ``facepipe batch`` cannot write this format (it needs more than a replay
+        gives), or None.
     """
 
     name: str
@@ -92,6 +94,7 @@ class Format:
     suffixes: tuple[str, ...]
     exporter: Exporter | str
     model_check: Callable | str | None = None
+    not_in_batch: str | None = None
 
     def export(self, replay, dest: Path, options: ExportOptions) -> tuple[list[Path], dict]:
         return _resolve(self.exporter)(replay, dest, options)
@@ -160,4 +163,7 @@ register(Format("usd", ".usdc with time-sampled points", (".usdc", ".usd", ".usd
 register(Format("mdd", "point caches", (".mdd",), "facepipe.export.mdd:export_mdd"))
 register(Format("pc2", "point caches", (".pc2",), "facepipe.export.pc2:export_pc2"))
 register(Format("textures", "layered textures per frame from a classified take (appearance.csv)", (),
-                "facepipe.export.textures:export_textures"))
+                "facepipe.export.textures:export_textures",
+                not_in_batch="layered textures come from a take's footage classified on its replay (facepipe "
+                             "appearance classify), which a batch does not do: replay the takes, classify each "
+                             "one's footage into its folder, then facepipe export OUT/<take> --format textures"))
