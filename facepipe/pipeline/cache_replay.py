@@ -30,11 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from facepipe.core.detail_bands import DetailBands, banded_detail_model, banded_strain_model, bands_to_add
-from facepipe.core.local_strain import StrainOperator, vertex_strain
 from facepipe.core.rigid import robust_rigid_fit, stable_marker_pose
 from facepipe.core.shell import marker_spacing
-from facepipe.core.strain import strain_features
-from facepipe.core.tangent_frames import local_frames, to_world, vertex_face_matrix
+from facepipe.core.tangent_frames import local_frames
 from facepipe.errors import InputError
 from facepipe.mocap.mesh_cache import read_mesh_cache
 from facepipe.pipeline.replay import NumpyEvaluator, replay_windows
@@ -88,8 +86,11 @@ def cache_pose(model, cache, chunk: int = 256) -> CachePose:
     return CachePose(head, R, t, notes)
 
 
-class CacheDetails:
-    """The details of a model evaluated on a cache's own surface (the ``take`` way of replaying it).
+class CacheDetails(NumpyEvaluator):
+    """The details of a model evaluated on a cache's own surface (the ``take`` way of replaying it):
+    the reference evaluator's :meth:`~facepipe.pipeline.replay.NumpyEvaluator.world_details` on
+    each frame of the cache, the frames streamed by :meth:`stream` (``evaluate``, the shell's large
+    scale from handles, is not what a cache take uses).
 
     Parameters
     ----------
@@ -99,24 +100,12 @@ class CacheDetails:
     pose : :func:`cache_pose` of the cache.
     """
 
-    backend = "numpy"
     device = "cpu (numpy, the cache's surface)"
-    on_host_cores = True
 
     def __init__(self, model, cache, pose: CachePose):
-        self.model = model
+        super().__init__(model)
         self.cache = cache
         self.pose = pose
-        self.faces = model.triangles.astype(np.int64)
-        self.neighbors = model.frame_neighbors.astype(np.int64)
-        self.incidence = vertex_face_matrix(self.faces, model.n_vertices)
-        self.edges = model.edges.astype(np.int64)
-        self.rest_lengths = model.rest_lengths.astype(np.float64)
-        self.rest_handles = model.rest[model.handle_vertices].astype(np.float64)
-        self.details = model.detail_model(np.float64)
-        self.strain_details = model.strain_detail_model(np.float64)  # method local_strain, else None
-        self.strain_operator = None if self.strain_details is None else \
-            StrainOperator.of(model.rest.astype(np.float64), self.faces, self.neighbors)
         self.keep = None  # (bands,) fraction of each band added; None: every band whole
         self.bands: DetailBands | None = None
         #: (weights (V, P, 3), const (V, 3) or None) of the added bands when only some are (see
@@ -124,25 +113,6 @@ class CacheDetails:
         #: weights and no constant), else None: the model's own
         self.detail_weights: tuple | None = None
         self.stage_seconds = {"frames": 0.0, "fine_scale": 0.0, "bands": 0.0}
-
-    @property
-    def novelty_fits_at_cap(self):
-        gate = None if self.details is None else self.details.gate
-        return None if gate is None else gate.unconverged_fits
-
-    def world_details(self, surface: np.ndarray, head: np.ndarray) -> np.ndarray:
-        """The details (C, V, 3) as vectors in the space of ``surface`` (C, V, 3), for head-space handles."""
-        t0 = time.perf_counter()
-        frames = local_frames(surface, self.faces, self.neighbors, self.incidence)
-        t1 = time.perf_counter()
-        if self.strain_details is not None:
-            local = self.strain_details.evaluate(vertex_strain(surface, self.strain_operator))
-        else:
-            local = self.details.evaluate(strain_features(head, self.edges, self.rest_lengths), head - self.rest_handles)
-        d = to_world(frames, local)
-        self.stage_seconds["frames"] += t1 - t0
-        self.stage_seconds["fine_scale"] += time.perf_counter() - t1
-        return d
 
     def estimate(self, frames: int = ESTIMATE_FRAMES, batch: int = 6) -> dict:
         """Choose the bands of the details to add (:func:`facepipe.core.detail_bands.bands_to_add`),
@@ -157,16 +127,15 @@ class CacheDetails:
             return {"method": "none", "note": "the model has no details: the cache is written as it is"}
         spacing = float(model.meta.get("marker_spacing") or marker_spacing(model.rest, model.handle_vertices))
         # single precision: the details are float32 in every output (see DetailBands)
-        self.bands = DetailBands(model.rest.astype(np.float64), self.faces, spacing, single=True)
+        self.bands = DetailBands(self.rest, self.faces, spacing, single=True)
         index = np.unique(np.linspace(0, cache.n_frames - 1, min(frames, cache.n_frames)).round().astype(int))
-        B = model.B.astype(np.float64)
-        rest = model.rest.astype(np.float64)
+        B = model.B.astype(np.float64)  # (for these frames only: not kept as the evaluator's B)
         sums = 0.0
         for s in range(0, len(index), batch):
             k = index[s:s + batch]
             R, t, head = pose.rotation[k], pose.translation[k], pose.head[k]
             surface = np.einsum("cji,cvj->cvi", R, np.stack([cache.frame(int(i)) for i in k]) - t[:, None, :])
-            shell = rest + np.einsum("vh,chx->cvx", B, head - self.rest_handles, optimize=True)
+            shell = self.rest + np.einsum("vh,chx->cvx", B, head - self.rest_handles, optimize=True)
             D = self.world_details(surface, head)
             sums = sums + self.bands.paired_band_sums(D, surface - shell)
         choice = bands_to_add(sums)
@@ -190,8 +159,7 @@ class CacheDetails:
         """Replace the details by their added bands, once for the whole take: the examples' details
         filtered in the rest surface's frames and the model fitted to them (no band filter per frame)."""
         t0 = time.perf_counter()
-        rest = self.model.rest.astype(np.float64)
-        frames = local_frames(rest, self.faces, self.neighbors, self.incidence)
+        frames = local_frames(self.rest, self.faces, self.neighbors, self.incidence)
         if self.strain_details is not None:
             self.strain_details = banded_strain_model(self.bands, self.strain_details, frames, self.keep)
             self.detail_weights = (self.strain_details.weights, None)

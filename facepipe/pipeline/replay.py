@@ -11,6 +11,7 @@ import os
 from contextlib import nullcontext
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -37,8 +38,8 @@ class NumpyEvaluator:
     def __init__(self, model: Model):
         self.model = model
         self.rest = model.rest.astype(np.float64)
-        self.B = model.B.astype(np.float64)
         self.handles = model.handle_vertices.astype(np.int64)
+        self.rest_handles = self.rest[self.handles]
         self.faces = model.triangles.astype(np.int64)
         self.neighbors = model.frame_neighbors.astype(np.int64)
         self.edges = model.edges.astype(np.int64)
@@ -50,6 +51,12 @@ class NumpyEvaluator:
         self.strain_operator = None if self.strain_details is None else \
             StrainOperator.of(self.rest, self.faces, self.neighbors)
         self.stage_seconds = {"large_scale": 0.0, "frames": 0.0, "fine_scale": 0.0}
+
+    @cached_property
+    def B(self) -> np.ndarray:
+        """The large-scale basis in float64, made at the first evaluation (a mesh cache's details
+        never need it)."""
+        return self.model.B.astype(np.float64)
 
     @property
     def novelty_fits_at_cap(self) -> int | None:
@@ -63,23 +70,30 @@ class NumpyEvaluator:
         With ``with_large`` also returns the large-scale positions.
         """
         t0 = time.perf_counter()
-        u = handle_positions - self.rest[self.handles]
+        u = handle_positions - self.rest_handles
         large = np.einsum("vh,chx->cvx", self.B, u, optimize=True) + self.rest
-        t1 = time.perf_counter()
+        self.stage_seconds["large_scale"] += time.perf_counter() - t0
         final = large
         if self.details.method != "none":
-            frames = local_frames(large, self.faces, self.neighbors, self.incidence)
-            t2 = time.perf_counter()
-            if self.strain_details is not None:
-                local = self.strain_details.evaluate(vertex_strain(large, self.strain_operator))
-            else:
-                local = self.details.evaluate(strain_features(handle_positions, self.edges, self.rest_lengths), u)
-            final = large + to_world(frames, local)
-            t3 = time.perf_counter()
-            self.stage_seconds["frames"] += t2 - t1
-            self.stage_seconds["fine_scale"] += t3 - t2
-        self.stage_seconds["large_scale"] += t1 - t0
+            final = large + self.world_details(large, handle_positions)
         return (final, large) if with_large else final
+
+    def world_details(self, surface: np.ndarray, handle_positions: np.ndarray) -> np.ndarray:
+        """The details (C, V, 3) as vectors in the space of a large-scale ``surface`` (C, V, 3), in
+        its local frames: at the surface's own local strain for a local-strain model, else at the
+        feature strain of the head-space handles (C, H, 3)."""
+        t0 = time.perf_counter()
+        frames = local_frames(surface, self.faces, self.neighbors, self.incidence)
+        t1 = time.perf_counter()
+        if self.strain_details is not None:
+            local = self.strain_details.evaluate(vertex_strain(surface, self.strain_operator))
+        else:
+            local = self.details.evaluate(strain_features(handle_positions, self.edges, self.rest_lengths),
+                                          handle_positions - self.rest_handles)
+        d = to_world(frames, local)
+        self.stage_seconds["frames"] += t1 - t0
+        self.stage_seconds["fine_scale"] += time.perf_counter() - t1
+        return d
 
 
 def prefetched(items):
