@@ -683,8 +683,9 @@ def run_batch(take_specs, model_path, out, options: ReplayOptions, exports=(), f
     out = Path(out).resolve()
     exports = tuple(dict.fromkeys(exports))
     for fmt in exports:
-        if export_registry.get_format(fmt).not_in_batch:
-            raise InputError(f"--export {fmt}: {export_registry.get_format(fmt).not_in_batch}")
+        why_not = export_registry.get_format(fmt).not_in_batch
+        if why_not:
+            raise InputError(f"--export {fmt}: {why_not}")
     batch_id = uuid.uuid4().hex[:8]  # task keys unique on a long-lived cluster; attempts know their batch
     jobs = plan_jobs(expand_takes(take_specs), out, batch_id)
     model = load_model(model_path)  # a bad model is the user's to fix (exit 2), before any cluster starts

@@ -69,15 +69,13 @@ class StrainDetailModel:
     def training_details(self, chunk: int = 1024) -> np.ndarray:
         """The details (N, V, 3) the model was fitted to, in the training poses' local frames:
         (K_v + λ I) w_v at every vertex (exact: the weights solve that system)."""
-        V, N = self.samples.shape[:2]
-        out = np.empty((V, N, 3))
+        V = self.samples.shape[0]
+        out = np.empty(self.weights.shape)
         inv = -0.5 / self.width ** 2
 
         def block(start):
             stop = min(V, start + chunk)
-            s = self.samples[start:stop]
-            K = np.exp(inv * squared_distances(s, s)) + np.eye(N) * self.ridge
-            out[start:stop] = K @ self.weights[start:stop]
+            out[start:stop] = ridge_kernel(self.samples[start:stop], inv, self.ridge) @ self.weights[start:stop]
 
         map_blocks(block, range(0, V, chunk))
         return np.moveaxis(out, 1, 0)
@@ -87,6 +85,11 @@ def kernel_values(strain: np.ndarray, samples: np.ndarray, inv: float) -> np.nda
     """exp(inv · |s_q,v − s_v,i|²): strains (Q, n, 3), samples (n, N, 3) → (Q, n, N)."""
     d2 = squared_distances(np.moveaxis(strain, 0, 1), samples)  # (n, Q, N)
     return np.exp(inv * np.moveaxis(d2, 1, 0))
+
+
+def ridge_kernel(samples: np.ndarray, inv: float, ridge: float) -> np.ndarray:
+    """K_v + λ I of every vertex's training strains (n, N, 3) → (n, N, N): the fit's system matrix."""
+    return np.exp(inv * squared_distances(samples, samples)) + np.eye(samples.shape[1]) * ridge
 
 
 def squared_distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -118,12 +121,10 @@ def fit_strain_details(strains: np.ndarray, details: np.ndarray, width: float = 
     V, N = samples.shape[:2]
     weights = np.empty((V, N, 3))
     inv = -0.5 / width ** 2
-    eye = np.eye(N) * ridge
 
     def block(start):
         stop = min(V, start + chunk)
-        s = samples[start:stop]
-        K = np.exp(inv * squared_distances(s, s)) + eye
+        K = ridge_kernel(samples[start:stop], inv, ridge)
         # K + λI is symmetric positive definite for λ > 0 (the Gaussian kernel is positive
         # semi-definite): a batched Cholesky-free solve is stable; the pseudo-inverse covers λ = 0
         if ridge > 0:
