@@ -139,6 +139,60 @@ def test_scaled_rotated_copy_follows_the_similarity(source):
     np.testing.assert_allclose(final_t, sim(final_s), atol=2e-3 * s * detail + 1e-5)
 
 
+@pytest.mark.parametrize("scale_details", [True, False])
+def test_target_in_other_units_gives_a_model_in_them(source, rig, tmp_path, scale_details):
+    """The same face in millimetres (the model's in cm) with --target-units mm: a model in mm whose
+    replay of the take in mm is the source's ×10, details included — with --no-scale-details too
+    (the faces' size is the same: only the units' ratio scales the details)."""
+    model, mesh, truth, _, points_path = source
+    assert model.meta["units"] == "cm"
+    target_path = tmp_path / "face_mm.obj"
+    save_obj(target_path, mesh.with_vertices(10.0 * mesh.vertices))
+    out = tmp_path / "mm.npz"
+    flag = "--scale-details" if scale_details else "--no-scale-details"
+    assert run_cli("transfer", rig.models["wpsd"], "--target", target_path, "--source-points", points_path,
+                   "--target-points", points_path, "-o", out, "--target-units", "Millimeters", flag, "-q") == 0
+    summary = json.loads(out.with_suffix(".json").read_text())
+    assert summary["units"] == {"source": "cm", "target": "mm"} and not summary["notes"]
+    assert summary["detail_scale"] == pytest.approx(10.0, rel=1e-3)
+    mm = load_model(out)
+    assert mm.meta["units"] == "mm"
+    head = truth[:, model.handle_vertices]
+    final_s, large_s = evaluate(model, head)
+    final_t, _ = evaluate(mm, 10.0 * head)
+    detail = np.abs(final_s - large_s).max()
+    np.testing.assert_allclose(final_t, 10.0 * final_s, atol=10.0 * (2e-3 * detail + 1e-5))
+
+
+def test_a_size_that_units_explain_is_named(source, rig, tmp_path):
+    """The face in mm without --target-units: the note names the likely unit and the option; the
+    face in cm said to be in mm: the note says the size is off in the units given."""
+    model, mesh, _, _, points_path = source
+    target_path = tmp_path / "face_mm.obj"
+    save_obj(target_path, mesh.with_vertices(10.0 * mesh.vertices))
+    out = tmp_path / "as_cm.npz"
+    assert run_cli("transfer", rig.models["wpsd"], "--target", target_path, "--source-points", points_path,
+                   "--target-points", points_path, "-o", out, "-q") == 0
+    notes = json.loads(out.with_suffix(".json").read_text())["notes"]
+    assert any("--target-units mm" in n for n in notes), notes
+    assert load_model(out).meta["units"] == "cm"
+    out = tmp_path / "said_mm.npz"
+    assert run_cli("transfer", rig.models["wpsd"], "--target", rig.root / "rig" / "neutral.obj", "--source-points", points_path, "--target-points", points_path,
+                   "-o", out, "--target-units", "mm", "-q") == 0
+    notes = json.loads(out.with_suffix(".json").read_text())["notes"]
+    assert any("in mm, is 0.1× the size" in n and "--target-units cm" in n for n in notes), notes
+
+
+def test_unknown_target_units_are_refused(source, rig, tmp_path, capsys):
+    _, _, _, _, points_path = source
+    assert run_cli("transfer", rig.models["wpsd"], "--target", rig.root / "rig" / "neutral.obj", "--source-points",
+                   points_path, "--target-points", points_path, "-o", tmp_path / "x.npz", "--target-units",
+                   "furlongs") == 2
+    err = capsys.readouterr().err
+    assert "furlongs" in err and "mm" in err
+    assert not (tmp_path / "x.npz").exists()
+
+
 def test_perturbed_copy_keeps_its_details(source):
     model, mesh, truth, points, _ = source
     from facepipe.core.tangent_frames import vertex_normals

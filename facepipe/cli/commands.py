@@ -568,10 +568,13 @@ def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertic
                    "correspond too.")
 @click.option("--scale-details/--no-scale-details", default=True, show_default=True,
               help="Scale the details by the size ratio of the faces (from the points' similarity).")
+@click.option("--target-units", default=None, metavar="UNIT",
+              help="Length unit of the target mesh (mm, cm, m, in, ...) [default: the model's]: the new model is in "
+                   "it (takes, exports and lengths such as --max-distance in it).")
 @_common
 @click.pass_context
 def transfer(ctx, model_path, target, source_points, target_points, output, target_markers, deform, max_distance,
-             allow_far, refine, scale_details, quiet, verbose):
+             allow_far, refine, scale_details, target_units, quiet, verbose):
     """Transfer a MODEL's learned details onto another face: an ordinary model of the target."""
     from facepipe.pipeline.transfer import transfer_files
 
@@ -579,7 +582,8 @@ def transfer(ctx, model_path, target, source_points, target_points, output, targ
     if max_distance is not None and max_distance <= 0:
         raise InputError("--max-distance must be a positive length")
     s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
-                       max_distance=max_distance, allow_far=allow_far, scale_details=scale_details, refine=refine)
+                       max_distance=max_distance, allow_far=allow_far, scale_details=scale_details, refine=refine,
+                       target_units=target_units)
     d = s["projection_distance"]
     rep.say(f"{s['points']} points; similarity scale {s['similarity']['scale']:.4f}, rotation "
             f"{s['similarity']['rotation_deg']:.1f}°; fitted by the {s['deformation']}")
@@ -594,6 +598,9 @@ def transfer(ctx, model_path, target, source_points, target_points, output, targ
     m = s["markers"]
     rep.say(f"markers: {m.get('given', m.get('mapped'))} {'given' if 'given' in m else 'mapped'}; anchors "
             f"{s['anchors']['target']}; method {s['method']}, details scaled by {s['detail_scale']:.4f}")
+    if s["units"]["target"] != s["units"]["source"]:
+        rep.say(f"units: the target and the new model in {s['units']['target']} (the source model in "
+                f"{s['units']['source']})")
     for note in s["notes"]:
         rep.say(f"note: {note}")
     rep.say(f"wrote {output} and {Path(output).with_suffix('.json')} ({s['seconds_total']:.1f} s)")

@@ -50,6 +50,7 @@ from facepipe.core.shell import marker_spacing, shell_basis
 from facepipe.core.strain import edge_lengths
 from facepipe.io.atomic import atomic_path
 from facepipe.io.model_file import load_model, save_model
+from facepipe.mocap.markers import known_unit_ratios, normalise_units, unit_factor
 from facepipe.pipeline.fit import solve_large_scale_basis
 from facepipe.pipeline.rig import load_markers, name_vertex_rows
 
@@ -353,7 +354,7 @@ def interpolate_alpha(W: sp.csr_matrix, alpha: sp.csr_matrix, max_edges: int,
 
 
 def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarray | None = None,
-                   scale_details: bool = True) -> tuple[dict, dict, dict]:
+                   scale_details: bool = True, units: str | None = None) -> tuple[dict, dict, dict]:
     """The source model rebuilt on the target mesh.
 
     Parameters
@@ -363,7 +364,10 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     corr : the correspondence from :func:`correspond`.
     target_handles : (H,) the target's marker vertices in the model's marker order, or None to
         map each source marker to the nearest target vertex through the correspondence.
-    scale_details : scale the details by the similarity's scale (faces of different sizes).
+    scale_details : scale the details by the similarity's scale (faces of different sizes, and
+        the units' ratio where they differ); without, by the units' ratio alone.
+    units : the target mesh's length unit (canonical, :func:`facepipe.mocap.markers.normalise_units`),
+        the new model's; None: the model's own.
 
     Returns
     -------
@@ -395,8 +399,10 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     alpha_s = edge_weight_matrix(model.edge_index, model.edge_weight, len(edges))
     edge_index, edge_weight = interpolate_alpha(W, alpha_s, model.edge_index.shape[1])
     alpha_t = edge_weight_matrix(edge_index, edge_weight, len(edges))
+    source_units = model.meta.get("units", "cm")
+    units = units or source_units
     rbf_weights, rbf_const = transferred_details(model, corr, W, local_frames(rest_t, faces_t, neighbors_t), alpha_t,
-                                                 corr.scale if scale_details else 1.0)
+                                                 corr.scale if scale_details else unit_factor(source_units, units))
 
     arrays = {
         "rest": rest_t,
@@ -428,6 +434,7 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     meta = {k: v for k, v in model.meta.items() if k not in ("landmark_names", "landmark_map")}
     meta.update(
         config=f"transfer of {model.path} onto {target.path}",
+        units=units,
         marker_spacing=spacing,
         shell=dict(model.meta.get("shell", {}), solver=basis.solver),  # the target's own factorisation
         beta=float(model.meta.get("beta", 0.0)) / corr.scale if model.meta.get("beta") else model.meta.get("beta"),
@@ -534,8 +541,12 @@ def _stats(x: np.ndarray) -> dict:
 
 def transfer_files(model_path, target_path, source_points_path, target_points_path, output,
                    target_markers_path=None, deform: str = "auto", max_distance: float | None = None,
-                   allow_far: bool = False, scale_details: bool = True, refine: bool = True) -> dict:
+                   allow_far: bool = False, scale_details: bool = True, refine: bool = True,
+                   target_units: str | None = None) -> dict:
     """``facepipe transfer``: read, correspond, transfer, write the model and its JSON summary.
+
+    ``target_units``: the target mesh's length unit as written by the user (``mm``,
+    ``Millimeters``, …), the new model's; None: the model's own.
 
     Returns
     -------
@@ -543,6 +554,8 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     """
     t0 = time.perf_counter()
     model = load_model(model_path)
+    source_units = model.meta.get("units", "cm")
+    units = normalise_units(target_units, what="unit (--target-units)") or source_units
     if model.method == "local_strain":
         raise InputError("transfer does not carry a local-strain model (its details are per-vertex functions of the "
                          "source's own strain)", path=model_path,
@@ -563,10 +576,10 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         raise InputError(describe_far(far, corr, target.vertices, names, tp_idx, limit), path=target_path,
                          hint="mark more points where the faces differ (or check them); --max-distance D raises the "
                               "limit; --allow-far maps those vertices anyway (to the nearest source surface)")
-    arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details)
+    arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details, units)
     meta["config_digest"] = _inputs_digest(
         (model_path, target_path, source_points_path, target_points_path, target_markers_path),
-        [deform, max_distance, scale_details, refine])
+        [deform, max_distance, scale_details, refine, units])
     summary = {
         "source": str(model_path),
         "target": str(target_path),
@@ -576,10 +589,12 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         "vertices_mapped": int(target.n_vertices),
         "points": len(names),
         **correspondence_summary(corr, far, limit),
-        "detail_scale": corr.scale if scale_details else 1.0,
+        "detail_scale": corr.scale if scale_details else unit_factor(source_units, units),
+        "units": {"source": source_units, "target": units},
         "method": meta["method"],
         "uvs": target.uvs is not None,
-        "notes": transfer_notes(corr, far, limit, target.uvs is not None, model.meta.get("units", "?")),
+        "notes": transfer_notes(corr, far, limit, target.uvs is not None, source_units, units,
+                                given_units=target_units is not None),
         **report,
     }
     meta["transfer"] = {k: summary[k] for k in ("source", "target", "points", "deformation", "far_vertices",
@@ -647,18 +662,27 @@ def refinement_summary(corr: Correspondence) -> dict | None:
             "stiffness_lengths": [float(x) for x in r.lengths], "paired_fraction": float(r.paired.mean())}
 
 
-def transfer_notes(corr: Correspondence, far: np.ndarray, limit: float, target_has_uvs: bool, units: str) -> list[str]:
+def transfer_notes(corr: Correspondence, far: np.ndarray, limit: float, target_has_uvs: bool, units: str,
+                   target_units: str | None = None, given_units: bool = False) -> list[str]:
     """What the user should know about a transfer: no UVs on the target, far vertices mapped
-    anyway, a size that suggests other units, vertices without a source triangle facing their way."""
+    anyway, a size that suggests other units (``units`` the model's, ``target_units`` the
+    target's, as given or the model's), vertices without a source triangle facing their way."""
+    target_units = target_units or units
     notes = []
     if not target_has_uvs:
         notes.append("the target has no UVs: map exports (exr, wrinkle) of its replays will be refused")
     if far.size:
         notes.append(f"{far.size} target vertices farther than {limit:.3g} from the source were mapped anyway "
                      "(--allow-far)")
-    if not 0.75 <= corr.scale <= 1.33:
-        notes.append(f"the target is {corr.scale:.3g}× the size of the source: if its units are not the model's "
-                     f"({units}), convert the mesh first — the new model keeps them")
+    size = corr.scale / unit_factor(units, target_units)  # the faces' size ratio in one unit
+    if not 0.75 <= size <= 1.33:
+        # a ratio a unit explains (a face in mm against a model in cm: 10) is named
+        likely = [u for u, f in known_unit_ratios(units).items() if u != target_units and 0.75 <= corr.scale * f <= 1.33]
+        where = f"in {target_units}" if given_units else f"in the model's units ({units})"
+        advice = (f"if its mesh is in {likely[0]}, give --target-units {likely[0]}" if likely
+                  else "check the target mesh's units")
+        notes.append(f"the target, {where}, is {size:.3g}× the size of the source: {advice} — the new model's "
+                     f"units are {target_units}")
     bad_normals = int((~corr.normal_ok).sum())
     if bad_normals:
         notes.append(f"{bad_normals} target vertices found no source triangle facing their way within the "
