@@ -26,3 +26,8 @@ def __getattr__(name):
 
         return getattr(errors if name == "InputError" else api, name)
     raise AttributeError(f"module 'facepipe' has no attribute {name!r}")
+
+
+def __dir__():
+    # tab completion (IPython, dir()) shows the API, which __getattr__ imports on first use
+    return sorted(set(globals()) | set(__all__))
