@@ -11,11 +11,12 @@ The Python API (see :mod:`facepipe.api`)::
     take = facepipe.read_take("take.c3d", model)
     result = facepipe.replay_take(model, take)     # result.positions: (T, V, 3)
     faces = facepipe.evaluate(model, handles)       # (T, H, 3) head-space handles -> (T, V, 3)
+    wrinkled = facepipe.add_details(model, frames)  # a rig's own animation (T, V, 3) -> with details
 """
 
 __version__ = "0.1.0"
 
-__all__ = ["InputError", "Model", "ReplayedTake", "Take", "evaluate", "load_model", "read_take", "replay_take"]
+__all__ = ["InputError", "Model", "ReplayedTake", "Take", "add_details", "evaluate", "load_model", "read_take", "replay_take"]
 
 
 def __getattr__(name):

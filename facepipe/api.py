@@ -12,6 +12,8 @@ everything in memory, for scripts, notebooks and other tools that hold a take as
 
     head_space = result.handles                           # (T, H, 3) clean handle positions
     faces = facepipe.evaluate(model, head_space)          # (T, V, 3): the face for any handle frames
+
+    wrinkled = facepipe.add_details(model, rig_frames)    # a rig's own animation (T, V, 3) with the details
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from facepipe.mocap.registry import read_take as _read_take_file
 from facepipe.mocap.take import Take
 from facepipe.pipeline.replay import NumpyEvaluator
 
-__all__ = ["Model", "ReplayedTake", "Take", "evaluate", "load_model", "read_take", "replay_take"]
+__all__ = ["Model", "ReplayedTake", "Take", "add_details", "evaluate", "load_model", "read_take", "replay_take"]
 
 
 def load_model(path: str | os.PathLike) -> Model:
@@ -100,3 +102,59 @@ def evaluate(model: Model, handle_positions: np.ndarray) -> np.ndarray:
                          hint="fill gaps first (replay_take cleans a take)")
     positions = NumpyEvaluator(model).evaluate(handles)
     return positions[0] if single else positions
+
+
+def add_details(model: Model, frames: np.ndarray, *, units: str | None = None, rest_frame: int = 0,
+                fps: float = 30.0, head_motion: str = "keep") -> ReplayedTake:
+    """The fine-scale details on a mesh animation made elsewhere (a rig's point cache as arrays),
+    as ``facepipe replay CACHE --large-scale take`` does: the frames' own surface is the large
+    scale, and the details are evaluated at the strain measured on it and added in its local
+    frames — only the band of them the animation lacks, estimated from the frames themselves.
+
+    frames : (T, V, 3) or (V, 3) every vertex of the model's rest mesh, in its vertex order, in
+        ``units`` (default: the model's); frame ``rest_frame`` (an index) must be the rest face up to
+        a rigid motion and an expression.
+    fps : the frames' rate (their times in the result's report).
+    head_motion : "keep" (the frames' own space) or "remove" (rig space).
+
+    Returns the frames with their details (``positions``, float64, the shape of ``frames``); its
+    ``handles`` are the handle vertices in head space, ``rotation``/``translation`` the head's
+    motion fitted on the model's anchors, ``report["cache"]`` what was checked and the bands added.
+    """
+    from facepipe.mocap.mesh_cache import MeshCache, check_mesh_cache  # noqa: I001 (lazy: SciPy-free import)
+    from facepipe.pipeline.cache_replay import CacheDetails, cache_pose
+
+    if head_motion not in ("keep", "remove"):
+        raise InputError(f"head_motion must be 'keep' or 'remove', not {head_motion!r}")
+    if not fps > 0:
+        raise InputError(f"fps must be positive, not {fps!r}")
+    positions = np.asarray(frames)
+    single = positions.ndim == 2
+    if single:
+        positions = positions[None]
+    if positions.ndim != 3 or positions.shape[-1] != 3 or not len(positions):
+        raise InputError(f"frames of shape {np.shape(frames)}: (frames, {model.n_vertices}, 3) or "
+                         f"({model.n_vertices}, 3) is expected")
+    T = len(positions)
+    if not 0 <= rest_frame < T:
+        raise InputError(f"rest_frame {rest_frame} is not a frame index (0 to {T - 1})")
+    cache = MeshCache(frames=np.arange(T), times=np.arange(T) / float(fps), positions=positions, path="(frames)",
+                      format="array", fps=float(fps))
+    cache, check = check_mesh_cache(cache, model.rest, units=model.meta.get("units"), take_units=units,
+                                    rest_frame=rest_frame)
+    pose = cache_pose(model, cache)
+    details = CacheDetails(model, cache, pose)
+    out = np.empty((T, model.n_vertices, 3))
+
+    def keep(start, final, large, _):
+        out[start:start + len(final)] = final
+
+    try:
+        bands = details.estimate()
+        motion = (pose.rotation, pose.translation) if head_motion == "keep" else (None, None)
+        details.stream(pose.head, keep, *motion)
+    finally:
+        details.close()
+    report = {"cache": {"units": cache.units, "source_units": cache.source_units, "scale": cache.scale,
+                        "rest_check": check, "notes": list(cache.notes or []) + pose.notes, "bands": bands}}
+    return ReplayedTake(out[0] if single else out, pose.head, pose.rotation, pose.translation, report)

@@ -56,6 +56,64 @@ def test_bad_handle_arrays_are_input_errors(baked):
         facepipe.no_such_function  # noqa: B018
 
 
+def test_add_details_gives_the_command_lines_cache_take(baked):
+    """The sample's smooth cache (its truth without the wrinkles) as arrays: the command line's
+    `replay CACHE` (the take way) to float32, the same bands; in mm with units="mm"."""
+    from facepipe.io.point_caches import read_mdd
+
+    model = facepipe.load_model(baked / "model.npz")
+    cache = baked / "rig" / "take_smooth.mdd"
+    assert run("replay", cache, "-m", baked / "model.npz", "-o", baked / "cache_out", "--backend", "numpy", "-q") == 0
+    written = np.load(baked / "cache_out" / "positions.npy")
+    frames = read_mdd(cache)[1].astype(np.float64)
+    result = facepipe.add_details(model, frames)
+    size = float(np.ptp(model.rest, axis=0).max())
+    assert result.positions.shape == frames.shape
+    np.testing.assert_allclose(result.positions, written, atol=1e-6 * size)
+    report = json.loads((baked / "cache_out" / "replay.json").read_text())
+    assert result.report["cache"]["bands"]["added"] == report["cache"]["bands"]["added"]
+    np.testing.assert_allclose(facepipe.add_details(model, 10.0 * frames, units="mm").positions, result.positions,
+                               atol=1e-6 * size)
+
+
+def test_add_details_on_the_shells_surface_gives_the_marker_replay(baked):
+    """The marker replay's own large scale lacks every band of the details: with them added it is
+    the marker replay's face (Bickel et al.'s check); one frame alone, in rig space, likewise."""
+    model = facepipe.load_model(baked / "model.npz")
+    out = baked / "with_large"
+    assert run("replay", baked / "rig" / "take.csv", "-m", baked / "model.npz", "-o", out, "--backend", "numpy",
+               "--save-large-scale", "-q") == 0
+    large = np.load(out / "large_scale.npy").astype(np.float64)
+    final = np.load(out / "positions.npy").astype(np.float64)
+    size = float(np.ptp(model.rest, axis=0).max())
+    detail = np.abs(final - large).max()
+    assert detail > 1e-3 * size
+    result = facepipe.add_details(model, large)
+    assert all(result.report["cache"]["bands"]["added"])
+    assert np.abs(result.positions - final).max() < 1e-4 * detail  # (float32 files)
+    one = facepipe.add_details(model, large[7], head_motion="remove")
+    head = facepipe.add_details(model, large, head_motion="remove").positions[7]
+    assert one.positions.shape == large[7].shape
+    np.testing.assert_allclose(one.positions, head, atol=1e-9 * size)
+
+
+def test_add_details_bad_frames_are_input_errors(baked):
+    model = facepipe.load_model(baked / "model.npz")
+    rest = model.rest.astype(np.float64)
+    with pytest.raises(facepipe.InputError, match="vertices"):
+        facepipe.add_details(model, rest[:-1])
+    bad = np.repeat(rest[None], 2, axis=0)
+    bad[1, 3, 0] = np.nan
+    with pytest.raises(facepipe.InputError, match="NaN"):
+        facepipe.add_details(model, bad)
+    with pytest.raises(facepipe.InputError, match="in mm"):  # numbers in mm said to be the rig's cm
+        facepipe.add_details(model, 10.0 * rest)
+    with pytest.raises(facepipe.InputError, match="correspond"):
+        facepipe.add_details(model, rest[np.random.default_rng(0).permutation(len(rest))])
+    with pytest.raises(facepipe.InputError, match="rest_frame"):
+        facepipe.add_details(model, rest, rest_frame=3)
+
+
 def test_import_facepipe_stays_light():
     import subprocess
     import sys

@@ -280,6 +280,32 @@ def check_rest_frame(cache: MeshCache, rest: np.ndarray, index: int, rig_units: 
     return {"frame": frame_no, "scale": float(s), "median_distance": median, "rms_radius": radius}
 
 
+def check_mesh_cache(cache: MeshCache, rest: np.ndarray, *, units: str | None = None, take_units: str | None = None,
+                     rest_frame: int | None = None) -> tuple[MeshCache, dict]:
+    """Check a mesh cache (read from a file, or frames in memory) against the model's rest mesh
+    and put it in the rig's units: the vertex count, finite positions, the units (``take_units``
+    overriding what the cache says) and the rest frame (:func:`check_rest_frame`).
+
+    Returns (the cache in the rig's units, the rest frame's check report); InputError naming what
+    is wrong.
+    """
+    V = len(rest)
+    if cache.n_vertices != V:
+        raise InputError(f"the cache has {cache.n_vertices} vertices per frame, the model's rest mesh {V}",
+                         path=cache.path, hint="export the cache of this face's rest mesh (the same topology, no "
+                                               "welding or triangulation by the exporter), or replay it with its own model")
+    _check_finite(cache)
+    target = normalise_units(units, what="rig unit")
+    source = normalise_units(take_units, what="take unit") or cache.units
+    notes = list(cache.notes or [])
+    if source is None and target is not None:
+        notes.append(f"the cache does not state its units: taken to be the rig's ({target}); --take-units overrides")
+    factor = unit_factor(source, target) if source and target and source != target else 1.0
+    cache = replace(cache, units=target or source, source_units=source, scale=factor, notes=notes)
+    check = check_rest_frame(cache, rest, rest_frame_index(cache, rest_frame), target)
+    return cache, check
+
+
 def read_mesh_cache(path: str | os.PathLike, rest: np.ndarray, *, units: str | None = None,
                     take_units: str | None = None, rest_frame: int | None = None, fps: float | None = None,
                     frames: slice | None = None) -> tuple[MeshCache, dict]:
@@ -313,20 +339,7 @@ def read_mesh_cache(path: str | os.PathLike, rest: np.ndarray, *, units: str | N
         cache = fmt.reader(path, fps, n_vertices=len(rest))
     else:
         cache = fmt.reader(path, fps)
-    V = len(rest)
-    if cache.n_vertices != V:
-        raise InputError(f"the cache has {cache.n_vertices} vertices per frame, the model's rest mesh {V}",
-                         path=path, hint="export the cache of this face's rest mesh (the same topology, no welding "
-                                         "or triangulation by the exporter), or replay it with its own model")
-    _check_finite(cache)
-    target = normalise_units(units, what="rig unit")
-    source = normalise_units(take_units, what="take unit") or cache.units
-    notes = list(cache.notes or [])
-    if source is None and target is not None:
-        notes.append(f"the cache does not state its units: taken to be the rig's ({target}); --take-units overrides")
-    factor = unit_factor(source, target) if source and target and source != target else 1.0
-    cache = replace(cache, units=target or source, source_units=source, scale=factor, notes=notes)
-    check = check_rest_frame(cache, rest, rest_frame_index(cache, rest_frame), target)
+    cache, check = check_mesh_cache(cache, rest, units=units, take_units=take_units, rest_frame=rest_frame)
     if frames is not None:
         rows = np.arange(cache.n_frames)[frames]
         if rows.size == 0:
