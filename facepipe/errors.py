@@ -11,3 +11,29 @@ class InputError(Exception):
         if hint:
             text = f"{text}\n  hint: {hint}"
         super().__init__(text)
+
+
+def describe_system_error(exc: BaseException) -> str:
+    """What to tell the user of a failure of the machine rather than of facepipe or its input —
+    a full disk, a folder it may not write, a path that does not exist, too little memory — as
+    ``message\\n  hint: ...`` (no traceback: there is no bug to report)."""
+    import errno
+
+    if isinstance(exc, MemoryError):
+        return ("not enough memory\n  hint: close other programs, replay part of the take (--frames), or run on a "
+                "machine with more memory")
+    code = getattr(exc, "errno", None)
+    where = " and ".join(str(p) for p in (getattr(exc, "filename", None), getattr(exc, "filename2", None))
+                         if p is not None)
+    reason = getattr(exc, "strerror", None) or str(exc)
+    text = f"{where}: {reason}" if where else reason
+    if code in (errno.ENOSPC, getattr(errno, "EDQUOT", None)):
+        hint = ("free space on that disk, or write the outputs elsewhere (-o); complete output files are kept, "
+                "partial ones removed")
+    elif code in (errno.EACCES, errno.EPERM, errno.EROFS):
+        hint = "write somewhere you are allowed to (-o), or check the folder's permissions"
+    elif code in (errno.ENOENT, errno.ENOTDIR):
+        hint = "check the path (an output folder's parent must exist or be creatable)"
+    else:
+        hint = "check the disk and the paths given; complete output files are kept, partial ones removed"
+    return f"{text}\n  hint: {hint}"

@@ -89,6 +89,53 @@ def test_an_output_under_a_file_stops_before_any_work(kit, tmp_path, capsys, mon
     assert "afile is a file, not a folder" in err and "Traceback" not in err
 
 
+def test_a_full_disk_is_said_plainly_and_leaves_no_partial_file(kit, tmp_path, capsys, monkeypatch):
+    """A disk that fills while positions stream out: the folder and the reason, exit 1, no
+    traceback or "internal error" (nothing to report), and no partial positions.npy."""
+    import errno
+
+    from facepipe.io import npy_stream
+
+    real_write = os.write
+    calls = []
+
+    def full(fd, data):
+        calls.append(fd)
+        if len(calls) > 1:  # the header goes out, the first rows do not
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(npy_stream.os, "write", full)
+    out = tmp_path / "out"
+    assert run("replay", kit / "rig" / "take.csv", "-m", kit / "model.npz", "-o", out, "--backend", "numpy",
+               "-q") == 1
+    err = capsys.readouterr().err
+    assert f"error: {out}: No space left on device" in err and "-o" in err
+    assert "Traceback" not in err and "internal error" not in err
+    assert not list(out.glob("*positions*"))
+
+
+def test_system_errors_name_the_path_and_the_fix(tmp_path):
+    import errno
+
+    from facepipe.errors import describe_system_error
+    from facepipe.io.atomic import atomic_path
+
+    with pytest.raises(OSError) as info:
+        with atomic_path(tmp_path / "sub" / "x.bin") as tmp:
+            tmp.write_bytes(b"123")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert info.value.filename == str(tmp_path / "sub") and not list((tmp_path / "sub").iterdir())
+    with pytest.raises(OSError) as other:  # another error keeps its own (no file named)
+        with atomic_path(tmp_path / "y.bin"):
+            raise OSError(errno.EIO, "Input/output error")
+    assert other.value.filename is None
+    text = describe_system_error(PermissionError(errno.EACCES, "Permission denied", "/srv/out"))
+    assert text.startswith("/srv/out: Permission denied") and "allowed" in text
+    assert "not enough memory" in describe_system_error(MemoryError()) and "--frames" in describe_system_error(
+        MemoryError())
+
+
 def test_export_and_preview_find_the_model_from_anywhere(kit, tmp_path, monkeypatch):
     info = json.loads((kit / "out" / "replay.json").read_text())
     assert Path(info["model"]).is_absolute() and info["model_relative"] == "../model.npz"

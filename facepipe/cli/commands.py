@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from facepipe.cli.interrupts import terminate_as_interrupt
 from facepipe.cli.take_options import landmark_take_options, mesh_cache_options
-from facepipe.errors import InputError
+from facepipe.errors import InputError, describe_system_error
 from facepipe.export import registry as export_formats  # names the formats without importing them
 from facepipe.io.atomic import atomic_path
 from facepipe.io.outputs import check_output_path, prepare_replay_folder
@@ -748,6 +748,9 @@ def main(argv=None) -> None:
     except KeyboardInterrupt as exc:
         click.echo("interrupted: complete output files are kept, partial ones removed", err=True)
         sys.exit(getattr(exc, "exit_status", 130))
+    except (OSError, MemoryError) as exc:  # the machine's, not a bug: a full disk, a folder it may not write
+        click.echo(f"error: {describe_system_error(exc)}", err=True)
+        sys.exit(1)
     except Exception:
         click.echo("internal error (please report it with the text below):", err=True)
         traceback.print_exc()
