@@ -41,7 +41,7 @@ from distributed import KilledWorker, as_completed, get_worker
 from distributed.comm import get_address_host
 
 from facepipe import parallel
-from facepipe.errors import InputError
+from facepipe.errors import InputError, describe_system_error
 from facepipe.export import registry as export_registry
 from facepipe.export.registry import ExportOptions
 from facepipe.io.atomic import atomic_path
@@ -662,8 +662,8 @@ def _gather(client, futures: dict, on_done) -> tuple[dict[str, TakeRecord], str 
                 records[job.name] = _failed_record(
                     job, f"workers died while running this take, {exc.last_worker and 'last ' + str(exc.last_worker.address)}"
                          f" (too much memory for a worker? see the workers' logs)")
-            except OSError as exc:  # the storage, after Dask's retries
-                records[job.name] = _failed_record(job, describe_error(exc), format_traceback(exc))
+            except OSError as exc:  # the storage, after Dask's retries: the path, the reason and the fix
+                records[job.name] = _failed_record(job, describe_system_error(exc), format_traceback(exc))
             on_done(records[job.name])
     except (Exception, asyncio.CancelledError) as exc:  # the scheduler lost, futures cancelled: the cluster failed
         return records, f"{exc.__class__.__name__}: {exc}"

@@ -124,7 +124,8 @@ def _summary(rep, result, out: Path) -> None:
     rate = f" ({t['takes_per_second'] * 60:.1f} takes/min)" if t["replayed"] and t["takes_per_second"] else ""
     rep.say(f"{t['takes']} takes: {t['ok']} done ({t['replayed']} replayed), {t['skipped']} skipped "
             f"(outputs complete), {t['failed']} failed in {t['seconds']:.1f} s{rate}"
-            + (f"; {t['retried']} run again after a worker died" if t["retried"] else ""))
+            + (f"; {t['retried']} needed more than one attempt (a worker lost or a storage error: batch.json "
+               "lists each attempt's)" if t["retried"] else ""))
     for record in result.failed:  # always listed, even with --quiet
         click.echo(f"failed: {record.take}: {record.error}", err=True)
     if result.cluster_error:
