@@ -249,6 +249,31 @@ def test_edge_weights_normalised_bounded_and_local():
     assert np.array_equal(i2[w2 > 0], i1[w1 > 0]) and np.allclose(w2, w1, rtol=1e-5, atol=1e-6)
 
 
+def test_a_vertex_no_marker_reaches_keeps_no_edge():
+    """Vertices of a separate part (every geodesic distance inf) weigh no edge — no NaN — so their
+    WPSD distances are 0 and a fit gives them no details; the others are as without them."""
+    rng = np.random.default_rng(1)
+    M, V = 6, 20
+    dist = rng.uniform(0.0, 5.0, size=(M, V))
+    dist[:, 15:] = np.inf
+    edges = np.array([[i, j] for i in range(M) for j in range(i + 1, M)])
+    rest = rng.uniform(0.5, 1.0, size=len(edges))
+    index, weight = wpsd_edge_weights(dist, edges, rest, beta=1.0, max_edges=8)
+    assert np.isfinite(weight).all() and (weight[15:] == 0).all()
+    np.testing.assert_allclose(weight[:15].sum(axis=1), 1.0, atol=1e-6)
+    i0, w0 = wpsd_edge_weights(dist[:, :15], edges, rest, beta=1.0, max_edges=8)
+    assert np.array_equal(index[:15], i0) and np.array_equal(weight[:15], w0)
+    alpha = edge_weight_matrix(index, weight, len(edges))
+    features = rng.normal(0, 0.1, size=(4, len(edges)))
+    features[0] = 0.0  # the rest pose
+    details = rng.normal(0, 0.01, size=(4, V, 3))
+    details[0] = 0.0
+    model = fit_details("wpsd", features, details, [0, 1, 2, 3], "interpolate", alpha)
+    out = model.evaluate(features)
+    assert np.isfinite(out).all() and (out[:, 15:] == 0).all()
+    np.testing.assert_allclose(out[:, :15], details[:, :15], atol=1e-9)
+
+
 def test_greedy_starts_from_rest_and_reaches_zero_error_with_all_poses():
     f, d = _random_problem()
     model, basis, curve = greedy_basis("psd", f, d, "interpolate", max_poses=len(f) - 1)

@@ -141,6 +141,9 @@ def print_fit_summary(rep, fit, units: str) -> None:
     r = fit.report
     rep.say(f"feature graph: F = {r['feature_edges']} edges; marker spacing {r['marker_spacing']:.3f} {units}; "
             f"WPSD β = {r['beta']:.3f}/{units}, {r['edges_per_vertex_mean']:.1f} edges per vertex")
+    if r.get("vertices_without_edges"):
+        rep.say(f"note: {r['vertices_without_edges']} vertices lie in parts of the mesh that no marker reaches (e.g. "
+                "eyeballs or teeth, held by their anchors): they move with the head and get no details")
     rep.say(f"large-scale only: training RMS mean {r['large_scale_rms']['mean']:.4f} {units}")
     for method, curve in r["curves"].items():
         pts = "  ".join(f"P={c['poses']}:{c['mean_rms']:.4f}" for c in curve

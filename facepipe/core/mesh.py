@@ -468,7 +468,8 @@ def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or an
             f"{len(missing)} of the mesh's {n_comp} connected parts have no {what} vertex, so the "
             f"shell system is singular: " + "; ".join(parts) + more,
             path=where,
-            hint=f"put a {what} on every separate part, or remove the part from the rest mesh "
+            hint=f"put a {what} on every separate part — a part that only moves with the head (an eyeball, "
+                 "teeth) needs one of its vertices in the anchors file — or remove the part from the rest mesh "
                  "and every example pose",
         )
     return int(n_comp), labels.astype(np.int32)

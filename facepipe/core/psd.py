@@ -75,7 +75,9 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
     Returns
     -------
     edge_index : (V, K) int32 feature-edge indices, K = min(max_edges, F).
-    edge_weight : (V, K) float32, each row sums to 1; unused slots have weight 0.
+    edge_weight : (V, K) float32, each row sums to 1; unused slots have weight 0. A vertex that no
+        marker reaches (every distance ``inf``: a part of the mesh apart from the markers') has
+        weight 0 everywhere, so its details are zero.
     """
     edges = np.asarray(edges, dtype=np.int64)
     F = edges.shape[0]
@@ -113,7 +115,9 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
         drop = a < min_weight
         drop[:, :keep_min] = False
         a = np.where(drop, 0.0, a)
-        a = a / a.sum(axis=1, keepdims=True)
+        total = a.sum(axis=1, keepdims=True)
+        # a vertex no marker reaches (a separate part: an eyeball, teeth) keeps no edge: no details
+        a = a / np.where(total > 0, total, 1.0)
         index[start:stop] = top
         weight[start:stop] = a
 

@@ -341,6 +341,8 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
         "k_stretch": rig.config.shell.k_stretch,
         "k_bend": rig.config.shell.k_bend,
         "edges_per_vertex_mean": float((edge_weight > 0).sum(axis=1).mean()),
+        # parts of the mesh apart from every marker (an eyeball, teeth): no feature edge reaches them
+        "vertices_without_edges": int((edge_weight.sum(axis=1) == 0).sum()),
         "large_scale_rms": {"mean": float(large_only.mean()) if len(large_only) else 0.0,
                             "max": float(large_only.max()) if len(large_only) else 0.0},
         "basis": [names[i] for i in basis],
