@@ -117,3 +117,18 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.ict)
         if "pipeline" in fixtures or "bench" in item.name:
             item.add_marker(pytest.mark.slow)
+
+
+def add_detached_part(obj: Path, offset) -> int:
+    """Append a small closed octahedron (its own vertices, one UV) away from the face to an OBJ;
+    the index of its first vertex."""
+    text = obj.read_text()
+    n_v = sum(1 for line in text.splitlines() if line.startswith("v "))
+    n_vt = sum(1 for line in text.splitlines() if line.startswith("vt "))
+    corners = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]) * 0.8 + offset
+    faces = [(0, 2, 4), (2, 1, 4), (1, 3, 4), (3, 0, 4), (2, 0, 5), (1, 2, 5), (3, 1, 5), (0, 3, 5)]
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in corners] + ["vt 0.5 0.5"]
+    lines += ["f " + " ".join(f"{n_v + i + 1}/{n_vt + 1}" for i in f) for f in faces]
+    obj.write_text(text.rstrip("\n") + "\n" + "\n".join(lines) + "\n")
+    return n_v
+

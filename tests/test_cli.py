@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import run_cli as run
+from tests.conftest import add_detached_part, run_cli as run
 
 BOUNDS = json.loads((Path(__file__).parent / "data" / "sample_bounds.json").read_text())
 
@@ -355,20 +355,6 @@ def test_options_that_do_not_apply_to_the_take_are_refused(pipeline, tmp_path, c
     assert not (out / "positions.npy").exists()
 
 
-def _add_detached_part(obj: Path, offset) -> int:
-    """Append a small closed octahedron (its own vertices, one UV) away from the face to an OBJ;
-    the index of its first vertex."""
-    text = obj.read_text()
-    n_v = sum(1 for line in text.splitlines() if line.startswith("v "))
-    n_vt = sum(1 for line in text.splitlines() if line.startswith("vt "))
-    corners = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]) * 0.8 + offset
-    faces = [(0, 2, 4), (2, 1, 4), (1, 3, 4), (3, 0, 4), (2, 0, 5), (1, 2, 5), (3, 1, 5), (0, 3, 5)]
-    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in corners] + ["vt 0.5 0.5"]
-    lines += ["f " + " ".join(f"{n_v + i + 1}/{n_vt + 1}" for i in f) for f in faces]
-    obj.write_text(text.rstrip("\n") + "\n" + "\n".join(lines) + "\n")
-    return n_v
-
-
 def test_a_separate_part_held_by_an_anchor_moves_with_the_head(tmp_path, capsys):
     """A part of the mesh apart from the markers (an eyeball, teeth): without a constraint the fit
     stops with exit 2 and says to anchor it; with one of its vertices among the anchors the rig fits
@@ -376,9 +362,9 @@ def test_a_separate_part_held_by_an_anchor_moves_with_the_head(tmp_path, capsys)
     rig = tmp_path / "rig"
     assert run("sample", rig, "--vertices", 2000, "--frames", 12, "--examples", 4, "-q") == 0
     offset = np.array([0.0, 0.0, 6.0])
-    first = _add_detached_part(rig / "neutral.obj", offset)
+    first = add_detached_part(rig / "neutral.obj", offset)
     for pose in sorted((rig / "expressions").glob("*.obj")):
-        _add_detached_part(pose, offset)
+        add_detached_part(pose, offset)
     assert run("fit", rig / "sample.toml", "--no-tune", "-o", tmp_path / "fit.npz", "-q") == 2
     err = capsys.readouterr().err
     assert f"containing vertex {first}" in err and "anchors file" in err

@@ -25,7 +25,7 @@ from facepipe.core.rbf_morph import farthest_point_subset
 from facepipe.pipeline.replay import NumpyEvaluator
 from facepipe.core.closest import closest_point_on_triangles
 from facepipe.pipeline.transfer import correspond, interpolate_alpha, match_points, transfer_model
-from tests.conftest import ict_or_skip, run_cli
+from tests.conftest import add_detached_part, ict_or_skip, run_cli
 
 N_POINTS = 40
 
@@ -191,6 +191,31 @@ def test_unknown_target_units_are_refused(source, rig, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "furlongs" in err and "mm" in err
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_a_target_part_the_source_lacks_is_held_by_target_anchors(source, rig, tmp_path, capsys):
+    """The target has a separate part the source lacks (an eyeball): refused (exit 2) with the hint
+    to anchor it; with --target-anchors naming one of its vertices the transfer runs and the
+    part's large scale stays where it is while the face moves."""
+    model, mesh, truth, _, points_path = source
+    target_path = tmp_path / "with_part.obj"
+    save_obj(target_path, mesh)
+    first = add_detached_part(target_path, mesh.vertices.mean(axis=0) + np.array([0.0, 0.0, 4.0]))
+    args = ("transfer", rig.models["wpsd"], "--target", target_path, "--source-points", points_path,
+            "--target-points", points_path, "--allow-far", "-q")
+    assert run_cli(*args, "-o", tmp_path / "no.npz") == 2
+    err = capsys.readouterr().err
+    assert f"containing vertex {first}" in err and "--target-anchors" in err
+    (tmp_path / "anchors.txt").write_text(f"{first}\n")
+    out = tmp_path / "with_part.npz"
+    assert run_cli(*args, "-o", out, "--target-anchors", tmp_path / "anchors.txt") == 0
+    assert json.loads(out.with_suffix(".json").read_text())["anchors"]["given"] == 1
+    target = load_model(out)
+    assert first in set(target.anchors.tolist())
+    _, large = evaluate(target, truth[:, model.handle_vertices])
+    rest = target.rest.astype(np.float64)
+    np.testing.assert_allclose(large[:, first:], np.broadcast_to(rest[first:], large[:, first:].shape), atol=1e-5)
+    assert np.abs(large[:, :first] - rest[:first]).max() > 0.1
 
 
 def test_perturbed_copy_keeps_its_details(source):

@@ -568,13 +568,16 @@ def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertic
                    "correspond too.")
 @click.option("--scale-details/--no-scale-details", default=True, show_default=True,
               help="Scale the details by the size ratio of the faces (from the points' similarity).")
+@click.option("--target-anchors", default=None, type=click.Path(dir_okay=False),
+              help="Target vertices (one per line) held with the head besides those mapped from the model's "
+                   "anchors: one vertex of each part the source lacks (an eyeball, teeth).")
 @click.option("--target-units", default=None, metavar="UNIT",
               help="Length unit of the target mesh (mm, cm, m, in, ...) [default: the model's]: the new model is in "
                    "it (takes, exports and lengths such as --max-distance in it).")
 @_common
 @click.pass_context
 def transfer(ctx, model_path, target, source_points, target_points, output, target_markers, deform, max_distance,
-             allow_far, refine, scale_details, target_units, quiet, verbose):
+             allow_far, refine, scale_details, target_anchors, target_units, quiet, verbose):
     """Transfer a MODEL's learned details onto another face: an ordinary model of the target."""
     from facepipe.pipeline.transfer import transfer_files
 
@@ -583,7 +586,7 @@ def transfer(ctx, model_path, target, source_points, target_points, output, targ
         raise InputError("--max-distance must be a positive length")
     s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
                        max_distance=max_distance, allow_far=allow_far, scale_details=scale_details, refine=refine,
-                       target_units=target_units)
+                       target_units=target_units, target_anchors_path=target_anchors)
     d = s["projection_distance"]
     rep.say(f"{s['points']} points; similarity scale {s['similarity']['scale']:.4f}, rotation "
             f"{s['similarity']['rotation_deg']:.1f}°; fitted by the {s['deformation']}")

@@ -213,6 +213,7 @@ def check_mesh(mesh: Mesh, *, area_tolerance: float = 1e-10, path: str | os.Path
     area_tolerance : float
         Relative area below which a triangle counts as degenerate (dimensionless).
     path : file named in the message; defaults to ``mesh.path``.
+    hint : the fix, where the caller knows a better one than the rig's (the anchors file).
 
     Raises
     ------
@@ -402,7 +403,7 @@ def _raise_problems(problems: list[str], where) -> None:
 
 
 def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or anchor",
-                     *, path: str | os.PathLike | None = None) -> tuple[int, np.ndarray]:
+                     *, path: str | os.PathLike | None = None, hint: str | None = None) -> tuple[int, np.ndarray]:
     """Check that every connected part of the mesh holds at least one constrained vertex.
 
     The shell energy is invariant to moving a part rigidly (k_bend only: affinely), so a part
@@ -468,9 +469,9 @@ def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or an
             f"{len(missing)} of the mesh's {n_comp} connected parts have no {what} vertex, so the "
             f"shell system is singular: " + "; ".join(parts) + more,
             path=where,
-            hint=f"put a {what} on every separate part — a part that only moves with the head (an eyeball, "
-                 "teeth) needs one of its vertices in the anchors file — or remove the part from the rest mesh "
-                 "and every example pose",
+            hint=hint or f"put a {what} on every separate part — a part that only moves with the head (an "
+                         "eyeball, teeth) needs one of its vertices in the anchors file — or remove the part from "
+                         "the rest mesh and every example pose",
         )
     return int(n_comp), labels.astype(np.int32)
 

@@ -52,7 +52,7 @@ from facepipe.io.atomic import atomic_path
 from facepipe.io.model_file import load_model, save_model
 from facepipe.mocap.markers import known_unit_ratios, normalise_units, unit_factor
 from facepipe.pipeline.fit import solve_large_scale_basis
-from facepipe.pipeline.rig import load_markers, name_vertex_rows
+from facepipe.pipeline.rig import load_anchors, load_markers, name_vertex_rows
 
 MIN_POINTS = 4
 # a point farther than this fraction of the points' RMS radius from where the similarity of
@@ -354,7 +354,8 @@ def interpolate_alpha(W: sp.csr_matrix, alpha: sp.csr_matrix, max_edges: int,
 
 
 def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarray | None = None,
-                   scale_details: bool = True, units: str | None = None) -> tuple[dict, dict, dict]:
+                   scale_details: bool = True, units: str | None = None,
+                   extra_anchors: np.ndarray | None = None) -> tuple[dict, dict, dict]:
     """The source model rebuilt on the target mesh.
 
     Parameters
@@ -368,6 +369,8 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
         the units' ratio where they differ); without, by the units' ratio alone.
     units : the target mesh's length unit (canonical, :func:`facepipe.mocap.markers.normalise_units`),
         the new model's; None: the model's own.
+    extra_anchors : target vertices held with the head besides those mapped from the source's
+        anchors (a part of the target the source lacks: an eyeball, teeth).
 
     Returns
     -------
@@ -379,12 +382,17 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     report: dict = {}
     target_handles, report["markers"] = target_markers(model, target, corr, target_handles)
     anchors_t = target_anchors(model, rest_t, corr, target_handles)
-    report["anchors"] = {"source": int(len(model.anchors)), "target": int(len(anchors_t))}
+    if extra_anchors is not None and len(extra_anchors):
+        anchors_t = np.setdiff1d(np.union1d(anchors_t, np.asarray(extra_anchors, dtype=np.int64)), target_handles)
+    report["anchors"] = {"source": int(len(model.anchors)), "target": int(len(anchors_t)),
+                         "given": int(0 if extra_anchors is None else len(extra_anchors))}
 
     # large scale: the target's own shell (or morph), with the source's settings
     shell = source_shell_settings(model.meta)
     if shell.method != "rbf":
-        check_components(target, np.concatenate([target_handles, anchors_t]), "marker or anchor")
+        check_components(target, np.concatenate([target_handles, anchors_t]), "marker or anchor",
+                         hint="hold each such part (an eyeball, teeth) with the head: give --target-anchors FILE "
+                              "listing one of its vertices (one index per line); or remove it from the target")
     spacing = marker_spacing(rest_t, target_handles)
     t1 = time.perf_counter()
     basis = solve_large_scale_basis(rest_t, faces_t, target_handles, anchors_t, shell, spacing)
@@ -542,11 +550,12 @@ def _stats(x: np.ndarray) -> dict:
 def transfer_files(model_path, target_path, source_points_path, target_points_path, output,
                    target_markers_path=None, deform: str = "auto", max_distance: float | None = None,
                    allow_far: bool = False, scale_details: bool = True, refine: bool = True,
-                   target_units: str | None = None) -> dict:
+                   target_units: str | None = None, target_anchors_path=None) -> dict:
     """``facepipe transfer``: read, correspond, transfer, write the model and its JSON summary.
 
     ``target_units``: the target mesh's length unit as written by the user (``mm``,
-    ``Millimeters``, …), the new model's; None: the model's own.
+    ``Millimeters``, …), the new model's; None: the model's own. ``target_anchors_path``: a file
+    of target vertices (one per line) held with the head besides the source's anchors.
 
     Returns
     -------
@@ -568,6 +577,7 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     target_handles = None
     if target_markers_path is not None:
         target_handles = read_target_markers(target_markers_path, model.marker_names, target.n_vertices)
+    extra_anchors = load_anchors(target_anchors_path, target.n_vertices) if target_anchors_path else None
 
     corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
                       target.faces, sp_idx, tp_idx, names, deform, path=target_points_path, refine=refine)
@@ -576,9 +586,9 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         raise InputError(describe_far(far, corr, target.vertices, names, tp_idx, limit), path=target_path,
                          hint="mark more points where the faces differ (or check them); --max-distance D raises the "
                               "limit; --allow-far maps those vertices anyway (to the nearest source surface)")
-    arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details, units)
+    arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details, units, extra_anchors)
     meta["config_digest"] = _inputs_digest(
-        (model_path, target_path, source_points_path, target_points_path, target_markers_path),
+        (model_path, target_path, source_points_path, target_points_path, target_markers_path, target_anchors_path),
         [deform, max_distance, scale_details, refine, units])
     summary = {
         "source": str(model_path),
