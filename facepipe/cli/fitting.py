@@ -31,6 +31,10 @@ def run_fit(config, rep, tune: bool = True):
     def prepare(rig, geodesics):
         rep.say(f"rig: {rig.mesh.n_vertices} vertices, {len(rig.handles)} handles, {len(rig.anchors)} anchors, "
                 f"{len(rig.example_names)} example poses")
+        if rig.welded:
+            w = rig.welded
+            rep.say(f"note: [rig] weld: {w['split']} vertices split along seams welded, so the rig, its model and "
+                    f"outputs have {w['welded']} vertices (the mesh file {w['vertices']})")
         choice["report"] = choose_parameters(rig, tune, progress=_progress_bars(rep), geodesics=geodesics)
         say_choice(rep, choice["report"], rig.config.units)
 

@@ -14,7 +14,7 @@ about half a second.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -474,6 +474,36 @@ def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or an
                          "the rest mesh and every example pose",
         )
     return int(n_comp), labels.astype(np.int32)
+
+
+def coincident_vertices(vertices: np.ndarray) -> np.ndarray:
+    """(V,) int64 each vertex's representative: the lowest index at exactly its position (itself
+    where no other vertex is there). A mesh split along UV seams or hard edges (as engines and some
+    exporters write it: one vertex per UV or normal) has such vertices, which no face joins.
+
+    Example
+    -------
+    >>> coincident_vertices(np.array([[0., 0, 0], [1, 0, 0], [0, 0, 0]])).tolist()
+    [0, 1, 0]
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float64) + 0.0  # (−0.0 is 0.0)
+    rows = v.view(np.dtype((np.void, v.dtype.itemsize * v.shape[1]))).ravel()
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
+    return first[inverse.ravel()].astype(np.int64)
+
+
+def weld_vertices(mesh: Mesh, representative: np.ndarray) -> tuple[Mesh, np.ndarray, np.ndarray]:
+    """The mesh with every vertex replaced by its representative (:func:`coincident_vertices`):
+    (welded mesh, ``keep`` (W,) the original index of each welded vertex, ``index`` (V,) each
+    original vertex's welded index). Polygons, their per-corner UVs and groups are kept."""
+    V = mesh.n_vertices
+    keep = np.flatnonzero(representative == np.arange(V))
+    new = np.full(V, -1, dtype=np.int64)
+    new[keep] = np.arange(len(keep))
+    index = new[representative]
+    welded = replace(mesh, vertices=mesh.vertices[keep],
+                     polygon_vertices=index[np.asarray(mesh.polygon_vertices, dtype=np.int64)])
+    return welded, keep, index
 
 
 _CHECK_EDGES = 200_000  # edges sampled to pass a large pose quickly (check_pose)

@@ -125,6 +125,9 @@ class Config:
     markers: Path
     anchors: Path | None = None
     units: str = "cm"
+    # weld vertices split along UV seams or hard edges (coincident in the rest pose and every
+    # example, joined by no face); without it such a mesh is refused: the shell would tear there
+    weld: bool = False
     example_meshes: list[str] = field(default_factory=list)
     sequence: Path | None = None
     sequence_stride: int = 1
@@ -147,7 +150,7 @@ class Config:
 # dataclass take the types of its defaults.
 _PATHS = "paths"
 _TYPES: dict[str, dict[str, object]] = {
-    "rig": {"mesh": str, "markers": str, "anchors": str, "units": str},
+    "rig": {"mesh": str, "markers": str, "anchors": str, "units": str, "weld": bool},
     "examples": {"meshes": _PATHS, "sequence": str, "sequence_stride": int, "sequence_frames": list},
     "shell": {k: type(v) for k, v in asdict(ShellConfig()).items()},
     "features": {"graph": str},
@@ -165,7 +168,7 @@ _REGION_TYPES = {"vertices": str, "template": list, "frames": list, "card": bool
 _REGION_OPTIONAL = {"card"}
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
-_EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm",
+_EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm", "weld": True,
              "meshes": ["expressions/*.obj"], "sequence": "take.npz", "sequence_stride": 1,
              "sequence_frames": [0, 80], "graph": "auto",
              "landmarks": "landmarks68.csv"}
@@ -253,6 +256,7 @@ def load_config(path: str | Path) -> Config:
         markers=rel(rig["markers"]),
         anchors=rel(rig.get("anchors")),
         units=rig.get("units", "cm"),
+        weld=rig.get("weld", False),
         example_meshes=[str(base / m) for m in meshes],
         sequence=rel(examples.get("sequence")),
         sequence_stride=examples.get("sequence_stride", 1),

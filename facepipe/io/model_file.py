@@ -261,6 +261,8 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
     if fit.model.method == "local_strain" and strain is not None:
         arrays.update(strain_samples=strain.samples, strain_weights=strain.weights)
         meta["strain_width"], meta["strain_ridge"] = strain.width, strain.ridge
+    if rig.welded is not None:  # [rig] weld: the mesh file's count, the model's
+        meta["welded"] = dict(rig.welded)
     if rig.landmarks is not None:  # a 2D take replays with this map unless --landmarks gives another
         arrays["landmark_vertices"] = rig.landmarks.vertices
         meta["landmark_names"] = list(rig.landmarks.names)

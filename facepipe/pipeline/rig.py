@@ -11,14 +11,15 @@ import glob
 import hashlib
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from facepipe.pipeline.background import BackgroundCall
 from facepipe.errors import InputError
-from facepipe.core.mesh import Mesh, check_components, check_marker_vertices, check_mesh, check_pose
+from facepipe.core.mesh import (Mesh, check_components, check_marker_vertices, check_mesh, check_pose,
+                                coincident_vertices, weld_vertices)
 from facepipe.io.config import Config, load_config
 from facepipe.io.landmark_map import LandmarkMap, read_landmark_map
 from facepipe.io.mesh_read import load_mesh, load_vertices
@@ -154,6 +155,8 @@ class Rig:
     example_positions: np.ndarray  # (E, V, 3) float64 (meshes, then sequence frames)
     digest: str
     landmarks: LandmarkMap | None = None  # [video] landmarks: a 2D tracker's points on the mesh
+    # [rig] weld: {"vertices": the file's count, "welded": the rig's, "split": vertices merged}, or None
+    welded: dict | None = None
 
     @property
     def handles(self) -> np.ndarray:
@@ -190,7 +193,7 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         if config.shell.method == "shell":
             # the RBF morph needs no connectivity; the shell is singular on a part without constraints
             check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
-        if on_mesh is not None:  # after the checks: what it starts may factor the shell
+        if on_mesh is not None and not config.weld:  # after the checks: what it starts may factor the shell
             on_mesh(mesh, markers, anchors)
         if paths_error is not None:
             raise paths_error
@@ -222,7 +225,68 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
             raise InputError("no example poses", path=config.path,
                              hint="set [examples] meshes and/or sequence, or [psd] method = 'none'")
     positions = np.stack(poses) if poses else np.zeros((0, mesh.n_vertices, 3))
-    return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16], landmarks)
+    welded = None
+    representative = split_vertices(mesh.vertices, positions)
+    if representative is not None:
+        if not config.weld:
+            raise split_mesh_error(mesh, representative, config)
+        n_file = mesh.n_vertices
+        mesh, keep, index = weld_vertices(mesh, representative)
+        check_mesh(mesh)  # (a polygon with two corners on one seam vertex)
+        markers, anchors, landmarks = _welded_vertices(markers, anchors, landmarks, index, config)
+        positions = positions[:, keep]
+        if config.shell.method == "shell":
+            check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+        welded = {"vertices": n_file, "welded": mesh.n_vertices, "split": int(n_file - mesh.n_vertices)}
+    if on_mesh is not None and config.weld:
+        on_mesh(mesh, markers, anchors)
+    return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16], landmarks, welded)
+
+
+def split_vertices(rest: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
+    """Each vertex's representative (:func:`facepipe.core.mesh.coincident_vertices`) where some
+    vertices sit exactly on another in the rest pose and in every pose of ``poses`` (E, V, 3) —
+    a mesh split along UV seams or hard edges —, else None. Vertices that coincide at rest but part
+    in some pose (lips that touch) are not split: they stay apart."""
+    representative = coincident_vertices(rest)
+    if (representative == np.arange(len(rest))).all():
+        return None
+    if len(poses):  # the same position in every pose: the rows of all poses side by side coincide
+        representative = coincident_vertices(np.concatenate([rest] + list(poses), axis=1))
+        if (representative == np.arange(len(rest))).all():
+            return None
+    return representative
+
+
+def split_mesh_error(mesh: Mesh, representative: np.ndarray, config: Config) -> InputError:
+    """The refusal of a mesh split along seams (``[rig] weld`` not set)."""
+    split = np.flatnonzero(representative != np.arange(len(representative)))
+    show = ", ".join(f"{int(v)} on {int(representative[v])}" for v in split[:3])
+    return InputError(
+        f"{len(split)} vertices sit exactly on another vertex in the rest pose and in every example, and no face "
+        f"joins them (the mesh is split along UV seams or hard edges: {show}"
+        f"{' …' if len(split) > 3 else ''}): the thin shell would tear the face open along those seams",
+        path=mesh.path,
+        hint=f"set weld = true in [rig] of {config.path.name} (the rig, its model and outputs then have the welded "
+             f"mesh's {int((representative == np.arange(len(representative))).sum())} vertices, each polygon's UVs "
+             "kept), or export the mesh with shared vertices (OBJ: one 'v' per point, 'vt' per corner)")
+
+
+def _welded_vertices(markers: Markers, anchors: np.ndarray, landmarks, index: np.ndarray, config: Config):
+    """Markers, anchors and landmarks on the welded mesh (``index``: each file vertex's welded one);
+    InputError for two markers on the two sides of one seam."""
+    moved = index[markers.vertices]
+    _, first, counts = np.unique(moved, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        v = moved[first[counts > 1][0]]
+        both = [markers.names[i] for i in np.flatnonzero(moved == v)]
+        raise InputError(f"markers {' and '.join(both)} sit on copies of one vertex split at a seam (welded into "
+                         f"vertex {int(v)})", path=config.markers, hint="keep one of them")
+    markers = replace(markers, vertices=moved)
+    anchors = np.unique(index[anchors])
+    if landmarks is not None:
+        landmarks = replace(landmarks, vertices=index[landmarks.vertices])
+    return markers, anchors, landmarks
 
 
 def _read_example(path: Path) -> tuple[np.ndarray, bytes]:

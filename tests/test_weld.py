@@ -1,0 +1,111 @@
+"""Meshes split along UV seams or hard edges (vertices on top of each other that no face joins, as
+engines and some exporters write them): refused with the fix named, or welded with ``[rig] weld``
+into the same rig as the unsplit mesh."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from facepipe.core.mesh import Mesh, coincident_vertices, weld_vertices
+from facepipe.io.mesh_read import load_mesh, load_vertices
+from facepipe.io.mesh_write import save_obj
+from facepipe.io.model_file import load_model
+from facepipe.pipeline.rig import split_vertices
+from tests.conftest import run_cli as run
+
+
+def split_mesh(mesh: Mesh, right: np.ndarray) -> tuple[Mesh, np.ndarray]:
+    """The mesh with the vertices shared by the polygons ``right`` (N,) bool and the others
+    duplicated (appended), the ``right`` polygons using the copies; the seam's original indices."""
+    offsets, corners = mesh.polygon_offsets, np.asarray(mesh.polygon_vertices, dtype=np.int64)
+    polygon = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    on_right = np.zeros(mesh.n_vertices, bool)
+    on_left = np.zeros(mesh.n_vertices, bool)
+    on_right[corners[right[polygon]]] = True
+    on_left[corners[~right[polygon]]] = True
+    seam = np.flatnonzero(on_right & on_left)
+    copy = np.full(mesh.n_vertices, -1)
+    copy[seam] = mesh.n_vertices + np.arange(len(seam))
+    moved = right[polygon] & (copy[corners] >= 0)
+    corners = np.where(moved, copy[corners], corners)
+    vertices = np.concatenate([mesh.vertices, mesh.vertices[seam]])
+    return replace(mesh, vertices=vertices, polygon_vertices=corners), seam
+
+
+def _grid(n=6) -> Mesh:
+    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], 1)
+    quads = [[r * n + c, r * n + c + 1, (r + 1) * n + c + 1, (r + 1) * n + c] for r in range(n - 1) for c in range(n - 1)]
+    return Mesh(vertices, np.arange(0, 4 * len(quads) + 1, 4), np.array(quads).ravel())
+
+
+def test_welding_a_split_mesh_gives_back_the_unsplit_one():
+    grid = _grid()
+    centroid_x = grid.vertices[grid.polygon_vertices.reshape(-1, 4)].mean(axis=1)[:, 0]
+    split, seam = split_mesh(grid, centroid_x > 2.5)
+    assert len(seam) == 6 and split.n_vertices == 42
+    representative = coincident_vertices(split.vertices)
+    np.testing.assert_array_equal(representative[36:], seam)
+    welded, keep, index = weld_vertices(split, representative)
+    np.testing.assert_array_equal(welded.vertices, grid.vertices)
+    np.testing.assert_array_equal(welded.polygon_vertices, grid.polygon_vertices)
+    np.testing.assert_array_equal(keep, np.arange(36))
+    np.testing.assert_array_equal(index[36:], seam)
+
+
+def test_vertices_that_part_in_a_pose_are_not_a_seam():
+    """Lips that touch at rest and part when the jaw opens are two vertices, not one split."""
+    rest = np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0]])
+    parted = rest + np.array([[0, 0.1, 0], [0, 0, 0], [0, -0.1, 0]])
+    assert split_vertices(rest, parted[None]) is None
+    np.testing.assert_array_equal(split_vertices(rest, rest[None] + 0.5), [0, 1, 0])
+    assert split_vertices(rest[:2], np.zeros((0, 2, 3))) is None
+
+
+@pytest.fixture(scope="module")
+def rigs(tmp_path_factory):
+    """The sample rig, and a copy whose rest mesh and examples are split along a seam down the face."""
+    d = tmp_path_factory.mktemp("weld")
+    assert run("sample", d / "whole", "--vertices", 2000, "--frames", 12, "--examples", 4, "-q") == 0
+    whole = d / "whole"
+    mesh = load_mesh(whole / "neutral.obj")
+    centroid_x = np.array([mesh.vertices[mesh.polygon_vertices[a:b]].mean(axis=0)[0]
+                           for a, b in zip(mesh.polygon_offsets[:-1], mesh.polygon_offsets[1:])])
+    split, seam = split_mesh(mesh, centroid_x > np.median(centroid_x))
+    cut = d / "split"
+    cut.mkdir()
+    for name in ("markers.csv", "anchors.txt", "sample.toml", "take.csv"):
+        (cut / name).write_bytes((whole / name).read_bytes())
+    save_obj(cut / "neutral.obj", split)
+    (cut / "expressions").mkdir()
+    for pose in sorted((whole / "expressions").glob("*.obj")):
+        v = load_vertices(pose)
+        save_obj(cut / "expressions" / pose.name, replace(split, vertices=np.concatenate([v, v[seam]])))
+    return d, seam, mesh.n_vertices
+
+
+def test_a_split_mesh_is_refused_with_the_fix(rigs, capsys):
+    d, seam, n = rigs
+    assert run("fit", d / "split" / "sample.toml", "--no-tune", "-o", d / "refused.npz", "-q") == 2
+    err = capsys.readouterr().err
+    assert f"{len(seam)} vertices sit exactly on another vertex" in err and "weld = true" in err
+    assert not (d / "refused.npz").exists()
+
+
+def test_weld_gives_the_unsplit_rigs_replay(rigs, capsys):
+    d, seam, n = rigs
+    config = d / "split" / "sample.toml"
+    config.write_text(config.read_text().replace('units = "cm"', 'units = "cm"\nweld = true', 1))
+    assert run("fit", config, "--no-tune", "-o", d / "welded_fit.npz") == 0
+    assert f"{len(seam)} vertices split along seams welded" in capsys.readouterr().out
+    for name, rig in (("welded", d / "split"), ("whole", d / "whole")):
+        assert run("bake", rig / "sample.toml", "--no-tune", "-o", d / f"{name}.npz", "-q") == 0
+        assert run("replay", rig / "take.csv", "-m", d / f"{name}.npz", "-o", d / f"out_{name}", "--backend", "numpy",
+                   "-q") == 0
+    welded = np.load(d / "out_welded" / "positions.npy")
+    assert welded.shape[1] == n
+    np.testing.assert_array_equal(welded, np.load(d / "out_whole" / "positions.npy"))
+    assert load_model(d / "welded.npz").meta["welded"] == {"vertices": n + len(seam), "welded": n, "split": len(seam)}
