@@ -141,7 +141,7 @@ def add_details(model: Model, frames: np.ndarray, *, units: str | None = None, r
     cache = MeshCache(frames=np.arange(T), times=np.arange(T) / float(fps), positions=positions, path="(frames)",
                       format="array", fps=float(fps))
     cache, check = check_mesh_cache(cache, model.rest, units=model.meta.get("units"), take_units=units,
-                                    rest_frame=rest_frame)
+                                    rest_frame=rest_frame, file_order=model.weld_index)
     pose = cache_pose(model, cache)
     details = CacheDetails(model, cache, pose)
     out = np.empty((T, model.n_vertices, 3))

@@ -95,17 +95,71 @@ def test_a_split_mesh_is_refused_with_the_fix(rigs, capsys):
     assert not (d / "refused.npz").exists()
 
 
+def _baked(d) -> None:
+    """The split rig welded (``weld = true``) and the whole rig, baked and their takes replayed."""
+    config = d / "split" / "sample_weld.toml"
+    if not config.exists():
+        text = (d / "split" / "sample.toml").read_text()
+        config.write_text(text.replace('units = "cm"', 'units = "cm"\nweld = true', 1))
+    for name, rig, cfg in (("welded", d / "split", config), ("whole", d / "whole", d / "whole" / "sample.toml")):
+        if not (d / f"out_{name}" / "positions.npy").exists():
+            assert run("bake", cfg, "--no-tune", "-o", d / f"{name}.npz", "-q") == 0
+            assert run("replay", rig / "take.csv", "-m", d / f"{name}.npz", "-o", d / f"out_{name}", "--backend",
+                       "numpy", "-q") == 0
+
+
 def test_weld_gives_the_unsplit_rigs_replay(rigs, capsys):
     d, seam, n = rigs
-    config = d / "split" / "sample.toml"
-    config.write_text(config.read_text().replace('units = "cm"', 'units = "cm"\nweld = true', 1))
-    assert run("fit", config, "--no-tune", "-o", d / "welded_fit.npz") == 0
+    _baked(d)
+    assert run("fit", d / "split" / "sample_weld.toml", "--no-tune", "-o", d / "welded_fit.npz") == 0
     assert f"{len(seam)} vertices split along seams welded" in capsys.readouterr().out
-    for name, rig in (("welded", d / "split"), ("whole", d / "whole")):
-        assert run("bake", rig / "sample.toml", "--no-tune", "-o", d / f"{name}.npz", "-q") == 0
-        assert run("replay", rig / "take.csv", "-m", d / f"{name}.npz", "-o", d / f"out_{name}", "--backend", "numpy",
-                   "-q") == 0
     welded = np.load(d / "out_welded" / "positions.npy")
     assert welded.shape[1] == n
     np.testing.assert_array_equal(welded, np.load(d / "out_whole" / "positions.npy"))
     assert load_model(d / "welded.npz").meta["welded"] == {"vertices": n + len(seam), "welded": n, "split": len(seam)}
+
+
+def test_caches_in_the_mesh_files_order_go_in_and_out(rigs, capsys):
+    """MDD and PC2 exports of a welded rig's replay are in the mesh file's vertex order (to drive
+    the user's own mesh, the seams' copies equal); a cache in that order replays on the welded
+    model (NumPy and OpenCL) as the unsplit rig replays the unsplit cache; a cache of neither
+    count is refused."""
+    from facepipe.io.point_caches import read_mdd, read_pc2, write_mdd
+
+    d, seam, n = rigs
+    _baked(d)
+    assert run("export", d / "out_welded", "--format", "mdd", "-o", d / "welded.mdd") == 0
+    assert "mesh file's vertex order" in capsys.readouterr().out
+    assert run("export", d / "out_welded", "--format", "pc2", "-o", d / "welded.pc2", "-q") == 0
+    final = np.load(d / "out_welded" / "positions.npy")
+    for frames in (read_mdd(d / "welded.mdd")[1], read_pc2(d / "welded.pc2")[2]):
+        assert frames.shape[1] == n + len(seam)
+        np.testing.assert_array_equal(frames[:, :n], final)
+        np.testing.assert_array_equal(frames[:, n:], final[:, seam])
+    times, smooth = read_mdd(d / "whole" / "take_smooth.mdd")[:2]
+    write_mdd(d / "split_smooth.mdd", np.concatenate([smooth, smooth[:, seam]], axis=1), times)
+    for backend in ("numpy", "auto"):
+        for name, cache, model in (("split", d / "split_smooth.mdd", "welded"),
+                                   ("whole", d / "whole" / "take_smooth.mdd", "whole")):
+            assert run("replay", cache, "-m", d / f"{model}.npz", "-o", d / f"cache_{name}_{backend}", "--backend",
+                       backend, "-q") == 0
+        np.testing.assert_array_equal(np.load(d / f"cache_split_{backend}" / "positions.npy"),
+                                      np.load(d / f"cache_whole_{backend}" / "positions.npy"))
+    write_mdd(d / "wrong.mdd", smooth[:, :-1], times)
+    assert run("replay", d / "wrong.mdd", "-m", d / "welded.npz", "-o", d / "wrong", "-q") == 2
+
+
+def test_a_welded_rigs_replay_is_geometry_in_the_mesh_files_order(rigs):
+    """Appearance works on the mesh file (its UV layout, its vertex groups): a welded rig's replay
+    given as a take's geometry is read in the file's order."""
+    from facepipe.pipeline.appearance import read_take_geometry
+
+    d, seam, n = rigs
+    _baked(d)
+    geometry = read_take_geometry(d / "out_welded", n + len(seam))
+    final = np.load(d / "out_welded" / "positions.npy")
+    positions = np.asarray(geometry.positions)
+    assert positions.shape == (len(final), n + len(seam), 3)
+    np.testing.assert_array_equal(positions[:, :n], final)
+    np.testing.assert_array_equal(positions[:, n:], final[:, seam])
+    np.testing.assert_array_equal(read_take_geometry(d / "out_welded", n).positions, final)

@@ -506,6 +506,40 @@ def weld_vertices(mesh: Mesh, representative: np.ndarray) -> tuple[Mesh, np.ndar
     return welded, keep, index
 
 
+class VertexSelection:
+    """Frames (T, V, 3) — an array or a memmap — seen through a vertex index array (W,): read
+    lazily, frame by frame or a block of frames at a time, as (T, W, 3). Used between a welded rig
+    and the mesh file's vertex order (:func:`weld_vertices`) without copying a whole take."""
+
+    def __init__(self, frames, vertices: np.ndarray):
+        self.frames = frames
+        self.vertices = np.asarray(vertices, dtype=np.int64)
+        self.dtype = getattr(frames, "dtype", np.dtype(np.float64))
+
+    @property
+    def shape(self) -> tuple:
+        return (int(self.frames.shape[0]), len(self.vertices), int(self.frames.shape[2]))
+
+    @property
+    def ndim(self) -> int:
+        return 3
+
+    def __len__(self) -> int:
+        return int(self.frames.shape[0])
+
+    def __getitem__(self, rows):
+        block = np.asarray(self.frames[rows])
+        return block[self.vertices] if block.ndim == 2 else block[:, self.vertices]
+
+    def rows(self, start: int, stop: int) -> "VertexSelection":
+        """Frames ``start:stop``, still read lazily."""
+        return VertexSelection(self.frames[start:stop], self.vertices)
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:]
+        return out if dtype is None else out.astype(dtype)
+
+
 _CHECK_EDGES = 200_000  # edges sampled to pass a large pose quickly (check_pose)
 
 

@@ -12,6 +12,7 @@ from typing import Callable
 
 import numpy as np
 
+from facepipe.core.mesh import VertexSelection
 from facepipe.errors import InputError
 from facepipe.export.common import check_targets, remove_partial_files
 from facepipe.export.registry import ExportOptions, get_format
@@ -49,16 +50,27 @@ def prepare_cache(path: Path, force: bool, resume: bool) -> bool:
 CacheWriter = Callable[[Path, np.ndarray, float, Callable[[int], object]], "Path | None"]
 
 
-def export_cache(replay, dest: Path, options: ExportOptions, fmt: str, write: CacheWriter) -> tuple[list[Path], dict]:
+def export_cache(replay, dest: Path, options: ExportOptions, fmt: str, write: CacheWriter,
+                 file_order: bool = False) -> tuple[list[Path], dict]:
     """A replay's layer as one cache file (the exporters of the cache formats).
 
     ``replay``: a :class:`facepipe.io.replay_folder.ReplayDir`; ``dest``: the file, or a folder
-    (the replay folder's name and the format's suffix); ``write`` writes the file.
+    (the replay folder's name and the format's suffix); ``write`` writes the file. ``file_order``:
+    a format without topology (MDD, PC2) drives the user's own mesh, so a replay of a rig welded
+    along seams (``[rig] weld``) is written in the mesh file's vertex order.
     """
     positions = replay.layer(options.layer)
+    order = {}
+    if file_order and replay.info.get("welded"):
+        weld_index = replay.load_model(options.model_path).weld_index
+        if weld_index is not None:
+            positions = VertexSelection(positions, weld_index)
+            order = {"vertex_order": "mesh file", "notes": [
+                f"written in the mesh file's vertex order ({len(weld_index)} vertices, the seams the rig welded "
+                "split again), to drive that mesh"]}
     path = cache_path(dest, fmt, name=replay.path.name or "replay")
     fps = replay.fps
     with options.make_bar(positions.shape[0], f"export {fmt}") as bar:
         written = write(path, positions, fps, bar.update)
     return [path], {"fps": fps, "kept_existing": written is None, "layer": options.layer,
-                    "frames": int(positions.shape[0])}
+                    "frames": int(positions.shape[0]), **order}

@@ -19,4 +19,4 @@ def export_mdd(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], 
             return None
         return write_mdd(path, positions, replay.times, progress=progress)
 
-    return export_cache(replay, dest, options, "mdd", write)
+    return export_cache(replay, dest, options, "mdd", write, file_order=True)

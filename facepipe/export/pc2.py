@@ -22,4 +22,4 @@ def export_pc2(replay, dest: Path, options: ExportOptions) -> tuple[list[Path], 
             return None
         return write_pc2(path, positions, replay.times, fps, progress=progress)
 
-    return export_cache(replay, dest, options, "pc2", write)
+    return export_cache(replay, dest, options, "pc2", write, file_order=True)

@@ -84,6 +84,9 @@ class Model:
     strain_samples, strain_weights : (V, N, 3) method ``local_strain``: the N training poses' local
         strain at every vertex and the kernel weights of the details over it (the kernel's width
         is ``meta["strain_width"]``), or None for the other methods.
+    weld_index : (V_file,) the model vertex of every vertex of the mesh file, where ``[rig] weld``
+        welded vertices split along seams (mesh caches in the file's order are read through it,
+        MDD and PC2 exports written in that order), or None.
     landmark_vertices : (L,) the rig vertex of every point of a 2D tracker (the config's
         ``[video] landmarks``; their names are ``meta["landmark_names"]``), or None.
     path : where the model was read from ("(in memory)" for :func:`model_from_fit`).
@@ -120,6 +123,7 @@ class Model:
     polygon_groups: np.ndarray | None = _stored(np.int32, optional=True)
     group_names: list[str] | None = _stored(np.str_, optional=True)
     landmark_vertices: np.ndarray | None = _stored(np.int32, optional=True)
+    weld_index: np.ndarray | None = _stored(np.int32, optional=True)
     strain_samples: np.ndarray | None = _stored(np.float32, optional=True)
     strain_weights: np.ndarray | None = _stored(np.float32, optional=True)
     path: str = ""
@@ -261,8 +265,9 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
     if fit.model.method == "local_strain" and strain is not None:
         arrays.update(strain_samples=strain.samples, strain_weights=strain.weights)
         meta["strain_width"], meta["strain_ridge"] = strain.width, strain.ridge
-    if rig.welded is not None:  # [rig] weld: the mesh file's count, the model's
+    if rig.welded is not None:  # [rig] weld: the mesh file's count, the model's, and its vertex order
         meta["welded"] = dict(rig.welded)
+        arrays["weld_index"] = rig.weld_index
     if rig.landmarks is not None:  # a 2D take replays with this map unless --landmarks gives another
         arrays["landmark_vertices"] = rig.landmarks.vertices
         meta["landmark_names"] = list(rig.landmarks.names)
@@ -311,6 +316,10 @@ def load_model(path) -> Model:
         lv = arrays["landmark_vertices"]
         checks += [(lv.shape == (len(meta["landmark_names"]),) and (lv.size == 0 or 0 <= lv.min() and lv.max() < V),
                     "the landmark map's vertices do not match its names or the mesh")]
+    if "weld_index" in arrays:
+        wi = arrays["weld_index"]
+        checks += [(wi.ndim == 1 and wi.size >= V and 0 <= wi.min() and wi.max() < V
+                    and np.unique(wi).size == V, "the weld index does not map the mesh file onto the mesh")]
     if "polygon_groups" in arrays and "group_names" in arrays:
         groups, n_names = arrays["polygon_groups"], len(arrays["group_names"])
         n_polygons = arrays["polygon_offsets"].shape[0] - 1

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from facepipe.core.mesh import VertexSelection
 from facepipe.core.rigid import similarity_fit
 from facepipe.errors import InputError
 from facepipe.io.mesh_read import load_vertices
@@ -281,15 +282,23 @@ def check_rest_frame(cache: MeshCache, rest: np.ndarray, index: int, rig_units: 
 
 
 def check_mesh_cache(cache: MeshCache, rest: np.ndarray, *, units: str | None = None, take_units: str | None = None,
-                     rest_frame: int | None = None) -> tuple[MeshCache, dict]:
+                     rest_frame: int | None = None, file_order: np.ndarray | None = None) -> tuple[MeshCache, dict]:
     """Check a mesh cache (read from a file, or frames in memory) against the model's rest mesh
     and put it in the rig's units: the vertex count, finite positions, the units (``take_units``
     overriding what the cache says) and the rest frame (:func:`check_rest_frame`).
+
+    ``file_order``: the model's ``weld_index`` (a rig welded along seams): a cache in the mesh
+    file's vertex order (its count) is read through it, one vertex of each welded group.
 
     Returns (the cache in the rig's units, the rest frame's check report); InputError naming what
     is wrong.
     """
     V = len(rest)
+    if file_order is not None and cache.n_vertices == len(file_order) != V:
+        _, first = np.unique(np.asarray(file_order), return_index=True)
+        cache = replace(cache, positions=VertexSelection(cache.positions, first),
+                        notes=list(cache.notes or []) + [f"the cache is in the mesh file's vertex order ({len(file_order)} "
+                                                        f"vertices): read on the model's {V}, welded along seams"])
     if cache.n_vertices != V:
         raise InputError(f"the cache has {cache.n_vertices} vertices per frame, the model's rest mesh {V}",
                          path=cache.path, hint="export the cache of this face's rest mesh (the same topology, no "
@@ -308,7 +317,7 @@ def check_mesh_cache(cache: MeshCache, rest: np.ndarray, *, units: str | None = 
 
 def read_mesh_cache(path: str | os.PathLike, rest: np.ndarray, *, units: str | None = None,
                     take_units: str | None = None, rest_frame: int | None = None, fps: float | None = None,
-                    frames: slice | None = None) -> tuple[MeshCache, dict]:
+                    frames: slice | None = None, file_order: np.ndarray | None = None) -> tuple[MeshCache, dict]:
     """Read a point cache and check it against the model's rest mesh.
 
     Parameters
@@ -319,6 +328,7 @@ def read_mesh_cache(path: str | os.PathLike, rest: np.ndarray, *, units: str | N
     rest_frame : frame number compared with the rest mesh (default: the first frame).
     fps : frame rate for formats that store none (PC2, OBJ), or overriding the file's.
     frames : rows of the cache to keep (the whole cache is checked).
+    file_order : the model's ``weld_index``, if any (see :func:`check_mesh_cache`).
 
     Returns
     -------
@@ -339,11 +349,13 @@ def read_mesh_cache(path: str | os.PathLike, rest: np.ndarray, *, units: str | N
         cache = fmt.reader(path, fps, n_vertices=len(rest))
     else:
         cache = fmt.reader(path, fps)
-    cache, check = check_mesh_cache(cache, rest, units=units, take_units=take_units, rest_frame=rest_frame)
+    cache, check = check_mesh_cache(cache, rest, units=units, take_units=take_units, rest_frame=rest_frame,
+                                    file_order=file_order)
     if frames is not None:
         rows = np.arange(cache.n_frames)[frames]
         if rows.size == 0:
             raise InputError(f"the frame range selects none of the {cache.n_frames} frames", path=path)
-        cache = replace(cache, frames=cache.frames[rows], times=cache.times[rows],
-                        positions=cache.positions[rows[0]:rows[-1] + 1])
+        kept = (cache.positions.rows(rows[0], rows[-1] + 1) if isinstance(cache.positions, VertexSelection)
+                else cache.positions[rows[0]:rows[-1] + 1])
+        cache = replace(cache, frames=cache.frames[rows], times=cache.times[rows], positions=kept)
     return cache, check

@@ -39,6 +39,7 @@ from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
 from facepipe.core.hole_cards import boundary_loops, hole_cards, stable_vertices
 from facepipe.core.occlusion import occluded_points
+from facepipe.core.mesh import VertexSelection
 from facepipe.core.raster import triangle_pixels, udim_corner, udim_tile_numbers
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.errors import InputError
@@ -249,6 +250,10 @@ def read_take_geometry(path, n_vertices: int) -> TakeGeometry:
     if path.is_dir():
         replay = ReplayDir(path)
         positions, numbers, times = replay.positions, replay.frame_numbers, replay.times
+        welded = replay.info.get("welded") or {}
+        if positions.shape[1] != n_vertices and welded.get("vertices") == n_vertices:
+            # a rig welded along seams ([rig] weld) replayed: its positions in the mesh file's order
+            positions = VertexSelection(positions, replay.load_model().weld_index)
         in_camera = str(replay.info.get("coordinates", "")).startswith("camera")
         video = replay.video if in_camera else None
         camera = None if video is None else video.camera

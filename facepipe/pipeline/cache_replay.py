@@ -223,6 +223,7 @@ def replay_mesh_cache(model, take, output, *, large_scale: str = "take", rest_fr
     if cache_fps is not None and cache_fps <= 0:
         raise InputError(f"--cache-fps {cache_fps} must be positive")
     cache, check = read_mesh_cache(take, model.rest, units=model.meta.get("units"), take_units=take_units,
+                                   file_order=model.weld_index,
                                    rest_frame=rest_frame, fps=cache_fps, frames=frames)
     say(f"{cache.format} cache: {cache.n_frames} frames × {cache.n_vertices} vertices at {cache.fps:g} frames/s "
         f"({cache.source_units or 'units not stated'}" + (f", × {cache.scale:g} to {cache.units}" if cache.scale != 1

@@ -295,6 +295,8 @@ def replay_windows(model: Model, windows, frames: np.ndarray, times: np.ndarray,
         "model_relative": os.path.relpath(Path(model.path).resolve(), out_dir.resolve()) if model.path else None,
         "config_digest": model.meta.get("config_digest"),
     }
+    if model.meta.get("welded"):  # [rig] weld: the positions are the welded mesh's (MDD, PC2 export the file's order)
+        report["welded"] = dict(model.meta["welded"])
     if callable(extra_report):  # (what the windows made known, now that they are all taken)
         extra_report = extra_report()
     if extra_report:

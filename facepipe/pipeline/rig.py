@@ -157,6 +157,7 @@ class Rig:
     landmarks: LandmarkMap | None = None  # [video] landmarks: a 2D tracker's points on the mesh
     # [rig] weld: {"vertices": the file's count, "welded": the rig's, "split": vertices merged}, or None
     welded: dict | None = None
+    weld_index: np.ndarray | None = None  # (V_file,) the rig vertex of each vertex of the mesh file
 
     @property
     def handles(self) -> np.ndarray:
@@ -240,7 +241,8 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         welded = {"vertices": n_file, "welded": mesh.n_vertices, "split": int(n_file - mesh.n_vertices)}
     if on_mesh is not None and config.weld:
         on_mesh(mesh, markers, anchors)
-    return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16], landmarks, welded)
+    return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16], landmarks, welded,
+               index if welded else None)
 
 
 def split_vertices(rest: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
