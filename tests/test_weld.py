@@ -163,3 +163,20 @@ def test_a_welded_rigs_replay_is_geometry_in_the_mesh_files_order(rigs):
     np.testing.assert_array_equal(positions[:, :n], final)
     np.testing.assert_array_equal(positions[:, n:], final[:, seam])
     np.testing.assert_array_equal(read_take_geometry(d / "out_welded", n).positions, final)
+
+
+def test_transfer_onto_a_split_target_needs_target_weld_and_then_equals_the_unsplit_one(rigs, capsys):
+    d, seam, n = rigs
+    _baked(d)
+    rows = (d / "whole" / "markers.csv").read_text().splitlines()[1:]
+    points = d / "points.csv"
+    points.write_text("name,vertex\n" + "".join(f"{r.split(',')[0]},{r.split(',')[1]}\n" for r in rows[::2]))
+    args = ("transfer", d / "whole.npz", "--source-points", points, "--target-points", points, "-q")
+    assert run(*args, "--target", d / "split" / "neutral.obj", "-o", d / "t_refused.npz") == 2
+    assert "--target-weld" in capsys.readouterr().err
+    assert run(*args, "--target", d / "split" / "neutral.obj", "-o", d / "t_split.npz", "--target-weld") == 0
+    assert run(*args, "--target", d / "whole" / "neutral.obj", "-o", d / "t_whole.npz") == 0
+    split, whole = load_model(d / "t_split.npz"), load_model(d / "t_whole.npz")
+    assert split.meta["welded"]["split"] == len(seam) and len(split.weld_index) == n + len(seam)
+    for key in ("rest", "B", "rbf_weights", "handle_vertices", "anchors"):
+        np.testing.assert_array_equal(getattr(split, key), getattr(whole, key))

@@ -571,13 +571,16 @@ def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertic
 @click.option("--target-anchors", default=None, type=click.Path(dir_okay=False),
               help="Target vertices (one per line) held with the head besides those mapped from the model's "
                    "anchors: one vertex of each part the source lacks (an eyeball, teeth).")
+@click.option("--target-weld", is_flag=True,
+              help="Weld a target mesh split along UV seams or hard edges (vertices on one another that no face "
+                   "joins; refused without): target files then number the mesh file's vertices.")
 @click.option("--target-units", default=None, metavar="UNIT",
               help="Length unit of the target mesh (mm, cm, m, in, ...) [default: the model's]: the new model is in "
                    "it (takes, exports and lengths such as --max-distance in it).")
 @_common
 @click.pass_context
 def transfer(ctx, model_path, target, source_points, target_points, output, target_markers, deform, max_distance,
-             allow_far, refine, scale_details, target_anchors, target_units, quiet, verbose):
+             allow_far, refine, scale_details, target_anchors, target_weld, target_units, quiet, verbose):
     """Transfer a MODEL's learned details onto another face: an ordinary model of the target."""
     from facepipe.pipeline.transfer import transfer_files
 
@@ -586,7 +589,7 @@ def transfer(ctx, model_path, target, source_points, target_points, output, targ
         raise InputError("--max-distance must be a positive length")
     s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
                        max_distance=max_distance, allow_far=allow_far, scale_details=scale_details, refine=refine,
-                       target_units=target_units, target_anchors_path=target_anchors)
+                       target_units=target_units, target_anchors_path=target_anchors, target_weld=target_weld)
     d = s["projection_distance"]
     rep.say(f"{s['points']} points; similarity scale {s['similarity']['scale']:.4f}, rotation "
             f"{s['similarity']['rotation_deg']:.1f}°; fitted by the {s['deformation']}")

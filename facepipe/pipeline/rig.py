@@ -230,7 +230,7 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
     representative = split_vertices(mesh.vertices, positions)
     if representative is not None:
         if not config.weld:
-            raise split_mesh_error(mesh, representative, config)
+            raise split_mesh_error(mesh, representative, f"set weld = true in [rig] of {config.path.name}")
         n_file = mesh.n_vertices
         mesh, keep, index = weld_vertices(mesh, representative)
         check_mesh(mesh)  # (a polygon with two corners on one seam vertex)
@@ -260,18 +260,19 @@ def split_vertices(rest: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
     return representative
 
 
-def split_mesh_error(mesh: Mesh, representative: np.ndarray, config: Config) -> InputError:
-    """The refusal of a mesh split along seams (``[rig] weld`` not set)."""
+def split_mesh_error(mesh: Mesh, representative: np.ndarray, how: str, where: str = "in the rest pose and in every "
+                     "example") -> InputError:
+    """The refusal of a mesh split along seams; ``how``: the option that welds them."""
     split = np.flatnonzero(representative != np.arange(len(representative)))
     show = ", ".join(f"{int(v)} on {int(representative[v])}" for v in split[:3])
     return InputError(
-        f"{len(split)} vertices sit exactly on another vertex in the rest pose and in every example, and no face "
-        f"joins them (the mesh is split along UV seams or hard edges: {show}"
-        f"{' …' if len(split) > 3 else ''}): the thin shell would tear the face open along those seams",
-        path=mesh.path,
-        hint=f"set weld = true in [rig] of {config.path.name} (the rig, its model and outputs then have the welded "
-             f"mesh's {int((representative == np.arange(len(representative))).sum())} vertices, each polygon's UVs "
-             "kept), or export the mesh with shared vertices (OBJ: one 'v' per point, 'vt' per corner)")
+        f"{len(split)} vertices sit exactly on another vertex{' ' + where if where else ''}, and no face joins them "
+        "(the mesh is split "
+        f"along UV seams or hard edges: {show}{' …' if len(split) > 3 else ''}): the thin shell would tear the face "
+        "open along those seams", path=mesh.path,
+        hint=f"{how} (the model and its outputs then have the welded mesh's "
+             f"{int((representative == np.arange(len(representative))).sum())} vertices, each polygon's UVs kept), or "
+             "export the mesh with shared vertices (OBJ: one 'v' per point, 'vt' per corner)")
 
 
 def _welded_vertices(markers: Markers, anchors: np.ndarray, landmarks, index: np.ndarray, config: Config):

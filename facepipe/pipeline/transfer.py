@@ -41,7 +41,8 @@ from facepipe.errors import InputError
 from facepipe.core.closest import project_points
 from facepipe.core.nonrigid import Refinement, refine_to_surface
 from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, to_world, vertex_normals
-from facepipe.core.mesh import check_components, check_marker_vertices, check_mesh
+from facepipe.core.mesh import (check_components, check_marker_vertices, check_mesh, coincident_vertices,
+                                weld_vertices)
 from facepipe.io.mesh_read import load_mesh
 from facepipe.core.psd import edge_weight_matrix, fit_details
 from facepipe.core.rbf_morph import multiquadric_basis
@@ -52,7 +53,7 @@ from facepipe.io.atomic import atomic_path
 from facepipe.io.model_file import load_model, save_model
 from facepipe.mocap.markers import known_unit_ratios, normalise_units, unit_factor
 from facepipe.pipeline.fit import solve_large_scale_basis
-from facepipe.pipeline.rig import load_anchors, load_markers, name_vertex_rows
+from facepipe.pipeline.rig import load_anchors, load_markers, name_vertex_rows, split_mesh_error
 
 MIN_POINTS = 4
 # a point farther than this fraction of the points' RMS radius from where the similarity of
@@ -550,12 +551,15 @@ def _stats(x: np.ndarray) -> dict:
 def transfer_files(model_path, target_path, source_points_path, target_points_path, output,
                    target_markers_path=None, deform: str = "auto", max_distance: float | None = None,
                    allow_far: bool = False, scale_details: bool = True, refine: bool = True,
-                   target_units: str | None = None, target_anchors_path=None) -> dict:
+                   target_units: str | None = None, target_anchors_path=None, target_weld: bool = False) -> dict:
     """``facepipe transfer``: read, correspond, transfer, write the model and its JSON summary.
 
     ``target_units``: the target mesh's length unit as written by the user (``mm``,
     ``Millimeters``, …), the new model's; None: the model's own. ``target_anchors_path``: a file
     of target vertices (one per line) held with the head besides the source's anchors.
+    ``target_weld``: weld a target mesh split along seams (else it is refused); every target file
+    (points, markers, anchors) then numbers the mesh file's vertices, as does a welded source's
+    points file.
 
     Returns
     -------
@@ -570,14 +574,31 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
                          "source's own strain)", path=model_path,
                          hint="bake the source rig with [psd] method = 'wpsd' or 'psd' to transfer it")
     target = load_mesh(target_path)
+    n_file = target.n_vertices
+    representative = coincident_vertices(target.vertices)
+    weld_index = None
+    if (representative != np.arange(n_file)).any():
+        if not target_weld:
+            raise split_mesh_error(target, representative, "pass --target-weld", where="")
+        target, _, weld_index = weld_vertices(target, representative)
     check_mesh(target)
-    src_pts = read_points(source_points_path, model.n_vertices)
-    tgt_pts = read_points(target_points_path, target.n_vertices)
+
+    def on_target(vertices) -> np.ndarray:  # the mesh file's numbering, on the (welded) target
+        vertices = np.asarray(vertices, dtype=np.int64)
+        return vertices if weld_index is None else weld_index[vertices]
+
+    def on_source(points):  # a welded source's points number its mesh file's vertices
+        return points if model.weld_index is None else {k: int(model.weld_index[v]) for k, v in points.items()}
+
+    src_pts = on_source(read_points(source_points_path, model.n_vertices if model.weld_index is None
+                                    else len(model.weld_index)))
+    target_points = read_points(target_points_path, n_file)
+    tgt_pts = dict(zip(target_points, on_target(list(target_points.values())).tolist()))
     names, sp_idx, tp_idx = match_points(src_pts, tgt_pts, source_points_path, target_points_path)
     target_handles = None
     if target_markers_path is not None:
-        target_handles = read_target_markers(target_markers_path, model.marker_names, target.n_vertices)
-    extra_anchors = load_anchors(target_anchors_path, target.n_vertices) if target_anchors_path else None
+        target_handles = on_target(read_target_markers(target_markers_path, model.marker_names, n_file))
+    extra_anchors = on_target(load_anchors(target_anchors_path, n_file)) if target_anchors_path else None
 
     corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
                       target.faces, sp_idx, tp_idx, names, deform, path=target_points_path, refine=refine)
@@ -587,9 +608,12 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
                          hint="mark more points where the faces differ (or check them); --max-distance D raises the "
                               "limit; --allow-far maps those vertices anyway (to the nearest source surface)")
     arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details, units, extra_anchors)
+    if weld_index is not None:  # --target-weld: the mesh file's count, the model's, and its vertex order
+        arrays["weld_index"] = weld_index
+        meta["welded"] = {"vertices": n_file, "welded": target.n_vertices, "split": int(n_file - target.n_vertices)}
     meta["config_digest"] = _inputs_digest(
         (model_path, target_path, source_points_path, target_points_path, target_markers_path, target_anchors_path),
-        [deform, max_distance, scale_details, refine, units])
+        [deform, max_distance, scale_details, refine, units] + (["weld"] if weld_index is not None else []))
     summary = {
         "source": str(model_path),
         "target": str(target_path),
@@ -604,7 +628,10 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         "method": meta["method"],
         "uvs": target.uvs is not None,
         "notes": transfer_notes(corr, far, limit, target.uvs is not None, source_units, units,
-                                given_units=target_units is not None),
+                                given_units=target_units is not None) + (
+            [f"--target-weld: {n_file - target.n_vertices} vertices split along seams welded, so the new model has "
+             f"{target.n_vertices} vertices (the mesh file {n_file}); MDD and PC2 exports keep the file's order"]
+            if weld_index is not None else []),
         **report,
     }
     meta["transfer"] = {k: summary[k] for k in ("source", "target", "points", "deformation", "far_vertices",
