@@ -180,3 +180,27 @@ def test_transfer_onto_a_split_target_needs_target_weld_and_then_equals_the_unsp
     assert split.meta["welded"]["split"] == len(seam) and len(split.weld_index) == n + len(seam)
     for key in ("rest", "B", "rbf_weights", "handle_vertices", "anchors"):
         np.testing.assert_array_equal(getattr(split, key), getattr(whole, key))
+
+
+def test_an_island_a_seam_cuts_off_is_named_with_the_weld_hint(rigs, tmp_path, capsys):
+    """A seam around one polygon cuts it off as a part without a handle or anchor: that error comes
+    first (before the examples are read) and its hint points at the seams."""
+    d, _, _ = rigs
+    whole = d / "whole"
+    mesh = load_mesh(whole / "neutral.obj")
+    taken = {int(r.split(",")[1]) for r in (whole / "markers.csv").read_text().splitlines()[1:]}
+    taken |= {int(x) for x in (whole / "anchors.txt").read_text().split()}
+    free = [k for k, (a, b) in enumerate(zip(mesh.polygon_offsets[:-1], mesh.polygon_offsets[1:]))
+            if not taken & set(mesh.polygon_vertices[a:b].tolist())]
+    island = np.zeros(mesh.n_polygons, bool)
+    island[free[len(free) // 2]] = True
+    split, _ = split_mesh(mesh, island)
+    rig = tmp_path / "rig"
+    rig.mkdir()
+    for name in ("markers.csv", "anchors.txt", "sample.toml"):
+        (rig / name).write_bytes((whole / name).read_bytes())
+    save_obj(rig / "neutral.obj", split)
+    (rig / "expressions").mkdir()
+    assert run("fit", rig / "sample.toml", "--no-tune", "-o", tmp_path / "fit.npz", "-q") == 2
+    err = capsys.readouterr().err
+    assert "no handle or anchor vertex" in err and "weld = true" in err

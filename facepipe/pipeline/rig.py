@@ -191,9 +191,9 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         anchors = load_anchors(config.anchors, mesh.n_vertices)
         landmarks = None if config.landmarks is None else read_landmark_map(config.landmarks, mesh.n_vertices,
                                                                                  given_by=f"[video] landmarks in {config.path}")
-        if config.shell.method == "shell":
+        if config.shell.method == "shell" and not config.weld:  # (a welded mesh is checked once welded)
             # the RBF morph needs no connectivity; the shell is singular on a part without constraints
-            check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+            _check_parts(mesh, markers, anchors, config)
         if on_mesh is not None and not config.weld:  # after the checks: what it starts may factor the shell
             on_mesh(mesh, markers, anchors)
         if paths_error is not None:
@@ -228,6 +228,8 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
     positions = np.stack(poses) if poses else np.zeros((0, mesh.n_vertices, 3))
     welded = None
     representative = split_vertices(mesh.vertices, positions)
+    if representative is None and config.weld and config.shell.method == "shell":
+        check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
     if representative is not None:
         if not config.weld:
             raise split_mesh_error(mesh, representative, f"set weld = true in [rig] of {config.path.name}")
@@ -243,6 +245,21 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         on_mesh(mesh, markers, anchors)
     return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16], landmarks, welded,
                index if welded else None)
+
+
+def _check_parts(mesh: Mesh, markers: Markers, anchors: np.ndarray, config: Config) -> None:
+    """Every part of the mesh holds a handle or anchor (:func:`facepipe.core.mesh.check_components`);
+    where one does not and the mesh has vertices on top of others, the hint says it may be split
+    along seams (islands a seam cuts off entirely are parts of their own)."""
+    try:
+        check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
+    except InputError as exc:
+        on_top = int((coincident_vertices(mesh.vertices) != np.arange(mesh.n_vertices)).sum())
+        if not on_top:
+            raise
+        raise InputError(str(exc).split("\n  hint:")[0].removeprefix(f"{mesh.path}: "), path=mesh.path,
+                         hint=f"{on_top} vertices sit exactly on others: if the mesh is split along UV seams or hard "
+                              f"edges, set weld = true in [rig] of {config.path.name}; else {exc.hint}") from None
 
 
 def split_vertices(rest: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
