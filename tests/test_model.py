@@ -61,13 +61,14 @@ def test_model_is_a_dataclass_with_every_field_named_and_typed():
     assert is_dataclass(Model) and "__getattr__" not in vars(Model)
     by_name = {f.name: f for f in fields(Model)}
     assert set(ARRAYS_BEFORE + list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices",
-                                                         "strain_samples", "strain_weights", "meta",
+                                                         "weld_index", "strain_samples", "strain_weights", "meta",
                                                          "path"]) == set(by_name)
-    for name in ARRAYS_BEFORE + list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices"]:
+    for name in ARRAYS_BEFORE + list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices",
+                                                         "weld_index"]:
         assert "dtype" in by_name[name].metadata, name  # the dtype it is stored as
         assert by_name[name].type, name
         assert f"\n    {name}" in Model.__doc__ or f", {name}" in Model.__doc__, f"{name} is not documented"
-    for name in list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices"]:
+    for name in list(OPTIONAL_BEFORE) + ["polygon_groups", "group_names", "landmark_vertices", "weld_index"]:
         assert by_name[name].default is None and "None" in str(by_name[name].type), name
 
 
