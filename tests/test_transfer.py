@@ -164,15 +164,18 @@ def test_target_in_other_units_gives_a_model_in_them(source, rig, tmp_path, scal
     np.testing.assert_allclose(final_t, 10.0 * final_s, atol=10.0 * (2e-3 * detail + 1e-5))
 
 
-def test_a_size_that_units_explain_is_named(source, rig, tmp_path):
-    """The face in mm without --target-units: the note names the likely unit and the option; the
-    face in cm said to be in mm: the note says the size is off in the units given."""
+def test_a_size_that_units_explain_is_named(source, rig, tmp_path, capsys):
+    """The face in mm without --target-units: the note names the likely unit and the option (and the
+    progress bar counts the transfer's steps); the face in cm said to be in mm: the note says the
+    size is off in the units given."""
     model, mesh, _, _, points_path = source
     target_path = tmp_path / "face_mm.obj"
     save_obj(target_path, mesh.with_vertices(10.0 * mesh.vertices))
     out = tmp_path / "as_cm.npz"
     assert run_cli("transfer", rig.models["wpsd"], "--target", target_path, "--source-points", points_path,
-                   "--target-points", points_path, "-o", out, "-q") == 0
+                   "--target-points", points_path, "-o", out) == 0
+    printed = capsys.readouterr()
+    assert "transfer: 4/4 steps" in printed.err and "note: the target, in the model's units (cm)" in printed.out
     notes = json.loads(out.with_suffix(".json").read_text())["notes"]
     assert any("--target-units mm" in n for n in notes), notes
     assert load_model(out).meta["units"] == "cm"

@@ -582,14 +582,17 @@ def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertic
 def transfer(ctx, model_path, target, source_points, target_points, output, target_markers, deform, max_distance,
              allow_far, refine, scale_details, target_anchors, target_weld, target_units, quiet, verbose):
     """Transfer a MODEL's learned details onto another face: an ordinary model of the target."""
-    from facepipe.pipeline.transfer import transfer_files
+    from facepipe.cli.progress import StageBar
+    from facepipe.pipeline.transfer import TRANSFER_STAGES, transfer_files
 
     rep = _reporter(ctx, quiet, verbose)
     if max_distance is not None and max_distance <= 0:
         raise InputError("--max-distance must be a positive length")
-    s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
-                       max_distance=max_distance, allow_far=allow_far, scale_details=scale_details, refine=refine,
-                       target_units=target_units, target_anchors_path=target_anchors, target_weld=target_weld)
+    with StageBar(len(TRANSFER_STAGES), "transfer", quiet=rep.quiet) as steps:
+        s = transfer_files(model_path, target, source_points, target_points, output, target_markers, deform=deform,
+                           max_distance=max_distance, allow_far=allow_far, scale_details=scale_details,
+                           refine=refine, target_units=target_units, target_anchors_path=target_anchors,
+                           target_weld=target_weld, stage=steps.step)
     d = s["projection_distance"]
     rep.say(f"{s['points']} points; similarity scale {s['similarity']['scale']:.4f}, rotation "
             f"{s['similarity']['rotation_deg']:.1f}°; fitted by the {s['deformation']}")

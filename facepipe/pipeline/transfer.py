@@ -548,10 +548,16 @@ def _stats(x: np.ndarray) -> dict:
 # ----------------------------------------------------------------------------- files
 
 
+#: The steps of :func:`transfer_files`, as a progress bar names them.
+TRANSFER_STAGES = ("reading the model and the target", "corresponding the faces", "the target's shell and details",
+                   "writing the model")
+
+
 def transfer_files(model_path, target_path, source_points_path, target_points_path, output,
                    target_markers_path=None, deform: str = "auto", max_distance: float | None = None,
                    allow_far: bool = False, scale_details: bool = True, refine: bool = True,
-                   target_units: str | None = None, target_anchors_path=None, target_weld: bool = False) -> dict:
+                   target_units: str | None = None, target_anchors_path=None, target_weld: bool = False,
+                   stage=None) -> dict:
     """``facepipe transfer``: read, correspond, transfer, write the model and its JSON summary.
 
     ``target_units``: the target mesh's length unit as written by the user (``mm``,
@@ -559,13 +565,15 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     of target vertices (one per line) held with the head besides the source's anchors.
     ``target_weld``: weld a target mesh split along seams (else it is refused); every target file
     (points, markers, anchors) then numbers the mesh file's vertices, as does a welded source's
-    points file.
+    points file. ``stage(name)`` is called as each of :data:`TRANSFER_STAGES` starts (a progress bar).
 
     Returns
     -------
     The summary (also written as OUTPUT with the suffix .json).
     """
     t0 = time.perf_counter()
+    stage = stage or (lambda name: None)
+    stage(TRANSFER_STAGES[0])
     model = load_model(model_path)
     source_units = model.meta.get("units", "cm")
     units = normalise_units(target_units, what="unit (--target-units)") or source_units
@@ -600,6 +608,7 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         target_handles = on_target(read_target_markers(target_markers_path, model.marker_names, n_file))
     extra_anchors = on_target(load_anchors(target_anchors_path, n_file)) if target_anchors_path else None
 
+    stage(TRANSFER_STAGES[1])
     corr = correspond(model.rest.astype(np.float64), model.triangles.astype(np.int64), target.vertices,
                       target.faces, sp_idx, tp_idx, names, deform, path=target_points_path, refine=refine)
     far, limit = check_far(corr, max_distance)
@@ -607,6 +616,7 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
         raise InputError(describe_far(far, corr, target.vertices, names, tp_idx, limit), path=target_path,
                          hint="mark more points where the faces differ (or check them); --max-distance D raises the "
                               "limit; --allow-far maps those vertices anyway (to the nearest source surface)")
+    stage(TRANSFER_STAGES[2])
     arrays, meta, report = transfer_model(model, target, corr, target_handles, scale_details, units, extra_anchors)
     if weld_index is not None:  # --target-weld: the mesh file's count, the model's, and its vertex order
         arrays["weld_index"] = weld_index
@@ -636,6 +646,7 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
     }
     meta["transfer"] = {k: summary[k] for k in ("source", "target", "points", "deformation", "far_vertices",
                                                 "detail_scale", "refined")}
+    stage(TRANSFER_STAGES[3])
     save_model(output, arrays, meta)
     summary["seconds_total"] = time.perf_counter() - t0
     with atomic_path(Path(output).with_suffix(".json")) as tmp:
