@@ -198,6 +198,7 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
             on_mesh(mesh, markers, anchors)
         if paths_error is not None:
             raise paths_error
+        on_top = coincident_vertices(mesh.vertices)  # (while the examples are read: a seam's split vertices)
         read = reads.result()
     except BaseException:
         reads.cancel()
@@ -227,7 +228,7 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
                              hint="set [examples] meshes and/or sequence, or [psd] method = 'none'")
     positions = np.stack(poses) if poses else np.zeros((0, mesh.n_vertices, 3))
     welded = None
-    representative = split_vertices(mesh.vertices, positions)
+    representative = split_vertices(mesh.vertices, positions, on_top)
     if representative is None and config.weld and config.shell.method == "shell":
         check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
     if representative is not None:
@@ -262,12 +263,13 @@ def _check_parts(mesh: Mesh, markers: Markers, anchors: np.ndarray, config: Conf
                               f"edges, set weld = true in [rig] of {config.path.name}; else {exc.hint}") from None
 
 
-def split_vertices(rest: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
+def split_vertices(rest: np.ndarray, poses: np.ndarray, at_rest: np.ndarray | None = None) -> np.ndarray | None:
     """Each vertex's representative (:func:`facepipe.core.mesh.coincident_vertices`) where some
     vertices sit exactly on another in the rest pose and in every pose of ``poses`` (E, V, 3) —
     a mesh split along UV seams or hard edges —, else None. Vertices that coincide at rest but part
-    in some pose (lips that touch) are not split: they stay apart."""
-    representative = coincident_vertices(rest)
+    in some pose (lips that touch) are not split: they stay apart. ``at_rest``: the rest pose's
+    representatives, if at hand."""
+    representative = coincident_vertices(rest) if at_rest is None else at_rest
     if (representative == np.arange(len(rest))).all():
         return None
     if len(poses):  # the same position in every pose: the rows of all poses side by side coincide
