@@ -412,6 +412,13 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
     units = units or source_units
     rbf_weights, rbf_const = transferred_details(model, corr, W, local_frames(rest_t, faces_t, neighbors_t), alpha_t,
                                                  corr.scale if scale_details else unit_factor(source_units, units))
+    # a part of the target that no marker drives (an eyeball held by --target-anchors) moves with the
+    # head alone: it takes no details from the source skin it was mapped onto
+    _, labels = check_components(target, np.arange(target.n_vertices))
+    undriven = ~np.isin(labels, labels[target_handles])
+    rbf_weights[undriven] = 0.0
+    rbf_const[undriven] = 0.0
+    report["vertices_without_details"] = int(undriven.sum())
 
     arrays = {
         "rest": rest_t,
@@ -641,7 +648,9 @@ def transfer_files(model_path, target_path, source_points_path, target_points_pa
                                 given_units=target_units is not None) + (
             [f"--target-weld: {n_file - target.n_vertices} vertices split along seams welded, so the new model has "
              f"{target.n_vertices} vertices (the mesh file {n_file}); MDD and PC2 exports keep the file's order"]
-            if weld_index is not None else []),
+            if weld_index is not None else []) + (
+            [f"{report['vertices_without_details']} target vertices lie in parts that no marker drives (held by "
+             "anchors): they move with the head and get no details"] if report["vertices_without_details"] else []),
         **report,
     }
     meta["transfer"] = {k: summary[k] for k in ("source", "target", "points", "deformation", "far_vertices",
