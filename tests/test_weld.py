@@ -204,3 +204,17 @@ def test_an_island_a_seam_cuts_off_is_named_with_the_weld_hint(rigs, tmp_path, c
     assert run("fit", rig / "sample.toml", "--no-tune", "-o", tmp_path / "fit.npz", "-q") == 2
     err = capsys.readouterr().err
     assert "no handle or anchor vertex" in err and "weld = true" in err
+
+
+def test_a_landmark_map_given_at_replay_numbers_the_mesh_files_vertices(rigs):
+    """A welded model's --landmarks map, like its config's, names the mesh file's vertices."""
+    from facepipe.pipeline.video_replay import landmark_map_for
+
+    d, seam, n = rigs
+    _baked(d)
+    model = load_model(d / "welded.npz")
+    path = d / "landmarks.csv"
+    file_vertices = [0, 1, 2, 3, n, n + len(seam) - 1]  # the last two: copies at the seam
+    path.write_text("name,vertex\n" + "".join(f"p{i},{v}\n" for i, v in enumerate(file_vertices)))
+    lmap = landmark_map_for(model, path, d / "take.csv")
+    assert lmap.vertices.tolist() == [0, 1, 2, 3, int(seam[0]), int(seam[-1])]

@@ -5,6 +5,7 @@ replayed face's own reprojection error measured; for ``facepipe replay`` and ``f
 from __future__ import annotations
 
 import contextlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,12 @@ DEFAULT_MIN_CONFIDENCE = 0.5
 def landmark_map_for(model, landmarks_path, take_path):
     """The landmark map of a 2D take's replay: ``landmarks_path`` (name,vertex CSV) where given, else
     the one the model was baked with ([video] landmarks in its config); InputError without either."""
-    lmap = read_landmark_map(landmarks_path, model.n_vertices) if landmarks_path else model_landmark_map(model)
+    if landmarks_path and model.weld_index is not None:
+        # a rig welded along seams ([rig] weld): the map numbers the mesh file's vertices, as the config's did
+        lmap = read_landmark_map(landmarks_path, len(model.weld_index))
+        lmap = replace(lmap, vertices=model.weld_index[lmap.vertices])
+    else:
+        lmap = read_landmark_map(landmarks_path, model.n_vertices) if landmarks_path else model_landmark_map(model)
     if lmap is None:
         raise InputError("a 2D landmark take needs the landmark map, and this model was baked without one",
                          path=take_path, hint="pass --landmarks MAP.csv (name,vertex: the tracker's point names to rig "
