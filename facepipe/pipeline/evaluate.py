@@ -123,7 +123,7 @@ def load_truth(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=Non
 
 
 def truth_rows(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=None,
-               report: dict | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+               report: dict | None = None, file_order=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The truth of a replay: its positions, per replayed frame the truth's row, and what else the
     file says of its frames (:func:`facepipe.io.npz_file.read_truth_extras`), each read once.
 
@@ -133,6 +133,9 @@ def truth_rows(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=Non
         ``time`` (F,) and the head's ``rotation``/``translation``.
     frame_numbers, frame_times : (T,) the replay's frame numbers and times (see :func:`match_frames`).
     n_vertices : V of the model.
+    file_order : for a replay of a rig welded along seams (``[rig] weld``), a callable giving the
+        model's ``weld_index``: a truth in the mesh file's vertex order is then read on the welded
+        vertices.
 
     Returns
     -------
@@ -144,6 +147,10 @@ def truth_rows(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=Non
         Unreadable file, no ``positions``, other vertex count, or replayed frames it lacks.
     """
     positions, frames = read_truth(path)
+    if file_order is not None and positions.ndim == 3 and positions.shape[1] != n_vertices:
+        weld_index = file_order()
+        if weld_index is not None and positions.shape[1] == len(weld_index):
+            positions = np.asarray(positions)[:, np.unique(weld_index, return_index=True)[1]]
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
                          f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
@@ -175,7 +182,9 @@ class ReplayTruth:
 
 def replay_truth(path, replay, n_vertices: int) -> ReplayTruth:
     """:func:`load_truth` for a replay folder (its frame numbers, else its times), with the truth's head pose."""
-    positions, index, extras = truth_rows(path, replay.frame_numbers, n_vertices, replay.times)
+    welded = replay.info.get("welded") if hasattr(replay, "info") else None
+    positions, index, extras = truth_rows(path, replay.frame_numbers, n_vertices, replay.times,
+                                          file_order=(lambda: replay.load_model().weld_index) if welded else None)
     if "rotation" in extras and "translation" in extras:
         return ReplayTruth(positions, index, extras["rotation"][index], extras["translation"][index])
     return ReplayTruth(positions, index)
