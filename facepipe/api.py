@@ -111,7 +111,8 @@ def add_details(model: Model, frames: np.ndarray, *, units: str | None = None, r
     scale, and the details are evaluated at the strain measured on it and added in its local
     frames — only the band of them the animation lacks, estimated from the frames themselves.
 
-    frames : (T, V, 3) or (V, 3) every vertex of the model's rest mesh, in its vertex order, in
+    frames : (T, V, 3) or (V, 3) every vertex of the model's rest mesh, in its vertex order (or, for
+        a rig welded along seams, the mesh file's: the result is then in that order too), in
         ``units`` (default: the model's); frame ``rest_frame`` (an index) must be the rest face up to
         a rigid motion and an expression.
     fps : the frames' rate (their times in the result's report).
@@ -157,4 +158,6 @@ def add_details(model: Model, frames: np.ndarray, *, units: str | None = None, r
         details.close()
     report = {"cache": {"units": cache.units, "source_units": cache.source_units, "scale": cache.scale,
                         "rest_check": check, "notes": list(cache.notes or []) + pose.notes, "bands": bands}}
+    if model.weld_index is not None and positions.shape[1] == len(model.weld_index) != model.n_vertices:
+        out = out[:, model.weld_index]  # frames given in the mesh file's order (a welded rig) come back in it
     return ReplayedTake(out[0] if single else out, pose.head, pose.rotation, pose.translation, report)

@@ -234,3 +234,26 @@ def test_eval_reads_a_truth_in_the_mesh_files_order(rigs, capsys):
         assert run("eval", d / "out_welded", "--truth", path) == 0
         printed.append(capsys.readouterr().out.split("wrote")[0])
     assert printed[0] == printed[1] and "RMS mean" in printed[0]
+
+
+def test_add_details_keeps_the_mesh_files_order(rigs):
+    """The API on a welded rig: frames in the mesh file's order come back in it, the seams' copies
+    moving together, the welded vertices as from frames in the model's order."""
+    import facepipe
+
+    d, seam, n = rigs
+    _baked(d)
+    model = facepipe.load_model(d / "welded.npz")
+    times, smooth = read_mdd_frames(d / "whole" / "take_smooth.mdd")
+    split = facepipe.add_details(model, np.concatenate([smooth, smooth[:, seam]], axis=1))
+    welded = facepipe.add_details(model, smooth)
+    assert split.positions.shape == (len(smooth), n + len(seam), 3)
+    np.testing.assert_array_equal(split.positions[:, :n], welded.positions)
+    np.testing.assert_array_equal(split.positions[:, n:], welded.positions[:, seam])
+
+
+def read_mdd_frames(path):
+    from facepipe.io.point_caches import read_mdd
+
+    times, frames = read_mdd(path)[:2]
+    return times, np.asarray(frames, dtype=np.float64)
