@@ -257,3 +257,24 @@ def read_mdd_frames(path):
 
     times, frames = read_mdd(path)[:2]
     return times, np.asarray(frames, dtype=np.float64)
+
+
+def test_the_editor_reads_a_truth_in_the_mesh_files_order(rigs, tmp_path):
+    from facepipe.cli.editor import prepared_take
+    from facepipe.editor.session import EditorSession
+
+    d, seam, n = rigs
+    _baked(d)
+    truth = np.load(d / "whole" / "take_truth.npz")
+    np.savez(tmp_path / "split_truth.npz", **{k: truth[k] for k in truth.files if k != "positions"},
+             positions=np.concatenate([truth["positions"], truth["positions"][:, seam]], axis=1))
+    model = load_model(d / "welded.npz")
+    take = prepared_take(d / "split" / "take.csv", model)
+    sessions = [EditorSession(model, take, tmp_path / f"e{i}.json", mode="server", truth_path=path)
+                for i, path in enumerate((tmp_path / "split_truth.npz", d / "whole" / "take_truth.npz"))]
+    try:
+        np.testing.assert_array_equal(sessions[0].truth[0], sessions[1].truth[0])
+        assert sessions[0].truth[0].shape[1] == n
+    finally:
+        for session in sessions:
+            session.close()

@@ -191,7 +191,8 @@ class EditorSession:
         self.patch_serial = 0  # names the current patch in the page's messages
         self.truth = None
         if truth_path is not None:
-            self.truth = load_truth(truth_path, take.frames, model.n_vertices)
+            self.truth = load_truth(truth_path, take.frames, model.n_vertices,
+                                    file_order=lambda: model.weld_index)  # (a welded rig: its mesh file's order too)
 
     def close(self) -> None:
         """Stop the gate's worker process."""

@@ -115,10 +115,10 @@ def _match_times(replay_times, truth_times) -> np.ndarray | None:
 
 
 def load_truth(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=None,
-               report: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+               report: dict | None = None, file_order=None) -> tuple[np.ndarray, np.ndarray]:
     """The truth of a replay: its positions and, per replayed frame, the truth's row
     (:func:`truth_rows`)."""
-    positions, index, _ = truth_rows(path, frame_numbers, n_vertices, frame_times, report)
+    positions, index, _ = truth_rows(path, frame_numbers, n_vertices, frame_times, report, file_order)
     return positions, index
 
 
