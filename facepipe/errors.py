@@ -1,5 +1,10 @@
 """Errors the user can fix: the CLI turns them into a message and exit status 2."""
 
+import errno
+
+#: Write errors that concern a folder's disk, not the file: a full disk, a quota, a file too large.
+DISK_FULL = {errno.ENOSPC, errno.EFBIG} | ({errno.EDQUOT} if hasattr(errno, "EDQUOT") else set())
+
 
 class InputError(Exception):
     """Bad input: the message names the file, line/frame, marker or vertex, and the fix."""
@@ -17,7 +22,6 @@ def describe_system_error(exc: BaseException) -> str:
     """What to tell the user of a failure of the machine rather than of facepipe or its input —
     a full disk, a folder it may not write, a path that does not exist, too little memory — as
     ``message\\n  hint: ...`` (no traceback: there is no bug to report)."""
-    import errno
 
     if isinstance(exc, MemoryError):
         return ("not enough memory\n  hint: close other programs, replay part of the take (--frames), or run on a "
@@ -27,7 +31,7 @@ def describe_system_error(exc: BaseException) -> str:
                          if p is not None)
     reason = getattr(exc, "strerror", None) or str(exc)
     text = f"{where}: {reason}" if where else reason
-    if code in (errno.ENOSPC, getattr(errno, "EDQUOT", None)):
+    if code in DISK_FULL:
         hint = ("free space on that disk, or write the outputs elsewhere (-o); complete output files are kept, "
                 "partial ones removed")
     elif code in (errno.EACCES, errno.EPERM, errno.EROFS):

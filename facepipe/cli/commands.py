@@ -468,9 +468,8 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, space, compare_config, 
     info = _replay_info(outdir)
     positions = _load_positions(outdir)
     matched: dict = {}
-    file_order = (lambda: ReplayDir(outdir).load_model().weld_index) if info.get("welded") else None
     truth_pos, index, extras = truth_rows(truth, info["frame_numbers"], positions.shape[1], info.get("times"), matched,
-                                          file_order)
+                                          ReplayDir(outdir).weld_index)
     if matched["frames_matched_by"] == "time":
         rep.say("note: the take's frame numbers are not the truth's: frames matched by time")
     truth_sel = np.asarray(truth_pos)[index] if len(index) < 4096 else truth_pos[index]

@@ -213,7 +213,6 @@ def check_mesh(mesh: Mesh, *, area_tolerance: float = 1e-10, path: str | os.Path
     area_tolerance : float
         Relative area below which a triangle counts as degenerate (dimensionless).
     path : file named in the message; defaults to ``mesh.path``.
-    hint : the fix, where the caller knows a better one than the rig's (the anchors file).
 
     Raises
     ------
@@ -415,6 +414,7 @@ def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or an
     constrained_vertices : (K,) int, vertex indices of handles and anchors
     what : str, how the message names a constrained vertex
     path : file named in the message; defaults to ``mesh.path``.
+    hint : the fix, where the caller knows a better one than the rig's (the anchors file).
 
     Returns
     -------
@@ -440,13 +440,7 @@ def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or an
     if out.any():
         raise InputError(f"{what} vertex {int(cv[np.argmax(out)])} is out of range: the mesh has "
                          f"{n_v} vertices (0..{n_v - 1})", path=where)
-    # two edges per triangle connect its corners; duplicates do not matter for connectivity,
-    # so the (slow) de-duplication of the edge list is skipped
-    f = mesh.faces
-    rows = np.concatenate([f[:, 0], f[:, 1]])
-    cols = np.concatenate([f[:, 1], f[:, 2]])
-    graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int32), (rows, cols)), shape=(n_v, n_v)).tocsr()
-    n_comp, labels = connected_components(graph, directed=True, connection="weak")
+    n_comp, labels = component_labels(mesh)
     has = np.zeros(n_comp, dtype=bool)
     has[labels[cv]] = True
     missing = np.flatnonzero(~has)
@@ -474,6 +468,19 @@ def check_components(mesh: Mesh, constrained_vertices, what: str = "handle or an
                          "the rest mesh and every example pose",
         )
     return int(n_comp), labels.astype(np.int32)
+
+
+def component_labels(mesh: Mesh) -> tuple[int, np.ndarray]:
+    """The mesh's connected parts: their count and each vertex's part (V,) (a vertex in no face is
+    its own part)."""
+    n_v = mesh.n_vertices
+    # two edges per triangle connect its corners; duplicates do not matter for connectivity,
+    # so the (slow) de-duplication of the edge list is skipped
+    f = mesh.faces
+    rows = np.concatenate([f[:, 0], f[:, 1]])
+    cols = np.concatenate([f[:, 1], f[:, 2]])
+    graph = coo_matrix((np.ones(rows.shape[0], dtype=np.int32), (rows, cols)), shape=(n_v, n_v)).tocsr()
+    return connected_components(graph, directed=True, connection="weak")
 
 
 def coincident_vertices(vertices: np.ndarray) -> np.ndarray:
@@ -504,6 +511,13 @@ def weld_vertices(mesh: Mesh, representative: np.ndarray) -> tuple[Mesh, np.ndar
     welded = replace(mesh, vertices=mesh.vertices[keep],
                      polygon_vertices=index[np.asarray(mesh.polygon_vertices, dtype=np.int64)])
     return welded, keep, index
+
+
+def file_vertices(weld_index: np.ndarray) -> np.ndarray:
+    """(W,) one vertex of the mesh file for each vertex of the welded mesh (the ``keep`` of
+    :func:`weld_vertices`), from ``weld_index`` (V,) each file vertex's welded one: what reads
+    frames in the file's order onto the welded mesh."""
+    return np.unique(np.asarray(weld_index), return_index=True)[1]
 
 
 class VertexSelection:

@@ -61,13 +61,12 @@ def export_cache(replay, dest: Path, options: ExportOptions, fmt: str, write: Ca
     """
     positions = replay.layer(options.layer)
     order = {}
-    if file_order and replay.info.get("welded"):
-        weld_index = replay.load_model(options.model_path).weld_index
-        if weld_index is not None:
-            positions = VertexSelection(positions, weld_index)
-            order = {"vertex_order": "mesh file", "notes": [
-                f"written in the mesh file's vertex order ({len(weld_index)} vertices, the seams the rig welded "
-                "split again), to drive that mesh"]}
+    weld_index = replay.weld_index(options.model_path) if file_order else None
+    if weld_index is not None:
+        positions = VertexSelection(positions, weld_index)
+        order = {"vertex_order": "mesh file", "notes": [
+            f"written in the mesh file's vertex order ({len(weld_index)} vertices, the seams the rig welded split "
+            "again), to drive that mesh"]}
     path = cache_path(dest, fmt, name=replay.path.name or "replay")
     fps = replay.fps
     with options.make_bar(positions.shape[0], f"export {fmt}") as bar:

@@ -6,10 +6,11 @@ An interrupted run never leaves a half-written file under the final name.
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import tempfile
 from pathlib import Path
+
+from facepipe.errors import DISK_FULL
 
 
 @contextlib.contextmanager
@@ -35,14 +36,10 @@ def atomic_path(path: str | os.PathLike):
     except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
-        if isinstance(exc, OSError) and exc.filename is None and exc.errno in _FULL:
+        if isinstance(exc, OSError) and exc.filename is None and exc.errno in DISK_FULL:
             # a write that ran out of room says where (os.write names no file)
             raise OSError(exc.errno, exc.strerror, str(path.parent)) from exc
         raise
-
-
-#: Write errors that concern the folder's disk, not the file: a full disk, a quota, a file too large.
-_FULL = {errno.ENOSPC, errno.EFBIG} | ({errno.EDQUOT} if hasattr(errno, "EDQUOT") else set())
 
 
 @contextlib.contextmanager

@@ -179,6 +179,12 @@ class ReplayDir:
             candidates += [folder / name for folder in (here, *here.parents)]
         return next((p for p in candidates if p.is_file()), Path(name))
 
+    def weld_index(self, override=None) -> np.ndarray | None:
+        """The model's ``weld_index`` where the replayed rig was welded along seams (``[rig] weld``:
+        the mesh file's vertex order, for what other tools read or give in it), else None; the model
+        is read only then."""
+        return self.load_model(override).weld_index if self.info.get("welded") else None
+
     def load_model(self, override=None) -> Model:
         """The model of this replay, checked against the positions' vertex count."""
         path = self.model_path(override)

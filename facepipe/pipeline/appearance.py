@@ -250,10 +250,9 @@ def read_take_geometry(path, n_vertices: int) -> TakeGeometry:
     if path.is_dir():
         replay = ReplayDir(path)
         positions, numbers, times = replay.positions, replay.frame_numbers, replay.times
-        welded = replay.info.get("welded") or {}
-        if positions.shape[1] != n_vertices and welded.get("vertices") == n_vertices:
+        if positions.shape[1] != n_vertices and (replay.info.get("welded") or {}).get("vertices") == n_vertices:
             # a rig welded along seams ([rig] weld) replayed: its positions in the mesh file's order
-            positions = VertexSelection(positions, replay.load_model().weld_index)
+            positions = VertexSelection(positions, replay.weld_index())
         in_camera = str(replay.info.get("coordinates", "")).startswith("camera")
         video = replay.video if in_camera else None
         camera = None if video is None else video.camera

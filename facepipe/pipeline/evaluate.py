@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from facepipe.core.mesh import file_vertices
 from facepipe.errors import InputError
 from facepipe.io.npz_file import read_truth, read_truth_extras
 
@@ -133,9 +134,10 @@ def truth_rows(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=Non
         ``time`` (F,) and the head's ``rotation``/``translation``.
     frame_numbers, frame_times : (T,) the replay's frame numbers and times (see :func:`match_frames`).
     n_vertices : V of the model.
-    file_order : for a replay of a rig welded along seams (``[rig] weld``), a callable giving the
-        model's ``weld_index``: a truth in the mesh file's vertex order is then read on the welded
-        vertices.
+    file_order : a callable giving the model's ``weld_index`` or None (:meth:`ReplayDir.weld_index
+        <facepipe.io.replay_folder.ReplayDir.weld_index>`), called only for a truth of another
+        vertex count: a truth in the mesh file's order of a rig welded along seams is read on the
+        welded vertices.
 
     Returns
     -------
@@ -150,7 +152,7 @@ def truth_rows(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=Non
     if file_order is not None and positions.ndim == 3 and positions.shape[1] != n_vertices:
         weld_index = file_order()
         if weld_index is not None and positions.shape[1] == len(weld_index):
-            positions = np.asarray(positions)[:, np.unique(weld_index, return_index=True)[1]]
+            positions = np.asarray(positions)[:, file_vertices(weld_index)]
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
                          f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
@@ -182,9 +184,8 @@ class ReplayTruth:
 
 def replay_truth(path, replay, n_vertices: int) -> ReplayTruth:
     """:func:`load_truth` for a replay folder (its frame numbers, else its times), with the truth's head pose."""
-    welded = replay.info.get("welded") if hasattr(replay, "info") else None
     positions, index, extras = truth_rows(path, replay.frame_numbers, n_vertices, replay.times,
-                                          file_order=(lambda: replay.load_model().weld_index) if welded else None)
+                                          file_order=replay.weld_index)
     if "rotation" in extras and "translation" in extras:
         return ReplayTruth(positions, index, extras["rotation"][index], extras["translation"][index])
     return ReplayTruth(positions, index)

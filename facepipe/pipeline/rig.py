@@ -229,8 +229,6 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
     positions = np.stack(poses) if poses else np.zeros((0, mesh.n_vertices, 3))
     welded = None
     representative = split_vertices(mesh.vertices, positions, on_top)
-    if representative is None and config.weld and config.shell.method == "shell":
-        check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
     if representative is not None:
         if not config.weld:
             raise split_mesh_error(mesh, representative, f"set weld = true in [rig] of {config.path.name}")
@@ -239,11 +237,12 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
         check_mesh(mesh)  # (a polygon with two corners on one seam vertex)
         markers, anchors, landmarks = _welded_vertices(markers, anchors, landmarks, index, config)
         positions = positions[:, keep]
+        welded = {"vertices": n_file, "welded": mesh.n_vertices, "split": int(n_file - mesh.n_vertices)}
+    if config.weld:  # the checks and the early start put off until the mesh was welded
         if config.shell.method == "shell":
             check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
-        welded = {"vertices": n_file, "welded": mesh.n_vertices, "split": int(n_file - mesh.n_vertices)}
-    if on_mesh is not None and config.weld:
-        on_mesh(mesh, markers, anchors)
+        if on_mesh is not None:
+            on_mesh(mesh, markers, anchors)
     return Rig(config, mesh, markers, anchors, names, positions, digest.hexdigest()[:16], landmarks, welded,
                index if welded else None)
 
@@ -251,16 +250,19 @@ def load_rig(config: Config | str | Path, load_examples: bool = True, on_mesh=No
 def _check_parts(mesh: Mesh, markers: Markers, anchors: np.ndarray, config: Config) -> None:
     """Every part of the mesh holds a handle or anchor (:func:`facepipe.core.mesh.check_components`);
     where one does not and the mesh has vertices on top of others, the hint says it may be split
-    along seams (islands a seam cuts off entirely are parts of their own)."""
+    along seams (an island a seam cuts off entirely is a part of its own). The seams are looked for
+    only then: a rig that passes pays nothing before its shell starts."""
+    constrained = np.concatenate([markers.handle_vertices, anchors])
     try:
-        check_components(mesh, np.concatenate([markers.handle_vertices, anchors]))
-    except InputError as exc:
-        on_top = int((coincident_vertices(mesh.vertices) != np.arange(mesh.n_vertices)).sum())
-        if not on_top:
+        check_components(mesh, constrained)
+    except InputError:
+        split = int((coincident_vertices(mesh.vertices) != np.arange(mesh.n_vertices)).sum())
+        if not split:
             raise
-        raise InputError(str(exc).split("\n  hint:")[0].removeprefix(f"{mesh.path}: "), path=mesh.path,
-                         hint=f"{on_top} vertices sit exactly on others: if the mesh is split along UV seams or hard "
-                              f"edges, set weld = true in [rig] of {config.path.name}; else {exc.hint}") from None
+        check_components(mesh, constrained, hint=(
+            f"{split} vertices sit exactly on others: if the mesh is split along UV seams or hard edges, set weld = "
+            f"true in [rig] of {config.path.name}; else put a handle or anchor on every separate part (an eyeball "
+            "or teeth: one of its vertices in the anchors file), or remove the part"))
 
 
 def split_vertices(rest: np.ndarray, poses: np.ndarray, at_rest: np.ndarray | None = None) -> np.ndarray | None:

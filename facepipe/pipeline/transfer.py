@@ -42,7 +42,7 @@ from facepipe.core.closest import project_points
 from facepipe.core.nonrigid import Refinement, refine_to_surface
 from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, to_world, vertex_normals
 from facepipe.core.mesh import (check_components, check_marker_vertices, check_mesh, coincident_vertices,
-                                weld_vertices)
+                                component_labels, weld_vertices)
 from facepipe.io.mesh_read import load_mesh
 from facepipe.core.psd import edge_weight_matrix, fit_details
 from facepipe.core.rbf_morph import multiquadric_basis
@@ -414,7 +414,7 @@ def transfer_model(model, target, corr: Correspondence, target_handles: np.ndarr
                                                  corr.scale if scale_details else unit_factor(source_units, units))
     # a part of the target that no marker drives (an eyeball held by --target-anchors) moves with the
     # head alone: it takes no details from the source skin it was mapped onto
-    _, labels = check_components(target, np.arange(target.n_vertices))
+    _, labels = component_labels(target)
     undriven = ~np.isin(labels, labels[target_handles])
     rbf_weights[undriven] = 0.0
     rbf_const[undriven] = 0.0
