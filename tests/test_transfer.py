@@ -209,6 +209,11 @@ def test_a_target_part_the_source_lacks_is_held_by_target_anchors(source, rig, t
     assert run_cli(*args, "-o", tmp_path / "no.npz") == 2
     err = capsys.readouterr().err
     assert f"containing vertex {first}" in err and "--target-anchors" in err
+    for bad, said in ((f"{first}\nnot-a-vertex\n", "not-a-vertex"), (f"{10**6}\n", str(10**6))):
+        (tmp_path / "bad_anchors.txt").write_text(bad)
+        assert run_cli(*args, "-o", tmp_path / "bad.npz", "--target-anchors", tmp_path / "bad_anchors.txt") == 2
+        err = capsys.readouterr().err
+        assert said in err and "bad_anchors.txt" in err and not (tmp_path / "bad.npz").exists()
     (tmp_path / "anchors.txt").write_text(f"{first}\n")
     out = tmp_path / "with_part.npz"
     assert run_cli(*args, "-o", out, "--target-anchors", tmp_path / "anchors.txt") == 0

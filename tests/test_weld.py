@@ -147,6 +147,7 @@ def test_caches_in_the_mesh_files_order_go_in_and_out(rigs, capsys):
                                       np.load(d / f"cache_whole_{backend}" / "positions.npy"))
     write_mdd(d / "wrong.mdd", smooth[:, :-1], times)
     assert run("replay", d / "wrong.mdd", "-m", d / "welded.npz", "-o", d / "wrong", "-q") == 2
+    assert "vertices per frame" in capsys.readouterr().err and not (d / "wrong" / "positions.npy").exists()
 
 
 def test_a_welded_rigs_replay_is_geometry_in_the_mesh_files_order(rigs):
@@ -173,7 +174,7 @@ def test_transfer_onto_a_split_target_needs_target_weld_and_then_equals_the_unsp
     points.write_text("name,vertex\n" + "".join(f"{r.split(',')[0]},{r.split(',')[1]}\n" for r in rows[::2]))
     args = ("transfer", d / "whole.npz", "--source-points", points, "--target-points", points, "-q")
     assert run(*args, "--target", d / "split" / "neutral.obj", "-o", d / "t_refused.npz") == 2
-    assert "--target-weld" in capsys.readouterr().err
+    assert "--target-weld" in capsys.readouterr().err and not (d / "t_refused.npz").exists()
     assert run(*args, "--target", d / "split" / "neutral.obj", "-o", d / "t_split.npz", "--target-weld") == 0
     assert run(*args, "--target", d / "whole" / "neutral.obj", "-o", d / "t_whole.npz") == 0
     split, whole = load_model(d / "t_split.npz"), load_model(d / "t_whole.npz")
@@ -278,3 +279,48 @@ def test_the_editor_reads_a_truth_in_the_mesh_files_order(rigs, tmp_path):
     finally:
         for session in sessions:
             session.close()
+
+
+def _split_config(d, tmp_path, replace_in=None):
+    """A copy of the split rig's files in ``tmp_path`` with its config's text changed by ``replace_in``."""
+    rig = tmp_path / "rig"
+    rig.mkdir()
+    for f in (d / "split").iterdir():
+        if f.is_file():
+            (rig / f.name).write_bytes(f.read_bytes())
+    (rig / "expressions").symlink_to(d / "split" / "expressions")
+    text = (rig / "sample.toml").read_text()
+    (rig / "sample.toml").write_text(replace_in(text) if replace_in else text)
+    return rig
+
+
+@pytest.mark.parametrize("case", ["weld not a bool", "markers on both copies of a seam vertex"])
+def test_bad_weld_input_is_refused_before_any_output(rigs, tmp_path, capsys, case):
+    d, seam, n = rigs
+    if case == "weld not a bool":
+        rig = _split_config(d, tmp_path, lambda t: t.replace('units = "cm"', 'units = "cm"\nweld = "yes"', 1))
+        expected = ['weld = "yes"', "true or false"]
+    else:
+        rig = _split_config(d, tmp_path, lambda t: t.replace('units = "cm"', 'units = "cm"\nweld = true', 1))
+        lines = (rig / "markers.csv").read_text().splitlines()
+        lines.append(f"EXTRA,{n + 0},handle")  # the copy of seam vertex seam[0], which a marker may hold too
+        lines.append(f"EXTRA2,{int(seam[0])},handle")
+        (rig / "markers.csv").write_text("\n".join(lines) + "\n")
+        expected = ["EXTRA", "EXTRA2", "copies of one vertex split at a seam"]
+    assert run("fit", rig / "sample.toml", "--no-tune", "-o", tmp_path / "fit.npz", "-q") == 2
+    err = capsys.readouterr().err
+    assert all(e in err for e in expected), err
+    assert "Traceback" not in err and not (tmp_path / "fit.npz").exists()
+
+
+def test_a_welded_models_landmark_map_out_of_the_files_range_is_refused(rigs, tmp_path):
+    from facepipe.errors import InputError
+    from facepipe.pipeline.video_replay import landmark_map_for
+
+    d, seam, n = rigs
+    _baked(d)
+    model = load_model(d / "welded.npz")
+    path = tmp_path / "landmarks.csv"
+    path.write_text("name,vertex\n" + "".join(f"p{i},{i}\n" for i in range(5)) + f"p5,{n + len(seam)}\n")
+    with pytest.raises(InputError, match=str(n + len(seam))):
+        landmark_map_for(model, path, tmp_path / "take.csv")
