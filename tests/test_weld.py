@@ -221,15 +221,19 @@ def test_a_landmark_map_given_at_replay_numbers_the_mesh_files_vertices(rigs):
     assert lmap.vertices.tolist() == [0, 1, 2, 3, int(seam[0]), int(seam[-1])]
 
 
+def _split_truth(d, seam, path) -> None:
+    """The sample take's truth on the split mesh (the seams' copies appended), written to ``path``."""
+    truth = np.load(d / "whole" / "take_truth.npz")
+    np.savez(path, **{k: truth[k] for k in truth.files if k != "positions"},
+             positions=np.concatenate([truth["positions"], truth["positions"][:, seam]], axis=1))
+
+
 def test_eval_reads_a_truth_in_the_mesh_files_order(rigs, capsys):
     """A welded rig's replay evaluated against a truth of the split mesh (the user's own): the same
     figures as against the unsplit truth."""
     d, seam, n = rigs
     _baked(d)
-    truth = np.load(d / "whole" / "take_truth.npz")
-    positions = truth["positions"]
-    np.savez(d / "split_truth.npz", **{k: truth[k] for k in truth.files if k != "positions"},
-             positions=np.concatenate([positions, positions[:, seam]], axis=1))
+    _split_truth(d, seam, d / "split_truth.npz")
     printed = []
     for path in (d / "split_truth.npz", d / "whole" / "take_truth.npz"):
         assert run("eval", d / "out_welded", "--truth", path) == 0
@@ -266,9 +270,7 @@ def test_the_editor_reads_a_truth_in_the_mesh_files_order(rigs, tmp_path):
 
     d, seam, n = rigs
     _baked(d)
-    truth = np.load(d / "whole" / "take_truth.npz")
-    np.savez(tmp_path / "split_truth.npz", **{k: truth[k] for k in truth.files if k != "positions"},
-             positions=np.concatenate([truth["positions"], truth["positions"][:, seam]], axis=1))
+    _split_truth(d, seam, tmp_path / "split_truth.npz")
     model = load_model(d / "welded.npz")
     take = prepared_take(d / "split" / "take.csv", model)
     sessions = [EditorSession(model, take, tmp_path / f"e{i}.json", mode="server", truth_path=path)
