@@ -31,7 +31,7 @@ from scipy.stats import pearsonr, spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's facepipe, however it is run
 
 from facepipe.appearance_sample import write_appearance_kit
-from facepipe.core.appearance import light_bits, stream_bits
+from facepipe.core.appearance import SHADING_ORDERS, light_bits, stream_bits
 from facepipe.core.hole_cards import boundary_loops
 from facepipe.io.appearance_file import STREAM_DECIMALS
 from facepipe.io.camera_file import read_camera
@@ -89,6 +89,16 @@ def identity_geometry(face: np.ndarray, neutral: np.ndarray, expressions: dict, 
         head = np.einsum("tvi,tij->tvj", world - t[:, None, :], R)
         return moved, np.einsum("tvj,tij->tvi", face + (head - neutral), R) + t[:, None, :]
     return moved, face + (world - neutral)
+
+
+def q_errors(q: np.ndarray, act: np.ndarray, names: list, layer_counts) -> dict:
+    """RMS of Q − the truth's layer index (activation 0 … 1 over the layers), per region and in all,
+    in layers, over the frames where the region is seen: how far the stream is off, which no tie
+    among the truth's zeros caps (the rank correlation's limit on these takes)."""
+    truth = act * (np.asarray(layer_counts, dtype=np.float64) - 1.0)
+    err = np.where(np.isfinite(q), q - truth, np.nan)
+    per = np.sqrt(np.nanmean(err ** 2, axis=0))
+    return {"q_rms_error_layers": dict(zip(names, per.tolist())), "q_rms_error_layers_mean": float(per.mean())}
 
 
 def correlations(q: np.ndarray, act: np.ndarray, names: list) -> dict:
@@ -212,6 +222,8 @@ def main() -> None:
     result = {"take": args.take, "identity": args.identity or "neutral", "render_seconds": render_s, "regions": model.names, "shading": model.shading,
               "albedo_layers": model.albedo,
               "rest_floor": None if model.rest_floor is None else dict(zip(model.names, model.rest_floor.tolist())),
+              "shading_surface": dict(zip(model.names, [SHADING_ORDERS.get(int(o), str(o)) for o in model.shading_orders]))
+              if model.shading_orders is not None else None,
               "stream_bits_per_frame": bits, "q_bits_per_frame": q_bits, "light_bits_per_frame": bits - q_bits,
               "stream_kbit_s_at_30hz": bits * 30 / 1000.0}
     for take in ("take", "take_turned"):
@@ -221,7 +233,8 @@ def main() -> None:
         seconds = time.perf_counter() - t0
         act = np.loadtxt(out / f"{take}_truth.csv", delimiter=",", skiprows=1, ndmin=2)[:, 1:]
         q = np.round(c.q, STREAM_DECIMALS)  # the stream as written
-        result[take] = {**correlations(q, act, model.names), "frames_per_second_with_reading": len(numbers) / seconds,
+        result[take] = {**correlations(q, act, model.names), **q_errors(q, act, model.names, model.layer_counts),
+                        "frames_per_second_with_reading": len(numbers) / seconds,
                         "visible_fraction": float(c.visible.mean())}
         if take == "take":
             result[take].update(throughput(model, out, take, positions, numbers))
@@ -232,6 +245,8 @@ def main() -> None:
         print(take, "pearson ", " ".join(f"{n} {v:.3f}" for n, v in r["pearson"].items()))
         print(take, "active  ", " ".join(f"{n} {v:.3f}" for n, v in r["spearman_active_frames"].items()))
         print(take, "ceiling ", " ".join(f"{n} {v:.3f}" for n, v in r["spearman_of_truth_with_1pct_noise"].items()))
+        print(take, "Q error ", " ".join(f"{n} {v:.3f}" for n, v in r["q_rms_error_layers"].items()),
+              f"(mean {r['q_rms_error_layers_mean']:.3f} layers)")
         print(take, f"{r['frames_per_second_with_reading']:.1f} frames/s with reading",
               f"visible {r['visible_fraction']:.3f}")
     print(f"classification alone {result['take']['classification_frames_per_second']:.0f} frames/s, "

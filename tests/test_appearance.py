@@ -98,6 +98,8 @@ def _edited_config(kit, tmp_path, old, new):
     ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 4]\ncard = true", "rim"),
     ("template = [", "card = true\ntemplate = [0.5, 0.5, 1.5, 1.5] #", "card's own square"),
     ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 4]\ncard = 1", "expected"),
+    ("texture_size = 512", 'texture_size = 512\nshading_surface = "cubic"', "not one of auto, plane, quadratic"),
+    ("frames = [0, 1, 2, 3, 4]", 'frames = [0, 1, 2, 3, 4]\nshading_surface = "flat"', "shading_surface"),
 ])
 def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
@@ -755,6 +757,31 @@ def test_bad_visibility_settings(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
     assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
     assert message in capsys.readouterr().err
+
+
+def test_shading_surfaces_chosen_per_region_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
+    """``auto`` measures per region what a quadratic keeps of its layers' contrast (the build says
+    it); the model keeps each region's surface; the config fixes it for all or for one region."""
+    from facepipe.io.appearance_file import load_appearance
+
+    model = load_appearance(kit / "app.npz")
+    assert model.shading_orders is not None and set(model.shading_orders.tolist()) <= {1, 2}
+    cfg = _edited_config(kit, tmp_path, "texture_size = 512", 'texture_size = 512\nshading_surface = "plane"')
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "plane.npz") == 0
+    assert "shading surfaces" in capsys.readouterr().out
+    assert load_appearance(tmp_path / "plane.npz").shading_orders.tolist() == [1] * len(model.names)
+    text = cfg.read_text()
+    first = text.index("frames = [", text.index("[appearance.regions."))
+    cfg.write_text(text[:first] + 'shading_surface = "quadratic"\n' + text[first:])
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "one.npz", "-q") == 0
+    one = load_appearance(tmp_path / "one.npz")
+    assert one.shading_orders.tolist() == [2] + [1] * (len(model.names) - 1)
+    # models before the choice read as the plane everywhere
+    assert load_appearance(tmp_path / "plane.npz").shading_orders is not None
+    data = dict(np.load(tmp_path / "plane.npz"))
+    del data["shading_orders"]
+    np.savez(tmp_path / "old.npz", **data)
+    assert load_appearance(tmp_path / "old.npz").shading_orders is None
 
 
 def test_model_keeps_its_visibility_settings(kit):

@@ -451,3 +451,72 @@ def test_unseen_texels_continue_the_texture_around_them():
 
     nothing = np.zeros((4, 4), dtype=bool)
     np.testing.assert_array_equal(fill_unseen(image[:4, :4], nothing), image[:4, :4])
+
+
+def test_quadratic_shading_against_least_squares():
+    # order 2: the least-squares quadratic through the patch (checked with lstsq), over the whole
+    # patch and over a mask; a patch that is all quadratic shading normalises to ones, which the
+    # plane cannot do
+    from facepipe.core.appearance import normalise_patches as norm
+    rng = np.random.default_rng(31)
+    patches = rng.uniform(0.5, 1.5, size=(3, 16, 16))
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    A = np.stack([np.ones(256), xx.ravel(), yy.ravel(), xx.ravel() ** 2, xx.ravel() * yy.ravel(), yy.ravel() ** 2], 1)
+    for p, got in zip(patches, norm(patches, 2)):
+        np.testing.assert_allclose(got, p / (A @ np.linalg.lstsq(A, p.ravel(), rcond=None)[0]).reshape(16, 16),
+                                   rtol=1e-10)
+    mask = rng.uniform(size=(16, 16)) < 0.6
+    Am = A[mask.ravel()]
+    coef = np.linalg.lstsq(Am, patches[0][mask], rcond=None)[0]
+    got = norm(patches[0], 2, mask)
+    np.testing.assert_allclose(got[mask], patches[0][mask] / (Am @ coef), rtol=1e-10)
+    assert (got[~mask] == 0).all()
+    curved = 0.9 + 0.01 * xx - 0.002 * xx ** 2 + 0.001 * xx * yy - 0.003 * yy ** 2
+    np.testing.assert_allclose(norm(curved, 2), 1.0, atol=1e-12)
+    assert np.abs(norm(curved, 1) - 1.0).max() > 0.05
+    # a texture under a curved light: the quadratic gives back the texture's own normalisation
+    texture = 1.0 + 0.1 * np.sin(xx * 1.7) * np.cos(yy * 1.3)
+    np.testing.assert_allclose(norm(texture * curved, 2), norm(texture, 2), atol=0.01)
+    assert np.abs(norm(texture * curved, 1) - norm(texture, 1)).max() > 0.05
+
+
+def test_shading_order_keeps_a_wrinkle_region_quadratic_and_a_moving_iris_planar():
+    from facepipe.core.appearance import shading_order
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    w = coefficient_weights(16)
+    # wrinkles: lines deepening from layer to layer, fast over the patch
+    lines = [1.0 - 0.1 * k * (np.cos(xx * 1.2) > 0.3) for k in range(5)]
+    order, kept = shading_order(np.stack(lines), None, w)
+    assert order == 2 and kept > 0.9
+    # an iris filling the patch, moving across it: a change as smooth as the shading
+    iris = [1.0 - 0.6 * np.exp(-((xx - 2.0 * k + 4.0) ** 2 + yy ** 2) / 80.0) for k in range(5)]
+    order, kept = shading_order(np.stack(iris), None, w)
+    assert order == 1 and kept < 0.75
+
+
+def test_regions_with_their_own_shading_surfaces_match_one_by_one():
+    rng = np.random.default_rng(32)
+    w = coefficient_weights(16)
+    orders = [1, 2, 2]
+    raw = [rng.uniform(0.5, 1.5, size=(n, 16, 16)) for n in (3, 5, 4)]
+    templates = [haar_coefficients(normalise_patches(t, o)) for t, o in zip(raw, orders)]
+    indices = [select_coefficients(t, 50) for t in templates]
+    bank = RegionBank(templates, indices, w, orders=orders)
+    patches = rng.uniform(0.5, 1.5, size=(6, 3, 5, 16, 16))
+    q, d = classify_regions(patches, bank)
+    for r, o in enumerate(orders):
+        qr, dr = classify(patches[:, r], templates[r], indices[r], w, shading=o)
+        np.testing.assert_allclose(q[:, r], qr, atol=1e-9)
+        np.testing.assert_allclose(d[:, r], dr, rtol=1e-9)
+    # partly seen samples: the masked templates too are normalised by each region's own surface
+    seen = np.ones(patches.shape, dtype=bool)
+    seen[..., :4, :] = False
+    q_seen, _ = classify_regions(patches, bank, seen=seen)
+    for r, o in enumerate(orders):
+        one = RegionBank([templates[r]], [indices[r]], w, orders=[o])
+        np.testing.assert_allclose(q_seen[:, r], classify_regions(patches[:, r:r + 1], one, seen=seen[:, r:r + 1])[0][:, 0],
+                                   atol=1e-9)
+    # without shading every region is divided by its mean alone
+    q_mean, _ = classify_regions(patches, bank, shading=False)
+    np.testing.assert_allclose(q_mean[:, 0], classify(patches[:, 0], templates[0], indices[0], w, shading=False)[0],
+                               atol=1e-9)

@@ -54,6 +54,10 @@ def build_command(config_path, output, rep, write_json) -> dict:
     if info.get("rest"):
         rep.say("rest floors (Q read at rest in the examples, measured from): "
                 + ", ".join(f"{n} {v['floor']:.2f}" for n, v in info["rest"].items()))
+    if info.get("shading"):
+        rep.say("shading surfaces (share of the layers' contrast a quadratic keeps): " + ", ".join(
+            f"{n} {v['surface']}" + ("" if v["contrast_kept"] is None else f" ({v['contrast_kept']:.2f})")
+            for n, v in info["shading"].items()))
     for note in info["notes"]:
         rep.say(f"note: {note}")
     return info

@@ -28,7 +28,9 @@ match distances of it and its neighbours to a continuous layer index Q ∈ [0, n
 
 Patches are divided by their shading before the transform, the plane through their
 intensities (a change of exposure, of the light's strength and, to first order, of its
-direction leaves them unchanged): what is classified is the texture's structure.
+direction leaves them unchanged), or per region the quadratic, which takes out a light's
+curvature over the patch too where it keeps most of the region's own change
+(:func:`shading_order`): what is classified is the texture's structure.
 
 Pure functions over arrays.
 """
@@ -44,7 +46,8 @@ from scipy import ndimage
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "light_bits", "LIGHT_SPAN", "DIAGONAL_OFFSETS",
-           "sh_basis", "fit_light", "sh_quadratic", "light_shading", "fill_unseen"]
+           "sh_basis", "fit_light", "sh_quadratic", "light_shading", "fill_unseen", "SHADING_ORDERS",
+           "QUADRATIC_LEAST_KEPT", "layer_contrast", "shading_order"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
 DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
@@ -92,22 +95,30 @@ def haar_coefficients(patches: np.ndarray) -> np.ndarray:
     return patches.reshape(patches.shape[:-2] + (size * size,)) @ H.T
 
 
-def normalise_patches(patches: np.ndarray, shading: bool = True, mask: np.ndarray | None = None) -> np.ndarray:
-    """Patches divided by their shading: the least-squares plane a + b·x + c·y through their
-    intensities (``shading``), or their mean alone.
+def normalise_patches(patches: np.ndarray, shading: int = 1, mask: np.ndarray | None = None) -> np.ndarray:
+    """Patches divided by their shading: the least-squares surface through their intensities of
+    order ``shading`` (:data:`SHADING_ORDERS`: 1 the plane a + b·x + c·y, 2 the quadratic that
+    adds x², x·y, y²; ``True`` is 1), or with 0 (``False``) their mean alone.
 
     Light varies slowly over a small patch of skin, the texture it shows (wrinkles, pores, folds)
     fast: over a patch a few millimetres wide the shading of a smooth light is close to linear,
     so dividing by the plane takes out a change of exposure, of the light's strength and of its
     direction to first order, while a fold's darkening (its structure within the patch, and its
-    mean relative to the patch's gradient) stays. A patch whose plane nears zero somewhere (a
-    patch mostly in shadow) is divided by at least a tenth of its mean.
+    mean relative to the patch's gradient) stays. Over a curved patch (a cheek's fold, the
+    mouth's corner) a light from the side or a turned head shades it along a curve the plane
+    leaves behind, and the quadratic takes it out too, at the price of the part of the region's
+    own change that is that smooth (an iris moving, a lid closing: see :func:`shading_order`). A
+    patch whose surface nears zero somewhere (a patch mostly in shadow) is divided by at least a
+    tenth of its mean.
     """
     patches = np.asarray(patches, dtype=np.float64)
+    order = int(shading)
+    if mask is None and order > 1:
+        mask = np.ones(patches.shape[-2:], dtype=bool)
     if mask is not None:
-        return _normalise_masked(patches, np.asarray(mask, dtype=bool), shading)
+        return _normalise_masked(patches, np.asarray(mask, dtype=bool), order)
     mean = patches.mean(axis=(-2, -1), keepdims=True)
-    if not shading:
+    if not order:
         return patches / np.maximum(np.abs(mean), 1e-6)
     h, w = patches.shape[-2:]
     y = (np.arange(h) - 0.5 * (h - 1))[:, None]
@@ -120,8 +131,8 @@ def normalise_patches(patches: np.ndarray, shading: bool = True, mask: np.ndarra
     return patches / np.maximum(plane, floor)
 
 
-def _normalise_masked(patches: np.ndarray, mask: np.ndarray, shading: bool) -> np.ndarray:
-    """:func:`normalise_patches` with the mean and the plane fitted over the texels of ``mask``
+def _normalise_masked(patches: np.ndarray, mask: np.ndarray, shading: int) -> np.ndarray:
+    """:func:`normalise_patches` with the mean and the surface fitted over the texels of ``mask``
     (..., h, w) alone (the seen part of a partly hidden patch); texels off the mask are 0. The
     mask may have fewer leading axes' lengths than the patches (broadcast: one mask, many patches)."""
     h, w = patches.shape[-2:]
@@ -132,35 +143,76 @@ def _normalise_masked(patches: np.ndarray, mask: np.ndarray, shading: bool) -> n
     return np.where(m, flat / np.maximum(plane, floor), 0.0).reshape(patches.shape)
 
 
+#: The shading surfaces a patch can be divided by: order → name (0: the patch's mean alone).
+SHADING_ORDERS = {0: "mean", 1: "plane", 2: "quadratic"}
+
+
 @functools.lru_cache(maxsize=8)
-def _plane_basis(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-    """The plane's basis (3, h·w): 1, x, y about the centre; and its products (9, h·w)."""
+def _plane_basis(h: int, w: int, order: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The surface's basis (k, h·w): 1, x, y about the centre (and x², x·y, y² for order 2, in
+    units of the half-size, which keeps the normal equations balanced); and its products (k², h·w)."""
     y, x = np.meshgrid(np.arange(h) - 0.5 * (h - 1), np.arange(w) - 0.5 * (w - 1), indexing="ij")
-    basis = np.stack([np.ones(h * w), x.ravel(), y.ravel()])
-    return basis, (basis[:, None, :] * basis[None, :, :]).reshape(9, h * w)
+    terms = [np.ones(h * w), x.ravel(), y.ravel()]
+    if order >= 2:
+        u, v = x.ravel() / (0.5 * w), y.ravel() / (0.5 * h)
+        terms += [u * u, u * v, v * v]
+    basis = np.stack(terms)
+    k = len(basis)
+    return basis, (basis[:, None, :] * basis[None, :, :]).reshape(k * k, h * w)
 
 
-def _masked_plane(values: np.ndarray, mask: np.ndarray, shading: bool) -> tuple[np.ndarray, np.ndarray]:
-    """The least-squares plane (..., N) (or the mean alone, without ``shading``) through values
-    (..., N) of a square patch over the texels of mask (broadcastable to them), and the mean (..., 1)."""
+def _masked_plane(values: np.ndarray, mask: np.ndarray, shading: int) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares surface of order ``shading`` (..., N) (the mean alone for 0) through
+    values (..., N) of a square patch over the texels of mask (broadcastable to them), and the mean (..., 1)."""
     m = mask.astype(np.float64)
     count = np.maximum(m.sum(axis=-1, keepdims=True), 1.0)
     mean = (values * m).sum(axis=-1, keepdims=True) / count
-    if not shading:
+    if not int(shading):
         return np.broadcast_to(mean, values.shape), mean
     side = int(round(np.sqrt(values.shape[-1])))
-    basis, products = _plane_basis(side, side)
-    normal = (m @ products.T).reshape(m.shape[:-1] + (3, 3))       # one per mask, shared by its patches
-    rhs = (values * m) @ basis.T                                     # (..., 3)
-    # a seen part too thin to fix a plane (a line, a few texels) is divided by its mean alone
-    scale = np.trace(normal, axis1=-2, axis2=-1) / 3.0
-    well_posed = np.linalg.det(normal) > 1e-8 * np.maximum(scale, 1e-30) ** 3
-    safe = np.where(well_posed[..., None, None], normal, np.eye(3))
-    safe = np.broadcast_to(safe, rhs.shape[:-1] + (3, 3))
+    basis, products = _plane_basis(side, side, int(shading))
+    k = len(basis)
+    normal = (m @ products.T).reshape(m.shape[:-1] + (k, k))       # one per mask, shared by its patches
+    rhs = (values * m) @ basis.T                                     # (..., k)
+    # a seen part too thin to fix the surface (a line, a few texels) is divided by its mean alone
+    diagonal = np.sqrt(np.maximum(np.diagonal(normal, axis1=-2, axis2=-1), 1e-300))
+    well_posed = np.linalg.det(normal / (diagonal[..., :, None] * diagonal[..., None, :])) > 1e-8
+    safe = np.where(well_posed[..., None, None], normal, np.eye(k))
+    safe = np.broadcast_to(safe, rhs.shape[:-1] + (k, k))
     coef = np.linalg.solve(safe, rhs[..., None])[..., 0]
-    fallback = np.concatenate([mean, np.zeros(mean.shape[:-1] + (2,))], axis=-1)
+    fallback = np.concatenate([mean, np.zeros(mean.shape[:-1] + (k - 1,))], axis=-1)
     coef = np.where(np.broadcast_to(well_posed, rhs.shape[:-1])[..., None], coef, fallback)
     return coef @ basis, mean
+
+
+#: The quadratic shading surface is used where it keeps at least this share of a region's layer
+#: contrast (what the plane keeps): it costs a wrinkle region little, an iris or a closing lid much.
+QUADRATIC_LEAST_KEPT = 0.75
+
+
+def layer_contrast(patches: np.ndarray, order: int, mask: np.ndarray | None, weights: np.ndarray,
+                   keep: int = 50) -> float:
+    """How far a region's layers (n, size, size) stand from its neutral one (layer 0), normalised
+    by the shading surface of ``order`` over ``mask``: the sum over the layers of their match
+    distance to it, on the coefficients that normalisation would keep."""
+    coefficients = haar_coefficients(normalise_patches(patches, order, mask))
+    kept = select_coefficients(coefficients, keep)
+    return float(match_distances(coefficients[1:], coefficients[:1], kept, weights).sum())
+
+
+def shading_order(patches: np.ndarray, mask: np.ndarray | None, weights: np.ndarray, keep: int = 50,
+                  least_kept: float = QUADRATIC_LEAST_KEPT) -> tuple[int, float]:
+    """The shading surface a region's patches are divided by, from its layers (n, size, size):
+    the quadratic (2) where it keeps at least ``least_kept`` of the contrast the plane keeps
+    (:func:`layer_contrast`), else the plane (1); and that share.
+
+    A quadratic takes out more of a light's shading over a curved patch (a light from the side,
+    a turned head), and with it the part of the region's own change that is as smooth: little
+    of a wrinkle's lines, much of an iris moving across an eye or of a lid closing over it, whose
+    layers the plane keeps apart better."""
+    plane = layer_contrast(patches, 1, mask, weights, keep)
+    kept = layer_contrast(patches, 2, mask, weights, keep) / plane if plane > 0 else 0.0
+    return (2 if kept >= least_kept else 1), kept
 
 
 def select_coefficients(template_coefficients: np.ndarray, keep: int = 50) -> np.ndarray:
@@ -273,15 +325,17 @@ class RegionBank:
     masks : optional (R, C) bool, each region's stable texels (e.g. the template points every example shows well):
     its templates were normalised over them and are zero elsewhere (``normalise_patches`` with
     that mask), and a region's patches are matched on them alone (:func:`classify_regions`).
-    None: every texel.
+    None: every texel. orders : optional (R,) each region's shading surface
+    (:func:`normalise_patches`; its templates were normalised by it); None: the plane for all.
     """
 
     MASK_CACHE = 1024  # (region, mask) pairs whose normalised templates are kept: 12 kB each at 6 layers of 16²
 
-    def __init__(self, templates, indices, weights, masks=None):
+    def __init__(self, templates, indices, weights, masks=None, orders=None):
         self._mask_cache: dict = {}
         R = len(templates)
         C = len(weights)
+        self.orders = np.ones(R, dtype=np.int64) if orders is None else np.asarray(orders, dtype=np.int64).reshape(R)
         self.masks = np.ones((R, C), dtype=bool) if masks is None else np.asarray(masks, dtype=bool).reshape(R, C)
         if not self.masks.any(axis=1).all():
             raise ValueError("a region's stable mask is empty")
@@ -299,8 +353,10 @@ class RegionBank:
         self.tt = (self.wt * self.templates).sum(axis=-1)      # (R, n)
         H, _ = haar_matrix(int(round(np.sqrt(C))))
         self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
-        # their planes over the stable texels (:func:`normalise_patches` of the normalised template: near 1)
-        self.plane_all = _masked_plane(self.pixels, self.masks[:, None, :], True)[0]
+        # their surfaces over the stable texels (:func:`normalise_patches` of the normalised template: near 1)
+        self.plane_all = np.empty_like(self.pixels)
+        for order, rows in self.order_groups(True):
+            self.plane_all[rows] = _masked_plane(self.pixels[rows], self.masks[rows][:, None, :], order)[0]
         # the Haar rows of each region's kept coefficients (padded with zero-weight rows)
         kept = max(len(i) for i in indices)
         self.kept_rows = np.zeros((R, kept, C))
@@ -308,6 +364,12 @@ class RegionBank:
         for r, idx in enumerate(indices):
             self.kept_rows[r, :len(idx)] = H[idx]
             self.kept_weights[r, :len(idx)] = np.asarray(weights, dtype=np.float64)[idx]
+
+    def order_groups(self, shading: bool = True):
+        """(order, region indices) for each shading surface the regions use (0, the mean, for all
+        without ``shading``)."""
+        orders = self.orders if shading else np.zeros_like(self.orders)
+        return [(int(o), np.flatnonzero(orders == o)) for o in np.unique(orders)]
 
     def masked_distances(self, normalised: np.ndarray, mask: np.ndarray, region: np.ndarray,
                          shading: bool = True) -> np.ndarray:
@@ -341,7 +403,7 @@ class RegionBank:
         camera cannot see of a region (a fold turned edge-on, a brow over the lid) changes slowly,
         so the same masks come back frame after frame: each (region, mask) is normalised once and
         kept (up to ``MASK_CACHE`` of them)."""
-        keys = [(int(r), bool(shading), k.tobytes()) for r, k in zip(region, masks)]
+        keys = [(int(r), int(self.orders[r]) if shading else 0, k.tobytes()) for r, k in zip(region, masks)]
         cache = self._mask_cache
         # each key looked up once: another thread classifying other frames may clear the cache
         kept, new = {}, {}
@@ -358,7 +420,11 @@ class RegionBank:
             first = np.fromiter(new.values(), dtype=np.int64, count=len(new))
             m = masks[first][:, None, :]
             templates = self.pixels[region[first]]
-            plane_seen, mean = _masked_plane(templates, m, shading)
+            plane_seen, mean = np.empty_like(templates), np.empty(templates.shape[:-1] + (1,))
+            order = np.array([k[1] for k in new])
+            for o in np.unique(order):
+                rows = order == o
+                plane_seen[rows], mean[rows] = _masked_plane(templates[rows], m[rows], int(o))
             floor = np.maximum(0.1 * np.abs(mean), 1e-6)
             normalised = np.where(m, templates * self.plane_all[region[first]] / np.maximum(plane_seen, floor), 0.0)
             found = dict(zip(new, normalised))
@@ -389,9 +455,7 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
     seen takes no part, and a region none of whose samples does gets Q NaN (the caller holds
     its last value).
     """
-    size = patches.shape[-1]
-    stable = bank.masks.reshape(-1, 1, size, size) if bank.masked else None  # (R, 1, size, size): every sample alike
-    coefficients = haar_coefficients(normalise_patches(patches, shading, stable))
+    coefficients = haar_coefficients(_normalise_regions(patches, bank, shading))
     d = bank.distances(coefficients)  # (..., R, S, n)
     if seen is not None:
         d = _distances_of_seen(patches, seen, bank, shading, d, min_seen)
@@ -402,6 +466,20 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
     q = np.full(usable.shape, np.nan)
     q[usable] = peak_index(chosen[usable])
     return q, np.take_along_axis(best, sample[..., None], -1)[..., 0]
+
+
+def _normalise_regions(patches: np.ndarray, bank: RegionBank, shading: bool) -> np.ndarray:
+    """Patches (..., R, S, size, size) normalised over their region's stable texels, each region
+    by its own shading surface (:meth:`RegionBank.order_groups`)."""
+    size = patches.shape[-1]
+    stable = bank.masks.reshape(-1, 1, size, size)  # (R, 1, size, size): every sample alike
+    groups = bank.order_groups(shading)
+    if len(groups) == 1:
+        return normalise_patches(patches, groups[0][0], stable if bank.masked else None)
+    out = np.empty(np.shape(patches))
+    for order, rows in groups:
+        out[..., rows, :, :, :] = normalise_patches(patches[..., rows, :, :, :], order, stable[rows])
+    return out
 
 
 def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.ndarray, min_seen: float) -> np.ndarray:
@@ -417,7 +495,12 @@ def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.nda
     if partial.any():
         idx = np.nonzero(partial)
         region = idx[-2]
-        part = normalise_patches(patches[idx], shading, seen[idx])  # (M, size, size)
+        picked, picked_seen = patches[idx], seen[idx]
+        part = np.empty(picked.shape)  # (M, size, size), each by its region's surface
+        orders = bank.orders[region] if shading else np.zeros_like(region)
+        for o in np.unique(orders):
+            rows = orders == o
+            part[rows] = normalise_patches(picked[rows], int(o), picked_seen[rows])
         d[idx] = bank.masked_distances(part, seen[idx], region, shading)
     return d
 

@@ -61,7 +61,10 @@ class AppearanceModel:
     lies on them), with tile_neutral (T, S, S, 3) the neutral frame's texture there and
     tile_albedo (T, S, S, 3) its albedo (None with ``neutral_albedo`` None); None: one tile;
     tile : the UDIM tile the regions lie on, whose texture ``neutral``, the boxes and the layers
-    are (1001 in models before it).
+    are (1001 in models before it);
+    shading_orders : (R,) with ``shading``, the surface each region's patches are divided by (1 the
+    plane, 2 the quadratic: :func:`facepipe.core.appearance.shading_order`); None: the plane
+    (models before it).
     """
 
     names: list
@@ -102,6 +105,7 @@ class AppearanceModel:
     tile_neutral: np.ndarray | None = None
     tile_albedo: np.ndarray | None = None
     tile: int = 1001
+    shading_orders: np.ndarray | None = None
 
     @property
     def extra_tiles(self) -> list:
@@ -163,6 +167,8 @@ def save_appearance(path, model) -> None:
         arrays["template_mask"] = model.template_mask
     if model.rest_floor is not None:
         arrays["rest_floor"] = model.rest_floor
+    if model.shading_orders is not None:
+        arrays["shading_orders"] = np.asarray(model.shading_orders, dtype=np.int64)
     if model.card_rest is not None:
         arrays.update(card_rest=model.card_rest, card_stable=model.card_stable, card_stable_rest=model.card_stable_rest)
     if model.light_face is not None:
@@ -209,7 +215,10 @@ def load_appearance(path):
                                d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
                                d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"),
                                d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"),
-                               int(d["tile"]) if "tile" in d else 1001)
+                               int(d["tile"]) if "tile" in d else 1001, d.get("shading_orders"))
+        if model.shading_orders is not None and (model.shading_orders.shape != (n,)
+                                                 or not np.isin(model.shading_orders, (1, 2)).all()):
+            raise ValueError(f"shading_orders {model.shading_orders.tolist()} is not 1 or 2 for each of its {n} regions")
         tiles = len(model.extra_tiles)
         if tiles and not (model.tile_neutral is not None and len(model.tile_neutral) == tiles
                           and (model.tile_albedo is None) == (model.neutral_albedo is None)

@@ -88,6 +88,7 @@ class AppearanceRegion:
     template: list
     frames: list
     card: bool = False  # the region is a card across the hole its vertex group rims (an eye opening)
+    shading_surface: str | None = None  # this region's, instead of [appearance] shading_surface
 
 
 @dataclass
@@ -107,7 +108,10 @@ class AppearanceConfig:
     ramp: float = 10.0
     min_facing: float = 0.2  # a region is hidden when its normal is more than ~78° from the camera
     decay: float = 0.5  # seconds: a hidden region's value fades to neutral
-    shading: bool = True  # patches divided by their shading plane (else by their mean) before the match
+    shading: bool = True  # patches divided by their shading surface (else by their mean) before the match
+    # that surface: "plane", "quadratic" (takes out more of a side light's or turned head's shading
+    # over a curved patch), or "auto": per region the quadratic where it keeps 3/4 of its layers' contrast
+    shading_surface: str = "auto"
     light_fit: bool = True  # each frame's light fitted over the face's known normals and divided out of the patches
     occlusion: bool = True  # template points the face hides (ray cast) left out of the match
     min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
@@ -159,13 +163,15 @@ _TYPES: dict[str, dict[str, object]] = {
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
-                   "shading": bool, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
+                   "shading": bool, "shading_surface": str, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
                    "min_relative_facing": float, "rest_calibration": bool, "rest_frames": list,
                    "regions": dict},
     "video": {"landmarks": str},
 }
-_REGION_TYPES = {"vertices": str, "template": list, "frames": list, "card": bool}
-_REGION_OPTIONAL = {"card"}
+_REGION_TYPES = {"vertices": str, "template": list, "frames": list, "card": bool, "shading_surface": str}
+_REGION_OPTIONAL = {"card", "shading_surface"}
+#: The values of ``shading_surface``.
+SHADING_SURFACES = ("auto", "plane", "quadratic")
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm", "weld": True,
@@ -308,7 +314,7 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         if unknown or missing:
             raise InputError(f"[{where}] unknown {sorted(unknown)} / missing {sorted(missing)} keys", path=path,
                              hint="each region takes vertices, template = [u0, v0, u1, v1], frames = [...] "
-                                  "(and card = true for a hole)")
+                                  "(optional: card = true for a hole, shading_surface = \"auto\")")
         v = {k: checked_value(values[k], t, path, where, k) for k, t in _REGION_TYPES.items() if k in values}
         template = [checked_value(x, float, path, where, "template") for x in v["template"]]
         frames = [checked_value(x, int, path, where, "frames") for x in v["frames"]]
@@ -322,7 +328,10 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         if len(frames) < 3:
             raise InputError(f"[{where}] frames = {frames}: a region needs at least three layers", path=path,
                              hint="give 3 or more example frames, neutral first (5 or 6 for smooth motion)")
-        regions.append(AppearanceRegion(name, base / v["vertices"], template, frames, card))
+        surface = v.get("shading_surface")
+        if surface is not None:
+            _check_surface(surface, path, where)
+        regions.append(AppearanceRegion(name, base / v["vertices"], template, frames, card, surface))
     if not regions:
         raise InputError("[appearance] has no regions", path=path,
                          hint="add tables [appearance.regions.NAME] with vertices, template and frames")
@@ -349,10 +358,17 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         raise InputError(f"[appearance] min_relative_facing = {out.min_relative_facing} is not in [0, 1)", path=path,
                          hint="a share of the template's median facing: 0 keeps every point, 0.8 drops folds turning away")
     out.rest_frames = [checked_value(x, int, path, "appearance", "rest_frames") for x in out.rest_frames]
+    _check_surface(out.shading_surface, path, "appearance")
     if not 0.0 < out.min_seen <= 1.0:
         raise InputError(f"[appearance] min_seen = {out.min_seen} is not in (0, 1]", path=path,
                          hint="the share of a template that must be seen, e.g. 0.5")
     return out
+
+
+def _check_surface(value: str, path: Path, where: str) -> None:
+    if value not in SHADING_SURFACES:
+        raise InputError(f"[{where}] shading_surface = {_toml(value)} is not one of {', '.join(SHADING_SURFACES)}",
+                         path=path, hint='"auto" chooses per region; "plane" or "quadratic" fixes it')
 
 
 def _typed_table(raw: dict, name: str, path: Path) -> dict:

@@ -196,7 +196,7 @@ def seen_fraction(seen: np.ndarray, model: AppearanceModel) -> np.ndarray:
 
 def region_bank(model: AppearanceModel) -> ap.RegionBank:
     """The model's templates for :func:`facepipe.core.appearance.classify_regions`."""
-    return ap.RegionBank(model.templates, model.indices, model.weights, model.template_mask)
+    return ap.RegionBank(model.templates, model.indices, model.weights, model.template_mask, model.shading_orders)
 
 
 def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
@@ -476,7 +476,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
-    facing_examples, masks, layer_seen = [], [], []
+    facing_examples, masks, layer_seen, orders, surfaces = [], [], [], [], {}
     if not in_udim.all():
         notes.append(f"{int((~in_udim).sum())} triangles of the rest mesh (the first: {int(np.argmin(in_udim))}) have "
                      "UVs outside the UDIM range (u in 0–10, v ≥ 0): the textures leave them out")
@@ -524,7 +524,11 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         # view in some example (an eyelid into its socket) neither dominates the selection nor
         # takes up the normalisation's plane
         size = cfg.template_size
-        coeffs = ap.haar_coefficients(ap.normalise_patches(np.stack(patches), cfg.shading, stable.reshape(size, size)))
+        stack, mask = np.stack(patches), stable.reshape(size, size)
+        order, kept = _shading_surface(cfg, region, stack, mask, weights)
+        surfaces[region.name] = {"surface": ap.SHADING_ORDERS[order], "contrast_kept": kept}
+        coeffs = ap.haar_coefficients(ap.normalise_patches(stack, order if cfg.shading else 0, mask))
+        orders.append(order)
         names.append(region.name)
         volumes.append(vol.astype(np.float32))
         alphas.append(alpha.astype(np.float32))
@@ -547,12 +551,12 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             light_colour=None if light is None else light["colour"].astype(np.float32),
                             tiles=np.array(list(tiles), dtype=np.int64) if tiles else None,
                             tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None,
-                            tile=home)
+                            tile=home, shading_orders=np.asarray(orders, dtype=np.int64))
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
-            "albedo": model.albedo, "rest": rest,
+            "albedo": model.albedo, "rest": rest, "shading": surfaces if cfg.shading else {},
             "notes": notes}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
@@ -887,6 +891,18 @@ def _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face
         seen_in.append(seen)
     alpha = ap.region_alpha(mask[rows, cols], cfg.ramp)
     return np.stack(layers), alpha, (rows.start, cols.start), np.stack(seen_in)
+
+
+def _shading_surface(cfg, region, patches: np.ndarray, mask: np.ndarray, weights: np.ndarray
+                     ) -> tuple[int, float | None]:
+    """The order of the shading surface a region's patches (its layers, n × size × size, over the
+    stable texels ``mask``) are divided by: the region's ``shading_surface``, else the table's;
+    "auto" chooses by :func:`facepipe.core.appearance.shading_order`. With it the share of the
+    layers' contrast the quadratic keeps (None where not measured)."""
+    surface = region.shading_surface or cfg.shading_surface
+    if surface != "auto" or not cfg.shading:
+        return (2 if surface == "quadratic" else 1), None
+    return ap.shading_order(patches, mask, weights, cfg.keep)
 
 
 def _read_group(region, n_vertices: int, config_path) -> np.ndarray:
