@@ -3,7 +3,8 @@ the rendered footage of ``bench/appearance_ict.py`` (``--out``), its truth landm
 ``video/landmarks68.csv`` vertices) projected through that camera with 0.5 px noise as a tracker
 would give them (frames numbered from 1, times from 0), lifted and replayed with a model of the
 kit (``-m``, baked from ``configs/ict.toml``), and the same footage classified with that replay's
-geometry. Spearman of Q with the truth activation per region, beside the truth geometry's, and the
+geometry. Spearman of Q with the truth activation per region and Q's RMS error against the truth's
+layer index, beside the truth geometry's, and the
 lifted face's error in the camera's coordinates. Writes bench/appearance_ict_lifted.json (or --json).
 
     python bench/appearance_ict.py --out /tmp/ict_appearance          # the footage, once
@@ -84,6 +85,8 @@ def main() -> None:
                      "--geometry", geometry, "-o", classified)
             q = np.loadtxt(classified / "appearance.csv", delimiter=",", skiprows=1, ndmin=2)[:, 2:]
             row[label] = dict(zip(("spearman", "spearman_active_frames"), spearman(q, act)))
+            layers = np.array(json.loads((work / "appearance.json").read_text())["layers"])
+            row[label]["q_rms_error_layers"] = np.sqrt(((q - act * (layers - 1)) ** 2).mean(axis=0)).tolist()
         lifted = np.load(replay / "positions.npy")
         face = np.linalg.norm(lifted[:, :9409] - in_camera[:, :9409], axis=-1)
         row["lifted_face_rms_cm"] = float(np.sqrt((face ** 2).mean(axis=1)).mean())
@@ -91,7 +94,8 @@ def main() -> None:
         result[take] = row
         for label in ("lifted", "truth_geometry"):
             print(take, f"{label:15s}", "all", " ".join(f"{v:.2f}" for v in row[label]["spearman"]), "| active",
-                  " ".join(f"{v:.2f}" for v in row[label]["spearman_active_frames"]))
+                  " ".join(f"{v:.2f}" for v in row[label]["spearman_active_frames"]), "| Q error",
+                  " ".join(f"{v:.2f}" for v in row[label]["q_rms_error_layers"]))
         print(take, f"lifted face RMS {row['lifted_face_rms_cm']:.3f} cm (camera coordinates), landmark reprojection "
                     f"{row['reprojection_px']:.2f} px")
     Path(args.json).write_text(json.dumps(result, indent=1))
