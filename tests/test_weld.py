@@ -4,6 +4,7 @@ into the same rig as the unsplit mesh."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -239,6 +240,30 @@ def test_eval_reads_a_truth_in_the_mesh_files_order(rigs, capsys):
         assert run("eval", d / "out_welded", "--truth", path) == 0
         printed.append(capsys.readouterr().out.split("wrote")[0])
     assert printed[0] == printed[1] and "RMS mean" in printed[0]
+
+
+def test_eval_vertices_number_the_mesh_files_vertices(rigs, capsys):
+    """``eval --vertices A:B`` on a welded rig's replay numbers the mesh file's vertices (as the
+    user's tools do): the seams' copies, past the welded count, are measured on their welded
+    vertices, and the whole file's range gives the seams twice, as the file has them."""
+    d, seam, n = rigs
+    _baked(d)
+    _split_truth(d, seam, d / "split_truth.npz")
+    # the unsplit replay equals the welded one: its error on the seam's vertices, computed here
+    whole = np.load(d / "out_whole" / "positions.npy").astype(np.float64)
+    truth = np.load(d / "whole" / "take_truth.npz")["positions"].astype(np.float64)
+    frames = json.loads((d / "out_whole" / "replay.json").read_text())["frame_numbers"]
+    truth = truth[np.asarray(frames)]
+    for span, vertices in ((f"{n}:{n + len(seam)}", seam), (f"0:{n + len(seam)}", np.r_[np.arange(n), seam])):
+        assert run("eval", d / "out_welded", "--truth", d / "split_truth.npz", "--vertices", span) == 0
+        assert "of the mesh file" in capsys.readouterr().out
+        result = json.loads((d / "out_welded" / "eval.json").read_text())
+        assert result["vertices_numbered_by"] == "mesh file" and result["vertices"] == [int(x) for x in span.split(":")]
+        expected = np.sqrt((np.linalg.norm(whole[:, vertices] - truth[:, vertices], axis=-1) ** 2).mean(axis=1))
+        np.testing.assert_allclose(result["final"]["per_frame_rms"], expected, rtol=1e-9, atol=1e-12)
+    # past the file's vertices: refused, naming its range
+    assert run("eval", d / "out_welded", "--truth", d / "split_truth.npz", "--vertices", f"0:{n + len(seam) + 1}") == 2
+    assert f"[0, {n + len(seam)})" in capsys.readouterr().err
 
 
 def test_add_details_keeps_the_mesh_files_order(rigs):

@@ -468,34 +468,39 @@ def eval_(ctx, outdir, truth, vertex_range, large_scale, space, compare_config, 
     info = _replay_info(outdir)
     positions = _load_positions(outdir)
     matched: dict = {}
+    replay = ReplayDir(outdir)
     truth_pos, index, extras = truth_rows(truth, info["frame_numbers"], positions.shape[1], info.get("times"), matched,
-                                          ReplayDir(outdir).weld_index)
+                                          replay.weld_index)
     if matched["frames_matched_by"] == "time":
         rep.say("note: the take's frame numbers are not the truth's: frames matched by time")
     truth_sel = np.asarray(truth_pos)[index] if len(index) < 4096 else truth_pos[index]
-    vertices = parse_vertex_range(vertex_range, positions.shape[1])
+    # a rig welded along seams: A:B numbers the mesh file's vertices, as the user's tools do
+    weld_index = replay.weld_index() if vertex_range else None
+    vertices = parse_vertex_range(vertex_range, positions.shape[1] if weld_index is None else len(weld_index))
+    selected = vertices if weld_index is None else np.asarray(weld_index)[vertices]  # (each file vertex's welded one)
     units = info.get("units") or "rig units"  # (replays before units were recorded: the rig's)
     space = space if space != "auto" else "head" if str(info.get("coordinates", "")).startswith("camera") else "take"
     pose, truth_pose = _eval_poses(outdir, info, truth, extras, index) if space == "head" else (None, None)
     result = {"vertices": [vertices.start, vertices.stop], "truth": str(truth), "units": units, "space": space,
-              **matched}
+              **({"vertices_numbered_by": "mesh file"} if weld_index is not None else {}), **matched}
     sources = [("final", "positions.npy")]
     if large_scale:
         sources.append(("large_scale", "large_scale.npy"))
     for label, name in sources:
         # (a mesh cache's large scale is the cache: read back from it where the replay kept no copy)
-        pos = _load_positions(outdir, name) if label == "final" else ReplayDir(outdir).layer("large")
-        rms, mx = frame_errors(pos, truth_sel, vertices, pose=pose, truth_pose=truth_pose)
+        pos = _load_positions(outdir, name) if label == "final" else replay.layer("large")
+        rms, mx = frame_errors(pos, truth_sel, selected, pose=pose, truth_pose=truth_pose)
         result[label] = dict(summarize(rms, mx), per_frame_rms=rms.tolist(), per_frame_max=mx.tolist())
         if verbose:
             for f, a, b in zip(info["frame_numbers"], rms, mx):
                 rep.detail(f"  frame {f:6d}  rms {a:.5f}  max {b:.5f} {units}")
     _write_json(outdir / "eval.json", result)
     if compare_config:
-        _compare(rep, outdir, compare_config, np.asarray(truth_sel), vertices, tune)
+        _compare(rep, outdir, compare_config, np.asarray(truth_sel), selected, tune)
+    numbering = " of the mesh file" if weld_index is not None else ""
     for label, _ in sources:
         s = result[label]
-        rep.say(f"{label}: {s['frames']} frames, vertices {vertices.start}:{vertices.stop}: RMS mean "
+        rep.say(f"{label}: {s['frames']} frames, vertices {vertices.start}:{vertices.stop}{numbering}: RMS mean "
                 f"{s['rms_mean']:.5f} {units}, p95 {s['rms_p95']:.5f} {units}, max frame {s['rms_max']:.5f} {units}; "
                 f"largest vertex error {s['max_error']:.5f} {units}")
     rep.say(f"wrote {outdir / 'eval.json'}")
@@ -518,7 +523,8 @@ def _eval_poses(outdir: Path, info: dict, truth, extras: dict, index: np.ndarray
         return (handles["rotation"].astype(np.float64), handles["translation"].astype(np.float64)), truth_pose
 
 
-def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertices: slice, tune: bool = False) -> None:
+def _compare(rep: Reporter, outdir: Path, config: str, truth: np.ndarray, vertices: slice | np.ndarray,
+             tune: bool = False) -> None:
     from facepipe.pipeline.baselines import compare_methods, plot_comparison
 
     path = outdir / "handles.npz"

@@ -81,7 +81,7 @@ def local_blend_positions(M: np.ndarray, edge_index: np.ndarray, features: np.nd
 
 
 def compare_methods(fit, rig, head: np.ndarray, R: np.ndarray, t: np.ndarray, truth: np.ndarray,
-                    vertices: slice = slice(None), chunk: int = 16, log=None) -> dict:
+                    vertices: slice | np.ndarray = slice(None), chunk: int = 16, log=None) -> dict:
     """Error of every baseline and of PSD/WPSD at each basis size on one take.
 
     Parameters

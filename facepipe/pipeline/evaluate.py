@@ -32,9 +32,10 @@ def parse_vertex_range(text: str | None, n_vertices: int) -> slice:
     return slice(start, stop)
 
 
-def frame_errors(positions: np.ndarray, truth: np.ndarray, vertices: slice = slice(None),
+def frame_errors(positions: np.ndarray, truth: np.ndarray, vertices: slice | np.ndarray = slice(None),
                  chunk: int = 64, pose=None, truth_pose=None) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame RMS and max vertex distance over a vertex subset, chunked (memmaps welcome).
+    """Per-frame RMS and max vertex distance over a vertex subset (a slice or indices, which may
+    repeat: a welded mesh's vertices seen in the mesh file's numbering), chunked (memmaps welcome).
 
     Parameters
     ----------
