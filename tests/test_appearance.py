@@ -776,6 +776,16 @@ def test_shading_surfaces_chosen_per_region_saved_and_fixed_by_the_config(kit, t
     assert _run("appearance", "build", cfg, "-o", tmp_path / "one.npz", "-q") == 0
     one = load_appearance(tmp_path / "one.npz")
     assert one.shading_orders.tolist() == [2] + [1] * (len(model.names) - 1)
+    # without shading (patches divided by their mean alone) there is no surface to choose, and
+    # the regions still follow their activations
+    cfg.write_text(text.replace('shading_surface = "plane"', "shading = false"))
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "mean.npz") == 0
+    assert "shading surfaces" not in capsys.readouterr().out
+    assert _run("appearance", "classify", tmp_path / "mean.npz", kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls", "-q") == 0
+    q = np.loadtxt(tmp_path / "cls" / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
+    assert np.median([spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])]) > 0.9
     # models before the choice read as the plane everywhere
     assert load_appearance(tmp_path / "plane.npz").shading_orders is not None
     data = dict(np.load(tmp_path / "plane.npz"))
