@@ -105,6 +105,7 @@ def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
     assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
     assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.npz").exists()
 
 
 def test_never_visible_region_is_reported_and_neutral(kit, tmp_path, capsys):
@@ -792,6 +793,13 @@ def test_shading_surfaces_chosen_per_region_saved_and_fixed_by_the_config(kit, t
     del data["shading_orders"]
     np.savez(tmp_path / "old.npz", **data)
     assert load_appearance(tmp_path / "old.npz").shading_orders is None
+    # a model whose surfaces are not 1 or 2 for each region: refused by name, nothing written
+    np.savez(tmp_path / "broken.npz", **data, shading_orders=np.full(len(model.names), 3))
+    assert _run("appearance", "classify", tmp_path / "broken.npz", kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls_broken", "-q") == 2
+    err = capsys.readouterr().err
+    assert "not an appearance model" in err and "shading_orders" in err
+    assert not (tmp_path / "cls_broken" / "appearance.csv").exists()
 
 
 def test_model_keeps_its_visibility_settings(kit):

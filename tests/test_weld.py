@@ -261,9 +261,11 @@ def test_eval_vertices_number_the_mesh_files_vertices(rigs, capsys):
         assert result["vertices_numbered_by"] == "mesh file" and result["vertices"] == [int(x) for x in span.split(":")]
         expected = np.sqrt((np.linalg.norm(whole[:, vertices] - truth[:, vertices], axis=-1) ** 2).mean(axis=1))
         np.testing.assert_allclose(result["final"]["per_frame_rms"], expected, rtol=1e-9, atol=1e-12)
-    # past the file's vertices: refused, naming its range
+    # past the file's vertices: refused, naming its range, and no eval.json written
+    (d / "out_welded" / "eval.json").unlink()
     assert run("eval", d / "out_welded", "--truth", d / "split_truth.npz", "--vertices", f"0:{n + len(seam) + 1}") == 2
     assert f"[0, {n + len(seam)})" in capsys.readouterr().err
+    assert not (d / "out_welded" / "eval.json").exists()
 
 
 def test_add_details_keeps_the_mesh_files_order(rigs):

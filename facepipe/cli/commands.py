@@ -441,7 +441,8 @@ def preview(ctx, outdir, output, model_path, truth, frames, strip, size, view, f
 @cli.command(name="eval")
 @click.argument("outdir", type=click.Path(file_okay=False))
 @click.option("--truth", required=True, type=click.Path(dir_okay=False), help="Truth .npz with 'positions'.")
-@click.option("--vertices", "vertex_range", default=None, help="Vertex range A:B (default: all).")
+@click.option("--vertices", "vertex_range", default=None,
+              help="Vertex range A:B in the mesh file's numbering (also for a rig welded along seams; default: all).")
 @click.option("--large-scale", is_flag=True, help="Also evaluate the large-scale layer (large_scale.npy where the replay wrote "
               "it; a mesh cache's own surface, read back from the cache).")
 @click.option("--space", type=click.Choice(["auto", "take", "head"]), default="auto", show_default=True,

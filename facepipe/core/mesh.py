@@ -520,6 +520,12 @@ def file_vertices(weld_index: np.ndarray) -> np.ndarray:
     return np.unique(np.asarray(weld_index), return_index=True)[1]
 
 
+def welded_frames(frames, weld_index: np.ndarray) -> "VertexSelection":
+    """Frames (T, V_file, 3) in the mesh file's vertex order (a truth, a mesh cache) read on the
+    welded mesh, one vertex of each welded group (:func:`file_vertices`), lazily."""
+    return VertexSelection(frames, file_vertices(weld_index))
+
+
 class VertexSelection:
     """Frames (T, V, 3) — an array or a memmap — seen through a vertex index array (W,): read
     lazily, frame by frame or a block of frames at a time, as (T, W, 3). Used between a welded rig

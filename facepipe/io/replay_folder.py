@@ -43,6 +43,7 @@ class ReplayDir:
         if not self.path.is_dir():
             raise InputError("no such replay folder", path=self.path,
                              hint="give the folder written by 'facepipe replay ... -o FOLDER'")
+        self._weld_indices: dict = {}  # model path → its weld_index (:meth:`weld_index`)
 
     @cached_property
     def info(self) -> dict:
@@ -182,8 +183,13 @@ class ReplayDir:
     def weld_index(self, override=None) -> np.ndarray | None:
         """The model's ``weld_index`` where the replayed rig was welded along seams (``[rig] weld``:
         the mesh file's vertex order, for what other tools read or give in it), else None; the model
-        is read only then."""
-        return self.load_model(override).weld_index if self.info.get("welded") else None
+        is read only then, once for each model asked (eval may need it for the truth and the range)."""
+        if not self.info.get("welded"):
+            return None
+        key = str(self.model_path(override))
+        if key not in self._weld_indices:
+            self._weld_indices[key] = self.load_model(override).weld_index
+        return self._weld_indices[key]
 
     def load_model(self, override=None) -> Model:
         """The model of this replay, checked against the positions' vertex count."""

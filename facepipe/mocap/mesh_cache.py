@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facepipe.core.mesh import VertexSelection, file_vertices
+from facepipe.core.mesh import VertexSelection, welded_frames
 from facepipe.core.rigid import similarity_fit
 from facepipe.errors import InputError
 from facepipe.io.mesh_read import load_vertices
@@ -295,7 +295,7 @@ def check_mesh_cache(cache: MeshCache, rest: np.ndarray, *, units: str | None = 
     """
     V = len(rest)
     if file_order is not None and cache.n_vertices == len(file_order) != V:
-        cache = replace(cache, positions=VertexSelection(cache.positions, file_vertices(file_order)),
+        cache = replace(cache, positions=welded_frames(cache.positions, file_order),
                         notes=list(cache.notes or []) + [f"the cache is in the mesh file's vertex order ({len(file_order)} "
                                                         f"vertices): read on the model's {V}, welded along seams"])
     if cache.n_vertices != V:

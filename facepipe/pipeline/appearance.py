@@ -526,7 +526,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         size = cfg.template_size
         stack, mask = np.stack(patches), stable.reshape(size, size)
         order, kept = _shading_surface(cfg, region, stack, mask, weights)
-        surfaces[region.name] = {"surface": ap.SHADING_ORDERS[order], "contrast_kept": kept}
+        if cfg.shading:  # (else the patches are divided by their mean alone)
+            surfaces[region.name] = {"surface": ap.SHADING_ORDERS[order], "contrast_kept": kept}
         coeffs = ap.haar_coefficients(ap.normalise_patches(stack, order if cfg.shading else 0, mask))
         orders.append(order)
         names.append(region.name)
@@ -556,7 +557,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
-            "albedo": model.albedo, "rest": rest, "shading": surfaces if cfg.shading else {},
+            "albedo": model.albedo, "rest": rest, "shading": surfaces,
             "notes": notes}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),

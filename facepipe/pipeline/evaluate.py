@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facepipe.core.mesh import file_vertices
+from facepipe.core.mesh import welded_frames
 from facepipe.errors import InputError
 from facepipe.io.npz_file import read_truth, read_truth_extras
 
@@ -153,7 +153,7 @@ def truth_rows(path, frame_numbers: np.ndarray, n_vertices: int, frame_times=Non
     if file_order is not None and positions.ndim == 3 and positions.shape[1] != n_vertices:
         weld_index = file_order()
         if weld_index is not None and positions.shape[1] == len(weld_index):
-            positions = np.asarray(positions)[:, file_vertices(weld_index)]
+            positions = welded_frames(positions, weld_index)
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"truth positions have shape {positions.shape}, the replay ({len(frame_numbers)}, "
                          f"{n_vertices}, 3)", path=path, hint="give the truth of the replayed take")
