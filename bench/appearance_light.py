@@ -48,7 +48,7 @@ def rest_readings(model, gray: np.ndarray, camera_positions: np.ndarray, scene, 
     exact = scene.shading(normals).reshape(fitted.shape)  # the renderer's, at the template points' normals
     out = {}
     for name, shading in (("fitted", fitted), ("exact", exact)):
-        q, _ = ap.classify_regions(patches / shading, bank, model.shading, seen, model.min_seen)
+        q, _ = ap.classify_regions(patches / shading, bank, model.shading, seen, model.min_seen, model.peak_interpolation)
         out[name] = q[0]
     return out
 

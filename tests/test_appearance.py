@@ -100,6 +100,8 @@ def _edited_config(kit, tmp_path, old, new):
     ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 2, 3, 4]\ncard = 1", "expected"),
     ("texture_size = 512", 'texture_size = 512\nshading_surface = "cubic"', "not one of auto, plane, quadratic"),
     ("frames = [0, 1, 2, 3, 4]", 'frames = [0, 1, 2, 3, 4]\nshading_surface = "flat"', "shading_surface"),
+    ("texture_size = 512", 'texture_size = 512\npeak_interpolation = "cubic"', "not one of segment, parabola"),
+    ("texture_size = 512", "texture_size = 512\nunseen_margin = -1.0", "unseen_margin = -1.0 is not in [0, 8)"),
 ])
 def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
@@ -799,6 +801,40 @@ def test_shading_surfaces_chosen_per_region_saved_and_fixed_by_the_config(kit, t
                 "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls_broken", "-q") == 2
     err = capsys.readouterr().err
     assert "not an appearance model" in err and "shading_orders" in err
+    assert not (tmp_path / "cls_broken" / "appearance.csv").exists()
+
+
+def test_peak_interpolation_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
+    """The model keeps how its Q is read (the nearest point of the path through the layers by
+    default; the paper's parabola when the config asks); models before the choice read the
+    parabola, which they were calibrated with; a model with another value is refused by name."""
+    from facepipe.io.appearance_file import load_appearance
+
+    assert load_appearance(kit / "app.npz").peak_interpolation == "segment"
+    cfg = _edited_config(kit, tmp_path, "texture_size = 512", 'texture_size = 512\npeak_interpolation = "parabola"')
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "parabola.npz") == 0
+    assert "by parabola interpolation" in capsys.readouterr().out
+    assert load_appearance(tmp_path / "parabola.npz").peak_interpolation == "parabola"
+    truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
+    errors = {}
+    for name in ("parabola", "segment"):
+        model = tmp_path / "parabola.npz" if name == "parabola" else kit / "app.npz"
+        assert _run("appearance", "classify", model, kit / "appearance" / "take" / "frame_%04d.png",
+                    "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / name, "-q") == 0
+        q = np.loadtxt(tmp_path / name / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+        layers = np.asarray(load_appearance(model).layer_counts) - 1.0
+        errors[name] = np.sqrt(np.mean((q - truth * layers) ** 2, axis=0))
+    # both follow the take; the path is no worse over the regions on the sample's rendered take
+    assert errors["segment"].mean() <= errors["parabola"].mean() * 1.05
+    data = dict(np.load(tmp_path / "parabola.npz"))
+    del data["peak_interpolation"]
+    np.savez(tmp_path / "old.npz", **data)
+    assert load_appearance(tmp_path / "old.npz").peak_interpolation == "parabola"
+    np.savez(tmp_path / "broken.npz", **data, peak_interpolation=np.array("cubic"))
+    assert _run("appearance", "classify", tmp_path / "broken.npz", kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls_broken", "-q") == 2
+    err = capsys.readouterr().err
+    assert "not an appearance model" in err and "peak_interpolation" in err
     assert not (tmp_path / "cls_broken" / "appearance.csv").exists()
 
 

@@ -7,7 +7,8 @@ from scipy.stats import spearmanr
 
 from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, RegionBank, classify_regions, bilinear_sample, classify, coefficient_weights,
                                       compose_texture, facing, haar_coefficients, haar_matrix, hold_and_decay,
-                                      layer_lookup, match_distances, normalise_patches, peak_index, region_alpha,
+                                      layer_lookup, match_distances, normalise_patches, peak_index, region_alpha, segment_index,
+                                      PEAK_INTERPOLATIONS,
                                       select_coefficients, rest_floor, above_rest)
 
 
@@ -51,6 +52,66 @@ def test_peak_interpolation_exact_on_parabola():
     assert peak_index(flat) == 0.0
     with pytest.raises(ValueError):
         peak_index(np.ones(2))
+
+
+def _nearest_on_path(point, templates, w):
+    """(index, squared distance) of the point of the path through templates (n, C) nearest ``point``
+    (C,) under weights w (C,): each segment's projection in the coefficients themselves."""
+    best = (np.inf, np.nan)
+    for k in range(len(templates) - 1):
+        a, step = templates[k], templates[k + 1] - templates[k]
+        alpha = np.clip(np.sum(w * (point - a) * step) / np.sum(w * step * step), 0.0, 1.0)
+        gap = np.sum(w * (point - a - alpha * step) ** 2)
+        if gap < best[0]:
+            best = (gap, k + alpha)
+    return best[1], best[0]
+
+
+def test_segment_index_reads_templates_and_their_blends_exactly():
+    # templates neither evenly spaced nor on a line: a template reads its index, a blend of two
+    # adjacent ones its blend weight (what the layered texture shows at that Q); the parabola
+    # through three distances does neither
+    rng = np.random.default_rng(40)
+    w = rng.uniform(0.5, 2.0, size=12)
+    templates = np.cumsum(rng.normal(size=(5, 12)) * np.array([1, 0.3, 2.0, 0.7, 1.5])[:, None], axis=0)
+
+    def dist(x):
+        return ((x[None, :] - templates) ** 2 * w).sum(axis=1)
+
+    gaps = ((np.diff(templates, axis=0) ** 2) * w).sum(axis=1)
+    for k in range(5):
+        q, residual = segment_index(dist(templates[k]), gaps)
+        assert q == pytest.approx(k, abs=1e-12) and residual == pytest.approx(0.0, abs=1e-9)
+    for k, beta in [(0, 0.3), (1, 0.5), (2, 0.9), (3, 0.05)]:
+        x = (1 - beta) * templates[k] + beta * templates[k + 1]
+        q, residual = segment_index(dist(x), gaps)
+        assert q == pytest.approx(k + beta, abs=1e-9) and residual == pytest.approx(0.0, abs=1e-9)
+    assert abs(peak_index(dist(templates[1])) - 1.0) > 1e-3  # what the change is for
+    # off the path: the nearest point, against the projection in the coefficients
+    for x in rng.normal(size=(20, 12)) * 2.0 + templates.mean(axis=0):
+        q, residual = segment_index(dist(x), gaps)
+        along, gap = _nearest_on_path(x, templates, w)
+        assert q == pytest.approx(along, abs=1e-9) and residual == pytest.approx(gap, rel=1e-9, abs=1e-12)
+    # batched as one call
+    X = rng.normal(size=(2, 3, 12))
+    D = ((X[..., None, :] - templates) ** 2 * w).sum(axis=-1)
+    q, residual = segment_index(D, np.broadcast_to(gaps, (2, 3, 4)))
+    for i in range(2):
+        for j in range(3):
+            assert q[i, j] == pytest.approx(segment_index(D[i, j], gaps)[0], abs=1e-12)
+
+
+def test_segment_index_skips_absent_and_repeated_templates():
+    d = np.array([4.0, 1.0, 0.25, np.inf, np.inf])       # a region of 3 layers padded to 5
+    gaps = np.array([1.0, 1.0, np.inf, np.inf])
+    q, residual = segment_index(d, gaps)
+    # by hand on segment 1–2: α = (1 − 0.25 + 1) / 2 = 0.875, 1 − 0.875 · 1.75 + 0.875² = 15 / 64
+    assert q == pytest.approx(1.875, abs=1e-12) and residual == pytest.approx(15 / 64, abs=1e-12)
+    # two identical templates (gap 0): the path goes on from them, no division by zero
+    q, _ = segment_index(np.array([1.0, 1.0, 0.0]), np.array([0.0, 1.0]))
+    assert q == pytest.approx(2.0)
+    q, residual = segment_index(np.full(4, np.inf), np.full(3, np.inf))
+    assert np.isnan(q) and residual == np.inf
 
 
 def test_distances_equal_direct_weighted_sum():
@@ -366,7 +427,8 @@ def test_bank_with_stable_masks_against_direct_distances():
     bank = RegionBank(templates, indices, w, masks=masks.reshape(2, -1))
     patches = rng.uniform(0.5, 1.5, size=(3, 2, 1, 16, 16))
     yy, xx = np.mgrid[0:16, 0:16] - 7.5
-    q, d = classify_regions(patches, bank)
+    q, d = classify_regions(patches, bank, interpolation="parabola")
+    q_path, d_path = classify_regions(patches, bank)
     for r in range(2):
         m = masks[r]
         A = np.stack([np.ones(m.sum()), xx[m], yy[m]], axis=1)
@@ -378,6 +440,9 @@ def test_bank_with_stable_masks_against_direct_distances():
             direct = [np.sum(w[indices[r]] * (c[indices[r]] - t[indices[r]]) ** 2) for t in templates[r]]
             assert d[f, r] == pytest.approx(min(direct), rel=1e-9)
             assert q[f, r] == pytest.approx(peak_index(np.array(direct)), abs=1e-9)
+            along, gap = _nearest_on_path(c[indices[r]], templates[r][:, indices[r]], w[indices[r]])
+            assert q_path[f, r] == pytest.approx(along, abs=1e-9)
+            assert d_path[f, r] == pytest.approx(gap, rel=1e-9)
     # every stable texel seen: the masked match is the plain one
     norm = normalise_patches(patches[:, 0, 0], True, masks[0])
     plain = bank.distances(haar_coefficients(norm)[:, None, None, :].repeat(2, axis=1))[:, 0, 0]
@@ -520,3 +585,9 @@ def test_regions_with_their_own_shading_surfaces_match_one_by_one():
     q_mean, _ = classify_regions(patches, bank, shading=False)
     np.testing.assert_allclose(q_mean[:, 0], classify(patches[:, 0], templates[0], indices[0], w, shading=False)[0],
                                atol=1e-9)
+
+
+def test_config_offers_the_interpolations_classification_knows():
+    from facepipe.io.config import PEAK_INTERPOLATIONS as offered
+
+    assert offered == PEAK_INTERPOLATIONS

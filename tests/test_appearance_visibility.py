@@ -32,7 +32,7 @@ def _frames(x, y):
     return np.stack(frames)
 
 
-def _brute_force(frames, faces, face, bary, camera, size, sign, min_facing, relative):
+def _brute_force(frames, faces, face, bary, camera, size, sign, min_facing, relative, margin=0.0):
     good, parts = [], []
     for V in frames:
         X = np.einsum("nk,nkc->nc", bary, V[faces[face]])
@@ -51,13 +51,18 @@ def _brute_force(frames, faces, face, bary, camera, size, sign, min_facing, rela
         n = np.einsum("nk,nkc->nc", bary, normals[faces[face]])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         cos = (n * -X).sum(axis=1) / np.linalg.norm(X, axis=1)
-        good.append(inside & ~hidden & (cos > min_facing) & (cos >= relative * np.median(cos)))
+        ok = inside & ~hidden & (cos > min_facing) & (cos >= relative * np.median(cos))
+        # the margin, one pair of points at a time: a point whose sample reaches a failing one fails
+        near = np.array([any(not ok[j] and max(abs(px[i, 0] - px[j, 0]), abs(px[i, 1] - px[j, 1])) < margin
+                             for j in range(len(px))) for i in range(len(px))])
+        good.append(ok & ~near)
         parts.append((inside, hidden, cos))
     return np.all(good, axis=0), *map(np.stack, zip(*parts))
 
 
-@pytest.mark.parametrize("min_facing,relative", [(0.35, 0.8), (0.0, 0.0), (0.5, 0.0)])
-def test_well_seen_points_equal_brute_force(min_facing, relative):
+@pytest.mark.parametrize("min_facing,relative,margin", [(0.35, 0.8, 0.0), (0.0, 0.0, 0.0), (0.5, 0.0, 0.0),
+                                                        (0.35, 0.8, 14.0), (0.0, 0.0, 30.0)])
+def test_well_seen_points_equal_brute_force(min_facing, relative, margin):
     x, y, uv, faces = _sheet()
     frames = _frames(x, y)
     k = len(x)
@@ -69,9 +74,13 @@ def test_well_seen_points_equal_brute_force(min_facing, relative):
     assert (face >= 0).all()
     sign = -1.0 if np.cross(frames[0, faces[0, 1]] - frames[0, faces[0, 0]],
                             frames[0, faces[0, 2]] - frames[0, faces[0, 0]])[2] > 0 else 1.0  # out: towards the camera
-    got = well_seen_points(frames, mesh_faces, face, bary, camera, size, sign, min_facing, True, relative)
-    expected, inside, hidden, cos = _brute_force(frames, mesh_faces, face, bary, camera, size, sign, min_facing, relative)
+    got = well_seen_points(frames, mesh_faces, face, bary, camera, size, sign, min_facing, True, relative, margin)
+    expected, inside, hidden, cos = _brute_force(frames, mesh_faces, face, bary, camera, size, sign, min_facing, relative,
+                                                 margin)
     np.testing.assert_array_equal(got, expected)
+    if margin > 0:  # the margin (here about one and two of the grid's steps) takes points the tests alone keep
+        plain = well_seen_points(frames, mesh_faces, face, bary, camera, size, sign, min_facing, True, relative)
+        assert (plain & ~got).any() and not (got & ~plain).any()
     # the scene exercises every test: points off the image, hidden behind the ridge, turned away
     assert (~inside).any() and hidden.any() and (cos < 0.5).any() and got.any() and not got.all()
 

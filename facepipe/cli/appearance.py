@@ -58,6 +58,8 @@ def build_command(config_path, output, rep, write_json) -> dict:
         rep.say("shading surfaces (share of the layers' contrast a quadratic keeps): " + ", ".join(
             f"{n} {v['surface']}" + ("" if v["contrast_kept"] is None else f" ({v['contrast_kept']:.2f})")
             for n, v in info["shading"].items()))
+    if info.get("peak_interpolation"):
+        rep.say(f"Q read from the match distances by {info['peak_interpolation']} interpolation")
     for note in info["notes"]:
         rep.say(f"note: {note}")
     return info

@@ -4,8 +4,8 @@
 A region of the face has n templates, texture patches of it from example frames ordered from
 neutral (layer 0) to extreme (layer n − 1). A frame's patch of the region (sampled at fixed
 barycentric coordinates on the animated surface, so pose-normalised) is compared with every
-template in a truncated Haar basis, and the best match is refined by a parabola through the
-match distances of it and its neighbours to a continuous layer index Q ∈ [0, n − 1]:
+template in a truncated Haar basis, and the match distances give a continuous layer index
+Q ∈ [0, n − 1]:
 
 * **Haar decomposition** of a size × size patch (size a power of two) with PyWavelets, as one
   orthonormal matrix (built by transforming the basis images) so a batch of patches is one
@@ -15,11 +15,18 @@ match distances of it and its neighbours to a continuous layer index Q ∈ [0, n
   (root mean square). One set per region, not per template, so the distances to the
   templates are sums over the same terms and comparable;
 * **match distance**: per-scale weighted squared difference on the kept coefficients (the
-  paper's weights 2, 4, 2, 1, 0, coarse to fine). For templates evenly spaced along a line in
-  coefficient space and a patch on that line the distance is exactly a parabola in the layer
-  index with its vertex at the patch's position, which is what the peak interpolation assumes;
-* **peak interpolation**: the vertex of the parabola through the best template's distance and
-  its two neighbours (the nearest triple at the ends), kept within half a layer of the best;
+  paper's weights 2, 4, 2, 1, 0, coarse to fine): a squared Euclidean distance, the same terms
+  for every template of a region;
+* **interpolation between templates** (:func:`segment_index`, the default): the point nearest
+  the patch on the path through the templates in layer order, straight between adjacent ones —
+  the layered texture blends adjacent layers linearly, so this is the Q whose texture looks most
+  like the patch. It needs only the distances and those between adjacent templates (the law of
+  cosines); a template reads its own index and a blend of two adjacent ones its weight however
+  the layers are spaced. The paper's **peak interpolation** (:func:`peak_index`): the vertex of
+  the parabola through the best template's distance and its two neighbours, kept within half a
+  layer of the best — exact only for templates evenly spaced along a line (a layer between a
+  near and a far neighbour reads off its own index: 0.79 for layer 1 of the ICT kit's right
+  eyelid);
 * **rest floor**: the highest Q a region reads while it is at rest (in the examples of the
   other regions, where the rest of the face moves): Q is measured from it (:func:`above_rest`),
   so a region at rest reads exactly 0, not a level of its own that flickers;
@@ -44,7 +51,8 @@ import pywt
 from scipy import ndimage
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
-           "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "classify", "hold_and_decay", "bilinear_sample",
+           "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
+           "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "light_bits", "LIGHT_SPAN", "DIAGONAL_OFFSETS",
            "sh_basis", "fit_light", "sh_quadratic", "light_shading", "fill_unseen", "SHADING_ORDERS",
            "QUADRATIC_LEAST_KEPT", "layer_contrast", "shading_order"]
@@ -265,6 +273,44 @@ def peak_index(distances: np.ndarray) -> np.ndarray:
     return np.clip(np.clip(vertex, best - 0.5, best + 0.5), 0.0, n - 1.0)
 
 
+#: How a continuous layer index is read from the match distances: ``segment`` (the nearest point
+#: of the path through the templates, :func:`segment_index`) or ``parabola`` (:func:`peak_index`).
+PEAK_INTERPOLATIONS = ("segment", "parabola")
+
+
+def segment_index(distances: np.ndarray, gaps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous index (...) of the point nearest the query on the path through the templates in
+    layer order (straight between adjacent ones, as the layered texture blends them), and the
+    query's squared distance (...) to that point.
+
+    distances : (..., n) squared distances of the query to the templates; gaps : (..., n − 1)
+    squared distances between adjacent templates, in the same metric. On segment k (templates
+    k and k + 1, gap L) the nearest point lies at α = (d_k − d_{k+1} + L) / 2L (the law of
+    cosines), clipped to [0, 1], at squared distance d_k − α (d_k − d_{k+1} + L) + α² L; the
+    nearest of the segments gives Q = k + α. A template reads its own index exactly, whatever
+    the spacing of its neighbours, and a blend of two adjacent templates its blend weight —
+    which the parabola through three distances gives only for templates evenly spaced on a
+    line. Absent templates (infinite distances, padding) and repeated ones (gap 0) take no part;
+    a query with no finite distance gets NaN.
+    """
+    d = np.asarray(distances, dtype=np.float64)
+    g = np.asarray(gaps, dtype=np.float64)
+    a, b = d[..., :-1], d[..., 1:]
+    usable = np.isfinite(a) & np.isfinite(b) & np.isfinite(g) & (g > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        toward = a - b + g
+        alpha = np.where(usable, np.clip(toward / (2.0 * g), 0.0, 1.0), 0.0)
+        along = np.where(usable, a - alpha * toward + alpha * alpha * g, a)
+    # the last template as a point of its own: reached by its segment where there is one
+    ends = np.concatenate([along, d[..., -1:]], axis=-1)
+    step = np.concatenate([alpha, np.zeros(d.shape[:-1] + (1,))], axis=-1)
+    ends = np.where(np.isnan(ends), np.inf, ends)
+    k = np.argmin(ends, axis=-1)
+    residual = np.take_along_axis(ends, k[..., None], -1)[..., 0]
+    q = k + np.take_along_axis(step, k[..., None], -1)[..., 0]
+    return np.where(np.isfinite(residual), q, np.nan), np.maximum(residual, 0.0)
+
+
 def rest_floor(readings: np.ndarray, at_rest: np.ndarray, most: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Each region's rest floor: the highest Q (R,) it reads among frames where it is at rest, at
     most ``most`` layers, and the row (R,) that reads it (−1 where no frame is at rest).
@@ -272,8 +318,8 @@ def rest_floor(readings: np.ndarray, at_rest: np.ndarray, most: float = 1.0) -> 
     readings : (F, R) Q of F frames (NaN where hidden); at_rest : (F, R) whether the region is at
     rest in the frame. Why the highest: Q's offset at rest is not noise alone but what the rest of
     the face does to the region's patch (another expression's shading, a brow lowered over a
-    lid, the peak interpolation's bias where the templates' distances are not a parabola), and
-    every such frame seen should read 0.
+    lid; with the parabola, its bias where the templates' distances are not one), and every such
+    frame seen should read 0.
     """
     q = np.where(np.asarray(at_rest, dtype=bool), np.asarray(readings, dtype=np.float64), np.nan)
     q = np.where(np.isfinite(q), q, -np.inf)
@@ -295,7 +341,7 @@ def above_rest(q: np.ndarray, floor: np.ndarray, layers) -> np.ndarray:
 
 
 def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, weights: np.ndarray,
-             shading: bool = True) -> tuple[np.ndarray, np.ndarray]:
+             shading: bool = True, interpolation: str = "segment") -> tuple[np.ndarray, np.ndarray]:
     """Layer index of the best of several samples of a patch.
 
     patches : (..., S, size, size) S samples (e.g. diagonal offsets) of one patch, raw intensities.
@@ -303,11 +349,19 @@ def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, we
 
     Returns
     -------
-    Q : (...) continuous layer index of the sample that matches its best template most closely.
-    distance : (...) that sample's smallest distance.
+    Q : (...) continuous layer index of the sample that matches the templates most closely
+        (``interpolation``: see :func:`classify_regions`).
+    distance : (...) that sample's squared distance to the path through the templates
+        (``segment``) or to its best template (``parabola``).
     """
     coefficients = haar_coefficients(normalise_patches(patches, shading))
     d = match_distances(coefficients, templates, indices, weights)  # (..., S, n)
+    if interpolation == "segment":
+        gaps = np.diag(match_distances(np.asarray(templates)[1:], np.asarray(templates)[:-1], indices, weights))
+        q_all, residual = segment_index(d, np.broadcast_to(gaps, d.shape[:-1] + gaps.shape))
+        sample = np.argmin(residual, axis=-1)
+        return (np.take_along_axis(q_all, sample[..., None], -1)[..., 0],
+                np.take_along_axis(residual, sample[..., None], -1)[..., 0])
     best = d.min(axis=-1)
     sample = np.argmin(best, axis=-1)
     chosen = np.take_along_axis(d, sample[..., None, None], axis=-2)[..., 0, :]
@@ -351,6 +405,8 @@ class RegionBank:
             self.absent[r, len(t):] = True
         self.wt = self.weights[:, None, :] * self.templates  # (R, n, C)
         self.tt = (self.wt * self.templates).sum(axis=-1)      # (R, n)
+        step = np.diff(self.templates, axis=1)                 # (R, n − 1, C) between adjacent layers
+        self.gaps = np.where(self.absent[:, 1:], np.inf, np.einsum("rkc,rc->rk", step * step, self.weights))
         H, _ = haar_matrix(int(round(np.sqrt(C))))
         self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
         # their surfaces over the stable texels (:func:`normalise_patches` of the normalised template: near 1)
@@ -372,7 +428,7 @@ class RegionBank:
         return [(int(o), np.flatnonzero(orders == o)) for o in np.unique(orders)]
 
     def masked_distances(self, normalised: np.ndarray, mask: np.ndarray, region: np.ndarray,
-                         shading: bool = True) -> np.ndarray:
+                         shading: bool = True, with_gaps: bool = False):
         """(M, n) distances of partly seen patches to their region's templates over the seen texels.
 
         normalised : (M, size, size) patches normalised over their seen texels; mask : (M, size,
@@ -382,18 +438,29 @@ class RegionBank:
         patch on those texels only (the difference there, zero elsewhere, in the region's Haar
         terms), scaled by the region's stable texels over those seen so that partly and wholly
         seen samples compare. With every stable texel seen this is :meth:`distances`.
+        ``with_gaps``: also (M, n − 1) the distances between adjacent templates so normalised
+        (:func:`segment_index`), as :attr:`gaps` is for the wholly seen.
         """
         M = len(region)
         m = np.asarray(mask, dtype=bool).reshape(M, 1, -1)
         templates = self._masked_templates(m[:, 0], np.asarray(region), shading)  # (M, n, size²)
         diff = np.asarray(normalised).reshape(M, 1, -1) - templates              # 0 off the mask
-        d = np.empty(diff.shape[:2])
+        scale = (self.mask_count[region] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
+        d = self._kept_norms(diff, region) * scale
+        d = np.where(self.absent[region], np.inf, d)
+        if not with_gaps:
+            return d
+        gaps = self._kept_norms(np.diff(templates, axis=1), region) * scale
+        return d, np.where(self.absent[region][:, 1:], np.inf, gaps)
+
+    def _kept_norms(self, diff: np.ndarray, region: np.ndarray) -> np.ndarray:
+        """(M, k) weighted squared norms of texel differences (M, k, size²) in their regions' kept Haar terms."""
+        out = np.empty(diff.shape[:2])
         for r in np.unique(region):  # each region's kept Haar rows on its own patches (no gathered copies)
             rows = region == r
-            c = diff[rows] @ self.kept_rows[r].T                                  # (m, n, kept)
-            d[rows] = (c * c) @ self.kept_weights[r]
-        d *= (self.mask_count[region] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
-        return np.where(self.absent[region], np.inf, d)
+            c = diff[rows] @ self.kept_rows[r].T                                  # (m, k, kept)
+            out[rows] = (c * c) @ self.kept_weights[r]
+        return out
 
     def _masked_templates(self, masks: np.ndarray, region: np.ndarray, shading: bool) -> np.ndarray:
         """(M, n, size²) each region's templates normalised over a mask (M, size²), zero off it.
@@ -444,7 +511,7 @@ class RegionBank:
 
 
 def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True, seen: np.ndarray | None = None,
-                     min_seen: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+                     min_seen: float = 0.5, interpolation: str = "segment") -> tuple[np.ndarray, np.ndarray]:
     """:func:`classify` of every region at once: patches (..., R, S, size, size) → Q (..., R) and
     the chosen sample's smallest distance (..., R).
 
@@ -454,9 +521,24 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
     (:meth:`RegionBank.masked_distances`); a sample with under ``min_seen`` of its stable texels
     seen takes no part, and a region none of whose samples does gets Q NaN (the caller holds
     its last value).
+
+    ``interpolation`` (:data:`PEAK_INTERPOLATIONS`): ``segment``, the nearest point of the path
+    through the templates (:func:`segment_index`), the sample nearest it kept, its squared
+    distance returned; ``parabola``, the sample nearest a template kept and the parabola's vertex
+    there (:func:`peak_index`), that template's distance returned.
     """
+    if interpolation not in PEAK_INTERPOLATIONS:
+        raise ValueError(f"interpolation {interpolation!r} is not one of {', '.join(PEAK_INTERPOLATIONS)}")
     coefficients = haar_coefficients(_normalise_regions(patches, bank, shading))
     d = bank.distances(coefficients)  # (..., R, S, n)
+    if interpolation == "segment":
+        gaps = np.broadcast_to(bank.gaps[:, None, :], d.shape[:-1] + (d.shape[-1] - 1,))
+        if seen is not None:
+            d, gaps = _distances_of_seen(patches, seen, bank, shading, d, min_seen, gaps)
+        q_all, residual = segment_index(d, gaps)                    # (..., R, S)
+        sample = np.argmin(np.where(np.isnan(q_all), np.inf, residual), axis=-1)
+        q = np.take_along_axis(q_all, sample[..., None], -1)[..., 0]
+        return q, np.where(np.isnan(q), np.inf, np.take_along_axis(residual, sample[..., None], -1)[..., 0])
     if seen is not None:
         d = _distances_of_seen(patches, seen, bank, shading, d, min_seen)
     best = d.min(axis=-1)
@@ -482,9 +564,10 @@ def _normalise_regions(patches: np.ndarray, bank: RegionBank, shading: bool) -> 
     return out
 
 
-def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.ndarray, min_seen: float) -> np.ndarray:
+def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.ndarray, min_seen: float, gaps=None):
     """Distances (..., R, S, n) with the partly seen samples' over their seen texels, and those
-    of the samples seen too little infinite."""
+    of the samples seen too little infinite; with ``gaps`` (..., R, S, n − 1) (the templates'
+    adjacent distances) those too, the partly seen samples' over their seen texels."""
     size = patches.shape[-1]
     stable = bank.masks.reshape(-1, 1, size, size)
     seen = np.asarray(seen, dtype=bool) & stable                # texels off a region's stable set never count
@@ -501,8 +584,12 @@ def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.nda
         for o in np.unique(orders):
             rows = orders == o
             part[rows] = normalise_patches(picked[rows], int(o), picked_seen[rows])
-        d[idx] = bank.masked_distances(part, seen[idx], region, shading)
-    return d
+        if gaps is None:
+            d[idx] = bank.masked_distances(part, seen[idx], region, shading)
+        else:
+            gaps = np.array(gaps)  # (a broadcast view before)
+            d[idx], gaps[idx] = bank.masked_distances(part, seen[idx], region, shading, with_gaps=True)
+    return d if gaps is None else (d, gaps)
 
 
 def hold_and_decay(values: np.ndarray, visible: np.ndarray, times: np.ndarray, decay: float) -> np.ndarray:

@@ -64,7 +64,9 @@ class AppearanceModel:
     are (1001 in models before it);
     shading_orders : (R,) with ``shading``, the surface each region's patches are divided by (1 the
     plane, 2 the quadratic: :func:`facepipe.core.appearance.shading_order`); None: the plane
-    (models before it).
+    (models before it);
+    peak_interpolation : how Q is read from a patch's match distances
+    (:data:`facepipe.core.appearance.PEAK_INTERPOLATIONS`; models before it: ``parabola``).
     """
 
     names: list
@@ -106,6 +108,7 @@ class AppearanceModel:
     tile_albedo: np.ndarray | None = None
     tile: int = 1001
     shading_orders: np.ndarray | None = None
+    peak_interpolation: str = "parabola"
 
     @property
     def extra_tiles(self) -> list:
@@ -158,7 +161,8 @@ def save_appearance(path, model) -> None:
               "template_bary": model.template_bary, "weights": model.weights,
               "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading),
                                    model.min_seen, float(model.occlusion), model.min_point_facing]), "neutral": model.neutral,
-              "boxes": model.boxes, "tile": np.array(int(model.tile))}
+              "boxes": model.boxes, "tile": np.array(int(model.tile)),
+              "peak_interpolation": np.array(model.peak_interpolation)}
     if model.corner_uv is not None:
         arrays["corner_uv"] = model.corner_uv
     if model.template_facing is not None:
@@ -215,7 +219,13 @@ def load_appearance(path):
                                d.get("rest_floor"), d.get("card_rest"), d.get("card_stable"),
                                d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"),
                                d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"),
-                               int(d["tile"]) if "tile" in d else 1001, d.get("shading_orders"))
+                               int(d["tile"]) if "tile" in d else 1001, d.get("shading_orders"),
+                               str(d["peak_interpolation"]) if "peak_interpolation" in d else "parabola")
+        from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where models are read
+
+        if model.peak_interpolation not in PEAK_INTERPOLATIONS:
+            raise ValueError(f"peak_interpolation {model.peak_interpolation!r} is not one of "
+                             f"{', '.join(PEAK_INTERPOLATIONS)}")
         if model.shading_orders is not None and (model.shading_orders.shape != (n,)
                                                  or not np.isin(model.shading_orders, (1, 2)).all()):
             raise ValueError(f"shading_orders {model.shading_orders.tolist()} is not 1 or 2 for each of its {n} regions")

@@ -112,11 +112,16 @@ class AppearanceConfig:
     # that surface: "plane", "quadratic" (takes out more of a side light's or turned head's shading
     # over a curved patch), or "auto": per region the quadratic where it keeps 3/4 of its layers' contrast
     shading_surface: str = "auto"
+    # how Q is read from the match distances: "segment", the nearest point of the path through the
+    # layers (a layer reads its own index, a blend of two its weight), or "parabola" (the paper's
+    # vertex through three distances, exact only for layers evenly spaced in appearance)
+    peak_interpolation: str = "segment"
     light_fit: bool = True  # each frame's light fitted over the face's known normals and divided out of the patches
     occlusion: bool = True  # template points the face hides (ray cast) left out of the match
     min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
     min_point_facing: float = 0.35  # template points seen more edge-on (cosine), in the frame or an example, left out
     min_relative_facing: float = 0.8  # template points an example sees under this share of the template's median facing (a fold turning away) left out
+    unseen_margin: float = 1.0  # pixels: template points this near (along x and y) one an example does not show well left out too (their samples read it)
     rest_calibration: bool = True  # Q measured from the highest value each region reads at rest in the other regions' examples
     rest_frames: list = field(default_factory=list)  # more example frames where no region is active (other expressions), for the rest floors
     regions: list = field(default_factory=list)
@@ -163,8 +168,8 @@ _TYPES: dict[str, dict[str, object]] = {
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
-                   "shading": bool, "shading_surface": str, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
-                   "min_relative_facing": float, "rest_calibration": bool, "rest_frames": list,
+                   "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
+                   "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
                    "regions": dict},
     "video": {"landmarks": str},
 }
@@ -172,6 +177,8 @@ _REGION_TYPES = {"vertices": str, "template": list, "frames": list, "card": bool
 _REGION_OPTIONAL = {"card", "shading_surface"}
 #: The values of ``shading_surface``.
 SHADING_SURFACES = ("auto", "plane", "quadratic")
+#: The values of ``peak_interpolation`` (facepipe.core.appearance.PEAK_INTERPOLATIONS).
+PEAK_INTERPOLATIONS = ("segment", "parabola")
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm", "weld": True,
@@ -357,8 +364,15 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if not 0.0 <= out.min_relative_facing < 1.0:
         raise InputError(f"[appearance] min_relative_facing = {out.min_relative_facing} is not in [0, 1)", path=path,
                          hint="a share of the template's median facing: 0 keeps every point, 0.8 drops folds turning away")
+    if not 0.0 <= out.unseen_margin < 8.0:
+        raise InputError(f"[appearance] unseen_margin = {out.unseen_margin} is not in [0, 8) pixels", path=path,
+                         hint="0 keeps every point seen well; 1 drops those whose bilinear samples reach one that is not")
     out.rest_frames = [checked_value(x, int, path, "appearance", "rest_frames") for x in out.rest_frames]
     _check_surface(out.shading_surface, path, "appearance")
+    if out.peak_interpolation not in PEAK_INTERPOLATIONS:
+        raise InputError(f"[appearance] peak_interpolation = {_toml(out.peak_interpolation)} is not one of "
+                         f"{', '.join(PEAK_INTERPOLATIONS)}", path=path,
+                         hint='"segment" (the default) or "parabola" (the paper\'s)')
     if not 0.0 < out.min_seen <= 1.0:
         raise InputError(f"[appearance] min_seen = {out.min_seen} is not in (0, 1]", path=path,
                          hint="the share of a template that must be seen, e.g. 0.5")

@@ -502,7 +502,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                                        for f in region.frames], axis=0))
         stable = well_seen_points(np.stack([cam_pos[f] for f in region.frames]), faces, face[0], bary[0], camera,
                                   cfg.template_size, normal_sign, cfg.min_point_facing, cfg.occlusion,
-                                  cfg.min_relative_facing)
+                                  cfg.min_relative_facing, cfg.unseen_margin)
         if stable.mean() < cfg.min_seen:
             raise InputError(f"region {region.name}: only {stable.mean():.0%} of its template is seen well (in the "
                              f"image, not hidden, not edge-on) in every example frame, under min_seen = "
@@ -552,12 +552,13 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             light_colour=None if light is None else light["colour"].astype(np.float32),
                             tiles=np.array(list(tiles), dtype=np.int64) if tiles else None,
                             tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None,
-                            tile=home, shading_orders=np.asarray(orders, dtype=np.int64))
+                            tile=home, shading_orders=np.asarray(orders, dtype=np.int64),
+                            peak_interpolation=cfg.peak_interpolation)
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
-            "albedo": model.albedo, "rest": rest, "shading": surfaces,
+            "albedo": model.albedo, "rest": rest, "shading": surfaces, "peak_interpolation": model.peak_interpolation,
             "notes": notes}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
@@ -785,22 +786,28 @@ def point_facing(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarr
 
 def well_seen_points(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
                      camera: Camera, size: int, normal_sign: float, min_point_facing: float, occlusion: bool = True,
-                     min_relative_facing: float = 0.0) -> np.ndarray:
+                     min_relative_facing: float = 0.0, unseen_margin: float = 0.0) -> np.ndarray:
     """(N,) which points of a template grid (face (N,), bary (N, 3), size² points) every frame
     (F, V, 3) (camera space: a region's example frames) shows well: in front of the camera and
     inside the image, not hidden by the face (``occlusion``: the ray cast of
     :func:`grid_points_hidden`), facing the camera more than ``min_point_facing`` (cosine of the
     smooth surface's normal) and at least ``min_relative_facing`` times the grid's median cosine
-    in that frame. A region's templates and its kept coefficients are built on these points and
-    it is matched on them: what an example does not show well has no template.
+    in that frame, and in the image at least ``unseen_margin`` pixels (along x or y) from every
+    point of the grid that fails these tests in that frame. A region's templates and its kept
+    coefficients are built on these points and it is matched on them: what an example does not
+    show well has no template.
 
     The relative test finds folds: a point facing the camera much worse than the rest of its
     template lies where the surface turns away (an upper lid rolling into its socket, a lip into
     the mouth); its cell of the grid is squeezed into a fraction of the pixels the others get, and
     what it samples changes with the fold's geometry (blur, aliasing), not with the texture. A
-    template that is slanted as a whole (a brow) keeps its points: its median is low too."""
+    template that is slanted as a whole (a brow) keeps its points: its median is low too. The
+    margin: a point's bilinear sample reads the pixels within one pixel of it, so a point that
+    close to a fold, or to where the lid's margin meets the eye, reads part of what lies there —
+    the eyeball a lid half-closes over moves through its sample as the lid moves, not its skin."""
     X = np.einsum("nk,fnkc->fnc", bary, camera_positions[:, faces[face]])     # (F, N, 3)
-    _, inside = ap.bilinear_sample(np.zeros((camera.height, camera.width)), project_distorted_fast(camera, X))
+    pixels = project_distorted_fast(camera, X)
+    _, inside = ap.bilinear_sample(np.zeros((camera.height, camera.width)), pixels)
     good = inside & (X[..., 2] > 0)
     if occlusion:
         good &= ~grid_points_hidden(X[:, None], camera_positions, faces, size)[:, 0]
@@ -808,7 +815,21 @@ def well_seen_points(camera_positions: np.ndarray, faces: np.ndarray, face: np.n
         cos = np.stack([point_facing(c, faces, face, bary, normal_sign) for c in camera_positions])  # (F, N)
         good &= cos > min_point_facing
         good &= cos >= min_relative_facing * np.median(cos, axis=1, keepdims=True)
+    if unseen_margin > 0:
+        good &= ~near_pixels(pixels, ~good, unseen_margin)
     return good.all(axis=0)
+
+
+def near_pixels(pixels: np.ndarray, of: np.ndarray, margin: float) -> np.ndarray:
+    """(F, N) whether each point's pixel (F, N, 2) lies within ``margin`` pixels along both x and
+    y (Chebyshev distance below ``margin``) of a point marked in ``of`` (F, N) of its own frame
+    (a marked point itself included)."""
+    out = np.zeros(of.shape, dtype=bool)
+    for f in range(len(pixels)):
+        if of[f].any():
+            gap = np.abs(pixels[f][:, None, :] - pixels[f][of[f]][None, :, :]).max(axis=-1)  # (N, marked)
+            out[f] = gap.min(axis=1) < margin
+    return out
 
 
 def point_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
@@ -1100,7 +1121,7 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, image
             s = model.template_size
             seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
         visible &= seen_fraction(seen, model) >= model.min_seen
-    q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen)
+    q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen, model.peak_interpolation)
     visible &= np.isfinite(q)
     if model.rest_floor is not None:
         q = ap.above_rest(q, model.rest_floor, model.layer_counts)
