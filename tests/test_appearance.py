@@ -838,6 +838,25 @@ def test_peak_interpolation_saved_and_fixed_by_the_config(kit, tmp_path, capsys)
     assert not (tmp_path / "cls_broken" / "appearance.csv").exists()
 
 
+def test_unseen_margin_takes_points_beside_unstable_ones_and_yields_to_min_seen(kit, tmp_path, capsys):
+    """The margin only removes stable points (those beside points an example does not show
+    well); where it would leave a template under min_seen the build keeps the points without it
+    and says so, rather than refusing a template that is seen well enough."""
+    from facepipe.io.appearance_file import load_appearance
+
+    default = load_appearance(kit / "app.npz").template_mask
+    cfg = _edited_config(kit, tmp_path, "texture_size = 512", "texture_size = 512\nunseen_margin = 0")
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "none.npz", "-q") == 0
+    plain = load_appearance(tmp_path / "none.npz").template_mask
+    assert not (default & ~plain).any() and (plain & ~default).any()
+    cfg.write_text(cfg.read_text().replace("unseen_margin = 0", "unseen_margin = 7.5"))
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "wide.npz") == 0
+    assert "the unseen margin (7.5 px) would leave" in capsys.readouterr().out
+    wide = load_appearance(tmp_path / "wide.npz")
+    assert (wide.template_mask.mean(axis=1) >= wide.min_seen).all()
+    assert any((m == p).all() for m, p in zip(wide.template_mask, plain))  # a region kept without the margin
+
+
 def test_model_keeps_its_visibility_settings(kit):
     from facepipe.io.appearance_file import load_appearance
 

@@ -500,9 +500,19 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         patches = []
         facing_examples.append(np.min([point_facing(cam_pos[f], faces, face, bary, normal_sign)
                                        for f in region.frames], axis=0))
-        stable = well_seen_points(np.stack([cam_pos[f] for f in region.frames]), faces, face[0], bary[0], camera,
-                                  cfg.template_size, normal_sign, cfg.min_point_facing, cfg.occlusion,
-                                  cfg.min_relative_facing, cfg.unseen_margin)
+        example_cam = np.stack([cam_pos[f] for f in region.frames])
+        stable = well_seen_points(example_cam, faces, face[0], bary[0], camera, cfg.template_size, normal_sign,
+                                  cfg.min_point_facing, cfg.occlusion, cfg.min_relative_facing, cfg.unseen_margin)
+        if stable.mean() < cfg.min_seen and cfg.unseen_margin > 0:
+            # a small template in few pixels (a lid at low resolution): the margin would take too
+            # much of it, and matching on too little of it is worse than reading a fold's edge
+            plain = well_seen_points(example_cam, faces, face[0], bary[0], camera, cfg.template_size, normal_sign,
+                                     cfg.min_point_facing, cfg.occlusion, cfg.min_relative_facing)
+            if plain.mean() >= cfg.min_seen:
+                notes.append(f"region {region.name}: the unseen margin ({cfg.unseen_margin:g} px) would leave "
+                             f"{stable.mean():.0%} of its template, under min_seen = {cfg.min_seen:g}: its points "
+                             f"are kept without it ({plain.mean():.0%})")
+                stable = plain
         if stable.mean() < cfg.min_seen:
             raise InputError(f"region {region.name}: only {stable.mean():.0%} of its template is seen well (in the "
                              f"image, not hidden, not edge-on) in every example frame, under min_seen = "
