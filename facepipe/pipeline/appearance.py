@@ -501,18 +501,24 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         facing_examples.append(np.min([point_facing(cam_pos[f], faces, face, bary, normal_sign)
                                        for f in region.frames], axis=0))
         example_cam = np.stack([cam_pos[f] for f in region.frames])
-        stable = well_seen_points(example_cam, faces, face[0], bary[0], camera, cfg.template_size, normal_sign,
-                                  cfg.min_point_facing, cfg.occlusion, cfg.min_relative_facing, cfg.unseen_margin)
-        if stable.mean() < cfg.min_seen and cfg.unseen_margin > 0:
-            # a small template in few pixels (a lid at low resolution): the margin would take too
-            # much of it, and matching on too little of it is worse than reading a fold's edge
-            plain = well_seen_points(example_cam, faces, face[0], bary[0], camera, cfg.template_size, normal_sign,
-                                     cfg.min_point_facing, cfg.occlusion, cfg.min_relative_facing)
-            if plain.mean() >= cfg.min_seen:
-                notes.append(f"region {region.name}: the unseen margin ({cfg.unseen_margin:g} px) would leave "
-                             f"{stable.mean():.0%} of its template, under min_seen = {cfg.min_seen:g}: its points "
-                             f"are kept without it ({plain.mean():.0%})")
-                stable = plain
+
+        def stable_points(margin):
+            return well_seen_points(example_cam, faces, face[0], bary[0], camera, cfg.template_size, normal_sign,
+                                    cfg.min_point_facing, cfg.occlusion, cfg.min_relative_facing, margin)
+
+        stable = stable_points(cfg.unseen_margin)
+        # a small template in few pixels (a lid at low resolution): where the margin would take too
+        # much of it, a narrower one (halved twice, then none), since matching on too little of
+        # it is worse than reading part of a fold's edge
+        margin, full = cfg.unseen_margin, stable.mean()
+        while stable.mean() < cfg.min_seen and margin > 0:
+            margin = margin / 2.0 if margin > cfg.unseen_margin / 4.0 else 0.0
+            stable = stable_points(margin)
+        if margin != cfg.unseen_margin and stable.mean() >= cfg.min_seen:
+            notes.append(f"region {region.name}: the unseen margin ({cfg.unseen_margin:g} px) would leave {full:.0%} "
+                         f"of its template, under min_seen = {cfg.min_seen:g}: "
+                         + (f"kept with {margin:g} px" if margin > 0 else "its points kept without it")
+                         + f" ({stable.mean():.0%})")
         if stable.mean() < cfg.min_seen:
             raise InputError(f"region {region.name}: only {stable.mean():.0%} of its template is seen well (in the "
                              f"image, not hidden, not edge-on) in every example frame, under min_seen = "
