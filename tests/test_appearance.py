@@ -762,6 +762,17 @@ def test_bad_visibility_settings(kit, tmp_path, capsys, old, new, message):
     assert message in capsys.readouterr().err
 
 
+def _assert_model_refused(kit, tmp_path, capsys, data: dict, **broken) -> None:
+    """A model's arrays ``data`` with the ``broken`` field written in: classification exits 2,
+    names the field, and writes no stream."""
+    np.savez(tmp_path / "broken.npz", **data, **broken)
+    assert _run("appearance", "classify", tmp_path / "broken.npz", kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls_broken", "-q") == 2
+    err = capsys.readouterr().err
+    assert "not an appearance model" in err and all(name in err for name in broken)
+    assert not (tmp_path / "cls_broken" / "appearance.csv").exists()
+
+
 def test_shading_surfaces_chosen_per_region_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     """``auto`` measures per region what a quadratic keeps of its layers' contrast (the build says
     it); the model keeps each region's surface; the config fixes it for all or for one region."""
@@ -796,12 +807,7 @@ def test_shading_surfaces_chosen_per_region_saved_and_fixed_by_the_config(kit, t
     np.savez(tmp_path / "old.npz", **data)
     assert load_appearance(tmp_path / "old.npz").shading_orders is None
     # a model whose surfaces are not 1 or 2 for each region: refused by name, nothing written
-    np.savez(tmp_path / "broken.npz", **data, shading_orders=np.full(len(model.names), 3))
-    assert _run("appearance", "classify", tmp_path / "broken.npz", kit / "appearance" / "take" / "frame_%04d.png",
-                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls_broken", "-q") == 2
-    err = capsys.readouterr().err
-    assert "not an appearance model" in err and "shading_orders" in err
-    assert not (tmp_path / "cls_broken" / "appearance.csv").exists()
+    _assert_model_refused(kit, tmp_path, capsys, data, shading_orders=np.full(len(model.names), 3))
 
 
 def test_peak_interpolation_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
@@ -830,12 +836,7 @@ def test_peak_interpolation_saved_and_fixed_by_the_config(kit, tmp_path, capsys)
     del data["peak_interpolation"]
     np.savez(tmp_path / "old.npz", **data)
     assert load_appearance(tmp_path / "old.npz").peak_interpolation == "parabola"
-    np.savez(tmp_path / "broken.npz", **data, peak_interpolation=np.array("cubic"))
-    assert _run("appearance", "classify", tmp_path / "broken.npz", kit / "appearance" / "take" / "frame_%04d.png",
-                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls_broken", "-q") == 2
-    err = capsys.readouterr().err
-    assert "not an appearance model" in err and "peak_interpolation" in err
-    assert not (tmp_path / "cls_broken" / "appearance.csv").exists()
+    _assert_model_refused(kit, tmp_path, capsys, data, peak_interpolation=np.array("cubic"))
 
 
 def test_unseen_margin_takes_points_beside_unstable_ones_and_yields_to_min_seen(kit, tmp_path, capsys):

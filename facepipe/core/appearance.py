@@ -354,6 +354,8 @@ def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, we
     distance : (...) that sample's squared distance to the path through the templates
         (``segment``) or to its best template (``parabola``).
     """
+    if interpolation not in PEAK_INTERPOLATIONS:
+        raise ValueError(f"interpolation {interpolation!r} is not one of {', '.join(PEAK_INTERPOLATIONS)}")
     coefficients = haar_coefficients(normalise_patches(patches, shading))
     d = match_distances(coefficients, templates, indices, weights)  # (..., S, n)
     if interpolation == "segment":

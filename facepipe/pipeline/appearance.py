@@ -500,20 +500,17 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         patches = []
         facing_examples.append(np.min([point_facing(cam_pos[f], faces, face, bary, normal_sign)
                                        for f in region.frames], axis=0))
-        example_cam = np.stack([cam_pos[f] for f in region.frames])
-
-        def stable_points(margin):
-            return well_seen_points(example_cam, faces, face[0], bary[0], camera, cfg.template_size, normal_sign,
-                                    cfg.min_point_facing, cfg.occlusion, cfg.min_relative_facing, margin)
-
-        stable = stable_points(cfg.unseen_margin)
+        seen_well, pixels = points_seen_well(np.stack([cam_pos[f] for f in region.frames]), faces, face[0], bary[0],
+                                             camera, cfg.template_size, normal_sign, cfg.min_point_facing,
+                                             cfg.occlusion, cfg.min_relative_facing)
+        stable = with_unseen_margin(seen_well, pixels, cfg.unseen_margin)
         # a small template in few pixels (a lid at low resolution): where the margin would take too
         # much of it, a narrower one (halved twice, then none), since matching on too little of
         # it is worse than reading part of a fold's edge
         margin, full = cfg.unseen_margin, stable.mean()
         while stable.mean() < cfg.min_seen and margin > 0:
             margin = margin / 2.0 if margin > cfg.unseen_margin / 4.0 else 0.0
-            stable = stable_points(margin)
+            stable = with_unseen_margin(seen_well, pixels, margin)
         if margin != cfg.unseen_margin and stable.mean() >= cfg.min_seen:
             notes.append(f"region {region.name}: the unseen margin ({cfg.unseen_margin:g} px) would leave {full:.0%} "
                          f"of its template, under min_seen = {cfg.min_seen:g}: "
@@ -821,6 +818,16 @@ def well_seen_points(camera_positions: np.ndarray, faces: np.ndarray, face: np.n
     margin: a point's bilinear sample reads the pixels within one pixel of it, so a point that
     close to a fold, or to where the lid's margin meets the eye, reads part of what lies there —
     the eyeball a lid half-closes over moves through its sample as the lid moves, not its skin."""
+    good, pixels = points_seen_well(camera_positions, faces, face, bary, camera, size, normal_sign, min_point_facing,
+                                    occlusion, min_relative_facing)
+    return with_unseen_margin(good, pixels, unseen_margin)
+
+
+def points_seen_well(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
+                     camera: Camera, size: int, normal_sign: float, min_point_facing: float, occlusion: bool = True,
+                     min_relative_facing: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`well_seen_points`' tests frame by frame, before the margin: (F, N) whether each frame
+    shows each point well, and the points' pixels (F, N, 2)."""
     X = np.einsum("nk,fnkc->fnc", bary, camera_positions[:, faces[face]])     # (F, N, 3)
     pixels = project_distorted_fast(camera, X)
     _, inside = ap.bilinear_sample(np.zeros((camera.height, camera.width)), pixels)
@@ -831,8 +838,14 @@ def well_seen_points(camera_positions: np.ndarray, faces: np.ndarray, face: np.n
         cos = np.stack([point_facing(c, faces, face, bary, normal_sign) for c in camera_positions])  # (F, N)
         good &= cos > min_point_facing
         good &= cos >= min_relative_facing * np.median(cos, axis=1, keepdims=True)
-    if unseen_margin > 0:
-        good &= ~near_pixels(pixels, ~good, unseen_margin)
+    return good, pixels
+
+
+def with_unseen_margin(good: np.ndarray, pixels: np.ndarray, margin: float) -> np.ndarray:
+    """(N,) the points every frame shows well (``good`` (F, N), :func:`points_seen_well`) and that lie
+    at least ``margin`` pixels from every point a frame does not (pixels (F, N, 2))."""
+    if margin > 0:
+        good = good & ~near_pixels(pixels, ~good, margin)
     return good.all(axis=0)
 
 
