@@ -701,6 +701,17 @@ def test_fast_obj_reader_on_a_large_random_mesh(tmp_path):
             assert load_vertices(p).tolist() == [[1, 2, 3], [4, 5, 6]]
 
 
+@pytest.mark.parametrize("text", [b"v 1 2\nv 4 5 6 7\nf 1 2 2\n",                # one block of vertex lines
+                                  b"v 1 2\nvn 0 0 1\nv 4 5 6 7\nf 1 2 2\n"])   # two blocks
+def test_positions_of_lines_with_two_and_four_numbers_are_not_shifted(tmp_path, text):
+    """Six numbers in two vertex lines are not two vertices when one line has two of them: the
+    positions-only reader names the short line as the full reader does."""
+    p = write(tmp_path, "short.obj", text)
+    for read in (load_vertices, load_mesh):
+        with pytest.raises(InputError, match="line 1: a vertex needs three numbers"):
+            read(p)
+
+
 def _plain_mesh_text(rng, corners: int, layout: str) -> str:
     V = rng.normal(size=(400, 3)) * 10.0 ** rng.integers(-3, 3, size=(400, 3))
     lines = [f"v {float(x)!r} {y:.6f} {z:.9g}" for x, y, z in V]
