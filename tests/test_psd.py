@@ -215,6 +215,33 @@ def test_batched_inverse_is_numpys_inverse_and_nan_where_singular():
     assert np.array_equal(batched_inverse(regular), inv[np.isfinite(inv).all(axis=(1, 2))])
 
 
+def test_rest_exact_solve_sends_repeated_rows_to_the_pseudo_inverse_alone():
+    """Systems with two equal rows (coincident poses) skip the inverse: each system of a stack
+    mixing them with regular and nearly singular ones is solved as when solved alone, and the
+    repeated ones exactly as the constrained pseudo-inverse solves them."""
+    from facepipe.core.psd import DEFAULT_RCOND, constrained_svd_solve, repeated_rows, rest_exact_solve
+
+    rng = np.random.default_rng(5)
+    n, P = 60, 6
+    pts = rng.normal(size=(n, P, 3))
+    pts[::3, 4] = pts[::3, 2]            # two coincident poses
+    pts[1::3, 3] = pts[1::3, 0]          # a pose coincident with the rest pose
+    pts[2::6, 5] = pts[2::6, 1] + 1e-9   # nearly coincident: not repeated, but cut
+    A = np.zeros((n, P + 1, P + 1))
+    A[:, :P, :P] = np.linalg.norm(pts[:, :, None] - pts[:, None, :], axis=-1)
+    A[:, :P, P] = A[:, P, :P] = 1.0
+    b = np.concatenate([np.zeros((n, 1, 3)), rng.normal(size=(n, P - 1, 3)), np.zeros((n, 1, 3))], axis=1)
+    singular = repeated_rows(A)
+    assert singular[::3].all() and singular[1::3].all() and not singular[2::3].any()
+    x = rest_exact_solve(A, b, DEFAULT_RCOND)
+    for k in range(n):
+        assert np.array_equal(x[k], rest_exact_solve(A[k:k + 1], b[k:k + 1], DEFAULT_RCOND)[0])
+    assert np.array_equal(x[singular], constrained_svd_solve(A[singular], b[singular], DEFAULT_RCOND))
+    assert np.allclose(np.einsum("nij,njc->nic", A[:, :1], x), 0.0, atol=1e-12)  # the rest row, exactly
+    regular = np.flatnonzero(~singular)[1::2]
+    assert np.allclose(np.einsum("nij,njc->nic", A[regular], x[regular]), b[regular], atol=1e-9)
+
+
 def test_edge_weights_normalised_bounded_and_local():
     rng = np.random.default_rng(0)
     M, V = 10, 50

@@ -250,18 +250,34 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     n, R, P = A.shape
     if R != P or n == 0:
         return constrained_svd_solve(A, b, rcond)
-    weighted = A.copy()
-    weighted[:, 0] *= REST_ROW_WEIGHT
-    weighted_b = b.copy()
-    weighted_b[:, 0] *= REST_ROW_WEIGHT
-    inv, clear = _inverse_where_clear(weighted, np.einsum("nij,nij->n", A[:, 1:], A[:, 1:]), rcond)
-    if clear.all():
-        return inv @ weighted_b
+    # a system with two equal rows (poses that coincide where a vertex's edges are: most vertices
+    # of a face, far from some expression's motion) is exactly singular: it goes to the
+    # pseudo-inverse without an inverse tried first (which fails, for its whole stack)
     x = np.empty((n, P, b.shape[-1]))
-    x[clear] = inv[clear] @ weighted_b[clear]
-    rest = ~clear
-    x[rest] = constrained_svd_solve(A[rest], b[rest], rcond)
+    singular = repeated_rows(A)
+    try_inverse = np.flatnonzero(~singular)
+    weighted = A[try_inverse]
+    weighted[:, 0] *= REST_ROW_WEIGHT
+    weighted_b = b[try_inverse]
+    weighted_b[:, 0] *= REST_ROW_WEIGHT
+    inv, clear = _inverse_where_clear(weighted, np.einsum("nij,nij->n", A[try_inverse, 1:], A[try_inverse, 1:]),
+                                      rcond)
+    x[try_inverse[clear]] = inv[clear] @ weighted_b[clear]
+    rest = singular
+    rest[try_inverse[~clear]] = True
+    if rest.any():
+        x[rest] = constrained_svd_solve(A[rest], b[rest], rcond)
     return x
+
+
+def repeated_rows(A: np.ndarray) -> np.ndarray:
+    """(n,) whether each of a stack of matrices (n, R, P) has two rows exactly equal."""
+    R = A.shape[1]
+    out = np.zeros(A.shape[0], dtype=bool)
+    for i in range(R):
+        for j in range(i + 1, R):
+            out |= (A[:, i] == A[:, j]).all(axis=-1)
+    return out
 
 
 def batched_inverse(A: np.ndarray) -> np.ndarray:
