@@ -212,3 +212,19 @@ def test_geodesics_without_room_for_the_shared_rows(monkeypatch):
     assert made and not Path(made[0].name).exists()
     assert np.array_equal(job.finish(), dijkstra(g, directed=False, indices=sources))
     assert job.child_sources == 0
+
+
+def test_edge_graph_from_the_meshs_edges_is_the_same_graph():
+    """The geodesics' graph made from a mesh's cached unique edges is the one found from its faces:
+    same edges, lengths and order, to the bit; each edge once each way, at its length."""
+    from facepipe.core.mesh import Mesh
+    from facepipe.core.strain import edge_graph
+
+    V, F = grid(9, 7)
+    mesh = Mesh(V, np.arange(0, 3 * len(F) + 1, 3), F.ravel())
+    a, b = edge_graph(V, F), edge_graph(V, F, mesh.edges)
+    assert np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+    assert np.array_equal(a.data, b.data)
+    i, j = mesh.edges.T
+    assert a.nnz == 2 * len(mesh.edges)
+    assert np.array_equal(np.asarray(a[i, j]).ravel(), np.linalg.norm(V[i] - V[j], axis=1))

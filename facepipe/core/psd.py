@@ -276,7 +276,10 @@ def repeated_rows(A: np.ndarray) -> np.ndarray:
     out = np.zeros(A.shape[0], dtype=bool)
     for i in range(R):
         for j in range(i + 1, R):
-            out |= (A[:, i] == A[:, j]).all(axis=-1)
+            # the first entries tell most pairs apart; the whole rows are compared where they agree
+            candidates = np.flatnonzero((A[:, i, 0] == A[:, j, 0]) & ~out)
+            if candidates.shape[0]:
+                out[candidates[(A[candidates, i] == A[candidates, j]).all(axis=-1)]] = True
     return out
 
 

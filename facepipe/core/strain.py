@@ -16,16 +16,22 @@ from facepipe.errors import InputError
 from facepipe.core.mesh import _sorted_unique
 
 
-def edge_graph(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
-    """Symmetric (V, V) sparse matrix of mesh-edge lengths (for geodesic distances)."""
+def edge_graph(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray | None = None) -> sp.csr_matrix:
+    """Symmetric (V, V) sparse matrix of mesh-edge lengths (for geodesic distances).
+
+    ``edges``: the faces' unique edges (:attr:`facepipe.core.mesh.Mesh.edges`) where already
+    at hand; else they are found here."""
     vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.sort(e, axis=1)
     n = vertices.shape[0]
-    # one int64 key per edge: a 1-D unique is ~10× faster than unique(axis=0), same (a, b) order
-    key = _sorted_unique(e[:, 0] * max(n, 1) + e[:, 1])  # sort-based: ~3x numpy 2's hashed unique here
-    e = np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
+    if edges is None:
+        faces = np.asarray(faces, dtype=np.int64)
+        e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        e = np.sort(e, axis=1)
+        # one int64 key per edge: a 1-D unique is ~10× faster than unique(axis=0), same (a, b) order
+        key = _sorted_unique(e[:, 0] * max(n, 1) + e[:, 1])  # sort-based: ~3x numpy 2's hashed unique here
+        e = np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
+    else:
+        e = np.asarray(edges, dtype=np.int64)
     length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     # a zero-length edge would vanish from the sparse graph and cut it apart
     length = np.maximum(length, 1e-12)

@@ -193,7 +193,7 @@ def handle_geodesics(mesh, handles: np.ndarray) -> Geodesics:
 
     They are the longest single-threaded part of a fit; on a large mesh a second process takes
     them on at once (:class:`~facepipe.pipeline.geodesics.Geodesics`)."""
-    return Geodesics(edge_graph(mesh.vertices, mesh.faces), handles)
+    return Geodesics(edge_graph(mesh.vertices, mesh.faces, mesh.edges), handles)  # (the edges: kept for check_pose)
 
 
 #: The steps of :func:`fit_config` (``stage`` is called with each as it starts); validation, run
