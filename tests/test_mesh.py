@@ -397,6 +397,8 @@ def test_obj_mixed_corner_layouts_and_continuation(tmp_path):
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", r"line 4: vertex index 9 is out of range: the file has 3"),
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", r"line 4: vertex index 0 is out of range"),
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -4 1 2\n", r"line 4: vertex index -4 is out of range"),
+        ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999999\n",
+         r"line 4: vertex index 99999999999999999999999 is out of range: the file has 3"),  # past int64
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n", r"line 4: a face needs at least three corners"),
         ("v 0 0 0\nhello world\n", r"line 2: unknown OBJ statement 'hello world'"),
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1\nf 1 2 3\n", r"line 6: this face has corners without"),

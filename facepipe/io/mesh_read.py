@@ -242,12 +242,15 @@ def _resolve_indices(tokens, count_before, count_total, what, corner_face, f_lin
     """0-based indices from OBJ corner tokens (1-based, negative = relative to the end so far)."""
     try:
         raw = np.array(tokens, dtype=np.int64) if tokens else np.zeros(0, dtype=np.int64)
-    except ValueError:
+    except (ValueError, OverflowError):
         for k, t in enumerate(tokens):
             try:
-                int(t)
+                value = int(t)
             except ValueError:
                 fail(f_line[int(corner_face[k])], f"bad {what} index {t!r}")
+            if abs(value) > np.iinfo(np.int64).max:  # a number, but no file has that many
+                fail(f_line[int(corner_face[k])], f"{what} index {t} is out of range: the file has {count_total} "
+                     f"{'vertices' if what == 'vertex' else 'texture coordinates'}")
         raise
     # positive indices may refer to vertices defined later in the file, negative ones only back
     idx = np.where(raw > 0, raw - 1, count_before + raw)
