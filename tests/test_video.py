@@ -228,6 +228,27 @@ def test_camera_files(tmp_path):
         read_camera(tmp_path / "garbage.yml")
 
 
+@pytest.mark.parametrize("matrix, expected", [
+    ("   rows: 3\n   dt: d\n   data: [ 1, 0, 2, 0, 1, 3, 0, 0, 1 ]\n", "camera_matrix has no whole number 'cols'"),
+    ("   rows: 3\n   cols: 3\n   dt: d\n   data: [ 1, 0, 2, 0, 1, 3 ]\n",
+     "camera_matrix says 3 × 3 but its data holds 6 numbers"),
+    ("   rows: 3\n   cols: 3\n   data: [ 1, 0, 2, 0, 1, 3, 0, 0, 1 ]\n", "camera_matrix has no element type"),
+])
+def test_inconsistent_opencv_matrices_are_refused_before_opencv_reads_them(tmp_path, matrix, expected):
+    """A matrix node whose rows, cols and data disagree is an input error; OpenCV itself reads such
+    a node past its buffer and the process dies later in malloc."""
+    from facepipe.io.camera_file import read_camera
+
+    path = tmp_path / "cam.yml"
+    path.write_text("%YAML:1.0\n---\nimage_width: 1280\nimage_height: 720\ncamera_matrix: !!opencv-matrix\n" + matrix)
+    for _ in range(20):  # (the heap damage showed only after several reads)
+        with pytest.raises(InputError, match=expected):
+            read_camera(path)
+    path.write_text("%YAML:1.0\n---\n- 1\n- 2\n")  # a list, not a map of keys
+    with pytest.raises(InputError, match="no map of keys"):
+        read_camera(path)
+
+
 def test_calibrations_other_tools_write(tmp_path):
     """JSON that OpenCV's FileStorage writes (opencv-matrix objects), and the names other tools
     give the intrinsics, read as the same camera."""

@@ -9,6 +9,7 @@ so whatever ``cv2.FileStorage`` writes reads back, in YAML, XML or JSON.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import cv2
@@ -97,18 +98,28 @@ def _read_filestorage(path: Path):
             raise InputError("OpenCV cannot read this calibration", path=path, hint=_HINT)
 
         def node(key):
-            n = fs.getNode(key)
+            try:
+                n = fs.getNode(key)
+            except (cv2.error, SystemError):  # the file's top level is not a map of keys
+                raise InputError("OpenCV reads no map of keys in this calibration", path=path, hint=_HINT) from None
             if n.empty() or n.isNone():
                 raise InputError(f"the calibration lacks {key!r}", path=path, hint=_HINT)
             return n
 
-        matrix = node("camera_matrix").mat()
-        if matrix is None:
-            raise InputError("camera_matrix is not a matrix (!!opencv-matrix)", path=path, hint=_HINT)
-        d = fs.getNode("distortion_coefficients")
-        dist = np.zeros(0) if d.empty() or d.isNone() else d.mat()
-        if dist is None:
-            raise InputError("distortion_coefficients is not a matrix (!!opencv-matrix)", path=path, hint=_HINT)
+        def matrix_of(n, key):
+            _check_matrix_node(n, key, path)  # before OpenCV reads it: an inconsistent one corrupts its heap
+            try:
+                m = n.mat()
+            except (cv2.error, SystemError) as exc:  # rows, cols, dt or data that do not make a matrix
+                reason = str(exc).strip().splitlines() or ["parse error"]
+                raise InputError(f"{key} is not a readable matrix ({reason[-1]})", path=path, hint=_HINT) from None
+            if m is None:
+                raise InputError(f"{key} is not a matrix (!!opencv-matrix)", path=path, hint=_HINT)
+            return m
+
+        matrix = matrix_of(node("camera_matrix"), "camera_matrix")
+        d = fs.getNode("distortion_coefficients")  # (the top level is a map: camera_matrix was found in it)
+        dist = np.zeros(0) if d.empty() or d.isNone() else matrix_of(d, "distortion_coefficients")
         size = []
         for key in ("image_width", "image_height"):
             n = node(key)
@@ -118,6 +129,30 @@ def _read_filestorage(path: Path):
     finally:
         fs.release()
     return np.asarray(matrix, dtype=np.float64), np.asarray(dist, dtype=np.float64), size[0], size[1]
+
+
+def _check_matrix_node(n, key: str, path: Path) -> None:
+    """That an ``!!opencv-matrix`` node has one ``rows``, ``cols`` and ``dt`` and as many ``data``
+    numbers as they say: OpenCV 5.1 reads a node without ``cols``, or with fewer numbers than
+    ``rows × cols``, past its buffer, and the process dies later in ``malloc``."""
+    if not n.isMap():
+        return  # not a matrix at all: .mat() says None, reported by the caller
+    sizes = []
+    for part in ("rows", "cols"):
+        v = n.getNode(part)
+        if v.empty() or v.isNone() or not v.isInt() or v.real() < 0:
+            raise InputError(f"{key} has no whole number {part!r}", path=path, hint=_HINT)
+        sizes.append(int(v.real()))
+    dt = n.getNode("dt")
+    match = re.fullmatch(r"(\d*)([ucwsifdh])", dt.string().strip()) if dt.isString() else None
+    if match is None:
+        raise InputError(f"{key} has no element type 'dt' (d for 64-bit floats)", path=path, hint=_HINT)
+    channels = int(match.group(1) or 1)
+    data = n.getNode("data")
+    if not data.isSeq() or data.size() != sizes[0] * sizes[1] * channels:
+        count = data.size() if data.isSeq() else 0
+        raise InputError(f"{key} says {sizes[0]} × {sizes[1]} but its data holds {count} numbers", path=path,
+                         hint=_HINT)
 
 
 def _checked(path: Path, matrix, dist, width, height) -> Camera:
