@@ -143,3 +143,21 @@ def test_sequence_frames_select_the_training_rows(sample, tmp_path):
     cfg = with_sequence(sample, tmp_path, "sequence_frames = [1, 99]")
     with pytest.raises(InputError, match=r"reaches past the sequence's 4 frames"):
         load_rig(cfg)
+
+
+@pytest.mark.parametrize("row, expected", [
+    ("nose,12x", r"line 4: marker 'nose' has vertex '12x', not an integer"),
+    ("nose,99999999999999999999999", r"line 4: marker 'nose' has vertex 99999999999999999999999, past any mesh"),
+    ("nose,-5", r"line 4.*vertex -5"),
+    ("chin,7", r"line 4: marker name 'chin' appears twice"),
+    ("nose,12,wobble", r"line 4: marker 'nose' has role 'wobble'"),
+])
+def test_markers_file_errors_name_the_line(tmp_path, row, expected):
+    """Every bad row of a markers file is an input error naming its line, an index far past the
+    64-bit range included (it was an OverflowError)."""
+    from facepipe.pipeline.rig import load_markers
+
+    path = tmp_path / "markers.csv"
+    path.write_text("name,vertex,role\nchin,7\nbrow,9,stable\n" + row + "\nlip,3\n")
+    with pytest.raises(InputError, match=expected):
+        load_markers(path, 100)

@@ -81,6 +81,9 @@ def name_vertex_rows(path, kind: str = "marker"):
             except ValueError:
                 raise InputError(f"line {line_no}: {kind} {row[0]!r} has vertex {row[1]!r}, not an integer",
                                  path=path) from None
+            if abs(vertex) >= 2**63:  # (the caller checks the range against its mesh, in 64-bit integers)
+                raise InputError(f"line {line_no}: {kind} {row[0]!r} has vertex {row[1]}, past any mesh's vertex count",
+                                 path=path, hint="vertices are 0-based indices of the rest mesh")
             if row[0] in seen:
                 raise InputError(f"line {line_no}: {kind} name {row[0]!r} appears twice", path=path)
             seen.add(row[0])
