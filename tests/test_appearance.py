@@ -102,6 +102,7 @@ def _edited_config(kit, tmp_path, old, new):
     ("frames = [0, 1, 2, 3, 4]", 'frames = [0, 1, 2, 3, 4]\nshading_surface = "flat"', "shading_surface"),
     ("texture_size = 512", 'texture_size = 512\npeak_interpolation = "cubic"', "not one of segment, parabola"),
     ("texture_size = 512", "texture_size = 512\nunseen_margin = -1.0", "unseen_margin = -1.0 is not in [0, 8)"),
+    ("camera_rotation = [", "camera_rotation = 2 #", "camera_rotation must be 3 × 3 numbers"),  # (was a TypeError)
 ])
 def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)

@@ -349,7 +349,8 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if rotation is not None:
         out.camera_rotation = rotation
     rot = out.camera_rotation
-    if (len(rot) != 3 or any(not isinstance(r, list) or len(r) != 3 for r in rot) or len(out.camera_translation) != 3
+    if (not isinstance(rot, list) or len(rot) != 3 or any(not isinstance(r, list) or len(r) != 3 for r in rot)
+            or not isinstance(out.camera_translation, list) or len(out.camera_translation) != 3
             or not all(_is(x, float) for r in rot for x in r) or not all(_is(x, float) for x in out.camera_translation)):
         raise InputError("[appearance] camera_rotation must be 3 × 3 numbers and camera_translation 3 numbers",
                          path=path, hint="the world → camera pose (OpenCV axes); leave them out for camera space")
