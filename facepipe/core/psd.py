@@ -90,12 +90,13 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
     def block(start):
         stop = min(V, start + chunk)
         # small blocks keep the (n, F) temporaries in cache (large blocks spill it); they are
-        # updated in place, the same arithmetic as out-of-place
-        L = marker_distances[edges[:, 0], start:stop]
-        L += marker_distances[edges[:, 1], start:stop]  # (F, n)
-        L -= rest_lengths[:, None]
-        excess = np.ascontiguousarray(L.T)  # (n, F)
-        del L
+        # updated in place, the same arithmetic as out-of-place. The block's distances are turned
+        # to vertex rows first (M columns, fewer than the F edges), so the sums come out in rows.
+        D = np.ascontiguousarray(marker_distances[:, start:stop].T)  # (n, M)
+        excess = D[:, edges[:, 0]]
+        excess += D[:, edges[:, 1]]  # (n, F)
+        excess -= rest_lengths[None, :]
+        del D
         np.copyto(excess, np.inf, where=~np.isfinite(excess))
         # the largest weights are the smallest excesses: choose them first, then take exp of K
         # values per vertex rather than of all F
