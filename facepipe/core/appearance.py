@@ -360,10 +360,7 @@ def classify(patches: np.ndarray, templates: np.ndarray, indices: np.ndarray, we
     d = match_distances(coefficients, templates, indices, weights)  # (..., S, n)
     if interpolation == "segment":
         gaps = np.diag(match_distances(np.asarray(templates)[1:], np.asarray(templates)[:-1], indices, weights))
-        q_all, residual = segment_index(d, np.broadcast_to(gaps, d.shape[:-1] + gaps.shape))
-        sample = np.argmin(residual, axis=-1)
-        return (np.take_along_axis(q_all, sample[..., None], -1)[..., 0],
-                np.take_along_axis(residual, sample[..., None], -1)[..., 0])
+        return _nearest_sample(*segment_index(d, np.broadcast_to(gaps, d.shape[:-1] + gaps.shape)))
     best = d.min(axis=-1)
     sample = np.argmin(best, axis=-1)
     chosen = np.take_along_axis(d, sample[..., None, None], axis=-2)[..., 0, :]
@@ -537,10 +534,7 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
         gaps = np.broadcast_to(bank.gaps[:, None, :], d.shape[:-1] + (d.shape[-1] - 1,))
         if seen is not None:
             d, gaps = _distances_of_seen(patches, seen, bank, shading, d, min_seen, gaps)
-        q_all, residual = segment_index(d, gaps)                    # (..., R, S)
-        sample = np.argmin(np.where(np.isnan(q_all), np.inf, residual), axis=-1)
-        q = np.take_along_axis(q_all, sample[..., None], -1)[..., 0]
-        return q, np.where(np.isnan(q), np.inf, np.take_along_axis(residual, sample[..., None], -1)[..., 0])
+        return _nearest_sample(*segment_index(d, gaps))              # (..., R, S) → (..., R)
     if seen is not None:
         d = _distances_of_seen(patches, seen, bank, shading, d, min_seen)
     best = d.min(axis=-1)
@@ -550,6 +544,14 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
     q = np.full(usable.shape, np.nan)
     q[usable] = peak_index(chosen[usable])
     return q, np.take_along_axis(best, sample[..., None], -1)[..., 0]
+
+
+def _nearest_sample(q: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Q (...) and squared distance (...) of the sample (last axis of :func:`segment_index`'s
+    outputs) nearest the path through the templates; NaN and infinite where no sample reads one."""
+    sample = np.argmin(np.where(np.isnan(q), np.inf, residual), axis=-1)[..., None]
+    q = np.take_along_axis(q, sample, -1)[..., 0]
+    return q, np.where(np.isnan(q), np.inf, np.take_along_axis(residual, sample, -1)[..., 0])
 
 
 def _normalise_regions(patches: np.ndarray, bank: RegionBank, shading: bool) -> np.ndarray:

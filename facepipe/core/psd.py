@@ -255,8 +255,8 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     # of a face, far from some expression's motion) is exactly singular: it goes to the
     # pseudo-inverse without an inverse tried first (which fails, for its whole stack)
     x = np.empty((n, P, b.shape[-1]))
-    singular = repeated_rows(A)
-    try_inverse = np.flatnonzero(~singular)
+    to_svd = repeated_rows(A)  # and below, those whose inverse is not clear of the cut-off
+    try_inverse = np.flatnonzero(~to_svd)
     weighted = A[try_inverse]
     weighted[:, 0] *= REST_ROW_WEIGHT
     weighted_b = b[try_inverse]
@@ -264,10 +264,9 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     inv, clear = _inverse_where_clear(weighted, np.einsum("nij,nij->n", A[try_inverse, 1:], A[try_inverse, 1:]),
                                       rcond)
     x[try_inverse[clear]] = inv[clear] @ weighted_b[clear]
-    rest = singular
-    rest[try_inverse[~clear]] = True
-    if rest.any():
-        x[rest] = constrained_svd_solve(A[rest], b[rest], rcond)
+    to_svd[try_inverse[~clear]] = True
+    if to_svd.any():
+        x[to_svd] = constrained_svd_solve(A[to_svd], b[to_svd], rcond)
     return x
 
 

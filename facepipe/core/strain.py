@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
 from facepipe.errors import InputError
-from facepipe.core.mesh import _sorted_unique
+from facepipe.core.mesh import unique_edges
 
 
 def edge_graph(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray | None = None) -> sp.csr_matrix:
@@ -23,15 +23,7 @@ def edge_graph(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray | None
     at hand; else they are found here."""
     vertices = np.asarray(vertices, dtype=np.float64)
     n = vertices.shape[0]
-    if edges is None:
-        faces = np.asarray(faces, dtype=np.int64)
-        e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        e = np.sort(e, axis=1)
-        # one int64 key per edge: a 1-D unique is ~10× faster than unique(axis=0), same (a, b) order
-        key = _sorted_unique(e[:, 0] * max(n, 1) + e[:, 1])  # sort-based: ~3x numpy 2's hashed unique here
-        e = np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
-    else:
-        e = np.asarray(edges, dtype=np.int64)
+    e = unique_edges(np.asarray(faces, dtype=np.int64)) if edges is None else np.asarray(edges, dtype=np.int64)
     length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     # a zero-length edge would vanish from the sparse graph and cut it apart
     length = np.maximum(length, 1e-12)
