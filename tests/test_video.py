@@ -413,6 +413,18 @@ def _expect_error(f, tmp_path, take, match, *extra, camera=None):
     assert not (out / "positions.npy").exists() and not (out / "replay.json").exists()
 
 
+def test_a_broken_calibration_matrix_stops_the_replay_with_exit_2(filmed, tmp_path, capsys):
+    """Through the command line: a camera matrix node without cols is exit 2 naming it, and the
+    replay writes nothing (OpenCV itself would have read it past its buffer)."""
+    f = filmed
+    text = f.camera.read_text()
+    broken = tmp_path / "broken.yml"
+    assert "cols: 3" in text
+    broken.write_text(text.replace("cols: 3", "", 1))
+    _expect_error(f, tmp_path, f.take, None, camera=broken)
+    assert "camera_matrix has no whole number 'cols'" in capsys.readouterr().err
+
+
 def test_bad_takes_exit_2_naming_what_is_wrong(filmed, tmp_path, capsys):
     f = filmed
     T, L = f.px.shape[:2]
