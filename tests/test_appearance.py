@@ -103,6 +103,7 @@ def _edited_config(kit, tmp_path, old, new):
     ("texture_size = 512", 'texture_size = 512\npeak_interpolation = "cubic"', "not one of segment, parabola"),
     ("texture_size = 512", "texture_size = 512\nunseen_margin = -1.0", "unseen_margin = -1.0 is not in [0, 8)"),
     ("camera_rotation = [", "camera_rotation = 2 #", "camera_rotation must be 3 × 3 numbers"),  # (was a TypeError)
+    ("texture_size = 512", "texture_size = 512\nmin_event = -0.1", "min_event and scale_weights must be ≥ 0"),
 ])
 def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
@@ -299,6 +300,22 @@ def _classified(kit):
     if not (out / "appearance.csv").is_file():
         _q_and_truth(kit, "take")
     return out
+
+
+def test_min_event_is_kept_in_the_model_and_older_models_keep_every_reading(kit, tmp_path):
+    from facepipe.io.appearance_file import load_appearance
+
+    model = load_appearance(kit / "app.npz")
+    assert model.min_event == pytest.approx(0.07)  # the config's default, as built
+    with np.load(kit / "app.npz") as d:
+        older = {k: d[k] for k in d.files}
+    older["settings"] = older["settings"][:7]  # a model written before min_event
+    np.savez(tmp_path / "older.npz", **older)
+    assert load_appearance(tmp_path / "older.npz").min_event == 0.0
+    older["settings"] = np.r_[older["settings"], np.nan]
+    np.savez(tmp_path / "bad.npz", **older)
+    with pytest.raises(InputError, match="min_event nan is not a duration"):
+        load_appearance(tmp_path / "bad.npz")
 
 
 def test_a_2d_takes_replay_is_classified_through_its_camera(kit, tmp_path, capsys):

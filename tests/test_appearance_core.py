@@ -6,7 +6,7 @@ from scipy import ndimage
 from scipy.stats import spearmanr
 
 from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, RegionBank, classify_regions, bilinear_sample, classify, coefficient_weights,
-                                      compose_texture, facing, haar_coefficients, haar_matrix, hold_and_decay,
+                                      compose_texture, facing, haar_coefficients, haar_matrix, hold_and_decay, drop_short_events,
                                       layer_lookup, match_distances, normalise_patches, peak_index, region_alpha, segment_index,
                                       PEAK_INTERPOLATIONS,
                                       select_coefficients, rest_floor, above_rest)
@@ -202,6 +202,48 @@ def test_hold_and_decay():
     out = hold_and_decay(v, seen, t, decay=2.0)[:, 0]
     np.testing.assert_allclose(out, [0.0, 2.0, 2.0 * np.exp(-0.5), 2.0 * np.exp(-1.0), 3.0])
     np.testing.assert_allclose(hold_and_decay(v, seen, t, decay=0.0)[:, 0], [0, 2, 0, 0, 3])
+
+
+def _blips(fps: float, widths, peak: float = 0.3, gap: int = 12):
+    """A take at ``fps`` of rest with, per width, a run of that many frames at ``peak`` (rest between)."""
+    q = np.zeros(gap)
+    for w in widths:
+        q = np.r_[q, np.full(w, peak), np.zeros(gap)]
+    return q[:, None], np.arange(len(q)) / fps
+
+
+@pytest.mark.parametrize("fps, dropped, kept", [(30.0, [1, 2], [3, 4]), (60.0, [1, 2, 3, 4], [5, 6]),
+                                                (24.0, [1], [2, 3]), (25.0, [1], [2])])
+def test_drop_short_events_by_time_not_frames(fps, dropped, kept):
+    # 70 ms: what a run of k frames lasts is k frame steps, so the frame rate sets how many go
+    q, t = _blips(fps, dropped + kept)
+    out = drop_short_events(q, t, min_event=0.07)[:, 0]
+    runs = np.split(out, np.flatnonzero(np.diff((q[:, 0] > 0).astype(int))) + 1)[1::2]
+    assert [r.max() for r in runs] == [0.0] * len(dropped) + [0.3] * len(kept)
+
+
+def test_drop_short_events_keeps_what_may_be_motion():
+    q, t = _blips(30.0, [1, 2])
+    # a brief run that reaches a layer is a fast motion, not noise
+    big = q.copy()
+    big[big > 0] = 1.5
+    np.testing.assert_array_equal(drop_short_events(big, t, 0.07), big)
+    # runs at the take's first or last frame (their length is unknown), and min_event 0
+    edge = np.r_[[0.2], np.zeros(10), [0.2]][:, None]
+    np.testing.assert_array_equal(drop_short_events(edge, np.arange(12) / 30.0, 0.07), edge)
+    np.testing.assert_array_equal(drop_short_events(q, t, 0.0), q)
+    # regions apart: a blip in one, a long run in the other
+    both = np.c_[q[:, 0], np.r_[np.zeros(5), np.full(10, 0.2), np.zeros(len(q) - 15)]]
+    out = drop_short_events(both, t, 0.07)
+    assert out[:, 0].max() == 0.0 and np.array_equal(out[:, 1], both[:, 1])
+
+
+def test_drop_short_events_measures_time_across_dropped_frames():
+    # two readings a frame apart in the list, but 0.1 s apart in time (footage frames missing between)
+    q = np.r_[np.zeros(5), [0.3, 0.3], np.zeros(5)][:, None]
+    t = np.r_[np.arange(6) / 30.0, 5 / 30.0 + 0.1 + np.arange(6) / 30.0]
+    np.testing.assert_array_equal(drop_short_events(q, t, 0.07), q)
+    np.testing.assert_array_equal(drop_short_events(q, np.arange(12) / 30.0, 0.07)[:, 0], np.zeros(12))
 
 
 def test_bilinear_matches_map_coordinates():

@@ -52,7 +52,7 @@ from scipy import ndimage
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
-           "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "bilinear_sample",
+           "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "drop_short_events", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "light_bits", "LIGHT_SPAN", "DIAGONAL_OFFSETS",
            "sh_basis", "fit_light", "sh_quadratic", "light_shading", "fill_unseen", "SHADING_ORDERS",
            "QUADRATIC_LEAST_KEPT", "layer_contrast", "shading_order"]
@@ -614,6 +614,42 @@ def hold_and_decay(values: np.ndarray, visible: np.ndarray, times: np.ndarray, d
         factor = np.exp(-age / decay) if decay > 0 else (age == 0).astype(np.float64)
         out[t] = np.where(seen, values[t], last * np.where(np.isfinite(age), factor, 0.0))
     return out
+
+
+def drop_short_events(q: np.ndarray, times: np.ndarray, min_event: float, below: float = 1.0) -> np.ndarray:
+    """Q (T, R) with each brief departure from rest set back to rest: a run of frames above rest
+    (Q > 0) with rest on both sides, seen for less than ``min_event`` seconds (its frames' count
+    times the take's median frame step) and never reaching ``below`` (one layer by default).
+
+    Faces do not move that fast (a blink, the quickest action, takes about a tenth of a second),
+    but a per-frame classifier reads the image noise of one or two frames as a small motion; on a
+    region at rest for most of a take those readings are what the stream would show. The time, not
+    a frame count, sets what is brief, so 24, 30 or 60 Hz footage is treated alike. A run at the
+    take's first or last frame is kept (its length is not known), and so is one reaching a layer
+    (a real fast motion: only small readings are taken for noise). ``min_event`` 0 keeps all.
+    """
+    q = np.array(q, dtype=np.float64)
+    times = np.asarray(times, dtype=np.float64)
+    T = q.shape[0]
+    if min_event <= 0 or T < 3:
+        return q
+    steps = np.diff(times)
+    step = float(np.median(steps)) if steps.size else 0.0
+    if not step > 0:
+        return q
+    # a run of k frames lasts k steps; at exactly min_event (a frame rate it divides) it is kept
+    longest = int(np.ceil(min_event / step * (1.0 - 1e-9))) - 1
+    if longest < 1:
+        return q
+    above = q > 0
+    for r in range(q.shape[1]):
+        edges = np.flatnonzero(np.diff(np.r_[False, above[:, r], False].astype(np.int8)))
+        for start, stop in zip(edges[::2], edges[1::2]):  # above rest on frames start .. stop - 1
+            if start == 0 or stop == T or stop - start > longest:
+                continue
+            if times[stop - 1] - times[start] + step < min_event * (1.0 - 1e-9) and q[start:stop, r].max() < below:
+                q[start:stop, r] = 0.0
+    return q
 
 
 def bilinear_sample(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

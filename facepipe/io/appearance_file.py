@@ -29,7 +29,7 @@ class AppearanceModel:
     faces : (F, 3) rest-mesh triangles; normal_sign : ±1, the side of the triangles that faces out;
     template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
     templates : per region (n, C) coefficients; indices : per region kept coefficients;
-    weights : (C,) per-coefficient weights; template_size, min_facing, decay : settings;
+    weights : (C,) per-coefficient weights; template_size, min_facing, decay, min_event : settings;
     min_point_facing : template points the camera sees more edge-on than this cosine (in the
     frame, or in any of the region's examples: ``template_facing`` (R, 5, N), their least cosine
     there) are left out of the match (0: none); template_mask (R, N) : each region's stable
@@ -109,6 +109,7 @@ class AppearanceModel:
     tile: int = 1001
     shading_orders: np.ndarray | None = None
     peak_interpolation: str = "parabola"
+    min_event: float = 0.0  # seconds (models written before it: 0, every reading kept)
 
     @property
     def extra_tiles(self) -> list:
@@ -160,7 +161,8 @@ def save_appearance(path, model) -> None:
               "normal_sign": np.array(model.normal_sign), "template_face": model.template_face,
               "template_bary": model.template_bary, "weights": model.weights,
               "settings": np.array([model.template_size, model.min_facing, model.decay, float(model.shading),
-                                   model.min_seen, float(model.occlusion), model.min_point_facing]), "neutral": model.neutral,
+                                   model.min_seen, float(model.occlusion), model.min_point_facing,
+                                    model.min_event]), "neutral": model.neutral,
               "boxes": model.boxes, "tile": np.array(int(model.tile)),
               "peak_interpolation": np.array(model.peak_interpolation)}
     if model.corner_uv is not None:
@@ -220,9 +222,12 @@ def load_appearance(path):
                                d.get("card_stable_rest"), d.get("neutral_albedo"), d.get("light_colour"),
                                d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"),
                                int(d["tile"]) if "tile" in d else 1001, d.get("shading_orders"),
-                               str(d["peak_interpolation"]) if "peak_interpolation" in d else "parabola")
+                               str(d["peak_interpolation"]) if "peak_interpolation" in d else "parabola",
+                               float(s[7]) if len(s) > 7 else 0.0)
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where models are read
 
+        if not (np.isfinite(model.min_event) and model.min_event >= 0):
+            raise ValueError(f"min_event {model.min_event} is not a duration ≥ 0")
         if model.peak_interpolation not in PEAK_INTERPOLATIONS:
             raise ValueError(f"peak_interpolation {model.peak_interpolation!r} is not one of "
                              f"{', '.join(PEAK_INTERPOLATIONS)}")

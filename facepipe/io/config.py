@@ -108,6 +108,7 @@ class AppearanceConfig:
     ramp: float = 10.0
     min_facing: float = 0.2  # a region is hidden when its normal is more than ~78° from the camera
     decay: float = 0.5  # seconds: a hidden region's value fades to neutral
+    min_event: float = 0.07  # seconds: briefer departures from rest, under a layer, are image noise (0: keep all)
     shading: bool = True  # patches divided by their shading surface (else by their mean) before the match
     # that surface: "plane", "quadratic" (takes out more of a side light's or turned head's shading
     # over a curved patch), or "auto": per region the quadratic where it keeps 3/4 of its layers' contrast
@@ -167,7 +168,7 @@ _TYPES: dict[str, dict[str, object]] = {
     "tune": {k: type(v) for k, v in asdict(TuneConfig()).items()},
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
-                   "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float,
+                   "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float, "min_event": float,
                    "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
                    "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
                    "regions": dict},
@@ -357,8 +358,8 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if out.texture_size < 16 or out.template_size < 4 or out.template_size & (out.template_size - 1) or out.keep < 1:
         raise InputError("[appearance] texture_size must be ≥ 16, template_size a power of two ≥ 4, keep ≥ 1",
                          path=path)
-    if out.ramp < 0 or out.decay < 0 or not all(_is(x, float) and x >= 0 for x in out.scale_weights):
-        raise InputError("[appearance] ramp, decay and scale_weights must be ≥ 0", path=path)
+    if out.ramp < 0 or out.decay < 0 or out.min_event < 0 or not all(_is(x, float) and x >= 0 for x in out.scale_weights):
+        raise InputError("[appearance] ramp, decay, min_event and scale_weights must be ≥ 0", path=path)
     if not 0.0 <= out.min_point_facing < 1.0:
         raise InputError(f"[appearance] min_point_facing = {out.min_point_facing} is not in [0, 1)", path=path,
                          hint="a cosine: 0 keeps every point the camera sees, 0.35 drops those seen within ~70° of edge-on")

@@ -22,7 +22,9 @@ the animated surface through their barycentric coordinates, projected through th
 (OpenCV's distortion) and sampled bilinearly from the frame's luminance; the five samples are
 classified (:func:`facepipe.core.appearance.classify`) and Q measured from the region's rest
 floor; a region whose template faces away from the camera, falls outside the image or whose
-frame is missing keeps its last value, decaying to neutral. Each frame's light (nine
+frame is missing keeps its last value, decaying to neutral; a reading that leaves rest for less
+than ``min_event`` seconds (one or two frames at 30 Hz) and stays under a layer is image noise,
+and set back to rest. Each frame's light (nine
 coefficients, :func:`frame_lights`) is part of the result: the texture's shading comes from it.
 """
 
@@ -566,7 +568,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             tiles=np.array(list(tiles), dtype=np.int64) if tiles else None,
                             tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None,
                             tile=home, shading_orders=np.asarray(orders, dtype=np.int64),
-                            peak_interpolation=cfg.peak_interpolation)
+                            peak_interpolation=cfg.peak_interpolation, min_event=cfg.min_event)
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
@@ -1012,7 +1014,8 @@ def texture_differences(model: AppearanceModel, texel_face: np.ndarray, texel_ba
 
 @dataclass
 class Classification:
-    """Q (T, R) after hold and decay, raw (T, R) before (NaN where hidden), visible (T, R), frame
+    """Q (T, R) after hold and decay and with brief departures from rest dropped
+    (:func:`facepipe.core.appearance.drop_short_events`), raw (T, R) before (NaN where hidden), visible (T, R), frame
     numbers (T,), times (T,), problems: (frame, text) of frames that were skipped; light (T, 12):
     each frame's grey light (:func:`frame_lights`) and its colour (:func:`frame_colours`) (a
     skipped frame holds the last one fitted, the first ones the first), None for a model without
@@ -1079,7 +1082,8 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
             if len(rows) == batch:
                 flush()
     flush()
-    q = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
+    q = ap.drop_short_events(ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay), times,
+                             model.min_event)
     return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems,
                           None if light is None else _held(light, WHITE_LIGHT))
 
