@@ -142,6 +142,34 @@ def test_regions_hidden_in_some_frames_are_named_with_their_frames(kit, tmp_path
     assert set(report["hidden_frames"].values()) == {4}
 
 
+def test_brief_readings_at_rest_are_counted_and_kept_with_min_event_0(kit, tmp_path, capsys):
+    with np.load(kit / "app.npz") as d:
+        keep_all = {k: d[k] for k in d.files}
+    keep_all["settings"] = np.r_[keep_all["settings"][:7], 0.0]
+    np.savez(tmp_path / "keep_all.npz", **keep_all)
+    # the take's footage with a burst of image noise on two frames: a brief reading on regions at rest
+    footage = tmp_path / "take"
+    shutil.copytree(kit / "appearance" / "take", footage)
+    rng = np.random.default_rng(5)
+    for path in sorted(footage.glob("*.png"))[1:3]:  # frames 0-3: most regions at rest
+        image = iio.imread(path).astype(np.float64)
+        iio.imwrite(path, np.clip(image + rng.normal(0, 12.0, image.shape), 0, 255).astype(np.uint8))
+    streams = {}
+    for name, model in (("default", kit / "app.npz"), ("keep_all", tmp_path / "keep_all.npz")):
+        assert _run("appearance", "classify", model, footage,
+                    "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / name) == 0
+        streams[name] = np.loadtxt(tmp_path / name / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    out = capsys.readouterr().out
+    counts = json.loads((tmp_path / "default" / "appearance.json").read_text())["brief_readings_at_rest"]
+    dropped = streams["default"] != streams["keep_all"]
+    # only readings above rest, under a layer, go back to rest, and the report counts exactly those
+    assert (streams["default"][dropped] == 0).all() and (streams["keep_all"][dropped] < 1).all()
+    assert list(counts.values()) == dropped.sum(axis=0).tolist()
+    assert dropped.any() and "set back to rest" in out
+    assert "brief_readings_at_rest" in json.loads((tmp_path / "keep_all" / "appearance.json").read_text())
+    print("brief readings", counts)
+
+
 def test_column_runs():
     from facepipe.core.runs import column_runs
 

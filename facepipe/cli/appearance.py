@@ -121,6 +121,12 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
     if some:
         rep.say("note: hidden in some frames (facing away, edge-on, behind the face or out of view; Q holds its "
                 "last value there, decaying to neutral): " + "; ".join(some))
+    if result.brief is not None:
+        figures["brief_readings_at_rest"] = {name: int(n) for name, n in zip(model.names, result.brief.sum(axis=0))}
+        some = [f"{name} {n}" for name, n in figures["brief_readings_at_rest"].items() if n]
+        if some:
+            rep.say(f"note: readings that left rest for under {model.min_event:g} s, under a layer, set back to rest "
+                    f"(image noise; [appearance] min_event = 0 keeps them): " + ", ".join(some))
     path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
                         geometry=geometry_path, figures=figures)
     light = f" + light {bits - q_bits}" if bits > q_bits else ""

@@ -1029,6 +1029,7 @@ class Classification:
     times: np.ndarray
     problems: list
     light: np.ndarray | None = None
+    brief: np.ndarray | None = None  # (T, R) readings set back to rest as brief (``min_event``)
 
 
 def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
@@ -1082,10 +1083,10 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
             if len(rows) == batch:
                 flush()
     flush()
-    q = ap.drop_short_events(ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay), times,
-                             model.min_event)
+    held = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay)
+    q = ap.drop_short_events(held, times, model.min_event)
     return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems,
-                          None if light is None else _held(light, WHITE_LIGHT))
+                          None if light is None else _held(light, WHITE_LIGHT), brief=(held > 0) & (q == 0))
 
 
 #: A uniform white light: what a frame gets when no frame of the take could be classified.
