@@ -50,6 +50,8 @@ import numpy as np
 import pywt
 from scipy import ndimage
 
+from facepipe.core.runs import column_runs
+
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
            "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "drop_short_events", "bilinear_sample",
@@ -618,8 +620,9 @@ def hold_and_decay(values: np.ndarray, visible: np.ndarray, times: np.ndarray, d
 
 def drop_short_events(q: np.ndarray, times: np.ndarray, min_event: float, below: float = 1.0) -> np.ndarray:
     """Q (T, R) with each brief departure from rest set back to rest: a run of frames above rest
-    (Q > 0) with rest on both sides, seen for less than ``min_event`` seconds (its frames' count
-    times the take's median frame step) and never reaching ``below`` (one layer by default).
+    (Q > 0) with rest on both sides, seen for less than ``min_event`` seconds (from its first
+    frame's time to its last's, plus the take's median frame step: k frames of an even take last
+    k steps) and never reaching ``below`` (one layer by default).
 
     Faces do not move that fast (a blink, the quickest action, takes about a tenth of a second),
     but a per-frame classifier reads the image noise of one or two frames as a small motion; on a
@@ -631,25 +634,27 @@ def drop_short_events(q: np.ndarray, times: np.ndarray, min_event: float, below:
     q = np.array(q, dtype=np.float64)
     times = np.asarray(times, dtype=np.float64)
     T = q.shape[0]
-    if min_event <= 0 or T < 3:
-        return q
     steps = np.diff(times)
     step = float(np.median(steps)) if steps.size else 0.0
-    if not step > 0:
+    if min_event <= 0 or T < 3 or not step > 0:
         return q
+    column, start, stop = column_runs(q > 0)
     # a run of k frames lasts k steps; at exactly min_event (a frame rate it divides) it is kept
-    longest = int(np.ceil(min_event / step * (1.0 - 1e-9))) - 1
-    if longest < 1:
-        return q
-    above = q > 0
-    for r in range(q.shape[1]):
-        edges = np.flatnonzero(np.diff(np.r_[False, above[:, r], False].astype(np.int8)))
-        for start, stop in zip(edges[::2], edges[1::2]):  # above rest on frames start .. stop - 1
-            if start == 0 or stop == T or stop - start > longest:
-                continue
-            if times[stop - 1] - times[start] + step < min_event * (1.0 - 1e-9) and q[start:stop, r].max() < below:
-                q[start:stop, r] = 0.0
+    brief = ((start > 0) & (stop < T) & (times[stop - 1] - times[start] + step < min_event * (1.0 - 1e-9)))
+    column, start, stop = column[brief], start[brief], stop[brief]
+    frames = np.repeat(start, stop - start) + _offsets_within(stop - start)
+    columns = np.repeat(column, stop - start)
+    peak = np.zeros(len(start))
+    np.maximum.at(peak, np.repeat(np.arange(len(start)), stop - start), q[frames, columns])
+    small = np.repeat(peak < below, stop - start)
+    q[frames[small], columns[small]] = 0.0
     return q
+
+
+def _offsets_within(lengths: np.ndarray) -> np.ndarray:
+    """0, 1, …, n − 1 for each n of ``lengths``, concatenated."""
+    ends = np.cumsum(lengths)
+    return np.arange(int(ends[-1]) if len(ends) else 0) - np.repeat(ends - lengths, lengths)
 
 
 def bilinear_sample(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
