@@ -136,6 +136,33 @@ def test_system_errors_name_the_path_and_the_fix(tmp_path):
         MemoryError())
 
 
+def test_an_interrupt_as_the_temporary_file_is_made_leaves_nothing(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM arrive between bytecodes: one right after the temporary file appears (the
+    moment a watcher sees it) still finds its name and removes it; the file gets the usual mode."""
+    import facepipe.io.atomic as atomic
+
+    real_close = atomic.os.close
+
+    def interrupted(fd):
+        real_close(fd)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(atomic.os, "close", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with atomic.atomic_path(tmp_path / "positions.npy"):
+            pass
+    assert not list(tmp_path.iterdir())
+    monkeypatch.setattr(atomic.os, "close", real_close)
+    umask = os.umask(0o022)
+    try:
+        with atomic.atomic_path(tmp_path / "x.bin") as tmp:
+            assert tmp.name.startswith(".x.bin.") and tmp.name.endswith(".part.bin") and tmp.is_file()
+            tmp.write_bytes(b"1")
+    finally:
+        os.umask(umask)
+    assert (tmp_path / "x.bin").stat().st_mode & 0o777 == 0o644 and [p.name for p in tmp_path.iterdir()] == ["x.bin"]
+
+
 def test_export_and_preview_find_the_model_from_anywhere(kit, tmp_path, monkeypatch):
     info = json.loads((kit / "out" / "replay.json").read_text())
     assert Path(info["model"]).is_absolute() and info["model_relative"] == "../model.npz"

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from pathlib import Path
 
 from facepipe.errors import DISK_FULL
@@ -24,18 +24,23 @@ def atomic_path(path: str | os.PathLike):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part" + path.suffix, dir=path.parent)
-    os.close(fd)
-    # mkstemp creates 0600; outputs should get the usual permissions (umask applied)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+    tmp = None
     try:
+        # the name is known before the file exists, so an interrupt (Ctrl-C, SIGTERM) at any point
+        # after this, creation included, finds it to remove; the mode is the usual one (umask applied)
+        while True:
+            tmp = str(path.parent / f".{path.name}.{secrets.token_hex(6)}.part{path.suffix}")
+            try:
+                os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
+                break
+            except FileExistsError:  # another run's temporary file: not ours to remove
+                tmp = None
         yield Path(tmp)
         os.replace(tmp, path)
     except BaseException as exc:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
+        if tmp is not None:
+            with contextlib.suppress(OSError):  # not made, or already gone
+                os.unlink(tmp)
         if isinstance(exc, OSError) and exc.filename is None and exc.errno in DISK_FULL:
             # a write that ran out of room says where (os.write names no file)
             raise OSError(exc.errno, exc.strerror, str(path.parent)) from exc
