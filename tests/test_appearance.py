@@ -170,6 +170,42 @@ def test_brief_readings_at_rest_are_counted_and_kept_with_min_event_0(kit, tmp_p
     print("brief readings", counts)
 
 
+def test_a_hidden_stretch_holds_the_last_reading_seen_well(kit):
+    """The head turns away over the take: the regions' templates go edge-on and out of view by
+    degrees. Each hidden frame holds the reading of the last frame with at least WELL_SEEN of
+    the template in view, decaying from that frame's time — not the last, partial, reading."""
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.pipeline.appearance import WELL_SEEN, classify_frames
+
+    model = load_appearance(kit / "app.npz")
+    geo = np.load(kit / "appearance" / "take.npz")
+    pos, numbers = geo["positions"].astype(np.float64), geo["frame"]
+    centre = pos[0].mean(axis=0)
+    angle = np.radians(np.linspace(0.0, 150.0, len(pos)))  # about the vertical, through the face
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.zeros((len(pos), 3, 3))
+    rot[:, 0, 0], rot[:, 0, 2], rot[:, 1, 1], rot[:, 2, 0], rot[:, 2, 2] = c, s, 1.0, -s, c
+    turned = np.einsum("tij,tvj->tvi", rot, pos - centre) + centre
+    times = numbers / 30.0
+    result = classify_frames(model, kit / "appearance" / "take", turned, numbers, times)
+    checked = 0
+    for r in range(len(model.names)):
+        hidden = np.flatnonzero(~result.visible[:, r])
+        well = np.flatnonzero(result.visible[:, r] & (result.seen[:, r] >= WELL_SEEN))
+        for f in hidden:
+            before = well[well < f]
+            if not len(before) or f < 2:
+                continue
+            g = before[-1]
+            expected = result.raw[g, r] * np.exp(-(times[f] - times[g]) / model.decay)
+            if result.brief[f, r]:
+                expected = 0.0
+            assert result.q[f, r] == pytest.approx(expected, abs=1e-12), (model.names[r], f, g)
+            # the frames seen after g, only in part, are not what it holds
+            checked += bool(result.visible[g + 1:f, r].any())
+    assert checked > 0  # the turn passes through partly seen frames into hidden ones
+
+
 def test_column_runs():
     from facepipe.core.runs import column_runs
 

@@ -202,6 +202,14 @@ def test_hold_and_decay():
     out = hold_and_decay(v, seen, t, decay=2.0)[:, 0]
     np.testing.assert_allclose(out, [0.0, 2.0, 2.0 * np.exp(-0.5), 2.0 * np.exp(-1.0), 3.0])
     np.testing.assert_allclose(hold_and_decay(v, seen, t, decay=0.0)[:, 0], [0, 2, 0, 0, 3])
+    # frame 1 is seen, but not well (a lid half over the region): the hidden frames 2-3 hold frame 0's
+    # reading instead, decaying from frame 0's time; frame 1 shows its own reading
+    seen0 = np.array([[True], [True], [False], [False], [True]])
+    well = np.array([[True], [False], [True], [True], [True]])  # (well_seen on hidden frames counts for nothing)
+    out = hold_and_decay(v, seen0, t, decay=2.0, well_seen=well)[:, 0]
+    np.testing.assert_allclose(out, [1.0, 2.0, np.exp(-1.0), np.exp(-1.5), 3.0])
+    # never seen well before a hidden frame: neutral there
+    np.testing.assert_allclose(hold_and_decay(v, seen0, t, 2.0, np.zeros_like(well))[:, 0], [1, 2, 0, 0, 3])
 
 
 def _blips(fps: float, widths, peak: float = 0.3, gap: int = 12):

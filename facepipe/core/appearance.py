@@ -598,23 +598,30 @@ def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.nda
     return d if gaps is None else (d, gaps)
 
 
-def hold_and_decay(values: np.ndarray, visible: np.ndarray, times: np.ndarray, decay: float) -> np.ndarray:
-    """Hidden samples keep the last visible value, decaying exponentially toward 0 (neutral).
+def hold_and_decay(values: np.ndarray, visible: np.ndarray, times: np.ndarray, decay: float,
+                   well_seen: np.ndarray | None = None) -> np.ndarray:
+    """Hidden samples keep the last value read while the region was seen well, decaying
+    exponentially toward 0 (neutral) with the time since that reading.
 
     values, visible : (T, R); times : (T,) seconds; decay : time constant in seconds (0: drop to
-    neutral at once). Before a region is first seen it is neutral.
+    neutral at once); well_seen : (T, R) the visible samples a hidden stretch may hold (default:
+    every visible one) — a region going out of view through a partial occlusion (a lid closing
+    over the eyeball) reads its last visible frames from a part of its template, and holding
+    that reading would carry it through the whole hidden stretch. Before a region is first seen
+    well it is neutral.
     """
     values = np.asarray(values, dtype=np.float64)
+    visible = np.asarray(visible, dtype=bool)
+    source = visible if well_seen is None else visible & np.asarray(well_seen, dtype=bool)
     out = np.zeros_like(values)
     last = np.zeros(values.shape[1])
     last_time = np.full(values.shape[1], -np.inf)
     for t in range(values.shape[0]):
-        seen = np.asarray(visible[t], dtype=bool)
-        last = np.where(seen, values[t], last)
-        last_time = np.where(seen, times[t], last_time)
+        last = np.where(source[t], values[t], last)
+        last_time = np.where(source[t], times[t], last_time)
         age = times[t] - last_time
         factor = np.exp(-age / decay) if decay > 0 else (age == 0).astype(np.float64)
-        out[t] = np.where(seen, values[t], last * np.where(np.isfinite(age), factor, 0.0))
+        out[t] = np.where(visible[t], values[t], last * np.where(np.isfinite(age), factor, 0.0))
     return out
 
 
