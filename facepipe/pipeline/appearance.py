@@ -1030,7 +1030,7 @@ class Classification:
     problems: list
     light: np.ndarray | None = None
     brief: np.ndarray | None = None  # (T, R) readings set back to rest as brief (``min_event``)
-    seen: np.ndarray | None = None  # (T, R) share of each region's stable template points seen (NaN: frame skipped)
+    in_view: np.ndarray | None = None  # (T, R) share of each region's stable template points in view (NaN: skipped)
 
 
 def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
@@ -1048,7 +1048,7 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     T, Rn = len(numbers), len(model.names)
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
-    seen = np.full((T, Rn), np.nan)
+    in_view = np.full((T, Rn), np.nan)
     light = None if model.light_face is None else np.full((T, 12), np.nan)
     problems = []
     bank = region_bank(model)
@@ -1057,9 +1057,9 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
 
     def flush():
         if rows:
-            raw[rows], visible[rows], lights, seen[rows] = classify_decoded(
+            raw[rows], visible[rows], lights, in_view[rows] = classify_decoded(
                 np.stack(grays), model.to_camera(positions[rows]), model, bank, chunk, with_light=True,
-                images=np.stack(images), with_seen=True)
+                images=np.stack(images), with_view=True)
             if light is not None:
                 light[rows] = lights
             if progress is not None:
@@ -1086,17 +1086,19 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
                 flush()
     flush()
     # a hidden stretch holds the last reading taken with most of the template in view
-    well_seen = visible & (np.nan_to_num(seen) >= max(WELL_SEEN, model.min_seen))
+    well_seen = visible & (np.nan_to_num(in_view) >= max(WELL_SEEN, model.min_seen))
     held = ap.hold_and_decay(np.nan_to_num(raw), visible, times, model.decay, well_seen)
     q = ap.drop_short_events(held, times, model.min_event)
     return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems,
                           None if light is None else _held(light, WHITE_LIGHT), brief=(held > 0) & (q == 0),
-                          seen=seen)
+                          in_view=in_view)
 
 
 #: A hidden region holds its last reading taken with at least this share of its template's stable
-#: points in view (or ``min_seen``, if higher): the frames before a lid closes over an eyeball read
-#: what is left of it, and holding that would carry it through the blink.
+#: points in view — in the image and not hidden by the face (or ``min_seen``, if higher): the frames
+#: before a lid closes over an eyeball read what is left of it, and holding that would carry it
+#: through the blink. Points turned edge-on do not count against it: a region turning away is read
+#: well until it is hidden.
 WELL_SEEN = 0.9
 
 #: A uniform white light: what a frame gets when no frame of the take could be classified.
@@ -1116,20 +1118,20 @@ def _held(rows: np.ndarray, default: np.ndarray) -> np.ndarray:
 
 def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None,
                      chunk: int = 8, with_light: bool = False, images: np.ndarray | None = None,
-                     with_seen: bool = False):
+                     with_view: bool = False):
     """:func:`classify_chunk` of decoded frames (F, H, W) with their geometry in camera space
     (F, V, 3), ``chunk`` frames at a time on facepipe's threads (:func:`facepipe.parallel.map_blocks`):
     the same numbers as one chunk after another, about 1.5 times the frames a second on two cores
     (most of a chunk's time is in NumPy, which lets the other thread run). Q (F, R) and visibility
     (F, R); with ``with_light`` also each frame's light (F, 9; (F, 12) with its colour where the
-    frames' RGB ``images`` are given), None for a model without light points; with ``with_seen``
-    last the share of each region's stable template points seen (F, R)."""
+    frames' RGB ``images`` are given), None for a model without light points; with ``with_view``
+    last the share of each region's stable template points in view (F, R; :func:`_classify_chunk`)."""
     bank = region_bank(model) if bank is None else bank
     if len(grays) == 0:
         n = len(model.names)
         light = None if model.light_face is None else np.zeros((0, 9 if images is None else 12))
         return ((np.zeros((0, n)), np.zeros((0, n), dtype=bool)) + ((light,) if with_light else ())
-                + ((np.zeros((0, n)),) if with_seen else ()))
+                + ((np.zeros((0, n)),) if with_view else ()))
     with serial_blas():  # process-wide: entered once here, not by each thread
         parts = map_blocks(lambda i: _classify_chunk(grays[i:i + chunk], camera_positions[i:i + chunk], model, bank,
                                                      None if images is None else images[i:i + chunk]),
@@ -1137,7 +1139,7 @@ def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: App
     out = (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
     if with_light:
         out += (None if model.light_face is None else np.concatenate([p[2] for p in parts]),)
-    if with_seen:
+    if with_view:
         out += (np.concatenate([p[3] for p in parts]),)
     return out
 
@@ -1156,10 +1158,12 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
 
 def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, images=None):
     """Q (F, R), visibility (F, R), each frame's light (:func:`frame_shading`; None without light
-    points) and the share of each region's stable template points seen (F, R)."""
+    points) and the share of each region's stable template points in view (F, R): in the image
+    and not hidden by the face, however edge-on."""
     bank = region_bank(model) if bank is None else bank
     points = template_positions(camera_positions, model)
     patches, visible, seen = sample_template_frames(grays, camera_positions, model, points)
+    in_view = seen_fraction(seen, model)  # in the image, not hidden by the face (edge-on or not)
     normals = light = None
     if model.light_face is not None:
         shading, normals, light = frame_shading(grays, camera_positions, model, images)
@@ -1170,14 +1174,12 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, image
             # models before the stable points: a point the examples saw edge-on has no template worth matching
             s = model.template_size
             seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
-    fraction = seen_fraction(seen, model)
-    if model.min_point_facing > 0:
-        visible &= fraction >= model.min_seen
+        visible &= seen_fraction(seen, model) >= model.min_seen
     q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen, model.peak_interpolation)
     visible &= np.isfinite(q)
     if model.rest_floor is not None:
         q = ap.above_rest(q, model.rest_floor, model.layer_counts)
-    return np.where(visible, q, np.nan), visible, light, fraction
+    return np.where(visible, q, np.nan), visible, light, in_view
 
 
 def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, normals=None, points=None
