@@ -22,7 +22,8 @@ the animated surface through their barycentric coordinates, projected through th
 (OpenCV's distortion) and sampled bilinearly from the frame's luminance; the five samples are
 classified (:func:`facepipe.core.appearance.classify`) and Q measured from the region's rest
 floor; a region whose template faces away from the camera, falls outside the image or whose
-frame is missing keeps its last value, decaying to neutral; a reading that leaves rest for less
+frame is missing keeps its last value read with most of its template in view (:data:`WELL_SEEN`),
+decaying to neutral; a reading that leaves rest for less
 than ``min_event`` seconds (one or two frames at 30 Hz) and stays under a layer is image noise,
 and set back to rest. Each frame's light (nine
 coefficients, :func:`frame_lights`) is part of the result: the texture's shading comes from it.
