@@ -201,6 +201,15 @@ def test_a_hidden_stretch_holds_the_last_reading_seen_well(kit):
     assert checked > 0 and (~result.visible[-1]).all()  # partly seen frames, then out of view
 
 
+def test_offsets_within():
+    from facepipe.core.runs import offsets_within
+
+    lengths = np.array([2, 0, 3, 1])
+    expected = np.concatenate([np.arange(n) for n in lengths])
+    assert offsets_within(lengths).tolist() == expected.tolist() == [0, 1, 0, 1, 2, 0]
+    assert offsets_within(np.zeros(0, dtype=int)).size == 0
+
+
 def test_column_runs():
     from facepipe.core.runs import column_runs
 

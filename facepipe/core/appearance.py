@@ -50,7 +50,7 @@ import numpy as np
 import pywt
 from scipy import ndimage
 
-from facepipe.core.runs import column_runs
+from facepipe.core.runs import column_runs, offsets_within
 
 __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normalise_patches", "select_coefficients",
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
@@ -649,19 +649,13 @@ def drop_short_events(q: np.ndarray, times: np.ndarray, min_event: float, below:
     # a run of k frames lasts k steps; at exactly min_event (a frame rate it divides) it is kept
     brief = ((start > 0) & (stop < T) & (times[stop - 1] - times[start] + step < min_event * (1.0 - 1e-9)))
     column, start, stop = column[brief], start[brief], stop[brief]
-    frames = np.repeat(start, stop - start) + _offsets_within(stop - start)
+    frames = np.repeat(start, stop - start) + offsets_within(stop - start)
     columns = np.repeat(column, stop - start)
     peak = np.zeros(len(start))
     np.maximum.at(peak, np.repeat(np.arange(len(start)), stop - start), q[frames, columns])
     small = np.repeat(peak < below, stop - start)
     q[frames[small], columns[small]] = 0.0
     return q
-
-
-def _offsets_within(lengths: np.ndarray) -> np.ndarray:
-    """0, 1, …, n − 1 for each n of ``lengths``, concatenated."""
-    ends = np.cumsum(lengths)
-    return np.arange(int(ends[-1]) if len(ends) else 0) - np.repeat(ends - lengths, lengths)
 
 
 def bilinear_sample(image: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from facepipe.core.runs import offsets_within
+
 __all__ = ["occluded_points", "segment_hits"]
 
 
@@ -231,14 +233,14 @@ def _pairs(candidates: dict, grid: dict) -> tuple[np.ndarray, np.ndarray]:
     w, h = candidates["x1"] - x0 + 1, candidates["y1"] - y0 + 1
     n = w * h
     tri = np.repeat(np.arange(len(n)), n)
-    local = np.arange(len(tri)) - np.repeat(np.cumsum(n) - n, n)
+    local = offsets_within(n)
     dy, dx = np.divmod(local, w[tri])
     key = (candidates["frame"][tri] * grid["ny"] + y0[tri] + dy) * grid["nx"] + x0[tri] + dx
     useful = candidates["z_near"][tri] < grid["farthest"][key]
     tri, key = tri[useful], key[useful]
     count = grid["counts"][key]
     pair_tri = np.repeat(tri, count)
-    offset = np.arange(len(pair_tri)) - np.repeat(np.cumsum(count) - count, count)
+    offset = offsets_within(count)
     pair_point = grid["order"][np.repeat(grid["start"][key], count) + offset]
     return pair_tri, pair_point
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["column_runs"]
+__all__ = ["column_runs", "offsets_within"]
 
 
 def column_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -22,3 +22,15 @@ def column_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     column, start = np.nonzero(step == 1)
     _, stop = np.nonzero(step == -1)  # the same column-major order as the starts
     return column, start, stop
+
+
+def offsets_within(lengths: np.ndarray) -> np.ndarray:
+    """0, 1, …, n − 1 for each n of ``lengths`` (non-negative ints), concatenated: each item's
+    place in its run, once the runs are laid end to end.
+
+    >>> offsets_within(np.array([2, 0, 3]))
+    array([0, 1, 0, 1, 2])
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    starts = np.cumsum(lengths) - lengths
+    return np.arange(int(lengths.sum())) - np.repeat(starts, lengths)
