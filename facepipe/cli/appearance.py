@@ -132,7 +132,7 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
     light = f" + light {bits - q_bits}" if bits > q_bits else ""
     rep.say(f"{len(numbers)} frames, {len(model.names)} regions in {seconds:.1f} s "
             f"({figures['frames_per_second']:.0f} frames/s, reading included); stream (Q {q_bits}{light}) {bits} bits "
-            f"a frame = {figures['stream_kbit_s']:.2f} kbit/s at {fps:g} Hz; wrote {path}")
+            f"a frame = {figures['stream_kbit_s']:.2f} kbit/s at {fps:.4g} Hz; wrote {path}")
     return result
 
 

@@ -11,6 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from trimesh.triangles import closest_point, points_to_barycentric
 
+from facepipe.core.runs import offsets_within
 from facepipe.core.tangent_frames import vertex_face_matrix
 
 __all__ = ["MIN_NORMAL_COS", "closest_point_on_triangles", "project_points"]
@@ -47,7 +48,7 @@ def _incident_faces(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     counts = np.diff(inc.indptr)
     out = np.full((n_vertices, max(int(counts.max(initial=0)), 1)), -1, dtype=np.int64)
     rows = np.repeat(np.arange(n_vertices), counts)
-    cols = np.arange(inc.indices.size) - np.repeat(inc.indptr[:-1], counts)
+    cols = offsets_within(counts)
     out[rows, cols] = inc.indices
     return out
 

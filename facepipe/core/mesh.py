@@ -19,6 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
+from facepipe.core.runs import offsets_within
 from facepipe.errors import InputError
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -131,8 +132,7 @@ def triangulate(offsets: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, n
     n_tri = np.maximum(sizes - 2, 0)
     polygon = np.repeat(np.arange(sizes.shape[0], dtype=np.int64), n_tri)
     # k-th triangle of a polygon uses corners 0, k+1, k+2
-    first = np.repeat(np.cumsum(n_tri) - n_tri, n_tri)
-    k = np.arange(polygon.shape[0], dtype=np.int64) - first
+    k = offsets_within(n_tri)
     start = offsets[polygon]
     tris = np.stack([corners[start], corners[start + k + 1], corners[start + k + 2]], axis=1)
     return tris, polygon

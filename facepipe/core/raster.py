@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from facepipe.core.runs import offsets_within
+
 
 def triangle_pixels(p: np.ndarray, ok: np.ndarray, x0: np.ndarray, x1: np.ndarray, y0: np.ndarray,
                     y1: np.ndarray, chunk: int, tolerance: float = 1e-9):
@@ -48,7 +50,7 @@ def triangle_pixels(p: np.ndarray, ok: np.ndarray, x0: np.ndarray, x1: np.ndarra
         if n.sum() == 0:
             continue
         t = np.repeat(np.arange(a, b), n)
-        row, col = np.divmod(np.arange(t.shape[0]) - np.repeat(np.cumsum(n) - n, n), np.repeat(bw[a:b], n))
+        row, col = np.divmod(offsets_within(n), np.repeat(bw[a:b], n))
         col += np.repeat(x0[a:b], n)
         row += np.repeat(y0[a:b], n)
         b1 = k1[t, 0] * col + k1[t, 1] * row + k1[t, 2]

@@ -47,6 +47,7 @@ from facepipe.io.mesh_read import load_mesh
 from facepipe.core.psd import edge_weight_matrix, fit_details
 from facepipe.core.rbf_morph import multiquadric_basis
 from facepipe.core.rigid import similarity_fit
+from facepipe.core.runs import offsets_within
 from facepipe.core.shell import marker_spacing, shell_basis
 from facepipe.core.strain import edge_lengths
 from facepipe.io.atomic import atomic_path
@@ -340,7 +341,7 @@ def interpolate_alpha(W: sp.csr_matrix, alpha: sp.csr_matrix, max_edges: int,
         counts = np.diff(A.indptr)
         width = max(int(counts.max(initial=0)), 1)
         rows = np.repeat(np.arange(n), counts)
-        cols = np.arange(A.indices.size) - np.repeat(A.indptr[:-1], counts)
+        cols = offsets_within(counts)
         dense_w = np.zeros((n, width))
         dense_i = np.zeros((n, width), dtype=np.int64)
         dense_w[rows, cols] = A.data
