@@ -13,7 +13,9 @@ built from the kit's expressions in which every region's drivers sweep smoothly 
 footage already rendered in --out; --identity face_a|face_b: the same on one of the kit's other
 faces (identities/, same topology): its expressions and the take's frames are the kit's
 displacements from the neutral added to that face, as the kit's README defines their truth (the
-take's head motion kept), so the region layout, templates and eye openings are found afresh.
+take's head motion kept), so the region layout, templates and eye openings are found afresh;
+--two-sided-light: render lit as the footage before 2026-12 was (Lambert's cosine taken in absolute
+value: a surface facing away from the light lit as if it faced it), to reproduce earlier figures.
 """
 
 from __future__ import annotations
@@ -189,6 +191,8 @@ def main() -> None:
     ap.add_argument("--identity", choices=["face_a", "face_b"], default=None,
                     help="render and classify one of the kit's other faces (identities/)")
     ap.add_argument("--json", default="bench/appearance_ict.json")
+    ap.add_argument("--two-sided-light", action="store_true",
+                    help="render as the footage before 2026-12 was: |cos| Lambert, lit from both sides")
     args = ap.parse_args()
     out = Path(args.out)
     neutral = load_mesh(KIT / "neutral.obj")
@@ -213,7 +217,8 @@ def main() -> None:
         write_appearance_kit(out, mesh, mesh.vertices, expressions, DRIVERS, world, weights,
                              names, mesh_path=str(mesh_path), markers_path=str(KIT / "markers.csv"),
                              size=args.size, texture_size=1024,
-                             eyes=eye_rims(mesh.vertices, mesh.faces, expressions), gaze=GAZE)
+                             eyes=eye_rims(mesh.vertices, mesh.faces, expressions), gaze=GAZE,
+                             two_sided_light=args.two_sided_light)
         render_s = time.perf_counter() - t0
     config = load_config(out / "appearance.toml")
     model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))

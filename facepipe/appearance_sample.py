@@ -50,19 +50,27 @@ class Scene:
     light: np.ndarray = None      # direction towards the light, camera coordinates
     light_rgb: tuple = (1.0, 1.0, 1.0)
     ambient: float = 0.25
+    #: light a surface facing away from the light as if it faced it (``abs`` of the cosine): a
+    #: second light as strong exactly opposite, which no set has; the footage before 2026-12 was
+    #: lit so, kept to reproduce its figures
+    two_sided: bool = False
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
 
     def shading(self, normals: np.ndarray) -> np.ndarray:
-        """The light's intensity (...) on unit normals (..., 3) in camera coordinates: ambient plus
-        two-sided Lambert (the inside of lips and lids is lit too), before the light's colour."""
-        return self.ambient + (1.0 - self.ambient) * np.abs(normals @ self.light)
+        """The light's intensity (...) on unit normals (..., 3) in camera coordinates, before the
+        light's colour: ambient plus Lambert's cosine law for a distant point light, nothing from
+        it where a surface faces away (a real light's attached shadow: the far side of a fold, the
+        inside of the lips, the side of the head turned from it)."""
+        cosine = normals @ self.light
+        return self.ambient + (1.0 - self.ambient) * (np.abs(cosine) if self.two_sided else np.maximum(cosine, 0.0))
 
 
 def make_scene(rest: np.ndarray, size: int = 512, fill: float = 0.75, distortion=(-0.05, 0.02, 0.0, 0.0, 0.0),
-               light=(-0.4, -0.5, -1.0)) -> Scene:
-    """A camera in front of the face (+z world, +y up) framing ``rest`` to ``fill`` of the image."""
+               light=(-0.4, -0.5, -1.0), two_sided: bool = False) -> Scene:
+    """A camera in front of the face (+z world, +y up) framing ``rest`` to ``fill`` of the image,
+    lit from ``light`` (camera coordinates; ``two_sided``: :attr:`Scene.two_sided`)."""
     centre = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
     extent = float(np.max(rest.max(axis=0)[:2] - rest.min(axis=0)[:2]))
     focal = 2.0 * size
@@ -71,7 +79,8 @@ def make_scene(rest: np.ndarray, size: int = 512, fill: float = 0.75, distortion
     t = -R @ centre + np.array([0.0, 0.0, distance])
     K = np.array([[focal, 0.0, 0.5 * (size - 1)], [0.0, focal, 0.5 * (size - 1)], [0.0, 0.0, 1.0]])
     light = np.asarray(light, dtype=np.float64)
-    return Scene(K, np.asarray(distortion, dtype=np.float64), size, size, R, t, light / np.linalg.norm(light))
+    return Scene(K, np.asarray(distortion, dtype=np.float64), size, size, R, t, light / np.linalg.norm(light),
+                 two_sided=two_sided)
 
 
 def uv_scales(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray) -> np.ndarray:
@@ -433,7 +442,7 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
                          take_weights: np.ndarray, take_names: list, *, mesh_path: str, markers_path: str,
                          layers: int = 5, size: int = 512, texture_size: int = 512, turn_degrees: float = 15.0,
                          noise: float = 0.005, seed: int = 0, progress=None, eyes: dict | None = None,
-                         gaze: dict | None = None) -> dict:
+                         gaze: dict | None = None, two_sided_light: bool = False) -> dict:
     """Write footage of a known performance and an appearance config for it into ``out_dir``.
 
     expressions : name → (V, 3) positions at weight 1; drivers : region → expression names.
@@ -441,6 +450,7 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     eyes : region → the rim (vertex loop) of the eye opening it looks into: an eyeball is drawn
     behind each (:func:`eyes_behind`) and the region is a card across the opening; gaze :
     expression → (region, yaw, pitch), the degrees it turns that region's eyeball at full weight.
+    two_sided_light: light as the footage before 2026-12 was (:attr:`Scene.two_sided`).
     Writes ``camera.json``, ``examples/`` (per region, its drivers at ``layers`` strengths from 0 to
     1, frame 0 neutral; then every expression that drives no region at full strength, the
     config's ``rest_frames``: the range of motion an actor would show) with ``examples.npz``,
@@ -466,7 +476,7 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     fields[surface] = wrinkle_fields(texture_size, [layout[r] for r in surface])
     eye_names = list(eyes)
     eyeballs = eyes_behind(rest, [eyes[n] for n in eye_names])
-    scene = make_scene(rest, size)
+    scene = make_scene(rest, size, two_sided=two_sided_light)
     (out / "camera.json").write_text(scene_json(scene))
 
     # examples: neutral, then each region's drivers at increasing strength, alone

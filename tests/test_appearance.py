@@ -502,8 +502,8 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
     under the frame's light (light.csv's row). And that shading is the footage's: on the turned
     take (the head turned up to 15° under another light) the skin outside every region, where the
     layers change nothing, is far closer to the frame's own texels than the neutral texture as
-    the footage showed it. The renderer lights the face with ambient plus two-sided Lambert and a
-    warm light, not the nine-term light and colour gains the classification fits: an independent
+    the footage showed it. The renderer lights the face with ambient plus a Lambertian point
+    light, warm, not the nine-term light and colour gains the classification fits: an independent
     check."""
     import cv2
 

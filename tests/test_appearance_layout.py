@@ -43,3 +43,26 @@ def test_template_lies_inside_its_region_away_from_a_hole_sized_on_the_surface()
     # its sides in surface units are the layout's half-sizes: the UV rectangle undoes the 2 : 1 stretch
     assert np.allclose([(u1 - u0) * 2.0, v1 - v0], 2 * np.asarray(o["half"]), rtol=0.05)
     assert min(o["half"]) > 0.015  # not a degenerate sliver
+
+
+def test_test_footage_light_follows_lamberts_law():
+    """The footage's light: ambient plus the cosine towards a distant light, nothing from the light
+    where a surface faces away from it (its attached shadow); the two-sided variant that reproduces
+    the older footage lights both sides alike."""
+    import numpy as np
+
+    from facepipe.appearance_sample import make_scene, other_light
+
+    rest = np.random.default_rng(0).uniform(-5, 5, (200, 3))
+    scene = make_scene(rest, 64)
+    angles = np.linspace(0.0, np.pi, 7)
+    # normals in the plane of the light and an axis across it, at 0..180° from the light
+    across = np.cross(scene.light, [0.0, 1.0, 0.0])
+    across /= np.linalg.norm(across)
+    normals = np.cos(angles)[:, None] * scene.light + np.sin(angles)[:, None] * across
+    expected = scene.ambient + (1 - scene.ambient) * np.clip(np.cos(angles), 0, None)
+    np.testing.assert_allclose(scene.shading(normals), expected, atol=1e-12)
+    np.testing.assert_allclose(scene.shading(normals[angles >= np.pi / 2]), scene.ambient, atol=1e-12)
+    both = make_scene(rest, 64, two_sided=True)
+    np.testing.assert_allclose(both.shading(normals), both.shading(-normals), atol=1e-12)
+    assert other_light(both).two_sided and not other_light(scene).two_sided
