@@ -194,6 +194,8 @@ def main() -> None:
     ap.add_argument("--two-sided-light", action="store_true",
                     help="render as the footage before 2026-12 was: |cos| Lambert, lit from both sides")
     args = ap.parse_args()
+    if args.reuse and args.two_sided_light:
+        ap.error("--two-sided-light sets how footage is rendered; --reuse classifies footage already rendered")
     out = Path(args.out)
     neutral = load_mesh(KIT / "neutral.obj")
     mesh_path = KIT / "identities" / f"{args.identity}.obj" if args.identity else KIT / "neutral.obj"

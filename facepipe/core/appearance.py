@@ -648,12 +648,13 @@ def drop_short_events(q: np.ndarray, times: np.ndarray, min_event: float, below:
     column, start, stop = column_runs(q > 0)
     # a run of k frames lasts k steps; at exactly min_event (a frame rate it divides) it is kept
     brief = ((start > 0) & (stop < T) & (times[stop - 1] - times[start] + step < min_event * (1.0 - 1e-9)))
-    column, start, stop = column[brief], start[brief], stop[brief]
-    frames = np.repeat(start, stop - start) + offsets_within(stop - start)
-    columns = np.repeat(column, stop - start)
-    peak = np.zeros(len(start))
-    np.maximum.at(peak, np.repeat(np.arange(len(start)), stop - start), q[frames, columns])
-    small = np.repeat(peak < below, stop - start)
+    column, start, length = column[brief], start[brief], (stop - start)[brief]
+    if not length.size:
+        return q
+    frames = np.repeat(start, length) + offsets_within(length)
+    columns = np.repeat(column, length)
+    peak = np.maximum.reduceat(q[frames, columns], np.cumsum(length) - length)  # runs are never empty
+    small = np.repeat(peak < below, length)
     q[frames[small], columns[small]] = 0.0
     return q
 
