@@ -101,6 +101,7 @@ def _edited_config(kit, tmp_path, old, new):
     ("texture_size = 512", 'texture_size = 512\nshading_surface = "cubic"', "not one of auto, plane, quadratic"),
     ("frames = [0, 1, 2, 3, 4]", 'frames = [0, 1, 2, 3, 4]\nshading_surface = "flat"', "shading_surface"),
     ("texture_size = 512", 'texture_size = 512\npeak_interpolation = "cubic"', "not one of segment, parabola"),
+    ("texture_size = 512", 'texture_size = 512\nlight_model = "sh4"', "not one of point, sh9"),
     ("texture_size = 512", "texture_size = 512\nunseen_margin = -1.0", "unseen_margin = -1.0 is not in [0, 8)"),
     ("camera_rotation = [", "camera_rotation = 2 #", "camera_rotation must be 3 × 3 numbers"),  # (was a TypeError)
     ("texture_size = 512", "texture_size = 512\nmin_event = -0.1", "min_event and scale_weights must be ≥ 0"),
@@ -923,6 +924,32 @@ def test_peak_interpolation_saved_and_fixed_by_the_config(kit, tmp_path, capsys)
     np.savez(tmp_path / "old.npz", **data)
     assert load_appearance(tmp_path / "old.npz").peak_interpolation == "parabola"
     _assert_model_refused(kit, tmp_path, capsys, data, peak_interpolation=np.array("cubic"))
+
+
+def test_light_model_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
+    """The model keeps the light it was built under (an ambient term and a point light by default,
+    the nine terms when the config asks); both follow the take; models before the choice read the
+    nine terms, which their light points' albedo was derived under; another value is refused."""
+    from facepipe.io.appearance_file import load_appearance
+
+    assert load_appearance(kit / "app.npz").light_model == "point"
+    assert json.loads((kit / "app.json").read_text())["light"]["model"] == "point"
+    cfg = _edited_config(kit, tmp_path, "texture_size = 512", 'texture_size = 512\nlight_model = "sh9"')
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "sh9.npz") == 0
+    assert "light fitted as nine spherical-harmonic terms" in capsys.readouterr().out
+    assert load_appearance(tmp_path / "sh9.npz").light_model == "sh9"
+    assert _run("appearance", "classify", tmp_path / "sh9.npz", kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls", "-q") == 0
+    q = np.loadtxt(tmp_path / "cls" / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+    truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
+    assert np.median([spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])]) > 0.9
+    data = dict(np.load(tmp_path / "sh9.npz"))
+    del data["light_model"]
+    np.savez(tmp_path / "old.npz", **data)
+    assert load_appearance(tmp_path / "old.npz").light_model == "sh9"
+    _assert_model_refused(kit, tmp_path, capsys, data, light_model=np.array("sh2"))
+    # the point light without its light points' albedo under it
+    _assert_model_refused(kit, tmp_path, capsys, data, light_model=np.array("point"))
 
 
 def test_unseen_margin_takes_points_beside_unstable_ones_and_yields_to_min_seen(kit, tmp_path, capsys):

@@ -353,6 +353,61 @@ def test_light_fit_of_frames_at_once_matches_one_by_one():
     np.testing.assert_allclose(together[1], np.r_[1.0, np.zeros(8)])
 
 
+def _faces_of_a_head(rng, count):
+    """Unit normals of the half of a sphere facing a camera looking along +z."""
+    normals = rng.normal(size=(count, 3))
+    normals[:, 2] = -np.abs(normals[:, 2])
+    return normals / np.linalg.norm(normals, axis=-1, keepdims=True)
+
+
+def test_point_shading_is_lamberts_cosine_clamped_at_zero():
+    from facepipe.core.appearance import light_shading, point_shading
+
+    light = np.array([0.2, 0.0, 0.0, -0.8])  # ambient 0.2, a light of strength 0.8 towards the camera
+    normals = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [np.sin(0.5), 0.0, -np.cos(0.5)], [1.0, 0.0, 0.0]])
+    np.testing.assert_allclose(point_shading(normals, light), [1.0, 0.2, 0.2 + 0.8 * np.cos(0.5), 0.2])
+    # light_shading tells the model by the light's length: four values are a point light
+    np.testing.assert_allclose(light_shading(normals, light), point_shading(normals, light))
+
+
+def test_point_light_fit_recovers_a_key_light_despite_outliers():
+    from facepipe.core.appearance import fit_light, fit_point_light, point_shading, sh_basis
+
+    rng = np.random.default_rng(12)
+    normals = _faces_of_a_head(rng, 3000)
+    albedo = rng.uniform(0.3, 0.9, size=3000)
+    # a key light from the side: a third of the face in its attached shadow
+    light = np.array([0.15, 0.7, -0.2, -0.25])
+    values = albedo * point_shading(normals, light) + rng.normal(0.0, 0.003, size=3000)
+    values[:300] = rng.uniform(0, 1, size=300)  # what the model does not hold
+    values[300:310] = np.nan
+    got = fit_point_light(values, albedo, normals)
+    np.testing.assert_allclose(got, light, atol=0.01)
+    # the nine terms cannot follow the terminator's kink: an independent check that the model matters
+    nine = fit_light(values, albedo, normals)
+    keep = slice(310, None)
+    error_point = np.abs(point_shading(normals[keep], got) - point_shading(normals[keep], light))
+    error_nine = np.abs(sh_basis(normals[keep]) @ nine - point_shading(normals[keep], light))
+    assert error_point.max() < 0.02 < error_nine.max()
+
+
+def test_point_light_fit_of_frames_at_once_matches_one_by_one():
+    from facepipe.core.appearance import fit_point_light, point_shading
+
+    rng = np.random.default_rng(13)
+    normals = np.stack([_faces_of_a_head(rng, 500) for _ in range(4)])
+    albedo = rng.uniform(0.3, 0.9, size=500)
+    lights = np.array([[0.3, 0.0, 0.0, -0.7], [0.1, -0.6, 0.3, -0.3], [0.5, 0.2, 0.2, -0.2], [0.3, 0.0, 0.0, -0.7]])
+    values = np.stack([albedo * point_shading(n, light) for n, light in zip(normals, lights)])
+    values[2, :480] = np.nan  # a frame that sees too little: uniform
+    values[3, :100] = np.nan  # one that sees part of the face
+    together = fit_point_light(values, albedo, normals)
+    for f in range(4):
+        np.testing.assert_allclose(together[f], fit_point_light(values[f], albedo, normals[f]), atol=1e-10)
+    np.testing.assert_allclose(together[2], [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(together[[0, 1, 3]], lights[[0, 1, 3]], atol=1e-6)
+
+
 def test_masked_normalisation_and_distances_reduce_to_the_whole_patch():
     rng = np.random.default_rng(11)
     patches = rng.uniform(0.5, 1.5, size=(4, 16, 16))
@@ -641,3 +696,10 @@ def test_config_offers_the_interpolations_classification_knows():
     from facepipe.io.config import PEAK_INTERPOLATIONS as offered
 
     assert offered == PEAK_INTERPOLATIONS
+
+
+def test_config_offers_the_light_models_classification_knows():
+    from facepipe.core.appearance import LIGHT_MODELS
+    from facepipe.io.config import LIGHT_MODELS as offered
+
+    assert offered == LIGHT_MODELS

@@ -58,11 +58,24 @@ def build_command(config_path, output, rep, write_json) -> dict:
         rep.say("shading surfaces (share of the layers' contrast a quadratic keeps): " + ", ".join(
             f"{n} {v['surface']}" + ("" if v["contrast_kept"] is None else f" ({v['contrast_kept']:.2f})")
             for n, v in info["shading"].items()))
+    if info.get("light"):
+        rep.say(f"each frame's light fitted as {_light_words(info['light'])}")
     if info.get("peak_interpolation"):
         rep.say(f"Q read from the match distances by {info['peak_interpolation']} interpolation")
     for note in info["notes"]:
         rep.say(f"note: {note}")
     return info
+
+
+def _light_words(light: dict) -> str:
+    """The build's light model, and the example footage's light under it, in words."""
+    if light["model"] != "point":
+        return "nine spherical-harmonic terms"
+    ambient, *direction = light["examples"]
+    strength = float(np.linalg.norm(direction))
+    x, y, z = np.asarray(direction) / max(strength, 1e-12)
+    return (f"an ambient term and one distant light (the examples': ambient {ambient:.2f}, "
+            f"light {strength:.2f}, direction to it ({x:+.2f}, {y:+.2f}, {z:+.2f}) in the camera's axes)")
 
 
 def write_cards_obj(path: Path, model) -> Path:

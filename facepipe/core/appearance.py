@@ -56,7 +56,7 @@ __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normali
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
            "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "drop_short_events", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "region_alpha", "layer_lookup", "compose_texture", "stream_bits", "light_bits", "LIGHT_SPAN", "DIAGONAL_OFFSETS",
-           "sh_basis", "fit_light", "sh_quadratic", "light_shading", "fill_unseen", "SHADING_ORDERS",
+           "sh_basis", "fit_light", "sh_quadratic", "light_shading", "LIGHT_MODELS", "point_shading", "fit_point_light", "fill_unseen", "SHADING_ORDERS",
            "QUADRATIC_LEAST_KEPT", "layer_contrast", "shading_order"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
@@ -791,19 +791,134 @@ def _fit_light_rows(values, albedo, normals, ok, iterations: int) -> np.ndarray:
         light = np.stack([np.linalg.lstsq(n, r, rcond=None)[0] for n, r in zip(normal, rhs)])
         r = b - (A @ light[..., None])[..., 0]
         # every row here has points: the median over them is finite
-        # (with every point usable the plain median, the same number without nanmedian's row-by-row loop)
-        spread = np.median(np.abs(r), axis=-1, keepdims=True) if ok.all() else \
-            np.nanmedian(np.where(ok, np.abs(r), np.nan), axis=-1, keepdims=True)
-        scale = 1.4826 * spread + 1e-9
+        scale = 1.4826 * usable_median(np.abs(r), ok)[:, None] + 1e-9
         w = ok / (1.0 + (r / (2.385 * scale)) ** 2)
     return light
 
 
+#: How a frame's light is modelled (``[appearance] light_model``): ``point``, an ambient term and
+#: one distant light whose Lambertian cosine is clamped at zero (:func:`fit_point_light`); ``sh9``,
+#: the nine spherical-harmonic terms (:func:`fit_light`).
+LIGHT_MODELS = ("point", "sh9")
+
+
+def usable_median(values: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """The median (B,) of each row of ``values`` (B, K) over its ``usable`` entries (NaN for a row
+    with none): with every entry usable the plain median, else one sort of all rows at once —
+    the same number as nanmedian without its row-by-row loop."""
+    if usable.all():
+        return np.median(values, axis=-1)
+    ordered = np.sort(np.where(usable, values, np.inf), axis=-1)
+    count = usable.sum(axis=-1)
+    low = np.take_along_axis(ordered, np.maximum(count - 1, 0)[:, None] // 2, axis=-1)[:, 0]
+    high = np.take_along_axis(ordered, (count // 2)[:, None], axis=-1)[:, 0]
+    return np.where(count > 0, 0.5 * (low + high), np.nan)
+
+
 def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -> np.ndarray:
-    """Shading (...) of unit normals (..., 3) under a light (9,) from :func:`fit_light`, kept above
-    ``floor`` times its median (a point the light fit calls dark is not divided into noise)."""
-    shade = sh_quadratic(normals, light)
+    """Shading (...) of unit normals (..., 3) under a light: nine terms (9,) from :func:`fit_light`
+    or an ambient term and a point light (4,) from :func:`fit_point_light`; kept above ``floor``
+    times its median (a point the light fit calls dark is not divided into noise)."""
+    light = np.asarray(light, dtype=np.float64)
+    shade = point_shading(normals, light) if len(light) == 4 else sh_quadratic(normals, light)
     return np.maximum(shade, floor * max(float(np.median(shade)), 1e-9))
+
+
+def point_shading(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """Shading (...) of unit normals (..., 3) under an ambient term ``light[0]`` and a distant
+    light ``light[1:4]`` (its direction times its strength): ambient + max(n·l, 0). A surface
+    facing away from the light gets the ambient term alone (its attached shadow)."""
+    light = np.asarray(light, dtype=np.float64)
+    return light[..., 0] + np.maximum(np.asarray(normals) @ light[..., 1:4], 0.0)
+
+
+def fit_point_light(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, start: np.ndarray | None = None,
+                    iterations: int = 12) -> np.ndarray:
+    """The ambient term and distant light (..., 4) (:func:`point_shading`) that best explain
+    intensities (..., K) of points of known albedo (K,) and unit normals (..., K, 3).
+
+    The nine-term light (:func:`fit_light`) is a smooth approximation of this model: where a
+    light grazes the face, its terminator (the line n·l = 0 across a cheek or a fold) is a kink
+    that nine terms round off by up to a third of the shading, and dividing by them leaves a
+    crease-like band in a patch. Here the kink is modelled: robust (Cauchy, as :func:`fit_light`)
+    Levenberg–Marquardt on the four parameters, started from the nine-term fit's first-order
+    band (``start`` (..., 9) where already fitted) at two strengths of the directional part
+    (the nine terms spread a clamped cosine's power over the constant and the quadratic band),
+    the start with the smaller median residual kept; at most ``iterations`` steps, fewer once
+    every step is under a millionth of the light. Leading axes (frames) are fitted
+    independently in the same products; with fewer than 27 usable points the light is uniform."""
+    values = np.asarray(values, dtype=np.float64)
+    lead = values.shape[:-1]
+    values = values.reshape((-1, values.shape[-1]))
+    normals = np.asarray(normals, dtype=np.float64).reshape(values.shape + (3,))
+    albedo = np.asarray(albedo, dtype=np.float64)
+    sh = fit_light(values, albedo, normals) if start is None else np.asarray(start, dtype=np.float64).reshape(-1, 9)
+    ok = np.isfinite(values) & np.isfinite(albedo) & np.isfinite(normals).all(axis=-1)
+    light = np.zeros(values.shape[:1] + (4,))
+    light[:, 0] = 1.0
+    enough = ok.sum(axis=-1) >= 27
+    if enough.any():
+        light[enough] = _fit_point_rows(values[enough], albedo, normals[enough], ok[enough], sh[enough], iterations)
+    return light.reshape(lead + (4,))
+
+
+def _fit_point_rows(values, albedo, normals, ok, sh, iterations: int) -> np.ndarray:
+    B = len(values)
+    strengths = (1.0, 0.6)
+    S = len(strengths)
+    # the starts side by side as rows of their own: (B·S, ...)
+    d = np.repeat(sh[:, 1:4], S, axis=0) * 2.0 * np.tile(strengths, B)[:, None]
+    ambient = np.repeat(sh[:, 0], S)
+    p = np.concatenate([np.maximum(ambient - 0.5 * np.linalg.norm(d, axis=-1), 0.05 * ambient)[:, None], d], axis=1)
+    ok = np.repeat(ok, S, axis=0)
+    a = np.where(ok, np.nan_to_num(albedo)[None, :], 0.0)
+    n = np.repeat(np.nan_to_num(normals), S, axis=0)
+    v = np.where(ok, np.repeat(values, S, axis=0), 0.0)
+    # the normal equations' sums over points from weights (B·S, K) in one product each: the normals
+    # and their six products (the Jacobian's columns are the albedo, and the albedo times the
+    # normal where lit), so no (B·S, K, 4) Jacobian is formed in the loop
+    upper = np.triu_indices(3)
+    moments = np.concatenate([n, n[..., upper[0]] * n[..., upper[1]]], axis=-1)  # (B·S, K, 9)
+    quadratic = np.zeros((3, 3), dtype=np.int64)
+    quadratic[upper] = np.arange(6)
+    quadratic = np.maximum(quadratic, quadratic.T) + 3
+
+    def residual(p):
+        return v - a * (p[:, 0, None] + np.maximum((n @ p[:, 1:4, None])[..., 0], 0.0))
+
+    def spread(r):
+        return usable_median(np.abs(r), ok)  # every row here has points: finite
+
+    def cost(r, scale):
+        return (np.log1p((r / (2.385 * scale[:, None])) ** 2) * ok).sum(axis=-1)
+
+    r = residual(p)
+    scale = 1.4826 * spread(r) + 1e-9
+    damping = np.full(len(p), 1e-3)
+    for _ in range(iterations):
+        lit = (n @ p[:, 1:4, None])[..., 0] > 0.0
+        w = a / (1.0 + (r / (2.385 * scale[:, None])) ** 2)  # the robust weight times the albedo
+        m, wr = w * a, w * r
+        sums = ((m * lit)[:, None, :] @ moments)[:, 0]  # (B·S, 9)
+        H = np.empty((len(p), 4, 4))
+        H[:, 0, 0] = m.sum(axis=-1)
+        H[:, 0, 1:] = H[:, 1:, 0] = sums[:, :3]
+        H[:, 1:, 1:] = sums[:, quadratic]
+        g = np.concatenate([wr.sum(axis=-1)[:, None], ((wr * lit)[:, None, :] @ n)[:, 0]], axis=-1)
+        diagonal = np.einsum("bii->bi", H)
+        step = np.linalg.solve(H + damping[:, None, None] * np.eye(4) * (diagonal + 1e-12)[:, None, :],
+                               g[..., None])[..., 0]
+        if np.abs(step).max() <= 1e-6 * np.abs(p).max():
+            break  # every row settled: a millionth of the light is far below any image's noise
+        p_new = p + step
+        r_new = residual(p_new)
+        better = cost(r_new, scale) < cost(r, scale)
+        p = np.where(better[:, None], p_new, p)
+        r = np.where(better[:, None], r_new, r)
+        scale = np.where(better, 1.4826 * spread(r) + 1e-9, scale)
+        damping = np.where(better, np.maximum(damping / 3.0, 1e-7), damping * 10.0)
+    best = spread(r).reshape(B, S).argmin(axis=1)
+    return p.reshape(B, S, 4)[np.arange(B), best]
 
 
 def sh_quadratic(normals: np.ndarray, light: np.ndarray) -> np.ndarray:

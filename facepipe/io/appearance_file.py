@@ -66,7 +66,11 @@ class AppearanceModel:
     plane, 2 the quadratic: :func:`facepipe.core.appearance.shading_order`); None: the plane
     (models before it);
     peak_interpolation : how Q is read from a patch's match distances
-    (:data:`facepipe.core.appearance.PEAK_INTERPOLATIONS`; models before it: ``parabola``).
+    (:data:`facepipe.core.appearance.PEAK_INTERPOLATIONS`; models before it: ``parabola``);
+    light_model : the light the templates' and each frame's shading are modelled by
+    (:data:`facepipe.core.appearance.LIGHT_MODELS`; models before it: ``sh9``), and with
+    ``point`` light_point_albedo (K,) : the light points' albedo under it. ``light_albedo`` is
+    theirs under the nine-term light, which the stream and the textures carry whichever it is.
     """
 
     names: list
@@ -110,6 +114,8 @@ class AppearanceModel:
     shading_orders: np.ndarray | None = None
     peak_interpolation: str = "parabola"
     min_event: float = 0.0  # seconds (models written before it: 0, every reading kept)
+    light_model: str = "sh9"  # (models written before it: the nine-term light)
+    light_point_albedo: np.ndarray | None = None
 
     @property
     def extra_tiles(self) -> list:
@@ -164,7 +170,7 @@ def save_appearance(path, model) -> None:
                                    model.min_seen, float(model.occlusion), model.min_point_facing,
                                     model.min_event]), "neutral": model.neutral,
               "boxes": model.boxes, "tile": np.array(int(model.tile)),
-              "peak_interpolation": np.array(model.peak_interpolation)}
+              "peak_interpolation": np.array(model.peak_interpolation), "light_model": np.array(model.light_model)}
     if model.corner_uv is not None:
         arrays["corner_uv"] = model.corner_uv
     if model.template_facing is not None:
@@ -183,6 +189,8 @@ def save_appearance(path, model) -> None:
         arrays["neutral_albedo"] = model.neutral_albedo
     if model.light_colour is not None:
         arrays["light_colour"] = model.light_colour
+    if model.light_point_albedo is not None:
+        arrays["light_point_albedo"] = model.light_point_albedo
     if model.extra_tiles:
         arrays.update(tiles=np.asarray(model.tiles, dtype=np.int64), tile_neutral=model.tile_neutral)
         if model.tile_albedo is not None:
@@ -223,14 +231,20 @@ def load_appearance(path):
                                d.get("tiles"), d.get("tile_neutral"), d.get("tile_albedo"),
                                int(d["tile"]) if "tile" in d else 1001, d.get("shading_orders"),
                                str(d["peak_interpolation"]) if "peak_interpolation" in d else "parabola",
-                               float(s[7]) if len(s) > 7 else 0.0)
-        from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where models are read
+                               float(s[7]) if len(s) > 7 else 0.0,
+                               str(d["light_model"]) if "light_model" in d else "sh9", d.get("light_point_albedo"))
+        from facepipe.core.appearance import LIGHT_MODELS, PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
 
         if not (np.isfinite(model.min_event) and model.min_event >= 0):
             raise ValueError(f"min_event {model.min_event} is not a duration ≥ 0")
         if model.peak_interpolation not in PEAK_INTERPOLATIONS:
             raise ValueError(f"peak_interpolation {model.peak_interpolation!r} is not one of "
                              f"{', '.join(PEAK_INTERPOLATIONS)}")
+        if model.light_model not in LIGHT_MODELS:
+            raise ValueError(f"light_model {model.light_model!r} is not one of {', '.join(LIGHT_MODELS)}")
+        if model.light_model == "point" and (model.light_albedo is None or model.light_point_albedo is None
+                                             or model.light_point_albedo.shape != model.light_albedo.shape):
+            raise ValueError("light_model 'point' needs light_point_albedo, one value per light point")
         if model.shading_orders is not None and (model.shading_orders.shape != (n,)
                                                  or not np.isin(model.shading_orders, (1, 2)).all()):
             raise ValueError(f"shading_orders {model.shading_orders.tolist()} is not 1 or 2 for each of its {n} regions")

@@ -118,6 +118,9 @@ class AppearanceConfig:
     # vertex through three distances, exact only for layers evenly spaced in appearance)
     peak_interpolation: str = "segment"
     light_fit: bool = True  # each frame's light fitted over the face's known normals and divided out of the patches
+    # that light: "point" (ambient + one distant light, its cosine clamped at zero: a key light's
+    # terminator across a fold is modelled) or "sh9" (nine spherical-harmonic terms, smooth)
+    light_model: str = "point"
     occlusion: bool = True  # template points the face hides (ray cast) left out of the match
     min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
     min_point_facing: float = 0.35  # template points seen more edge-on (cosine), in the frame or an example, left out
@@ -169,7 +172,7 @@ _TYPES: dict[str, dict[str, object]] = {
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float, "min_event": float,
-                   "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "occlusion": bool, "min_seen": float, "min_point_facing": float,
+                   "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float,
                    "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
                    "regions": dict},
     "video": {"landmarks": str},
@@ -180,6 +183,8 @@ _REGION_OPTIONAL = {"card", "shading_surface"}
 SHADING_SURFACES = ("auto", "plane", "quadratic")
 #: The values of ``peak_interpolation`` (facepipe.core.appearance.PEAK_INTERPOLATIONS).
 PEAK_INTERPOLATIONS = ("segment", "parabola")
+#: The values of ``light_model`` (facepipe.core.appearance.LIGHT_MODELS).
+LIGHT_MODELS = ("point", "sh9")
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass
 _EXAMPLES = {"mesh": "neutral.obj", "markers": "markers.csv", "anchors": "anchors.txt", "units": "cm", "weld": True,
@@ -375,6 +380,11 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         raise InputError(f"[appearance] peak_interpolation = {_toml(out.peak_interpolation)} is not one of "
                          f"{', '.join(PEAK_INTERPOLATIONS)}", path=path,
                          hint='"segment" (the default) or "parabola" (the paper\'s)')
+    if out.light_model not in LIGHT_MODELS:
+        raise InputError(f"[appearance] light_model = {_toml(out.light_model)} is not one of "
+                         f"{', '.join(LIGHT_MODELS)}", path=path,
+                         hint='"point" (the default: an ambient term and one distant light) or "sh9" (nine '
+                              'spherical-harmonic terms)')
     if not 0.0 < out.min_seen <= 1.0:
         raise InputError(f"[appearance] min_seen = {out.min_seen} is not in (0, 1]", path=path,
                          hint="the share of a template that must be seen, e.g. 0.5")

@@ -475,8 +475,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     tiles = {t: _tile_neutral(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_map(corner_uv, S, t), camera,
                               cfg, normal_sign, np.median(neutral[seen], axis=0) if seen.any() else 0.5)
              for t in np.unique(tile_of[in_udim]).tolist() if t != home}
-    light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign) if cfg.light_fit \
-        else None
+    light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign,
+                           cfg.light_model) if cfg.light_fit else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
     facing_examples, masks, layer_seen, orders, surfaces = [], [], [], [], {}
@@ -569,13 +569,17 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             tiles=np.array(list(tiles), dtype=np.int64) if tiles else None,
                             tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None,
                             tile=home, shading_orders=np.asarray(orders, dtype=np.int64),
-                            peak_interpolation=cfg.peak_interpolation, min_event=cfg.min_event)
+                            peak_interpolation=cfg.peak_interpolation, min_event=cfg.min_event,
+                            light_model=cfg.light_model if light is not None else "sh9",
+                            light_point_albedo=None if light is None else light["point_albedo"])
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
             "albedo": model.albedo, "rest": rest, "shading": surfaces, "peak_interpolation": model.peak_interpolation,
             "notes": notes}
+    if light is not None:
+        info["light"] = {"model": model.light_model, "examples": light["light"].tolist()}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
                                 "rim_vertices": int(cards.rim_sizes[c]),
@@ -903,11 +907,17 @@ def _stencil_normals(camera_positions: np.ndarray, model: AppearanceModel) -> tu
     return vn / np.maximum(np.linalg.norm(vn, axis=-1, keepdims=True), 1e-30), local
 
 
-def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign, samples: int = 2000):
+def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign, light_model: str,
+                   samples: int = 2000):
     """The example footage's light fitted over the neutral texture's texels (their albedo taken
     as uniform: the fit is robust to what differs; its scale such that the median texel's shading
     is 1), and ``samples`` texels spread over the surface, where each frame's light will be fitted,
-    with their albedo under it (grey, and colour: RGB over the grey shading)."""
+    with their albedo under it (grey, and colour: RGB over the grey shading).
+
+    ``light`` is the light the templates are divided by, under ``light_model``
+    (:data:`facepipe.core.appearance.LIGHT_MODELS`). ``albedo`` and ``colour`` are derived under
+    the nine-term light, which the stream and the textures carry; with the point light also
+    ``point_albedo``, under it: each light is fitted over the albedo its own model gives."""
     rows, cols = np.nonzero(seen & (texel_face >= 0))
     if len(rows) < 50:
         return None
@@ -916,14 +926,21 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
     face, bary = texel_face[rows, cols], texel_bary[rows, cols]
     normals = point_normals(neutral_cam[None], faces, face, bary, normal_sign)[0]
     lum = to_gray(neutral[rows, cols])
-    light = ap.fit_light(lum, np.ones(len(lum)), normals)
-    # scaled so that the neutral frame's shading is 1 on the median texel: the albedo it gives
-    # (and the layers' albedo) is about as bright as the footage, in the range images hold
-    light = light / float(np.median(ap.light_shading(normals, light)))
+
+    def scaled(light):
+        # the neutral frame's shading 1 on the median texel: the albedo it gives (and the layers')
+        # is about as bright as the footage, in the range images hold
+        return light / float(np.median(ap.light_shading(normals, light)))
+
+    light = scaled(ap.fit_light(lum, np.ones(len(lum)), normals))
     shading = ap.light_shading(normals, light)
     keep = slice(0, min(samples, len(rows)))
-    return {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": (lum / shading)[keep],
-            "colour": (neutral[rows, cols] / shading[:, None])[keep]}
+    out = {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": (lum / shading)[keep],
+           "colour": (neutral[rows, cols] / shading[:, None])[keep], "point_albedo": None}
+    if light_model == "point":
+        out["light"] = scaled(ap.fit_point_light(lum, np.ones(len(lum)), normals, start=light))
+        out["point_albedo"] = (lum / ap.light_shading(normals, out["light"]))[keep]
+    return out
 
 
 def _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face, texel_bary, camera, neutral, cfg,
@@ -1263,18 +1280,23 @@ def frame_light(image: np.ndarray, camera_positions: np.ndarray, model: Appearan
 
 def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, images=None):
     """The shading (F, R, 5, size, size) at the template points of frames under each frame's light
-    (:func:`frame_lights`), the template points' unit normals (F, R, 5, N, 3) and the lights: (F, 9),
+    (fitted as the model's ``light_model`` says), the template points' unit normals (F, R, 5, N, 3)
+    and the nine-term lights (:func:`frame_lights`), which the stream carries: (F, 9),
     or with the frames' RGB ``images`` (F, H, W, 3) (F, 12), their colour after them
     (:func:`frame_colours`, from the same light points)."""
     stencil = _stencil_normals(camera_positions, model)
     vn, local = stencil
     points = _light_points(camera_positions, model, stencil)
-    light = frame_lights(grays, camera_positions, model, points)  # (F, 9)
+    values = _light_point_values(grays, points)
+    light = ap.fit_light(values, model.light_albedo, points[0])  # (F, 9): the stream's light (frame_lights)
+    # the templates' shading under the model's own light (a point light's terminator is a kink nine terms round off)
+    shading_light = ap.fit_point_light(values, model.light_point_albedo, points[0], start=light) \
+        if model.light_model == "point" else light
     if images is not None:
         light = np.concatenate([light, frame_colours(images, camera_positions, model, light, points)], axis=1)
     t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
                               vn)  # (F, R, 5, N, 3)
-    out = np.stack([ap.light_shading(t_normals[f], light[f, :9]) for f in range(len(grays))])
+    out = np.stack([ap.light_shading(t_normals[f], shading_light[f]) for f in range(len(grays))])
     s = model.template_size
     return out.reshape(out.shape[:3] + (s, s)), t_normals, light
 
