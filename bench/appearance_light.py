@@ -1,5 +1,6 @@
 """Where a region's reading at rest comes from when the head turns or the light changes: the
-neutral face rendered at yaws of -15 to 15 degrees under the test footage's two lights, each
+neutral face rendered at yaws of -15 to 15 degrees under the test footage's two lights and a key
+light with a fill light from the other side (a shading no single light gives), each
 region's Q (no rest floor) classified with the shading facepipe fits to the frame, and with the
 renderer's exact shading at the template points (known for rendered footage only).
 
@@ -22,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's facepipe, however it is run
 
-from facepipe.appearance_sample import make_scene, neck_pivot, other_light, render_frame, skin_texture
+from facepipe.appearance_sample import key_and_fill, make_scene, neck_pivot, other_light, render_frame, skin_texture
 from facepipe.core import appearance as ap
 from facepipe.io.camera_file import read_camera
 from facepipe.io.config import load_config
@@ -57,12 +58,16 @@ def main() -> None:
     ap_ = argparse.ArgumentParser()
     ap_.add_argument("--out", default="/tmp/ict_appearance", help="bench/appearance_ict.py's folder")
     ap_.add_argument("--json", default="bench/appearance_light.json")
+    ap_.add_argument("--light-model", choices=ap.LIGHT_MODELS, default=None,
+                     help="the light the model divides out (default: the config's, else facepipe's default)")
     args = ap_.parse_args()
     out = Path(args.out)
     if not (out / "appearance.toml").is_file():
         sys.exit(f"no rendered kit in {out}: run python bench/appearance_ict.py --out {out} first")
     mesh = load_mesh(KIT / "neutral.obj")
     config = load_config(out / "appearance.toml")
+    if args.light_model is not None:
+        config.appearance.light_model = args.light_model
     model, _ = pa.build_appearance(config, mesh, read_camera(config.appearance.camera))
     model.rest_floor = None  # the raw reading
     surface = [r for r, region in enumerate(config.appearance.regions) if not region.card]  # no eyeballs drawn here
@@ -73,7 +78,8 @@ def main() -> None:
     corner_uv = mesh.uvs[mesh.face_uvs]
     pivot = neck_pivot(mesh.vertices)
     rows = []
-    for light_name, lit in (("kit light", scene), ("other light", other_light(scene))):
+    for light_name, lit in (("kit light", scene), ("other light", other_light(scene)),
+                            ("key and fill", key_and_fill(scene))):
         for yaw in YAWS:
             world = _yaw(mesh.vertices, yaw, pivot)
             image = np.clip(render_frame(world, mesh.faces, corner_uv, skin, lit), 0.0, 1.0)
@@ -88,7 +94,10 @@ def main() -> None:
         for r in surface:
             values = [row[k][model.names[r]] for row in rows]
             print(f"  {model.names[r]:14s} {min(values):.2f} - {max(values):.2f}")
-    Path(args.json).write_text(json.dumps({"conditions": rows, "spread": spread}, indent=1))
+    difference = float(np.mean([abs(row["fitted"][m] - row["exact"][m]) for row in rows for m in row["fitted"]]))
+    print(f"mean |fitted - exact| rest reading: {difference:.4f} layer ({model.light_model} light)")
+    Path(args.json).write_text(json.dumps({"light_model": model.light_model, "conditions": rows, "spread": spread,
+                                           "mean_fitted_minus_exact": difference}, indent=1))
 
 
 if __name__ == "__main__":

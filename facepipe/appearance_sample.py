@@ -54,6 +54,9 @@ class Scene:
     #: second light as strong exactly opposite, which no set has; the footage before 2026-12 was
     #: lit so, kept to reproduce its figures
     two_sided: bool = False
+    #: a second, fill light: the direction towards it times its strength relative to the key
+    #: light's (None: the key light alone)
+    fill_light: np.ndarray = None
 
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         return np.asarray(world, dtype=np.float64) @ self.rotation.T + self.translation
@@ -64,7 +67,10 @@ class Scene:
         it where a surface faces away (a real light's attached shadow: the far side of a fold, the
         inside of the lips, the side of the head turned from it)."""
         cosine = normals @ self.light
-        return self.ambient + (1.0 - self.ambient) * (np.abs(cosine) if self.two_sided else np.maximum(cosine, 0.0))
+        lit = np.abs(cosine) if self.two_sided else np.maximum(cosine, 0.0)
+        if self.fill_light is not None:
+            lit = lit + np.maximum(normals @ self.fill_light, 0.0)
+        return self.ambient + (1.0 - self.ambient) * lit
 
 
 def make_scene(rest: np.ndarray, size: int = 512, fill: float = 0.75, distortion=(-0.05, 0.02, 0.0, 0.0, 0.0),
@@ -404,6 +410,15 @@ def other_light(scene: Scene) -> Scene:
     """The scene lit as the turned take is: a warm light from the other side, more ambient."""
     return dataclasses.replace(scene, light=np.array([0.6, -0.2, -0.8]) / np.linalg.norm([0.6, -0.2, -0.8]),
                                light_rgb=(1.0, 0.9, 0.75), ambient=0.3)
+
+
+def key_and_fill(scene: Scene, fill: float = 0.4) -> Scene:
+    """The scene lit as a set is: its light as the key, and a fill light of ``fill`` times its
+    strength from the other side (mirrored across the face's vertical plane, from lower down),
+    with less ambient: a shading no single light gives."""
+    key = np.asarray(scene.light, dtype=np.float64)
+    other = np.array([-key[0], -0.5 * key[1], key[2]])
+    return dataclasses.replace(scene, fill_light=fill * other / np.linalg.norm(other), ambient=0.15)
 
 
 def _head_turn(world: np.ndarray, degrees: float, pivot: np.ndarray) -> np.ndarray:
