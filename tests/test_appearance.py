@@ -1087,13 +1087,15 @@ def test_frames_classified_on_threads_equal_one_chunk_after_another(kit):
     one = [classify_chunk(grays[i:i + 4], cams[i:i + 4], model, region_bank(model)) for i in range(0, len(grays), 4)]
     try:
         set_thread_count(3)
-        q, visible = classify_decoded(grays, cams, model, region_bank(model), chunk=4)
+        readings = classify_decoded(grays, cams, model, region_bank(model), chunk=4)
     finally:
         set_thread_count(None)
-    np.testing.assert_array_equal(q, np.concatenate([c[0] for c in one]))
-    np.testing.assert_array_equal(visible, np.concatenate([c[1] for c in one]))
-    empty_q, empty_visible = classify_decoded(grays[:0], cams[:0], model)
-    assert empty_q.shape == (0, len(model.names)) and empty_visible.shape == (0, len(model.names))
+    np.testing.assert_array_equal(readings.q, np.concatenate([c[0] for c in one]))
+    np.testing.assert_array_equal(readings.visible, np.concatenate([c[1] for c in one]))
+    assert readings.light.shape == (len(grays), 9) and readings.in_view.shape == readings.q.shape
+    empty = classify_decoded(grays[:0], cams[:0], model)
+    assert empty.q.shape == (0, len(model.names)) and empty.visible.shape == (0, len(model.names))
+    assert empty.light.shape == (0, 9) and empty.in_view.shape == (0, len(model.names))
 
 
 def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so(kit, tmp_path, capsys):

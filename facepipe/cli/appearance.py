@@ -71,11 +71,15 @@ def _light_words(light: dict) -> str:
     """The build's light model, and the example footage's light under it, in words."""
     if light["model"] != "point":
         return "nine spherical-harmonic terms"
-    ambient, *direction = light["examples"]
-    strength = float(np.linalg.norm(direction))
-    x, y, z = np.asarray(direction) / max(strength, 1e-12)
-    return (f"an ambient term and one distant light (the examples': ambient {ambient:.2f}, "
-            f"light {strength:.2f}, direction to it ({x:+.2f}, {y:+.2f}, {z:+.2f}) in the camera's axes)")
+    ambient, *lights = light["examples"]
+    said = []
+    for name, direction in zip(("key", "fill"), np.reshape(lights, (-1, 3))):
+        strength = float(np.linalg.norm(direction))
+        if strength > 0.0:
+            x, y, z = direction / strength
+            said.append(f"{name} {strength:.2f} from ({x:+.2f}, {y:+.2f}, {z:+.2f})")
+    return (f"an ambient term and a key and a fill light (the examples': ambient {ambient:.2f}, "
+            + ", ".join(said) + "; directions towards the lights, camera axes)")
 
 
 def write_cards_obj(path: Path, model) -> Path:

@@ -118,8 +118,8 @@ class AppearanceConfig:
     # vertex through three distances, exact only for layers evenly spaced in appearance)
     peak_interpolation: str = "segment"
     light_fit: bool = True  # each frame's light fitted over the face's known normals and divided out of the patches
-    # that light: "point" (ambient + one distant light, its cosine clamped at zero: a key light's
-    # terminator across a fold is modelled) or "sh9" (nine spherical-harmonic terms, smooth)
+    # that light: "point" (ambient + a key and a fill distant light, their cosines clamped at zero:
+    # a light's terminator across a fold is modelled) or "sh9" (nine spherical-harmonic terms, smooth)
     light_model: str = "point"
     occlusion: bool = True  # template points the face hides (ray cast) left out of the match
     min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
@@ -383,7 +383,7 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if out.light_model not in LIGHT_MODELS:
         raise InputError(f"[appearance] light_model = {_toml(out.light_model)} is not one of "
                          f"{', '.join(LIGHT_MODELS)}", path=path,
-                         hint='"point" (the default: an ambient term and one distant light) or "sh9" (nine '
+                         hint='"point" (the default: an ambient term, a key and a fill light) or "sh9" (nine '
                               'spherical-harmonic terms)')
     if not 0.0 < out.min_seen <= 1.0:
         raise InputError(f"[appearance] min_seen = {out.min_seen} is not in (0, 1]", path=path,

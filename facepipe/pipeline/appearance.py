@@ -607,7 +607,7 @@ def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, not
     grays = np.stack([to_gray(frames[n][0]) for n in numbers])
     cams = np.stack([cam_pos[n] for n in numbers])
     bank = region_bank(model)
-    readings = classify_decoded(grays, cams, model, bank)[0]
+    readings = classify_decoded(grays, cams, model, bank).q
     at_rest = np.array([[n not in set(region.frames[1:]) for region in cfg.regions] for n in numbers])
     floor, row = ap.rest_floor(readings, at_rest, MOST_REST_FLOOR)
     model.rest_floor = floor
@@ -1075,11 +1075,11 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
 
     def flush():
         if rows:
-            raw[rows], visible[rows], lights, in_view[rows] = classify_decoded(
-                np.stack(grays), model.to_camera(positions[rows]), model, bank, chunk, with_light=True,
-                images=np.stack(images), with_view=True)
+            readings = classify_decoded(np.stack(grays), model.to_camera(positions[rows]), model, bank, chunk,
+                                        images=np.stack(images))
+            raw[rows], visible[rows], in_view[rows] = readings.q, readings.visible, readings.in_view
             if light is not None:
-                light[rows] = lights
+                light[rows] = readings.light
             if progress is not None:
                 progress(len(rows))
         rows.clear()
@@ -1134,32 +1134,38 @@ def _held(rows: np.ndarray, default: np.ndarray) -> np.ndarray:
     return rows[index]
 
 
+@dataclass
+class FrameReadings:
+    """What :func:`classify_decoded` reads of frames: Q (F, R), NaN where a region is hidden;
+    each region's visibility (F, R); each frame's nine-term light (F, 9), or (F, 12) with its
+    colour where the frames' RGB images were given (None for a model without light points); and
+    the share of each region's stable template points in view (F, R; :func:`_classify_chunk`)."""
+
+    q: np.ndarray
+    visible: np.ndarray
+    light: np.ndarray | None
+    in_view: np.ndarray
+
+
 def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None,
-                     chunk: int = 8, with_light: bool = False, images: np.ndarray | None = None,
-                     with_view: bool = False):
+                     chunk: int = 8, images: np.ndarray | None = None) -> FrameReadings:
     """:func:`classify_chunk` of decoded frames (F, H, W) with their geometry in camera space
     (F, V, 3), ``chunk`` frames at a time on facepipe's threads (:func:`facepipe.parallel.map_blocks`):
     the same numbers as one chunk after another, about 1.5 times the frames a second on two cores
-    (most of a chunk's time is in NumPy, which lets the other thread run). Q (F, R) and visibility
-    (F, R); with ``with_light`` also each frame's light (F, 9; (F, 12) with its colour where the
-    frames' RGB ``images`` are given), None for a model without light points; with ``with_view``
-    last the share of each region's stable template points in view (F, R; :func:`_classify_chunk`)."""
+    (most of a chunk's time is in NumPy, which lets the other thread run). ``images``: the frames
+    in RGB (F, H, W, 3), for each frame's light colour."""
     bank = region_bank(model) if bank is None else bank
     if len(grays) == 0:
         n = len(model.names)
         light = None if model.light_face is None else np.zeros((0, 9 if images is None else 12))
-        return ((np.zeros((0, n)), np.zeros((0, n), dtype=bool)) + ((light,) if with_light else ())
-                + ((np.zeros((0, n)),) if with_view else ()))
+        return FrameReadings(np.zeros((0, n)), np.zeros((0, n), dtype=bool), light, np.zeros((0, n)))
     with serial_blas():  # process-wide: entered once here, not by each thread
         parts = map_blocks(lambda i: _classify_chunk(grays[i:i + chunk], camera_positions[i:i + chunk], model, bank,
                                                      None if images is None else images[i:i + chunk]),
                            range(0, len(grays), chunk))
-    out = (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
-    if with_light:
-        out += (None if model.light_face is None else np.concatenate([p[2] for p in parts]),)
-    if with_view:
-        out += (np.concatenate([p[3] for p in parts]),)
-    return out
+    return FrameReadings(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                         None if model.light_face is None else np.concatenate([p[2] for p in parts]),
+                         np.concatenate([p[3] for p in parts]))
 
 
 def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
