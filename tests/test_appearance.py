@@ -943,6 +943,7 @@ def test_light_model_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     q = np.loadtxt(tmp_path / "cls" / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
     truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
     assert np.median([spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])]) > 0.9
+    assert json.loads((tmp_path / "cls" / "appearance.json").read_text())["light_model"] == "sh9"
     data = dict(np.load(tmp_path / "sh9.npz"))
     del data["light_model"]
     np.savez(tmp_path / "old.npz", **data)
