@@ -881,9 +881,11 @@ def _fit_two_lights(values, albedo, normals, ok, sh, iterations: int) -> np.ndar
     # one light, from the nine terms' first-order band at two strengths
     d = sh[:, None, 1:4] * 2.0 * np.array([1.0, 0.6])[None, :, None]  # (B, 2, 3)
     ambient = np.maximum(sh[:, None, 0] - 0.5 * np.linalg.norm(d, axis=-1), 0.05 * sh[:, None, 0])
-    one, spread = _robust_lm(values, albedo, normals, ok, np.concatenate([ambient[..., None], d], axis=-1), iterations)
-    one = np.concatenate([one, np.zeros((B, 2, 3))], axis=-1)[np.arange(B), spread.argmin(axis=1)]  # (B, 7)
-    best_spread = spread.min(axis=1)
+    one, r_one, spread = _robust_lm(values, albedo, normals, ok, np.concatenate([ambient[..., None], d], axis=-1),
+                                    iterations)
+    pick = spread.argmin(axis=1)
+    one = np.concatenate([one, np.zeros((B, 2, 3))], axis=-1)[np.arange(B), pick]  # (B, 7)
+    r_one, best_spread = r_one[np.arange(B), pick], spread[np.arange(B), pick]
     # a second light from the other side
     key = one[:, 1:4]
     strength = np.linalg.norm(key, axis=-1, keepdims=True)
@@ -892,27 +894,25 @@ def _fit_two_lights(values, albedo, normals, ok, sh, iterations: int) -> np.ndar
     fill *= 0.3 * strength[:, None] / np.maximum(np.linalg.norm(fill, axis=-1, keepdims=True), 1e-12)
     starts = np.concatenate([np.broadcast_to(np.maximum(one[:, None, :1] - 0.1 * strength[:, None], 0.0), (B, 2, 1)),
                              np.broadcast_to(key[:, None], (B, 2, 3)), fill], axis=-1)
-    two, spread = _robust_lm(values, albedo, normals, ok, starts, iterations)
-    two = two[np.arange(B), spread.argmin(axis=1)]
+    two, r_two, spread = _robust_lm(values, albedo, normals, ok, starts, iterations)
+    pick = spread.argmin(axis=1)
+    two, r_two = two[np.arange(B), pick], r_two[np.arange(B), pick]
     # the fill light kept where it explains more than its three values would explain of noise
     # alone (the Bayesian information criterion on the Cauchy likelihood, at the one light's
     # scale): a light fitted to what the model does not hold would otherwise lean on a region
-    a = np.nan_to_num(albedo)
-    n = np.nan_to_num(normals)
-    v = np.nan_to_num(values)
     scale = 2.385 * (1.4826 * best_spread + 1e-9)[:, None]
 
-    def cost(p):
-        r = v - a * np.stack([point_shading(n[b], p[b]) for b in range(B)])
+    def cost(r):
         return (np.log1p((r / scale) ** 2) * ok).sum(axis=-1)
 
-    better = cost(one) - cost(two) > 1.5 * np.log(ok.sum(axis=-1))
+    better = cost(r_one) - cost(r_two) > 1.5 * np.log(ok.sum(axis=-1))
     return np.where(better[:, None], two, one)
 
 
 def _robust_lm(values, albedo, normals, ok, starts, iterations: int):
     """Robust Levenberg–Marquardt of :func:`fit_point_light` from ``starts`` (B, S, P): the fitted
-    lights (B, S, P) and their median absolute residuals (B, S)."""
+    lights (B, S, P), their residuals (B, S, K; 0 where a value is not usable) and the median
+    absolute residuals over the usable values (B, S)."""
     B, S, P = starts.shape
     lights = (P - 1) // 3
     # the starts side by side as rows of their own: (B·S, ...)
@@ -982,7 +982,7 @@ def _robust_lm(values, albedo, normals, ok, starts, iterations: int):
             scale = np.where(better, 1.4826 * spread(r) + 1e-9, scale)
             current = np.where(better, cost(r, scale), current)
         damping = np.where(better, np.maximum(damping / 3.0, 1e-7), damping * 10.0)
-    return p.reshape(B, S, P), spread(r).reshape(B, S)
+    return p.reshape(B, S, P), r.reshape(B, S, -1), spread(r).reshape(B, S)
 
 
 def sh_quadratic(normals: np.ndarray, light: np.ndarray) -> np.ndarray:
