@@ -309,3 +309,38 @@ def test_error_axis_is_scaled_to_the_data():
     log, bottom, below = error_axis([0.02, 0.01, 0.004, 1e-17, 0.0])
     assert log and 1e-4 < bottom < 0.004 and below == 2
     assert error_axis([0.02, 0.01]) == (False, None, 0)
+
+
+def test_bars_redraw_rarely_in_a_log():
+    """A bar writing to a file or pipe (a batch job's log) redraws every LOG_REFRESH_SECONDS, not
+    ten times a second; on a terminal as tqdm does; first and last lines are written either way."""
+    import io
+
+    from facepipe.cli.commands import Reporter
+    from facepipe.cli.progress import LOG_REFRESH_SECONDS, StageBar, refresh_seconds
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    assert refresh_seconds(io.StringIO()) == LOG_REFRESH_SECONDS >= 5
+    assert refresh_seconds(Terminal()) == 0.1
+    assert refresh_seconds(object()) == LOG_REFRESH_SECONDS  # no isatty at all
+    log = io.StringIO()
+    with _stderr(log):
+        with Reporter().bar(100, desc="replay") as bar:
+            assert bar.mininterval == LOG_REFRESH_SECONDS
+            for _ in range(100):
+                bar.update(1)
+        with StageBar(2, "fit") as steps:
+            steps.step("one")
+            steps.step("two")
+    text = log.getvalue()
+    assert text.count("replay:") == 2 and "100/100" in text  # opened and closed, nothing between
+    assert "fit: 2/2 steps" in text
+
+
+def _stderr(stream):
+    import contextlib
+
+    return contextlib.redirect_stderr(stream)

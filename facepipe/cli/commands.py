@@ -20,6 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from facepipe.cli.interrupts import terminate_as_interrupt
+from facepipe.cli.progress import refresh_seconds
 from facepipe.cli.take_options import landmark_take_options, mesh_cache_options
 from facepipe.errors import InputError, describe_system_error
 from facepipe.export import registry as export_formats  # names the formats without importing them
@@ -44,7 +45,8 @@ class Reporter:
 
     def bar(self, total: int, unit: str = "frame", desc: str = ""):
 
-        return tqdm(total=total, unit=unit, desc=desc, disable=self.quiet, dynamic_ncols=True, file=sys.stderr)
+        return tqdm(total=total, unit=unit, desc=desc, disable=self.quiet, dynamic_ncols=True, file=sys.stderr,
+                    mininterval=refresh_seconds())
 
 
 def _common(f):

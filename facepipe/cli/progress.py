@@ -15,6 +15,21 @@ from tqdm import tqdm
 
 STAGE_FORMAT = "{desc}: {n_fmt}/{total_fmt} steps [{elapsed}]{postfix}"
 
+#: seconds between a bar's redraws where stderr is a file or pipe (a batch job's log, CI): tqdm's
+#: 0.1 s would write ten carriage-return updates a second into the log
+LOG_REFRESH_SECONDS = 10.0
+
+
+def refresh_seconds(stream=None) -> float:
+    """How often a bar on ``stream`` (stderr by default) redraws: tqdm's default on a terminal,
+    :data:`LOG_REFRESH_SECONDS` elsewhere (the first and last lines are always written)."""
+    stream = sys.stderr if stream is None else stream
+    try:
+        interactive = stream.isatty()
+    except (AttributeError, ValueError):  # a closed or file-like stream without isatty
+        interactive = False
+    return 0.1 if interactive else LOG_REFRESH_SECONDS
+
 
 class StageBar:
     """A bar counting named steps: ``step("factorising the shell")`` marks the previous step done
@@ -22,7 +37,7 @@ class StageBar:
 
     def __init__(self, total: int, desc: str, quiet: bool = False):
         self._bar = tqdm(total=total, desc=desc, bar_format=STAGE_FORMAT, disable=quiet, file=sys.stderr,
-                         dynamic_ncols=True)
+                         dynamic_ncols=True, mininterval=refresh_seconds())
         self._started = False
 
     def step(self, name: str) -> None:
