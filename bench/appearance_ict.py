@@ -33,7 +33,8 @@ from scipy.stats import pearsonr, spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's facepipe, however it is run
 
 from facepipe.appearance_sample import write_appearance_kit
-from facepipe.core.appearance import SHADING_ORDERS, light_bits, stream_bits
+from facepipe.core.appearance import SHADING_ORDERS
+from facepipe.core.layered_texture import light_bits, stream_bits
 from facepipe.core.hole_cards import boundary_loops
 from facepipe.io.appearance_file import STREAM_DECIMALS
 from facepipe.io.camera_file import read_camera

@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's facepipe, however it is run
 
 from facepipe.appearance_sample import key_and_fill, make_scene, neck_pivot, other_light, render_frame, skin_texture
-from facepipe.core import appearance as ap
+from facepipe.core import appearance as ap, lighting
 from facepipe.io.camera_file import read_camera
 from facepipe.io.config import load_config
 from facepipe.io.footage import to_gray
@@ -58,7 +58,7 @@ def main() -> None:
     ap_ = argparse.ArgumentParser()
     ap_.add_argument("--out", default="/tmp/ict_appearance", help="bench/appearance_ict.py's folder")
     ap_.add_argument("--json", default="bench/appearance_light.json")
-    ap_.add_argument("--light-model", choices=ap.LIGHT_MODELS, default=None,
+    ap_.add_argument("--light-model", choices=lighting.LIGHT_MODELS, default=None,
                      help="the light the model divides out (default: the config's, else facepipe's default)")
     args = ap_.parse_args()
     out = Path(args.out)

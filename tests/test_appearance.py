@@ -509,7 +509,7 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
     import cv2
 
     from facepipe.io.appearance_file import load_appearance, read_light, read_stream
-    from facepipe.core.appearance import sh_basis
+    from facepipe.core.lighting import sh_basis
     from facepipe.pipeline.appearance import point_normals, skin_texels, texel_map, texel_shading, unwrap
 
     cls = kit / "cls_take_turned"
@@ -1045,7 +1045,7 @@ def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
 
 
 def test_classify_reports_its_speed_and_the_streams_bit_rate(kit, tmp_path, capsys):
-    from facepipe.core.appearance import light_bits, stream_bits
+    from facepipe.core.layered_texture import light_bits, stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, read_light, read_stream
 
     out = tmp_path / "cls"

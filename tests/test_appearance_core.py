@@ -5,11 +5,12 @@ import pytest
 from scipy import ndimage
 from scipy.stats import spearmanr
 
-from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, RegionBank, classify_regions, bilinear_sample, classify, coefficient_weights,
-                                      compose_texture, facing, haar_coefficients, haar_matrix, hold_and_decay, drop_short_events,
-                                      layer_lookup, match_distances, normalise_patches, peak_index, region_alpha, segment_index,
-                                      PEAK_INTERPOLATIONS,
-                                      select_coefficients, rest_floor, above_rest)
+from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, PEAK_INTERPOLATIONS, RegionBank, above_rest,
+                                      bilinear_sample, classify, classify_regions, coefficient_weights,
+                                      drop_short_events, facing, haar_coefficients, haar_matrix, hold_and_decay,
+                                      match_distances, normalise_patches, peak_index, rest_floor, segment_index,
+                                      select_coefficients)
+from facepipe.core.layered_texture import compose_texture, layer_lookup, region_alpha
 
 
 def test_haar_2x2_by_hand():
@@ -299,7 +300,7 @@ def test_numpy_projection_matches_opencv(distortion):
 
 
 def test_light_fit_recovers_a_lambertian_light_despite_outliers():
-    from facepipe.core.appearance import fit_light, light_shading, sh_basis
+    from facepipe.core.lighting import fit_light, light_shading, sh_basis
 
     rng = np.random.default_rng(8)
     normals = rng.normal(size=(3000, 3))
@@ -319,7 +320,7 @@ def test_light_fit_recovers_a_lambertian_light_despite_outliers():
 
 
 def test_light_shading_as_a_quadratic_form_is_the_basis_product():
-    from facepipe.core.appearance import sh_basis, sh_quadratic
+    from facepipe.core.lighting import sh_basis, sh_quadratic
 
     rng = np.random.default_rng(10)
     normals = rng.normal(size=(4, 50, 3))
@@ -329,7 +330,7 @@ def test_light_shading_as_a_quadratic_form_is_the_basis_product():
 
 
 def test_light_fit_with_too_few_points_is_uniform():
-    from facepipe.core.appearance import fit_light, light_shading
+    from facepipe.core.lighting import fit_light, light_shading
 
     normals = np.tile([0.0, 0.0, -1.0], (30, 1))
     values = np.full(30, np.nan)
@@ -339,7 +340,7 @@ def test_light_fit_with_too_few_points_is_uniform():
 
 
 def test_light_fit_of_frames_at_once_matches_one_by_one():
-    from facepipe.core.appearance import fit_light
+    from facepipe.core.lighting import fit_light
 
     rng = np.random.default_rng(9)
     normals = rng.normal(size=(3, 400, 3))
@@ -361,7 +362,7 @@ def _faces_of_a_head(rng, count):
 
 
 def test_point_shading_is_lamberts_cosine_clamped_at_zero():
-    from facepipe.core.appearance import light_shading, point_shading
+    from facepipe.core.lighting import light_shading, point_shading
 
     light = np.array([0.2, 0.0, 0.0, -0.8])  # ambient 0.2, a light of strength 0.8 towards the camera
     normals = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 1.0], [np.sin(0.5), 0.0, -np.cos(0.5)], [1.0, 0.0, 0.0]])
@@ -372,7 +373,7 @@ def test_point_shading_is_lamberts_cosine_clamped_at_zero():
 
 @pytest.mark.parametrize("fill", [None, [-0.25, -0.1, -0.2]])
 def test_point_light_fit_recovers_a_key_and_a_fill_light_despite_outliers(fill):
-    from facepipe.core.appearance import fit_light, fit_point_light, point_shading, sh_basis
+    from facepipe.core.lighting import fit_light, fit_point_light, point_shading, sh_basis
 
     rng = np.random.default_rng(12)
     normals = _faces_of_a_head(rng, 3000)
@@ -394,7 +395,7 @@ def test_point_light_fit_recovers_a_key_and_a_fill_light_despite_outliers(fill):
 
 
 def test_point_light_fit_of_frames_at_once_matches_one_by_one():
-    from facepipe.core.appearance import fit_point_light, point_shading
+    from facepipe.core.lighting import fit_point_light, point_shading
 
     rng = np.random.default_rng(13)
     normals = np.stack([_faces_of_a_head(rng, 500) for _ in range(4)])
@@ -599,7 +600,7 @@ def test_unseen_texels_continue_the_texture_around_them():
     """Push-pull fill: seen texels untouched, a constant kept exactly (to float32), a hole in a
     linear ramp filled close to the ramp and within the values at its border, a hole's fill
     nearer the colour beside it than the image's mean (what a flat fill gives)."""
-    from facepipe.core.appearance import fill_unseen
+    from facepipe.core.layered_texture import fill_unseen
 
     rng = np.random.default_rng(1)
     image = rng.uniform(size=(37, 53, 3))
@@ -704,7 +705,7 @@ def test_config_offers_the_interpolations_classification_knows():
 
 
 def test_config_offers_the_light_models_classification_knows():
-    from facepipe.core.appearance import LIGHT_MODELS
+    from facepipe.core.lighting import LIGHT_MODELS
     from facepipe.io.config import LIGHT_MODELS as offered
 
     assert offered == LIGHT_MODELS

@@ -99,7 +99,7 @@ def write_cards_obj(path: Path, model) -> Path:
 
 
 def classify_command(model_path, footage, geometry_path, output, fps, rep):
-    from facepipe.core.appearance import light_bits, stream_bits
+    from facepipe.core.layered_texture import light_bits, stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
     from facepipe.io.footage import frames_at, open_footage
     from facepipe.pipeline.appearance import classify_frames, take_geometry

@@ -4,7 +4,7 @@ Input: a folder written by ``facepipe appearance classify`` (``appearance.csv``:
 per region; ``light.csv``: each frame's light; ``appearance.json``: the appearance model's and the
 geometry's paths), or a replay folder it was classified into. Per frame the texture is the
 neutral texture with every region's volume looked up trilinearly at its Q
-(:func:`facepipe.core.appearance.compose_texture`), in the rest mesh's UV layout at the model's
+(:func:`facepipe.core.layered_texture.compose_texture`), in the rest mesh's UV layout at the model's
 ``texture_size`` (the layers' own resolution: ``--resolution`` does not apply). A model that holds
 albedo (built with a light fit) gives the texture as the camera saw it: the layered albedo times
 the shading of the frame's own geometry under the frame's light
@@ -29,7 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from facepipe.core.appearance import light_bits, stream_bits
+from facepipe.core.layered_texture import light_bits, stream_bits
 from facepipe.errors import InputError
 from facepipe.export.common import check_targets, frame_paths, remove_partial_files
 from facepipe.export.registry import ExportOptions

@@ -68,7 +68,7 @@ class AppearanceModel:
     peak_interpolation : how Q is read from a patch's match distances
     (:data:`facepipe.core.appearance.PEAK_INTERPOLATIONS`; models before it: ``parabola``);
     light_model : the light the templates' and each frame's shading are modelled by
-    (:data:`facepipe.core.appearance.LIGHT_MODELS`; models before it: ``sh9``), and with
+    (:data:`facepipe.core.lighting.LIGHT_MODELS`; models before it: ``sh9``), and with
     ``point`` light_point_albedo (K,) : the light points' albedo under it. ``light_albedo`` is
     theirs under the nine-term light, which the stream and the textures carry whichever it is.
     """
@@ -233,7 +233,8 @@ def load_appearance(path):
                                str(d["peak_interpolation"]) if "peak_interpolation" in d else "parabola",
                                float(s[7]) if len(s) > 7 else 0.0,
                                str(d["light_model"]) if "light_model" in d else "sh9", d.get("light_point_albedo"))
-        from facepipe.core.appearance import LIGHT_MODELS, PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
+        from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
+        from facepipe.core.lighting import LIGHT_MODELS
 
         if not (np.isfinite(model.min_event) and model.min_event >= 0):
             raise ValueError(f"min_event {model.min_event} is not a duration ≥ 0")

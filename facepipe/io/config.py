@@ -183,7 +183,7 @@ _REGION_OPTIONAL = {"card", "shading_surface"}
 SHADING_SURFACES = ("auto", "plane", "quadratic")
 #: The values of ``peak_interpolation`` (facepipe.core.appearance.PEAK_INTERPOLATIONS).
 PEAK_INTERPOLATIONS = ("segment", "parabola")
-#: The values of ``light_model`` (facepipe.core.appearance.LIGHT_MODELS).
+#: The values of ``light_model`` (facepipe.core.lighting.LIGHT_MODELS).
 LIGHT_MODELS = ("point", "sh9")
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
 # a default value to show in a hint, for the keys of the tables without a dataclass

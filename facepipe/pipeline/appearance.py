@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from facepipe.core import appearance as ap
+from facepipe.core import appearance as ap, layered_texture, lighting
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
 from facepipe.core.hole_cards import boundary_loops, hole_cards, stable_vertices
 from facepipe.core.occlusion import occluded_points
@@ -470,7 +470,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     neutral, seen = unwrap(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_face, texel_bary, camera,
                            min_facing=cfg.min_facing, normal_sign=normal_sign)
     # texels the neutral frame does not show (edge-on, behind the head) continue the skin around them
-    neutral = ap.fill_unseen(neutral, seen) if seen.any() else np.full_like(neutral, 0.5)
+    neutral = layered_texture.fill_unseen(neutral, seen) if seen.any() else np.full_like(neutral, 0.5)
     # the layout's other UDIM tiles (a head's scalp, neck, ears) hold no region: their neutral texture
     tiles = {t: _tile_neutral(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_map(corner_uv, S, t), camera,
                               cfg, normal_sign, np.median(neutral[seen], axis=0) if seen.any() else 0.5)
@@ -534,7 +534,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                                  path=config.path, hint="choose example frames where the region is in view")
             if light is not None:  # the example's own shading out: the templates hold the albedo's structure
                 normals = point_normals(cam_pos[f][None], faces, face[0], bary[0], normal_sign)[0]
-                values = values / ap.light_shading(normals, light["light"])
+                values = values / lighting.light_shading(normals, light["light"])
             patches.append(values.reshape(cfg.template_size, cfg.template_size))
         # the templates, and the coefficients kept, of the stable points alone: what rolls out of
         # view in some example (an eyelid into its socket) neither dominates the selection nor
@@ -630,7 +630,7 @@ def _tile_neutral(image: np.ndarray, neutral_cam: np.ndarray, faces: np.ndarray,
     the tile): {"texture", "seen", "texels"}."""
     texture, seen = unwrap(image, neutral_cam, faces, *texels, camera, min_facing=cfg.min_facing,
                            normal_sign=normal_sign)
-    texture = ap.fill_unseen(texture, seen) if seen.any() else np.broadcast_to(np.asarray(fill, dtype=np.float64),
+    texture = layered_texture.fill_unseen(texture, seen) if seen.any() else np.broadcast_to(np.asarray(fill, dtype=np.float64),
                                                                                  texture.shape).copy()
     return {"texture": texture.astype(np.float32), "seen": seen, "texels": texels}
 
@@ -651,7 +651,7 @@ def _neutral_albedo(model: AppearanceModel, texture: np.ndarray, seen: np.ndarra
     well_seen = seen & (_texel_facing(model, neutral_cam, texel_face, texel_bary, *everywhere)
                         > max(cfg.min_facing, cfg.min_point_facing))
     if well_seen.any():
-        albedo = np.where((skin & ~seen)[..., None], ap.fill_unseen(albedo, well_seen), albedo)
+        albedo = np.where((skin & ~seen)[..., None], layered_texture.fill_unseen(albedo, well_seen), albedo)
     return albedo
 
 
@@ -666,7 +666,7 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
 
     Each example frame's light is fitted as a classified frame's is (:func:`frame_light`). A
     layer's texels that its own frame does not show hold the neutral albedo; texels the neutral
-    frame does not show are filled (:func:`facepipe.core.appearance.fill_unseen`) from those it
+    frame does not show are filled (:func:`facepipe.core.layered_texture.fill_unseen`) from those it
     sees better than ``min_point_facing``. The cards' texels (an eye behind its opening) keep
     their values: a card's plane is not the surface the footage shows there. ``tiles``: the
     layout's other UDIM tiles (:func:`_tile_neutral` of each), whose neutral texture becomes
@@ -716,7 +716,7 @@ def skin_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
 def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, texel_face: np.ndarray,
                   texel_bary: np.ndarray, rows=slice(None), cols=slice(None)) -> np.ndarray:
     """(h, w, 3) the shading of the texels [rows, cols] on one frame's surface (V, 3), camera
-    space, under its light (12,): the grey light's (:func:`facepipe.core.appearance.light_shading`
+    space, under its light (12,): the grey light's (:func:`facepipe.core.lighting.light_shading`
     of its first nine values) times its colour (the last three; white for a light of nine); 1
     off the skin.
 
@@ -732,7 +732,7 @@ def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: n
         vn = model.normal_sign * vertex_normals(camera_positions[None], model.faces)
         normals = interpolation @ vn[0]
         normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-30)
-        shading = np.clip(ap.light_shading(normals, grey), *_fitted_shading_range(model, camera_positions, grey, vn))
+        shading = np.clip(lighting.light_shading(normals, grey), *_fitted_shading_range(model, camera_positions, grey, vn))
         out[on] = shading[:, None] * colour
     return out
 
@@ -771,7 +771,7 @@ def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, 
     facing = (normals * -X).sum(axis=-1) > model.min_facing * np.linalg.norm(X, axis=-1)
     if not facing.any():
         return 0.0, np.inf
-    shading = ap.light_shading(normals[facing], light)
+    shading = lighting.light_shading(normals[facing], light)
     return float(shading.min()), float(shading.max())
 
 
@@ -785,7 +785,7 @@ def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.nd
     :func:`texel_map` where already made."""
     tile = model.tile if tile is None else tile
     if tile == model.tile:
-        texture = ap.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
+        texture = layered_texture.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
     else:
         k = model.extra_tiles.index(tile)
         texture = model.tile_albedo[k] if model.albedo else model.tile_neutral[k]
@@ -915,7 +915,7 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
     with their albedo under it (grey, and colour: RGB over the grey shading).
 
     ``light`` is the light the templates are divided by, under ``light_model``
-    (:data:`facepipe.core.appearance.LIGHT_MODELS`). ``albedo`` and ``colour`` are derived under
+    (:data:`facepipe.core.lighting.LIGHT_MODELS`). ``albedo`` and ``colour`` are derived under
     the nine-term light, which the stream and the textures carry; with the point light also
     ``point_albedo``, under it: each light is fitted over the albedo its own model gives."""
     rows, cols = np.nonzero(seen & (texel_face >= 0))
@@ -930,16 +930,16 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
     def scaled(light):
         # the neutral frame's shading 1 on the median texel: the albedo it gives (and the layers')
         # is about as bright as the footage, in the range images hold
-        return light / float(np.median(ap.light_shading(normals, light)))
+        return light / float(np.median(lighting.light_shading(normals, light)))
 
-    light = scaled(ap.fit_light(lum, np.ones(len(lum)), normals))
-    shading = ap.light_shading(normals, light)
+    light = scaled(lighting.fit_light(lum, np.ones(len(lum)), normals))
+    shading = lighting.light_shading(normals, light)
     keep = slice(0, min(samples, len(rows)))
     out = {"light": light, "face": face[keep].astype(np.int64), "bary": bary[keep], "albedo": (lum / shading)[keep],
            "colour": (neutral[rows, cols] / shading[:, None])[keep], "point_albedo": None}
     if light_model == "point":
-        out["light"] = scaled(ap.fit_point_light(lum, np.ones(len(lum)), normals, start=light))
-        out["point_albedo"] = (lum / ap.light_shading(normals, out["light"]))[keep]
+        out["light"] = scaled(lighting.fit_point_light(lum, np.ones(len(lum)), normals, start=light))
+        out["point_albedo"] = (lum / lighting.light_shading(normals, out["light"]))[keep]
     return out
 
 
@@ -960,7 +960,7 @@ def _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face
                                cfg.min_facing, normal_sign)
         layers.append(np.where(seen[..., None], colours, neutral[rows, cols]))
         seen_in.append(seen)
-    alpha = ap.region_alpha(mask[rows, cols], cfg.ramp)
+    alpha = layered_texture.region_alpha(mask[rows, cols], cfg.ramp)
     return np.stack(layers), alpha, (rows.start, cols.start), np.stack(seen_in)
 
 
@@ -1247,12 +1247,12 @@ def _light_point_values(images: np.ndarray, points) -> np.ndarray:
 
 def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, points=None
                  ) -> np.ndarray:
-    """(F, 9) each frame's grey light, fitted (:func:`facepipe.core.appearance.fit_light`) over the
+    """(F, 9) each frame's grey light, fitted (:func:`facepipe.core.lighting.fit_light`) over the
     model's light points: their albedo known, their normals from the frame's geometry (F, V, 3,
     camera space), their values sampled from its luminance (F, H, W) where in the image and facing
     the camera. ``points``: :func:`_light_points` of these frames where already computed."""
     points = _light_points(camera_positions, model) if points is None else points
-    return ap.fit_light(_light_point_values(grays, points), model.light_albedo, points[0])
+    return lighting.fit_light(_light_point_values(grays, points), model.light_albedo, points[0])
 
 
 def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, lights: np.ndarray,
@@ -1270,7 +1270,7 @@ def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: Appea
     for f in range(len(images)):
         seen = np.isfinite(values[f]).all(axis=-1)
         if seen.sum() >= 27:  # as many as a light fit needs
-            predicted = model.light_colour[seen] * ap.light_shading(normals[f][seen], lights[f])[:, None]
+            predicted = model.light_colour[seen] * lighting.light_shading(normals[f][seen], lights[f])[:, None]
             out[f] = np.median(values[f][seen] / np.maximum(predicted, 1e-6), axis=0)
     return out
 
@@ -1294,15 +1294,15 @@ def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: Appear
     vn, local = stencil
     points = _light_points(camera_positions, model, stencil)
     values = _light_point_values(grays, points)
-    light = ap.fit_light(values, model.light_albedo, points[0])  # (F, 9): the stream's light (frame_lights)
+    light = lighting.fit_light(values, model.light_albedo, points[0])  # (F, 9): the stream's light (frame_lights)
     # the templates' shading under the model's own light (a point light's terminator is a kink nine terms round off)
-    shading_light = ap.fit_point_light(values, model.light_point_albedo, points[0], start=light) \
+    shading_light = lighting.fit_point_light(values, model.light_point_albedo, points[0], start=light) \
         if model.light_model == "point" else light
     if images is not None:
         light = np.concatenate([light, frame_colours(images, camera_positions, model, light, points)], axis=1)
     t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
                               vn)  # (F, R, 5, N, 3)
-    out = np.stack([ap.light_shading(t_normals[f], shading_light[f]) for f in range(len(grays))])
+    out = np.stack([lighting.light_shading(t_normals[f], shading_light[f]) for f in range(len(grays))])
     s = model.template_size
     return out.reshape(out.shape[:3] + (s, s)), t_normals, light
 
