@@ -41,8 +41,10 @@ from facepipe.io.camera_file import read_camera
 from facepipe.io.config import load_config
 from facepipe.io.footage import open_footage, read_frames, to_gray
 from facepipe.io.mesh_read import load_mesh, load_vertices
-from facepipe.pipeline.appearance import (_read_geometry, build_appearance, classify_decoded, classify_frames,
-                                          region_bank, texel_map, texture_differences)
+from facepipe.pipeline.appearance import _read_geometry, classify_decoded, classify_frames, region_bank
+from facepipe.pipeline.appearance_build import build_appearance
+from facepipe.pipeline.appearance_points import texel_map
+from facepipe.pipeline.appearance_texture import texture_differences
 
 KIT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict"
 TAKES = {"train": KIT / "train_truth.npz", "video": KIT / "video" / "video_truth.npz", "sweep": None}

@@ -29,7 +29,10 @@ from facepipe.io.camera_file import read_camera
 from facepipe.io.config import load_config
 from facepipe.io.footage import to_gray
 from facepipe.io.mesh_read import load_mesh
-from facepipe.pipeline import appearance as pa
+from facepipe.pipeline.appearance import region_bank
+from facepipe.pipeline.appearance_build import build_appearance
+from facepipe.pipeline.appearance_light import frame_shading
+from facepipe.pipeline.appearance_points import sample_template_frames, template_positions
 
 KIT = Path(__file__).resolve().parents[2] / "shared" / "data" / "ict"
 YAWS = (-15.0, -7.5, 0.0, 7.5, 15.0)
@@ -43,9 +46,9 @@ def _yaw(world: np.ndarray, degrees: float, pivot: np.ndarray) -> np.ndarray:
 
 def rest_readings(model, gray: np.ndarray, camera_positions: np.ndarray, scene, bank) -> dict:
     """Raw Q (R,) of one frame with the fitted shading and with the scene's exact shading."""
-    points = pa.template_positions(camera_positions, model)
-    patches, _, seen = pa.sample_template_frames(gray, camera_positions, model, points)
-    fitted, normals, _ = pa.frame_shading(gray, camera_positions, model)
+    points = template_positions(camera_positions, model)
+    patches, _, seen = sample_template_frames(gray, camera_positions, model, points)
+    fitted, normals, _ = frame_shading(gray, camera_positions, model)
     exact = scene.shading(normals).reshape(fitted.shape)  # the renderer's, at the template points' normals
     out = {}
     for name, shading in (("fitted", fitted), ("exact", exact)):
@@ -68,13 +71,13 @@ def main() -> None:
     config = load_config(out / "appearance.toml")
     if args.light_model is not None:
         config.appearance.light_model = args.light_model
-    model, _ = pa.build_appearance(config, mesh, read_camera(config.appearance.camera))
+    model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
     model.rest_floor = None  # the raw reading
     surface = [r for r, region in enumerate(config.appearance.regions) if not region.card]  # no eyeballs drawn here
     texture_size = int(config.appearance.texture_size)
     skin = skin_texture(texture_size, 0)  # the kit's skin (seed 0): the neutral texture
     scene = make_scene(mesh.vertices, model.camera.width)
-    bank = pa.region_bank(model)
+    bank = region_bank(model)
     corner_uv = mesh.uvs[mesh.face_uvs]
     pivot = neck_pivot(mesh.vertices)
     rows = []

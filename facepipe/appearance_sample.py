@@ -103,7 +103,7 @@ def uv_scales(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray) -> np.
 
 def _template_inside(box, mask: np.ndarray) -> bool:
     """Whether a template rectangle and its half-step offsets lie on texels of ``mask`` (the region)."""
-    from facepipe.pipeline.appearance import template_points  # the points the config's template becomes
+    from facepipe.pipeline.appearance_points import template_points  # the points the config's template becomes
 
     n = mask.shape[0]
     pts = template_points(box, 16).reshape(-1, 2)
@@ -151,7 +151,7 @@ def region_layout(rest: np.ndarray, faces: np.ndarray, corner_uv: np.ndarray, di
     """
     from scipy import ndimage
 
-    from facepipe.pipeline.appearance import texel_map
+    from facepipe.pipeline.appearance_points import texel_map
 
     mag = np.linalg.norm(displacements, axis=-1)  # (R, V)
     owner = np.argmax(mag, axis=0)

@@ -510,7 +510,8 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
 
     from facepipe.io.appearance_file import load_appearance, read_light, read_stream
     from facepipe.core.lighting import sh_basis
-    from facepipe.pipeline.appearance import point_normals, skin_texels, texel_map, texel_shading, unwrap
+    from facepipe.pipeline.appearance_points import point_normals, texel_map, unwrap
+    from facepipe.pipeline.appearance_texture import skin_texels, texel_shading
 
     cls = kit / "cls_take_turned"
     if not (cls / "appearance.csv").is_file():
@@ -565,7 +566,8 @@ def test_a_layout_on_two_udim_tiles_exports_a_texture_per_tile(kit, tmp_path):
     from facepipe.io.appearance_file import load_appearance, read_light, read_stream
     from facepipe.io.mesh_read import load_mesh
     from facepipe.core.raster import udim_tile_numbers
-    from facepipe.pipeline.appearance import frame_texture, texel_map, unwrap
+    from facepipe.pipeline.appearance_points import texel_map, unwrap
+    from facepipe.pipeline.appearance_texture import frame_texture
 
     mesh = load_mesh(kit / "neutral.obj")
     faces, corner = mesh.faces, mesh.face_uvs
@@ -717,8 +719,10 @@ def test_the_neutral_frame_rebuilt_from_its_albedo_is_its_texture(kit):
     texture as the footage showed it, on every skin texel that frame shows well (not edge-on)."""
     from facepipe.io.appearance_file import load_appearance
     from facepipe.io.config import load_config
-    from facepipe.pipeline.appearance import (_read_geometry, _texel_facing, frame_light, frame_texture,
-                                              skin_texels, texel_map, unwrap)
+    from facepipe.pipeline.appearance import _read_geometry
+    from facepipe.pipeline.appearance_light import frame_light
+    from facepipe.pipeline.appearance_points import texel_map, unwrap
+    from facepipe.pipeline.appearance_texture import _texel_facing, frame_texture, skin_texels
 
     model = load_appearance(kit / "app.npz")
     cfg = load_config(kit / "appearance" / "appearance.toml").appearance
@@ -768,7 +772,9 @@ def test_reconstructed_texture_is_closer_to_the_frames_than_neutral(kit):
     # relative to the neutral texture's difference, over the regions' texels
     from facepipe.io.appearance_file import load_appearance, read_light, read_stream
     from facepipe.io.mesh_read import load_mesh
-    from facepipe.pipeline.appearance import _read_geometry, texel_map, texture_differences
+    from facepipe.pipeline.appearance import _read_geometry
+    from facepipe.pipeline.appearance_points import texel_map
+    from facepipe.pipeline.appearance_texture import texture_differences
 
     model = load_appearance(kit / "app.npz")
     mesh = load_mesh(kit / "neutral.obj")

@@ -3,7 +3,7 @@
 import numpy as np
 
 from facepipe.appearance_sample import region_layout, uv_scales
-from facepipe.pipeline.appearance import locate_uv, template_points
+from facepipe.pipeline.appearance_points import locate_uv, template_points
 
 
 def _grid(n=41, hole=None, stretch=(1.0, 1.0)):

@@ -1,4 +1,4 @@
-"""The template points every example shows well (facepipe.pipeline.appearance.well_seen_points)
+"""The template points every example shows well (facepipe.pipeline.appearance_points.well_seen_points)
 against a brute-force computation on a small synthetic surface."""
 
 import cv2
@@ -7,7 +7,7 @@ import pytest
 
 from facepipe.core.camera import Camera
 from facepipe.core.occlusion import segment_hits
-from facepipe.pipeline.appearance import locate_uv, template_points, well_seen_points
+from facepipe.pipeline.appearance_points import locate_uv, template_points, well_seen_points
 
 
 def _sheet(n: int = 24):
@@ -88,7 +88,7 @@ def test_well_seen_points_equal_brute_force(min_facing, relative, margin):
 def test_seen_fraction_counts_each_regions_stable_points():
     from types import SimpleNamespace
 
-    from facepipe.pipeline.appearance import seen_fraction
+    from facepipe.pipeline.appearance_points import seen_fraction
 
     rng = np.random.default_rng(3)
     F, R, N = 6, 3, 16  # frames and regions of different counts: a region's own stable set divides

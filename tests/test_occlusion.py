@@ -84,7 +84,7 @@ def test_tolerance_and_points_behind_camera():
 def test_point_facing_of_a_tilted_plane():
     # a square facing the camera, then turned 60° about the vertical: the cosine is 1, then 0.5
     # (at the centre, where the direction to the camera is the optical axis)
-    from facepipe.pipeline.appearance import point_facing
+    from facepipe.pipeline.appearance_points import point_facing
 
     v = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
     faces = np.array([[0, 1, 2], [0, 2, 3]])

@@ -22,7 +22,7 @@ def build_command(config_path, output, rep, write_json) -> dict:
     from facepipe.io.camera_file import read_camera
     from facepipe.io.config import load_config
     from facepipe.io.mesh_read import load_mesh
-    from facepipe.pipeline.appearance import build_appearance
+    from facepipe.pipeline.appearance_build import build_appearance
 
     config = load_config(config_path)
     if config.appearance is None:

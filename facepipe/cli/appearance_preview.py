@@ -1,6 +1,6 @@
 """``facepipe preview`` of a classified take (a folder with ``appearance.csv``): per chosen frame
 the input frame and the face rendered through the same camera with that frame's texture
-(:func:`facepipe.pipeline.appearance.frame_texture`: the layered albedo at its Q shaded by the
+(:func:`facepipe.pipeline.appearance_texture.frame_texture`: the layered albedo at its Q shaded by the
 frame's geometry under its light, or a model's layers as the footage showed them) over the input frame,
 side by side over the face's window of the image; below them the Q curves of every region over
 the take, the shown frames marked. The footage, geometry and model are the ones ``appearance.json`` names.
@@ -20,7 +20,9 @@ from facepipe.errors import InputError
 from facepipe.io.appearance_file import load_appearance, read_light, read_stream
 from facepipe.io.footage import frames_at, open_footage, read_frames_of
 from facepipe.core.raster import udim_corner, udim_tile_numbers
-from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
+from facepipe.pipeline.appearance import take_geometry
+from facepipe.pipeline.appearance_points import texel_map
+from facepipe.pipeline.appearance_texture import frame_texture
 
 __all__ = ["render_appearance_preview", "is_classified", "over_footage"]
 

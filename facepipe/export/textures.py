@@ -8,7 +8,7 @@ neutral texture with every region's volume looked up trilinearly at its Q
 ``texture_size`` (the layers' own resolution: ``--resolution`` does not apply). A model that holds
 albedo (built with a light fit) gives the texture as the camera saw it: the layered albedo times
 the shading of the frame's own geometry under the frame's light
-(:func:`facepipe.pipeline.appearance.frame_texture`); ``--layer albedo`` writes the albedo alone,
+(:func:`facepipe.pipeline.appearance_texture.frame_texture`); ``--layer albedo`` writes the albedo alone,
 for a renderer that lights the face itself. The textures are rebuilt from the stream as written
 (to four decimals), so what the files show is what a receiver of the stream would render.
 
@@ -37,7 +37,9 @@ from facepipe.io.appearance_file import (STREAM_DECIMALS, format_light, format_s
                                          read_stream)
 from facepipe.io.atomic import atomic_path
 from facepipe.io.exr import write_exr
-from facepipe.pipeline.appearance import frame_texture, take_geometry, texel_map
+from facepipe.pipeline.appearance import take_geometry
+from facepipe.pipeline.appearance_points import texel_map
+from facepipe.pipeline.appearance_texture import frame_texture
 
 __all__ = ["export_textures", "write_texture"]
 

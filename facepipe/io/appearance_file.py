@@ -53,7 +53,7 @@ class AppearanceModel:
     neutral_albedo : (S, S, 3) the neutral texture with its frame's shading divided out, and then
     the volumes hold albedo too (each layer divided by its own frame's shading): a frame's texture
     is the layered albedo times the shading of the frame's own geometry under its light
-    (:func:`facepipe.pipeline.appearance.frame_texture`); None (models before it, or built
+    (:func:`facepipe.pipeline.appearance_texture.frame_texture`); None (models before it, or built
     without a light fit): the volumes hold the footage's values, shading included;
     light_colour : (K, 3) the light points' RGB albedo (their colour under the grey light), over
     which a frame's light colour is measured (None: a white light);
