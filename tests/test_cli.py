@@ -314,19 +314,20 @@ def test_bad_inputs_of_the_checking_commands(pipeline, tmp_path, capsys):
 def test_replay_reports_novelty_fits_stopped_by_their_cap(pipeline, tmp_path, monkeypatch):
     """A gate whose non-negative fits neither converge within their cap nor are finished by the
     exact solver says how many in replay.json (0 when all converged), on both backends."""
-    from facepipe.core import psd
+    from facepipe.core import novelty as novelty_module
+    from facepipe.core.novelty import NoveltyGate
 
     converged = json.loads((pipeline / "out" / "replay.json").read_text())
     assert converged["novelty_fits_at_cap"] == 0
-    novelty = psd.NoveltyGate.novelty
-    monkeypatch.setattr(psd.NoveltyGate, "novelty",
+    novelty = NoveltyGate.novelty
+    monkeypatch.setattr(NoveltyGate, "novelty",
                         lambda self, f, displacements=None, tolerance=1e-14, max_iterations=2, settled=None:
                         novelty(self, f, displacements, tolerance, max_iterations))  # no fit settles early
 
     def exact_solver_gives_up(*args, **kwargs):
         raise RuntimeError("Maximum number of iterations reached.")
 
-    monkeypatch.setattr(psd, "nnls", exact_solver_gives_up)
+    monkeypatch.setattr(novelty_module, "nnls", exact_solver_gives_up)
     for backend in ("numpy", "opencl"):
         out = tmp_path / backend
         code = run("replay", pipeline / "rig" / "take.csv", "-m", pipeline / "model.npz", "-o", out, "--backend",

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facepipe.core.psd import CONFIDENCE_TOLERANCE
+from facepipe.core.novelty import CONFIDENCE_TOLERANCE
 from facepipe.core.edits import HandleEdit, apply_edits
 from facepipe.editor.drag_patch import DragPatch
 from facepipe.editor.server import drag_messages, evaluation_message, make_app

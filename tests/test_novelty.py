@@ -5,8 +5,8 @@ import pytest
 from scipy.optimize import nnls
 
 from facepipe.pipeline.baselines import global_blend_weights, local_blend_operator, local_blend_positions
-from facepipe.core.psd import (CONFIDENCE_TOLERANCE, edge_distances, edge_weight_matrix, fit_details, novelty_batched_steps,
-                              novelty_gate)
+from facepipe.core.psd import edge_weight_matrix, fit_details
+from facepipe.core.novelty import CONFIDENCE_TOLERANCE, edge_distances, novelty_batched_steps, novelty_gate
 
 
 def _graph(F=30, seed=0):
@@ -137,7 +137,7 @@ def test_fits_stopped_by_the_cap_are_finished_exactly(monkeypatch):
 
 
 def test_novelty_fits_left_unconverged_are_counted_and_logged(caplog, monkeypatch):
-    from facepipe.core import psd
+    from facepipe.core import novelty
 
     gate, queries = _overlapping_gate()
     capped = gate.novelty_fit(queries, tolerance=1e-14, max_iterations=3, finish_exactly=False)
@@ -145,8 +145,8 @@ def test_novelty_fits_left_unconverged_are_counted_and_logged(caplog, monkeypatc
     def exact_solver_gives_up(*args, **kwargs):
         raise RuntimeError("Maximum number of iterations reached.")
 
-    monkeypatch.setattr(psd, "nnls", exact_solver_gives_up)
-    with caplog.at_level(logging.WARNING, logger="facepipe.core.psd"):
+    monkeypatch.setattr(novelty, "nnls", exact_solver_gives_up)
+    with caplog.at_level(logging.WARNING, logger="facepipe.core.novelty"):
         rho = gate.novelty(queries, tolerance=1e-14, max_iterations=3)
     assert np.array_equal(rho, capped.rho)
     assert gate.unconverged_fits == capped.unconverged
@@ -154,7 +154,7 @@ def test_novelty_fits_left_unconverged_are_counted_and_logged(caplog, monkeypatc
     # converged fits add nothing and say nothing
     monkeypatch.undo()
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="facepipe.core.psd"):
+    with caplog.at_level(logging.WARNING, logger="facepipe.core.novelty"):
         gate.novelty(queries)
     assert gate.unconverged_fits == capped.unconverged and not caplog.text
 

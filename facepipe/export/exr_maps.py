@@ -249,7 +249,7 @@ def gate_deviation(model, head: np.ndarray, coeff: np.ndarray, weights: np.ndarr
     """How far the blend is from the model's details when a novelty gate fades them.
 
     A gated model multiplies its details by a per-vertex confidence that depends on the
-    frame's strain (:class:`facepipe.core.psd.NoveltyGate`): a per-vertex, per-frame factor that no
+    frame's strain (:class:`facepipe.core.novelty.NoveltyGate`): a per-vertex, per-frame factor that no
     frame-constant blend of maps carries. The wrinkle set holds the ungated blend; this
     measures, at the vertices, what that leaves out.
 

@@ -19,7 +19,8 @@ from facepipe.io.atomic import atomic_path
 from facepipe.io.npz_file import open_npz
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
-from facepipe.core.psd import DetailModel, NoveltyGate, edge_weight_matrix
+from facepipe.core.psd import DetailModel, edge_weight_matrix
+from facepipe.core.novelty import NoveltyGate
 from facepipe.core.strain_details import DEFAULT_RIDGE, StrainDetailModel
 
 FORMAT_VERSION = 1

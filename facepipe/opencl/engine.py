@@ -251,7 +251,7 @@ class OpenCLEvaluator:
         self.edges = model.edges.astype(np.int64)
         self.rest_lengths = model.rest_lengths.astype(np.float64)
         self.basis = model.basis_features.astype(np.float64)
-        # the novelty gate (psd.NoveltyGate) scales the details by a per-vertex confidence α · s(f)
+        # the novelty gate (novelty.NoveltyGate) scales the details by a per-vertex confidence α · s(f)
         # over per-site factors s: the host computes s per frame, the kernel the α-weighted sum
         self.gate = None
         if method not in ("none", "local_strain") and float(model.meta.get("novelty_tau", 0) or 0) > 0:

@@ -18,7 +18,9 @@ from facepipe.errors import InputError
 from facepipe.io.config import Config, load_config
 from facepipe.parallel import serial_blas
 from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, vertex_face_matrix
-from facepipe.core.psd import (DetailModel, NoveltyGate, default_beta, edge_distances, edge_weight_matrix, fit_details, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
+from facepipe.core.psd import (DetailModel, default_beta, edge_weight_matrix, fit_details, greedy_basis, rms_per_pose,
+                               spread_subset, wpsd_edge_weights)
+from facepipe.core.novelty import NoveltyGate, edge_distances, novelty_gate
 from facepipe.core.rbf_morph import multiquadric_basis, phantom_points
 from facepipe.pipeline.rig import Rig, load_rig
 from facepipe.core.shell import ShellBasis, large_scale_positions, marker_spacing, solve_shell_basis

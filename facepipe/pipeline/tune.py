@@ -40,7 +40,8 @@ import scipy.sparse as sp
 
 from facepipe.errors import InputError
 from facepipe.parallel import map_blocks, serial_blas
-from facepipe.core.psd import (edge_distances, edge_weight_matrix, greedy_basis, novelty_gate, rms_per_pose, spread_subset, wpsd_edge_weights)
+from facepipe.core.psd import edge_weight_matrix, greedy_basis, rms_per_pose, spread_subset, wpsd_edge_weights
+from facepipe.core.novelty import edge_distances, novelty_gate
 from facepipe.core.shell import ShellParts, marker_spacing, shell_displacements
 from facepipe.core.tangent_frames import FramePatch, frame_neighbors, to_local
 from facepipe.core.strain import edge_graph
