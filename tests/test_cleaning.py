@@ -16,7 +16,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from facepipe.mocap.cleaning import (CleanOptions, clean_take, find_jumps, fit_pose_expression, noise_sigma, rotation_from_vector)
+from facepipe.core.rigid import rotation_from_vector
+from facepipe.mocap.cleaning import CleanOptions, clean_take
+from facepipe.mocap.outliers import find_jumps, noise_sigma
+from facepipe.mocap.pose_expression import fit_pose_expression
 from facepipe.errors import InputError
 from facepipe.mocap import Take
 from facepipe.mocap.prepare import PrepareOptions, prepare_take, summary_lines
@@ -86,7 +89,7 @@ def test_fit_pose_expression_stops_each_frame_on_its_own(monkeypatch):
     """Each frame iterates until its step is below CONVERGED_STEP: a frame gets the same fit in a
     batch as alone, a converged frame stops (frames already at their fit take one step), and the
     result is what all the iterations would give (to round-off)."""
-    from facepipe.mocap import cleaning
+    from facepipe.mocap import pose_expression
 
     _, rest, basis, _, _ = make_rig()
     world, head, R, t, weights = make_truth(rest, basis)
@@ -102,14 +105,14 @@ def test_fit_pose_expression_stops_each_frame_on_its_own(monkeypatch):
             np.testing.assert_allclose(a[f], b[0], rtol=0, atol=1e-12)
     # frames already at their fit stop after one step
     steps = []
-    original = cleaning._normal_equations
-    monkeypatch.setattr(cleaning, "_normal_equations", lambda R, y, *rest_: steps.append(len(y)) or original(R, y, *rest_))
+    original = pose_expression._normal_equations
+    monkeypatch.setattr(pose_expression, "_normal_equations", lambda R, y, *rest_: steps.append(len(y)) or original(R, y, *rest_))
     again = fit_pose_expression(world, *args, together[0], together[1], together[2], iterations=25, robust_scale=0.05)
     assert steps[0] == T and sum(steps) < 3 * T
     for a, b in zip(together, again):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
     # without the stop every frame takes every iteration: the same fit
-    monkeypatch.setattr(cleaning, "CONVERGED_STEP", -1.0)
+    monkeypatch.setattr(pose_expression, "CONVERGED_STEP", -1.0)
     steps.clear()
     every = fit_pose_expression(world, *args, R0, t0, iterations=25, robust_scale=0.05)
     assert sum(steps) == 25 * T
@@ -755,7 +758,7 @@ def test_active_set_step_resolves_only_the_frames_whose_set_changed():
     """The active-set step of a batch equals each frame's own (a weight at zero that its step would
     make negative leaves the set, the system is solved again), leaves the caller's set untouched,
     and solves again only the frames whose set changed."""
-    from facepipe.mocap import cleaning
+    from facepipe.mocap import pose_expression
 
     rng = np.random.default_rng(5)
     n, n_pose, K = 12, 6, 20
@@ -768,13 +771,13 @@ def test_active_set_step_resolves_only_the_frames_whose_set_changed():
     free = rng.random((n, K)) < 0.9
     free_before = free.copy()
     solved = []
-    original = cleaning._solve_active
+    original = pose_expression._solve_active
     cleaning_solve = lambda A_, g_, f_, p_: solved.append(len(A_)) or original(A_, g_, f_, p_)  # noqa: E731
     try:
-        cleaning._solve_active = cleaning_solve
-        step, out = cleaning._solve_active_set(A, g, C, free, n_pose, K)
+        pose_expression._solve_active = cleaning_solve
+        step, out = pose_expression._solve_active_set(A, g, C, free, n_pose, K)
     finally:
-        cleaning._solve_active = original
+        pose_expression._solve_active = original
     assert np.array_equal(free, free_before)
     passes = 0
     for i in range(n):  # each frame alone, by the rule
