@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import os
 import threading
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import contextmanager
-from typing import Callable, Iterable, TypeVar
+from typing import Callable, Iterable, Iterator, TypeVar
 
 from threadpoolctl import threadpool_limits
 
@@ -124,6 +125,37 @@ def map_blocks(function: Callable[[T], R], items: Iterable[T]) -> list[R]:
             future.cancel()
         wait(futures)
         raise
+
+
+def map_in_order(function: Callable[[T], R], items: Iterable[T], ahead: int | None = None) -> Iterator[R]:
+    """``function(item)`` for each item, yielded in the order of ``items`` as each is ready, on up
+    to :func:`thread_count` threads with at most ``ahead`` calls under way (default: twice the
+    threads): for a long stream whose results are consumed one by one (a movie's frames), the
+    memory of a few results, not of all.
+
+    A call that raises raises here when its turn comes, after the calls under way have finished
+    (those not started are cancelled); so does closing the generator early (a consumer that
+    stops). One thread, or a call from inside one of the workers, runs the items here, in order.
+    """
+    threads = thread_count()
+    if threads <= 1 or getattr(_in_worker, "active", False):
+        for item in items:
+            yield function(item)
+        return
+    executor = _shared_executor(threads)
+    ahead = max(1, 2 * threads if ahead is None else int(ahead))
+    pending = deque()
+    try:
+        for item in items:
+            pending.append(executor.submit(function, item))
+            if len(pending) >= ahead:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        for future in pending:
+            future.cancel()
+        wait(pending)
 
 
 @contextmanager

@@ -97,6 +97,54 @@ def test_map_blocks_raises_the_first_error_after_the_running_calls_end():
     assert running[0] == 0
 
 
+def test_map_in_order_yields_in_order_with_a_bounded_number_under_way():
+    """Results come in the order of the items; no more than ``ahead`` calls are under way or
+    done but not yet taken (a movie of thousands of frames keeps a few in memory); one thread
+    runs them here; an error comes at its turn, and closing the stream early leaves no call running."""
+    parallel.set_thread_count(3)
+    lock = threading.Lock()
+    state = {"started": 0, "taken": 0, "most": 0, "running": 0}
+
+    def work(i):
+        with lock:
+            state["started"] += 1
+            state["running"] += 1
+            state["most"] = max(state["most"], state["started"] - state["taken"])
+        threading.Event().wait(0.002 * (i % 3))  # finishing out of order
+        with lock:
+            state["running"] -= 1
+        return i * i
+
+    out = []
+    for value in parallel.map_in_order(work, range(50), ahead=4):
+        out.append(value)
+        with lock:
+            state["taken"] += 1
+    assert out == [i * i for i in range(50)]
+    assert state["most"] <= 4 + 1  # the ones under way and the one being handed over
+    # an error at its turn, the calls before it delivered
+    def fails_at_7(i):
+        if i == 7:
+            raise ValueError("7")
+        return i
+
+    got = []
+    with pytest.raises(ValueError, match="^7$"):
+        for value in parallel.map_in_order(fails_at_7, range(30)):
+            got.append(value)
+    assert got == list(range(7))
+    # a consumer that stops early: nothing left running
+    stream = parallel.map_in_order(work, range(100), ahead=6)
+    next(stream)
+    stream.close()
+    assert state["running"] == 0
+    # one thread: here, in order
+    parallel.set_thread_count(1)
+    idents = []
+    assert list(parallel.map_in_order(lambda i: idents.append(threading.get_ident()) or i, range(5))) == list(range(5))
+    assert set(idents) == {threading.get_ident()}
+
+
 def test_nested_blocks_run_in_their_worker():
     parallel.set_thread_count(2)
 

@@ -26,6 +26,7 @@ from facepipe.errors import InputError
 from facepipe.export.common import check_targets
 from facepipe.io.atomic import atomic_path
 from facepipe.io.outputs import check_output_path
+from facepipe.parallel import map_in_order
 from facepipe.pipeline.replay import NumpyEvaluator
 
 MOVIE_SUFFIXES = (".mp4", ".gif")
@@ -83,9 +84,11 @@ def render_movie(replay, model, path, *, truth_path=None, with_large: bool = Fal
             writer = imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=7,
                                         macro_block_size=1, pixelformat="yuv420p", ffmpeg_log_level="error")
         try:
-            for i in range(replay.n_frames):
-                image = _caption(frames.panels_of(i), frames.panels, int(replay.frame_numbers[i]),
-                                 float(replay.times[i]), frames.note, font)
+            # the panels are rendered on facepipe's threads (NumPy lets them run side by side), a few
+            # frames ahead of the writer; captions here (a font is not drawn with from two threads)
+            for i, panels in enumerate(map_in_order(frames.panels_of, range(replay.n_frames))):
+                image = _caption(panels, frames.panels, int(replay.frame_numbers[i]), float(replay.times[i]),
+                                 frames.note, font)
                 writer.append_data(image)
                 if bar is not None:
                     bar.update(1)
