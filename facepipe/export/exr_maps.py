@@ -53,6 +53,7 @@ import numpy as np
 from facepipe.io.atomic import atomic_open
 from facepipe.errors import InputError
 from facepipe.io.exr import write_exr
+from facepipe.parallel import map_in_order, thread_count
 from facepipe.export.common import check_targets, frame_paths, remove_partial_files
 from facepipe.export.registry import ExportOptions
 from facepipe.export.uv_raster import TiledRaster, mesh_raster, require_uvs
@@ -137,24 +138,35 @@ def write_displacement_maps(
                 progress(e - s)
             continue
         values = np.asarray(layer(s, e))
-        for t in range(s, e):
-            if t in todo:
-                v = values[t - s]
-                if not np.isfinite(v).all():
-                    bad = int(np.flatnonzero(~np.isfinite(v).all(axis=1))[0])
-                    raise InputError(f"frame {start + t} (index {t}) has non-finite displacements, first vertex {bad}",
-                                     path=next(iter(paths[t].values())),
-                                     hint="check the replay report for that frame; the maps before it are written")
-                attrs = dict(attributes or {})
-                if frame_attributes is not None:
-                    attrs.update(frame_attributes(t))
-                images = raster(_channels(v, mode))
-                for tile, image in images.items():
-                    write_exr(paths[t][tile], image, half=half, attributes=dict(attrs, **{"facepipe/tile": tile}))
+        # a frame with non-finite values stops the export there: the frames before it are written
+        bad_frame = next((t for t in todo if not np.isfinite(values[t - s]).all()), None)
+        writing = todo if bad_frame is None else [t for t in todo if t < bad_frame]
+
+        def write_frame(t):
+            attrs = dict(attributes or {})
+            if frame_attributes is not None:
+                attrs.update(frame_attributes(t))
+            images = raster(_channels(values[t - s], mode))
+            for tile, image in images.items():
+                write_exr(paths[t][tile], image, half=half, attributes=dict(attrs, **{"facepipe/tile": tile}))
+            return images if check is not None else None
+
+        # frames are rastered and compressed on facepipe's threads (both let go of Python's lock),
+        # as many under way as there are threads (a 2048² frame's maps are a few hundred MB)
+        done = iter(map_in_order(write_frame, writing, ahead=thread_count()))
+        for t in range(s, e if bad_frame is None else bad_frame):
+            if t in writing:
+                images = next(done)
                 if check is not None:
-                    check.add(t, _channels(v, mode), images, np.float16 if half else np.float32)
+                    check.add(t, _channels(values[t - s], mode), images, np.float16 if half else np.float32)
             if progress is not None:
                 progress(1)
+        if bad_frame is not None:
+            v = values[bad_frame - s]
+            vertex = int(np.flatnonzero(~np.isfinite(v).all(axis=1))[0])
+            raise InputError(f"frame {start + bad_frame} (index {bad_frame}) has non-finite displacements, first "
+                             f"vertex {vertex}", path=next(iter(paths[bad_frame].values())),
+                             hint="check the replay report for that frame; the maps before it are written")
     if check is not None:
         report.update(check.result())
     return paths
