@@ -20,6 +20,7 @@ from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
 from facepipe.io.mesh_write import _format_rows, format_obj_faces, format_obj_header
 from facepipe.export.registry import ExportOptions
+from facepipe.parallel import map_in_order, thread_count
 
 FRAME_PREFIX = "frame_"
 
@@ -117,27 +118,44 @@ def write_obj_sequence(
     # the topology is the same in every frame: format it once
     tail = format_obj_header(mesh) + format_obj_faces(mesh)
     header = b"# facepipe OBJ sequence frame %d\n"
-    for t, path in enumerate(paths):
-        if resume and path.exists():
-            if progress is not None:
-                progress(1)
-            continue
-        frame = np.asarray(positions[t], dtype=np.float64)
-        if not np.isfinite(frame).all():
-            bad = np.flatnonzero(~np.isfinite(frame).all(axis=1))
-            raise InputError(
-                f"frame {start + t} (index {t}) has NaN or infinite positions at {len(bad)} vertices, "
-                f"first vertex {int(bad[0])}",
-                path=path,
-                hint="check the replay report for that frame (e.g. lost markers); frames before it "
-                     "are written",
-            )
-        with atomic_open(path, "wb") as fh:
-            fh.write(header % (start + t))
-            fh.write(_format_rows(b"v", frame))
-            fh.write(tail)
+    bad = []
+
+    def frames_to_write():
+        """(t, positions or None for a frame kept by ``resume``) in order, up to the first frame
+        with NaN or infinite positions (kept in ``bad``): the frames before it are all written."""
+        for t, path in enumerate(paths):
+            if resume and path.exists():
+                yield t, None
+                continue
+            frame = np.asarray(positions[t], dtype=np.float64)
+            if not np.isfinite(frame).all():
+                bad.append((t, path, frame))
+                return
+            yield t, frame
+
+    def write_frame(item):
+        t, frame = item
+        if frame is not None:
+            with atomic_open(paths[t], "wb") as fh:
+                fh.write(header % (start + t))
+                fh.write(_format_rows(b"v", frame))
+                fh.write(tail)
+
+    # frames are formatted and written on facepipe's threads (the formatting lets go of Python's
+    # lock), as many under way as there are threads
+    for _ in map_in_order(write_frame, frames_to_write(), ahead=thread_count()):
         if progress is not None:
             progress(1)
+    if bad:
+        t, path, frame = bad[0]
+        rows = np.flatnonzero(~np.isfinite(frame).all(axis=1))
+        raise InputError(
+            f"frame {start + t} (index {t}) has NaN or infinite positions at {len(rows)} vertices, "
+            f"first vertex {int(rows[0])}",
+            path=path,
+            hint="check the replay report for that frame (e.g. lost markers); frames before it "
+                 "are written",
+        )
     return paths
 
 
