@@ -127,11 +127,18 @@ def map_blocks(function: Callable[[T], R], items: Iterable[T]) -> list[R]:
         raise
 
 
-def map_in_order(function: Callable[[T], R], items: Iterable[T], ahead: int | None = None) -> Iterator[R]:
+#: What the calls under way of :func:`map_in_order` may hold together where the caller says how
+#: much one holds (``item_bytes``): a machine of many threads does not keep as many 2K maps in memory
+ORDERED_MEMORY = 1 << 30
+
+
+def map_in_order(function: Callable[[T], R], items: Iterable[T], ahead: int | None = None,
+                 item_bytes: int | None = None) -> Iterator[R]:
     """``function(item)`` for each item, yielded in the order of ``items`` as each is ready, on up
     to :func:`thread_count` threads with at most ``ahead`` calls under way (default: twice the
-    threads): for a long stream whose results are consumed one by one (a movie's frames), the
-    memory of a few results, not of all.
+    threads; with ``item_bytes``, the memory one call holds, no more than fit in
+    :data:`ORDERED_MEMORY`): for a long stream whose results are consumed one by one (a movie's
+    frames), the memory of a few results, not of all.
 
     A call that raises raises here when its turn comes, after the calls under way have finished
     (those not started are cancelled); so does closing the generator early (a consumer that
@@ -143,7 +150,10 @@ def map_in_order(function: Callable[[T], R], items: Iterable[T], ahead: int | No
             yield function(item)
         return
     executor = _shared_executor(threads)
-    ahead = max(1, 2 * threads if ahead is None else int(ahead))
+    ahead = 2 * threads if ahead is None else int(ahead)
+    if item_bytes:
+        ahead = min(ahead, ORDERED_MEMORY // max(1, int(item_bytes)))
+    ahead = max(1, ahead)
     pending = deque()
     try:
         for item in items:

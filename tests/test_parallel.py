@@ -122,6 +122,12 @@ def test_map_in_order_yields_in_order_with_a_bounded_number_under_way():
             state["taken"] += 1
     assert out == [i * i for i in range(50)]
     assert state["most"] <= 4 + 1  # the ones under way and the one being handed over
+    # calls that each hold a third of the memory allowed: two under way at most, however many threads
+    state.update(started=0, taken=0, most=0)
+    for value in parallel.map_in_order(work, range(20), ahead=8, item_bytes=parallel.ORDERED_MEMORY // 3 + 1):
+        with lock:
+            state["taken"] += 1
+    assert state["most"] <= 2 + 1
     # an error at its turn, the calls before it delivered
     def fails_at_7(i):
         if i == 7:

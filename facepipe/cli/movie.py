@@ -33,6 +33,8 @@ MOVIE_SUFFIXES = (".mp4", ".gif")
 #: H.264 encoders work on blocks: frames are padded to a multiple of this many pixels
 BLOCK = 16
 LABEL_H = 22  # pixels of the caption strip above the panels
+#: bytes a rendered pixel holds while its frame is drawn: depth, triangle, barycentric coordinates, colour
+RENDER_BYTES_PER_PIXEL = 64
 
 
 def check_movie_path(path: Path, force: bool) -> None:
@@ -86,7 +88,8 @@ def render_movie(replay, model, path, *, truth_path=None, with_large: bool = Fal
         try:
             # the panels are rendered on facepipe's threads (NumPy lets them run side by side), a few
             # frames ahead of the writer; captions here (a font is not drawn with from two threads)
-            for i, panels in enumerate(map_in_order(frames.panels_of, range(replay.n_frames))):
+            for i, panels in enumerate(map_in_order(frames.panels_of, range(replay.n_frames),
+                                                    item_bytes=frames.frame_bytes)):
                 image = _caption(panels, frames.panels, int(replay.frame_numbers[i]), float(replay.times[i]),
                                  frames.note, font)
                 writer.append_data(image)
@@ -150,6 +153,11 @@ class _HeadFrames:
             self.cmap = colormaps["YlOrRd"]
             clipped = " (clipped)" if self.largest > self.color_max else ""
             self.panels += ["truth", f"|final - truth|: 0 to {self.color_max:.2g} {self.units}{clipped}"]
+
+    @property
+    def frame_bytes(self) -> int:
+        """About what drawing one frame's panels holds (for how many frames are drawn at once)."""
+        return RENDER_BYTES_PER_PIXEL * self.camera.width * self.camera.height * len(self.panels)
 
     def _head(self, x, i):
         return self.to_head_space(x, self.R[i], self.t[i]) if self.keep else np.asarray(x, dtype=np.float64)
@@ -219,6 +227,11 @@ class _CameraFrames:
 
     def scale_summary(self) -> dict:
         return {}
+
+    @property
+    def frame_bytes(self) -> int:
+        """About what drawing one frame's panel holds (for how many frames are drawn at once)."""
+        return RENDER_BYTES_PER_PIXEL * self.panel.width * self.panel.height
 
     def panels_of(self, i: int) -> list[np.ndarray]:
         x = self.camera_coordinates(self.replay, [i])[0]

@@ -143,7 +143,9 @@ def write_obj_sequence(
 
     # frames are formatted and written on facepipe's threads (the formatting lets go of Python's
     # lock), as many under way as there are threads
-    for _ in map_in_order(write_frame, frames_to_write(), ahead=thread_count()):
+    # a frame's positions in float64 and its text (about 40 bytes a vertex)
+    frame_bytes = mesh.n_vertices * (3 * 8 + 40) + len(tail)
+    for _ in map_in_order(write_frame, frames_to_write(), ahead=thread_count(), item_bytes=frame_bytes):
         if progress is not None:
             progress(1)
     if bad:

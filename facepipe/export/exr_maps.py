@@ -130,6 +130,8 @@ def write_displacement_maps(
     if resume:
         remove_partial_files(flat)
     check = _LookupCheck(raster) if report is not None else None
+    # a frame's maps in float64 while rastered, and their copy in the file's pixel type
+    frame_bytes = sum(r.width * r.height for r in raster.tiles.values()) * (3 if mode == "vector" else 1) * 12
     for s in range(0, n_frames, chunk):
         e = min(n_frames, s + chunk)
         todo = [t for t in range(s, e) if not (resume and all(p.exists() for p in paths[t].values()))]
@@ -153,7 +155,7 @@ def write_displacement_maps(
 
         # frames are rastered and compressed on facepipe's threads (both let go of Python's lock),
         # as many under way as there are threads (a 2048² frame's maps are a few hundred MB)
-        done = iter(map_in_order(write_frame, writing, ahead=thread_count()))
+        done = iter(map_in_order(write_frame, writing, ahead=thread_count(), item_bytes=frame_bytes))
         for t in range(s, e if bad_frame is None else bad_frame):
             if t in writing:
                 images = next(done)
