@@ -142,8 +142,8 @@ def write_obj_sequence(
                 fh.write(tail)
 
     # frames are formatted and written on facepipe's threads (the formatting lets go of Python's
-    # lock), as many under way as there are threads
-    # a frame's positions in float64 and its text (about 40 bytes a vertex)
+    # lock), as many under way as there are threads, each holding its positions in float64 and
+    # its text (about 40 bytes a vertex)
     frame_bytes = mesh.n_vertices * (3 * 8 + 40) + len(tail)
     for _ in map_in_order(write_frame, frames_to_write(), ahead=thread_count(), item_bytes=frame_bytes):
         if progress is not None:
