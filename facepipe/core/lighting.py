@@ -69,7 +69,7 @@ def _fit_light_rows(values, albedo, normals, ok, iterations: int) -> np.ndarray:
         light = np.stack([np.linalg.lstsq(n, r, rcond=None)[0] for n, r in zip(normal, rhs)])
         r = b - (A @ light[..., None])[..., 0]
         # every row here has points: the median over them is finite
-        scale = 1.4826 * usable_median(np.abs(r), ok)[:, None] + 1e-9
+        scale = _robust_scale(r, ok)[:, None]
         w = ok / (1.0 + (r / (2.385 * scale)) ** 2)
     return light
 
@@ -134,11 +134,12 @@ def fit_point_light(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray,
       key's direction mirrored left–right, and both left–right and up–down), where a set puts
       its fill light.
 
-    Of the starts the one with the smallest median residual is kept — the one light alone where
-    a second explains nothing more. At most ``iterations`` steps each, fewer once every step is
-    under a millionth of the light. Leading axes (frames) are fitted independently in the same
-    products (each frame's result is the one it gets alone); with fewer than 27 usable points the
-    light is uniform."""
+    Of each stage's starts the one with the smallest median residual is kept, and the fill light
+    only where it passes the Bayesian information criterion on the Cauchy likelihood (at the one
+    light's scale): under one light, the one light alone. At most ``iterations`` steps each,
+    fewer once every step is under a millionth of the light. Leading axes (frames) are fitted
+    independently in the same products (each frame's result is the one it gets alone); with
+    fewer than 27 usable points the light is uniform."""
     values = np.asarray(values, dtype=np.float64)
     lead = values.shape[:-1]
     values = values.reshape((-1, values.shape[-1]))
@@ -159,11 +160,11 @@ def _fit_two_lights(values, albedo, normals, ok, sh, iterations: int) -> np.ndar
     # one light, from the nine terms' first-order band at two strengths
     d = sh[:, None, 1:4] * 2.0 * np.array([1.0, 0.6])[None, :, None]  # (B, 2, 3)
     ambient = np.maximum(sh[:, None, 0] - 0.5 * np.linalg.norm(d, axis=-1), 0.05 * sh[:, None, 0])
-    one, r_one, spread = _robust_lm(values, albedo, normals, ok, np.concatenate([ambient[..., None], d], axis=-1),
-                                    iterations)
-    pick = spread.argmin(axis=1)
+    one, r_one, scale = _robust_lm(values, albedo, normals, ok, np.concatenate([ambient[..., None], d], axis=-1),
+                                   iterations)
+    pick = scale.argmin(axis=1)
     one = np.concatenate([one, np.zeros((B, 2, 3))], axis=-1)[np.arange(B), pick]  # (B, 7)
-    r_one, best_spread = r_one[np.arange(B), pick], spread[np.arange(B), pick]
+    r_one, one_scale = r_one[np.arange(B), pick], scale[np.arange(B), pick]
     # a second light from the other side
     key = one[:, 1:4]
     strength = np.linalg.norm(key, axis=-1, keepdims=True)
@@ -172,25 +173,31 @@ def _fit_two_lights(values, albedo, normals, ok, sh, iterations: int) -> np.ndar
     fill *= 0.3 * strength[:, None] / np.maximum(np.linalg.norm(fill, axis=-1, keepdims=True), 1e-12)
     starts = np.concatenate([np.broadcast_to(np.maximum(one[:, None, :1] - 0.1 * strength[:, None], 0.0), (B, 2, 1)),
                              np.broadcast_to(key[:, None], (B, 2, 3)), fill], axis=-1)
-    two, r_two, spread = _robust_lm(values, albedo, normals, ok, starts, iterations)
-    pick = spread.argmin(axis=1)
+    two, r_two, scale = _robust_lm(values, albedo, normals, ok, starts, iterations)
+    pick = scale.argmin(axis=1)
     two, r_two = two[np.arange(B), pick], r_two[np.arange(B), pick]
     # the fill light kept where it explains more than its three values would explain of noise
     # alone (the Bayesian information criterion on the Cauchy likelihood, at the one light's
     # scale): a light fitted to what the model does not hold would otherwise lean on a region
-    scale = 2.385 * (1.4826 * best_spread + 1e-9)[:, None]
+    gain = _cauchy_cost(r_one, ok, one_scale) - _cauchy_cost(r_two, ok, one_scale)
+    return np.where((gain > 1.5 * np.log(ok.sum(axis=-1)))[:, None], two, one)
 
-    def cost(r):
-        return (np.log1p((r / scale) ** 2) * ok).sum(axis=-1)
 
-    better = cost(r_one) - cost(r_two) > 1.5 * np.log(ok.sum(axis=-1))
-    return np.where(better[:, None], two, one)
+def _cauchy_cost(r: np.ndarray, ok: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The Cauchy negative log-likelihood (B,) of residuals (B, K) over the usable ones, at the
+    robust scales (B,) (:func:`_robust_scale`; the width 2.385 σ, as :func:`fit_light` weighs)."""
+    return (np.log1p((r / (2.385 * scale[:, None])) ** 2) * ok).sum(axis=-1)
+
+
+def _robust_scale(r: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """σ (B,) of residuals (B, K) from their median absolute value over the usable ones."""
+    return 1.4826 * usable_median(np.abs(r), ok) + 1e-9  # (every row here has points: finite)
 
 
 def _robust_lm(values, albedo, normals, ok, starts, iterations: int):
     """Robust Levenberg–Marquardt of :func:`fit_point_light` from ``starts`` (B, S, P): the fitted
-    lights (B, S, P), their residuals (B, S, K; 0 where a value is not usable) and the median
-    absolute residuals over the usable values (B, S)."""
+    lights (B, S, P), their residuals (B, S, K; 0 where a value is not usable) and the residuals'
+    robust scales (B, S) (:func:`_robust_scale`)."""
     B, S, P = starts.shape
     lights = (P - 1) // 3
     # the starts side by side as rows of their own: (B·S, ...)
@@ -214,15 +221,9 @@ def _robust_lm(values, albedo, normals, ok, starts, iterations: int):
         dots = [(n @ p[:, b, None])[..., 0] for b in blocks]
         return v - a * (p[:, :1] + sum(np.maximum(d, 0.0) for d in dots)), dots
 
-    def spread(r):
-        return usable_median(np.abs(r), ok)  # every row here has points: finite
-
-    def cost(r, scale):
-        return (np.log1p((r / (2.385 * scale[:, None])) ** 2) * ok).sum(axis=-1)
-
     r, dots = residual(p)
-    scale = 1.4826 * spread(r) + 1e-9
-    current = cost(r, scale)
+    scale = _robust_scale(r, ok)  # kept the scale of the residuals ``r`` holds
+    current = _cauchy_cost(r, ok, scale)
     damping = np.full(len(p), 1e-3)
     settled = np.zeros(len(p), dtype=bool)
     for _ in range(iterations):
@@ -251,16 +252,16 @@ def _robust_lm(values, albedo, normals, ok, starts, iterations: int):
             break
         p_new = p + step
         r_new, dots_new = residual(p_new)
-        trial = cost(r_new, scale)
+        trial = _cauchy_cost(r_new, ok, scale)
         better = (trial < current) & ~settled
         p = np.where(better[:, None], p_new, p)
         r = np.where(better[:, None], r_new, r)
         dots = [np.where(better[:, None], dn, d) for dn, d in zip(dots_new, dots)]
         if better.any():
-            scale = np.where(better, 1.4826 * spread(r) + 1e-9, scale)
-            current = np.where(better, cost(r, scale), current)
+            scale = np.where(better, _robust_scale(r, ok), scale)
+            current = np.where(better, _cauchy_cost(r, ok, scale), current)
         damping = np.where(better, np.maximum(damping / 3.0, 1e-7), damping * 10.0)
-    return p.reshape(B, S, P), r.reshape(B, S, -1), spread(r).reshape(B, S)
+    return p.reshape(B, S, P), r.reshape(B, S, -1), scale.reshape(B, S)
 
 
 def sh_quadratic(normals: np.ndarray, light: np.ndarray) -> np.ndarray:

@@ -151,16 +151,16 @@ def write_displacement_maps(
             images = raster(_channels(values[t - s], mode))
             for tile, image in images.items():
                 write_exr(paths[t][tile], image, half=half, attributes=dict(attrs, **{"facepipe/tile": tile}))
-            return images if check is not None else None
+            return t, (images if check is not None else None)
 
+        kept = (e if bad_frame is None else bad_frame) - s - len(writing)  # the frames a resume keeps
+        if progress is not None and kept:
+            progress(kept)
         # frames are rastered and compressed on facepipe's threads (both let go of Python's lock),
         # as many under way as there are threads (a 2048² frame's maps are a few hundred MB)
-        done = iter(map_in_order(write_frame, writing, ahead=thread_count(), item_bytes=frame_bytes))
-        for t in range(s, e if bad_frame is None else bad_frame):
-            if t in writing:
-                images = next(done)
-                if check is not None:
-                    check.add(t, _channels(values[t - s], mode), images, np.float16 if half else np.float32)
+        for t, images in map_in_order(write_frame, writing, ahead=thread_count(), item_bytes=frame_bytes):
+            if check is not None:
+                check.add(t, _channels(values[t - s], mode), images, np.float16 if half else np.float32)
             if progress is not None:
                 progress(1)
         if bad_frame is not None:

@@ -41,14 +41,16 @@ def _light_point_values(images: np.ndarray, points) -> np.ndarray:
     return values
 
 
-def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, points=None
-                 ) -> np.ndarray:
+def frame_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, points=None,
+                 values=None) -> np.ndarray:
     """(F, 9) each frame's grey light, fitted (:func:`facepipe.core.lighting.fit_light`) over the
     model's light points: their albedo known, their normals from the frame's geometry (F, V, 3,
     camera space), their values sampled from its luminance (F, H, W) where in the image and facing
-    the camera. ``points``: :func:`_light_points` of these frames where already computed."""
+    the camera. ``points``: :func:`_light_points` of these frames, and ``values`` their values
+    (:func:`_light_point_values`), where already computed."""
     points = _light_points(camera_positions, model) if points is None else points
-    return lighting.fit_light(_light_point_values(grays, points), model.light_albedo, points[0])
+    values = _light_point_values(grays, points) if values is None else values
+    return lighting.fit_light(values, model.light_albedo, points[0])
 
 
 def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, lights: np.ndarray,
@@ -90,7 +92,7 @@ def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: Appear
     vn, local = stencil
     points = _light_points(camera_positions, model, stencil)
     values = _light_point_values(grays, points)
-    light = lighting.fit_light(values, model.light_albedo, points[0])  # (F, 9): the stream's light (frame_lights)
+    light = frame_lights(grays, camera_positions, model, points, values)  # (F, 9): the stream's light
     # the templates' shading under the model's own light (a point light's terminator is a kink nine terms round off)
     shading_light = lighting.fit_point_light(values, model.light_point_albedo, points[0], start=light) \
         if model.light_model == "point" else light
