@@ -297,16 +297,22 @@ def replay(ctx, take, model_path, output, backend, device, frames_text, chunk, h
     take_data, prepared = marker_take.take, marker_take.prepared
 
     # cleaning steps on a bar of their own; the frame bar opens with its first frames, so its rate
-    # and ETA are the evaluation's
+    # and ETA are the evaluation's. Frames of the last cleaned window mean cleaning is over: its bar
+    # closes then, so the frame bar takes its line rather than opening below a bar still drawn
     steps = len(CLEAN_STEPS) * prepared.n_windows if not no_clean else 0
     with StageBar(steps, "clean", quiet=rep.quiet or not steps) as clean_bar, \
             LazyBar(lambda: rep.bar(prepared.n_frames, desc="replay")) as bar:
         windows = prepared.windows(progress=clean_bar.step)
         if edits:
             windows = edited_windows(windows, take_data.frames, edits)
+
+        def frames_done(n: int) -> None:
+            clean_bar.close_after_last_step()
+            bar.update(n)
+
         result = replay_windows(model, windows, take_data.frames, take_data.times,
                                 Path(output), chunk=chunk, evaluator=evaluator, head_motion=head_motion,
-                                progress=bar.update, extra_report=marker_take.report, save_large=save_large_scale)
+                                progress=frames_done, extra_report=marker_take.report, save_large=save_large_scale)
     say_replayed(rep, result, summary_lines(prepared.report()))
 
 

@@ -33,23 +33,36 @@ def refresh_seconds(stream=None) -> float:
 
 class StageBar:
     """A bar counting named steps: ``step("factorising the shell")`` marks the previous step done
-    and names the running one. Nothing is shown when ``quiet``."""
+    and names the running one. Nothing is shown when ``quiet``. Closing twice is harmless: a bar
+    whose last step's work is known to be over closes at once (:meth:`close_after_last_step`),
+    before another bar opens below it."""
 
     def __init__(self, total: int, desc: str, quiet: bool = False):
         self._bar = tqdm(total=total, desc=desc, bar_format=STAGE_FORMAT, disable=quiet, file=sys.stderr,
                          dynamic_ncols=True, mininterval=refresh_seconds())
-        self._started = False
+        self._total = total
+        self._started = 0  # steps started (tqdm's count stays 0 on a disabled bar)
+        self._closed = False
 
     def step(self, name: str) -> None:
         if self._started:
             self._bar.update(1)
-        self._started = True
+        self._started += 1
         self._bar.set_postfix_str(name)
 
+    def close_after_last_step(self) -> None:
+        """Close the bar if its last step has started: the caller knows that step's work is over
+        (e.g. the frames it prepared are being used)."""
+        if self._started >= self._total > 0:
+            self.close()
+
     def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
         if self._started and self._bar.n < self._bar.total:
             self._bar.update(self._bar.total - self._bar.n)
-        self._bar.set_postfix_str("done")
+        self._bar.set_postfix_str("done", refresh=False)  # drawn once, by close
         self._bar.close()
 
     def __enter__(self):
@@ -58,7 +71,8 @@ class StageBar:
     def __exit__(self, kind, value, tb):
         if kind is None:
             self.close()
-        else:  # an error: leave the bar where it stopped
+        elif not self._closed:  # an error: leave the bar where it stopped
+            self._closed = True
             self._bar.close()
 
 
