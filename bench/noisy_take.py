@@ -97,22 +97,41 @@ def single_frame_pose_bound(take, model, truth, data):
     return errs
 
 
+def _true_shape_poses(positions: np.ndarray, truth: np.ndarray, data, handles: np.ndarray):
+    """Each frame's best rigid fit (R, t) of the true shape's markers (head space) to the markers
+    ``positions`` (T, H, 3; NaN where missing), and those head-space markers (T, H, 3)."""
+    from facepipe.core.rigid import rigid_fit
+
+    head = np.einsum("tji,tvj->tvi", data["rotation"], truth - data["translation"][:, None, :])[:, handles]
+    seen = np.isfinite(positions).all(axis=-1)
+    R, t = rigid_fit(head, np.where(seen[..., None], positions, 0.0), seen.astype(np.float64))
+    return R, t, head
+
+
+def _placed_errors(R: np.ndarray, t: np.ndarray, head_shape: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Per-frame face RMS (T,) of a head-space shape (T, V, 3) placed by poses R, t."""
+    world = np.einsum("tij,tvj->tvi", R, head_shape[:, FACE]) + t[:, None, :]
+    return np.sqrt(((world - truth[:, FACE]) ** 2).sum(-1).mean(-1))
+
+
+def _noise_draw(noisy, truth: np.ndarray, handles: np.ndarray, sigma: float, k: int) -> np.ndarray:
+    """Draw k of the take's markers: the truth's with fresh Gaussian noise σ, missing where the kit's take is."""
+    rng = np.random.default_rng(1000 + k)
+    markers = truth[:, handles] + rng.normal(scale=sigma, size=noisy.positions.shape)
+    markers[~np.isfinite(noisy.positions).all(axis=-1)] = np.nan
+    return markers
+
+
 def smoothed_pose_bound(take, model, truth, data, evaluator, clean_head):
     """Per-frame face RMS of the clean replay's shape placed by the pose cleaning would give if it
     knew the true expression: each frame's best rigid fit of the true shape's markers to the noisy
     ones, smoothed over the take as cleaning smooths poses. What the first and last frames reach
     when only the head pose is estimated; the expression's noise comes on top."""
-    from facepipe.core.rigid import rigid_fit
     from facepipe.mocap.cleaning import _smooth_poses
 
-    R_true, t_true = data["rotation"], data["translation"]
-    head_truth = np.einsum("tji,tvj->tvi", R_true, truth - t_true[:, None, :])[:, model.handle_vertices]
-    seen = np.isfinite(take.positions).all(axis=-1)
-    R, t = rigid_fit(head_truth, np.where(seen[..., None], take.positions, 0.0), seen.astype(np.float64))
-    R, t = _smooth_poses(R, t, head_truth.mean(axis=(0, 1)))
-    final = evaluator.evaluate(clean_head)
-    world = np.einsum("tij,tvj->tvi", R, final) + t[:, None, :]
-    return np.sqrt(((world - truth)[:, FACE] ** 2).sum(-1).mean(-1))
+    R, t, head = _true_shape_poses(take.positions, truth, data, model.handle_vertices)
+    R, t = _smooth_poses(R, t, head.mean(axis=(0, 1)))
+    return _placed_errors(R, t, evaluator.evaluate(clean_head), truth)
 
 
 def smoother_grid_bound(noisy, model, truth, data, clean_final, clean_errors, sigma: float, draws: int) -> dict:
@@ -125,17 +144,14 @@ def smoother_grid_bound(noisy, model, truth, data, clean_final, clean_errors, si
     over the draws, and the interior's worst frame (median over the draws)."""
     from scipy.spatial.transform import Rotation
 
-    from facepipe.core.rigid import rigid_fit
     from facepipe.core.temporal import LAMBDAS, whittaker
 
-    head_truth = np.einsum("tji,tvj->tvi", data["rotation"], truth - data["translation"][:, None, :])
-    markers_true = head_truth[:, model.handle_vertices]
-    centre = markers_true.mean(axis=(0, 1))
-    missing = ~np.isfinite(noisy.positions).all(axis=-1)
+    fits = [_true_shape_poses(_noise_draw(noisy, truth, model.handle_vertices, sigma, k), truth, data,
+                              model.handle_vertices) for k in range(draws)]
+    centre = fits[0][2].mean(axis=(0, 1))
 
     def ratio(R, t):
-        world = np.einsum("tij,tvj->tvi", R, clean_final[:, FACE]) + t[:, None, :]
-        return np.sqrt(((world - truth[:, FACE]) ** 2).sum(-1).mean(-1)) / clean_errors
+        return _placed_errors(R, t, clean_final, truth) / clean_errors
 
     def smoothed(R, t, order, lam):
         mean = Rotation.from_matrix(R).mean()
@@ -144,18 +160,11 @@ def smoother_grid_bound(noisy, model, truth, data, clean_final, clean_errors, si
         Rs = (mean * Rotation.from_rotvec(v)).as_matrix()
         return Rs, moved - np.einsum("tij,j->ti", Rs, centre)
 
-    fits = []
-    for k in range(draws):
-        rng = np.random.default_rng(1000 + k)
-        markers = truth[:, model.handle_vertices] + rng.normal(scale=sigma, size=noisy.positions.shape)
-        markers[missing] = np.nan
-        seen = np.isfinite(markers).all(axis=-1)
-        fits.append(rigid_fit(markers_true, np.where(seen[..., None], markers, 0.0), seen.astype(np.float64)))
-    raw = np.array([ratio(R, t) for R, t in fits])
+    raw = np.array([ratio(R, t) for R, t, _ in fits])
     settings = []
     for order in (2, 3, 4):
         for lam in LAMBDAS[::4]:
-            r = np.array([ratio(*smoothed(R, t, order, lam)) for R, t in fits])
+            r = np.array([ratio(*smoothed(R, t, order, lam)) for R, t, _ in fits])
             settings.append({"order": order, "lambda": float(lam), "first_median": float(np.median(r[:, 0])),
                              "interior_worst_median": float(np.median(r[:, 5:-5].max(axis=1)))})
     best = min(settings, key=lambda s: s["first_median"])
@@ -173,12 +182,9 @@ def noise_draws(noisy, model, truth, evaluator, clean_errors, sigma: float, draw
     what no better expression estimate can go below."""
     from facepipe.mocap import Take
 
-    missing = ~np.isfinite(noisy.positions).all(axis=-1)
     out = {"first": [], "last": [], "worst": [], "mean": [], "pose_alone_first": [], "pose_alone_last": []}
     for k in range(draws):
-        rng = np.random.default_rng(1000 + k)
-        markers = truth[:, model.handle_vertices] + rng.normal(scale=sigma, size=noisy.positions.shape)
-        markers[missing] = np.nan
+        markers = _noise_draw(noisy, truth, model.handle_vertices, sigma, k)
         take = Take(frames=noisy.frames.copy(), times=noisy.times.copy(), positions=markers,
                     marker_names=noisy.marker_names, path="(draw)", units=noisy.units, source_units=noisy.units,
                     format="facepipe-csv")
@@ -207,6 +213,8 @@ def main(argv=None) -> int:
                     help="also the first frame's bound over every pose smoother of the cleaning's family, "
                          "with the expression known, over this many noise draws")
     args = ap.parse_args(argv)
+    if args.draws < 0 or args.smoother_grid < 0:
+        ap.error("--draws and --smoother-grid take a number of noise draws, 0 or more")
     if not (KIT / "noisy_mocap.csv").is_file():
         print(f"the ICT kit is not at {KIT}", file=sys.stderr)
         return 1
