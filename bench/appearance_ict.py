@@ -41,7 +41,7 @@ from facepipe.io.camera_file import read_camera
 from facepipe.io.config import load_config
 from facepipe.io.footage import open_footage, read_frames, to_gray
 from facepipe.io.mesh_read import load_mesh, load_vertices
-from facepipe.pipeline.appearance import _read_geometry, classify_decoded, classify_frames, region_bank
+from facepipe.pipeline.appearance import _read_geometry, classify_decoded, classify_frames, off_face_frames, region_bank
 from facepipe.pipeline.appearance_build import build_appearance
 from facepipe.pipeline.appearance_points import texel_map
 from facepipe.pipeline.appearance_texture import texture_differences
@@ -124,6 +124,20 @@ def correlations(q: np.ndarray, act: np.ndarray, names: list) -> dict:
             "spearman_of_truth_with_1pct_noise": {n: safe(spearmanr, act[:, r] + 0.01 * rng.normal(size=len(act)),
                                                           act[:, r]) for r, n in enumerate(names)},
             "zero_activation_fraction": {n: float((act[:, r] <= 0).mean()) for r, n in enumerate(names)}}
+
+
+def footage_check(c, model) -> dict:
+    """The classification's footage check (:func:`off_face_frames`): each frame's light residual
+    over the example footage's, its median and largest, and the frames it calls off the face."""
+    check = off_face_frames(c, model)
+    ratio = c.light_residual / check["examples"]
+    return {"ratio_median": check["ratio"], "ratio_max": float(np.nanmax(ratio)), "ratio_limit": check["limit"],
+            "frames_off_face": int(check["off_face"].sum()), "frames": len(ratio)}
+
+
+def _check_words(check: dict) -> str:
+    return (f"light residual {check['ratio_median']:.1f}x the examples' (largest {check['ratio_max']:.1f}x), "
+            f"{check['frames_off_face']} of {check['frames']} frames off the face")
 
 
 def throughput(model, out: Path, take: str, positions: np.ndarray, numbers: np.ndarray) -> dict:
@@ -245,7 +259,7 @@ def main() -> None:
         q = np.round(c.q, STREAM_DECIMALS)  # the stream as written
         result[take] = {**correlations(q, act, model.names), **q_errors(q, act, model.names, model.layer_counts),
                         "frames_per_second_with_reading": len(numbers) / seconds,
-                        "visible_fraction": float(c.visible.mean())}
+                        "visible_fraction": float(c.visible.mean()), "footage_check": footage_check(c, model)}
         if take == "take":
             result[take].update(throughput(model, out, take, positions, numbers))
             q_truth = act * (np.asarray(model.layer_counts) - 1)  # the examples: activation 0 … 1 over the layers
@@ -258,7 +272,12 @@ def main() -> None:
         print(take, "Q error ", " ".join(f"{n} {v:.3f}" for n, v in r["q_rms_error_layers"].items()),
               f"(mean {r['q_rms_error_layers_mean']:.3f} layers)")
         print(take, f"{r['frames_per_second_with_reading']:.1f} frames/s with reading",
-              f"visible {r['visible_fraction']:.3f}")
+              f"visible {r['visible_fraction']:.3f}", _check_words(r["footage_check"]))
+    # the head-turned footage with the frontal take's geometry: what the footage check says of a wrong take
+    positions, numbers = _read_geometry(out / "take.npz", mesh.n_vertices)
+    wrong = classify_frames(model, out / "take_turned" / "frame_%04d.png", positions, numbers, numbers / 30.0)
+    result["footage_check_wrong_geometry"] = footage_check(wrong, model)
+    print("turned footage, frontal geometry:", _check_words(result["footage_check_wrong_geometry"]))
     print(f"classification alone {result['take']['classification_frames_per_second']:.0f} frames/s, "
           f"{result['take']['classification_frames_per_cpu_second']:.0f} frames per CPU second ({len(model.names)} regions; "
           f"{result['take']['classification_frames_per_cpu_second_without_edge_on_test']:.0f} without the edge-on "

@@ -48,7 +48,7 @@ def rest_readings(model, gray: np.ndarray, camera_positions: np.ndarray, scene, 
     """Raw Q (R,) of one frame with the fitted shading and with the scene's exact shading."""
     points = template_positions(camera_positions, model)
     patches, _, seen = sample_template_frames(gray, camera_positions, model, points)
-    fitted, normals, _ = frame_shading(gray, camera_positions, model)
+    fitted, normals, _, _ = frame_shading(gray, camera_positions, model)
     exact = scene.shading(normals).reshape(fitted.shape)  # the renderer's, at the template points' normals
     out = {}
     for name, shading in (("fitted", fitted), ("exact", exact)):

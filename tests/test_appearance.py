@@ -1069,6 +1069,46 @@ def test_classify_reports_its_speed_and_the_streams_bit_rate(kit, tmp_path, caps
     assert "frames/s" in said and f"{bits * 24 / 1000:.2f} kbit/s at 24 Hz" in said
 
 
+def test_geometry_that_misses_the_face_in_the_footage_is_named_by_frame(kit, tmp_path, capsys):
+    """The head-turned footage classified with the frontal take's geometry (a user giving the wrong
+    take): the frames where the head has turned away from where the geometry puts it are named with
+    a warning, and the light residual of every frame is in appearance.json; with its own geometry no
+    frame is. A model written before the check classifies as before, without it."""
+    from facepipe.io.appearance_file import load_appearance
+
+    model = load_appearance(kit / "app.npz")
+    assert 0 < model.light_residual < 0.05  # the examples' light leaves a few percent at most
+    footage = kit / "appearance" / "take_turned" / "frame_%04d.png"
+    checks = {}
+    for geometry in ("take", "take_turned"):
+        out = tmp_path / geometry
+        assert _run("appearance", "classify", kit / "app.npz", footage, "--geometry",
+                    kit / "appearance" / f"{geometry}.npz", "-o", out) == 0
+        said = capsys.readouterr().out
+        checks[geometry] = (said, json.loads((out / "appearance.json").read_text())["footage_check"])
+    said, check = checks["take"]
+    frames = len(check["light_residual"])
+    assert check["frames_off_face"] > frames // 3 and check["ratio_median"] > check["ratio_limit"]
+    assert re.search(rf"warning: {check['frames_off_face']} of {frames} frames \(frames \d+", said)
+    assert "--geometry is this footage's take" in said
+    said, check = checks["take_turned"]
+    assert check["frames_off_face"] == 0 and check["ratio_median"] < check["ratio_limit"] / 2
+    assert "warning" not in said and len(check["light_residual"]) == frames
+    with np.load(kit / "app.npz") as d:
+        older = {k: d[k] for k in d.files if k != "light_residual"}
+    np.savez(tmp_path / "older.npz", **older)
+    assert load_appearance(tmp_path / "older.npz").light_residual is None
+    assert _run("appearance", "classify", tmp_path / "older.npz", footage, "--geometry",
+                kit / "appearance" / "take.npz", "-o", tmp_path / "older", "-q") == 0
+    assert "footage_check" not in json.loads((tmp_path / "older" / "appearance.json").read_text())
+    assert (np.loadtxt(tmp_path / "older" / "appearance.csv", delimiter=",", skiprows=1)
+            == np.loadtxt(tmp_path / "take" / "appearance.csv", delimiter=",", skiprows=1)).all()
+    older["light_residual"] = np.array(np.nan)
+    np.savez(tmp_path / "bad.npz", **older)
+    with pytest.raises(InputError, match="light_residual nan is not a share"):
+        load_appearance(tmp_path / "bad.npz")
+
+
 def test_footage_that_is_not_there_is_refused_before_any_progress(kit, tmp_path, capsys):
     assert _run("appearance", "classify", kit / "app.npz", tmp_path / "nowhere",
                 "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / "cls") == 2
@@ -1100,9 +1140,11 @@ def test_frames_classified_on_threads_equal_one_chunk_after_another(kit):
     np.testing.assert_array_equal(readings.q, np.concatenate([c[0] for c in one]))
     np.testing.assert_array_equal(readings.visible, np.concatenate([c[1] for c in one]))
     assert readings.light.shape == (len(grays), 9) and readings.in_view.shape == readings.q.shape
+    assert readings.light_residual.shape == (len(grays),) and np.isfinite(readings.light_residual).all()
     empty = classify_decoded(grays[:0], cams[:0], model)
     assert empty.q.shape == (0, len(model.names)) and empty.visible.shape == (0, len(model.names))
     assert empty.light.shape == (0, 9) and empty.in_view.shape == (0, len(model.names))
+    assert empty.light_residual.shape == (0,)
 
 
 def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so(kit, tmp_path, capsys):

@@ -319,6 +319,36 @@ def test_light_fit_recovers_a_lambertian_light_despite_outliers():
     assert (light_shading(normals, -light) > 0).all()  # the floor keeps it positive
 
 
+def test_light_residual_is_the_median_relative_misfit_of_each_frame():
+    """An independent construction: intensities made exactly by a light read 0; scaled by 1 ± e
+    at every point they read e (the median of |e|); points without a value are left out; a frame
+    with no point left reads NaN. The same for an ambient and distant light, by its own shading."""
+    from facepipe.core.lighting import light_residual, point_shading, sh_basis
+
+    rng = np.random.default_rng(11)
+    normals = rng.normal(size=(3, 400, 3))
+    normals[..., 2] = -np.abs(normals[..., 2])
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    albedo = rng.uniform(0.3, 0.9, size=400)
+    sh = np.array([[0.8, 0.1, -0.2, -0.3, 0.05, 0.0, 0.02, 0.04, 0.03]] * 3)
+    exact = albedo * np.einsum("bkc,bc->bk", sh_basis(normals), sh)
+    assert (exact > 0).all()
+    np.testing.assert_allclose(light_residual(exact, albedo, normals, sh), 0.0, atol=1e-12)
+    error = np.array([0.02, 0.05, 0.3])
+    signs = rng.choice([-1.0, 1.0], size=(3, 400))
+    off = exact * (1.0 + signs * error[:, None])
+    off[1, :150] = np.nan  # points the frame does not show
+    off[2] = np.nan
+    got = light_residual(off, albedo, normals, sh)
+    np.testing.assert_allclose(got[:2], error[:2], rtol=1e-9)
+    assert np.isnan(got[2])
+    point = np.array([[0.3, -0.2, -0.3, -0.9]] * 3)  # ambient + a key light towards the camera's side
+    lit = albedo * np.stack([point_shading(normals[b], point[b]) for b in range(3)])
+    keep = lit > 0
+    off = np.where(keep, lit * (1.0 + signs * error[:, None]), np.nan)
+    np.testing.assert_allclose(light_residual(off, albedo, normals, point), error, rtol=1e-9)
+
+
 def test_light_shading_as_a_quadratic_form_is_the_basis_product():
     from facepipe.core.lighting import sh_basis, sh_quadratic
 

@@ -102,7 +102,7 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
     from facepipe.core.layered_texture import light_bits, stream_bits
     from facepipe.io.appearance_file import STREAM_DECIMALS, load_appearance, write_stream
     from facepipe.io.footage import frames_at, open_footage
-    from facepipe.pipeline.appearance import classify_frames, take_geometry
+    from facepipe.pipeline.appearance import classify_frames, off_face_frames, take_geometry
 
     model = load_appearance(model_path)
     geometry, model, note = take_geometry(geometry_path, model)
@@ -146,6 +146,26 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
         if some:
             rep.say(f"note: readings that left rest for under {model.min_event:g} s, under a layer, set back to rest "
                     f"(image noise; [appearance] min_event = 0 keeps them): " + ", ".join(some))
+    check = off_face_frames(result, model)
+    if check is not None:
+        off = check["off_face"]
+        def finite(x):  # JSON has no NaN: a take with no frame read has no median
+            return float(x) if np.isfinite(x) else None
+
+        figures["footage_check"] = {
+            "light_residual_examples": check["examples"], "light_residual_median": finite(check["median"]),
+            "ratio_median": finite(check["ratio"]), "ratio_limit": check["limit"], "frames_off_face": int(off.sum()),
+            "light_residual": [None if not np.isfinite(x) else round(float(x), 5) for x in result.light_residual]}
+        if off.any():
+            spans = hidden_spans(["off"], ~off[:, None], numbers)["off"][1]
+            rep.say(f"warning: {int(off.sum())} of {len(numbers)} frames (frames {spans}) do not match the geometry: "
+                    f"their light leaves over {check['limit']:g}× as much of the face's brightness unexplained as "
+                    f"the example footage's (take median {100 * check['median']:.1f} %, examples "
+                    f"{100 * check['examples']:.1f} %). The geometry misses the face in the image there and Q read "
+                    "there is not to be trusted: check that --geometry is this footage's take (its head pose and "
+                    "frame numbers) and that the footage is from the camera the model was built with")
+    elif model.light_face is not None:
+        rep.detail("note: the model predates the footage check (rebuild it to check the geometry against the footage)")
     path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
                         geometry=geometry_path, figures=figures)
     light = f" + light {bits - q_bits}" if bits > q_bits else ""

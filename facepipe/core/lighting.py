@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LIGHT_MODELS", "sh_basis", "fit_light", "light_shading", "sh_quadratic", "point_shading",
-           "fit_point_light", "usable_median"]
+__all__ = ["LIGHT_MODELS", "sh_basis", "fit_light", "light_residual", "light_shading", "sh_quadratic",
+           "point_shading", "fit_point_light", "usable_median"]
 
 
 def sh_basis(normals: np.ndarray) -> np.ndarray:
@@ -91,6 +91,30 @@ def usable_median(values: np.ndarray, usable: np.ndarray) -> np.ndarray:
     low = np.take_along_axis(ordered, np.maximum(count - 1, 0)[:, None] // 2, axis=-1)[:, 0]
     high = np.take_along_axis(ordered, (count // 2)[:, None], axis=-1)[:, 0]
     return np.where(count > 0, 0.5 * (low + high), np.nan)
+
+
+def light_residual(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """(B,) how much of each frame's brightness its light leaves unexplained: the median, over the
+    points the frame shows (finite ``values`` (B, K)), of |value − albedo · shading| / (albedo · shading),
+    albedo (K,), unit normals (B, K, 3), each frame's light (B, 9) nine terms (:func:`fit_light`)
+    or (B, 1 + 3k) an ambient term and distant lights (:func:`fit_point_light`).
+
+    Where the geometry lies on the face in the image this is the light model's own misfit, the
+    image noise and what expressions change (a few percent); where it misses the face (the geometry
+    of another take or head pose, frames shifted against the footage, another camera) the points
+    sample other skin, hair or background and it grows several times over."""
+    values = np.asarray(values, dtype=np.float64)
+    light = np.asarray(light, dtype=np.float64)
+    clean = np.nan_to_num(np.asarray(normals, dtype=np.float64))
+    if light.shape[-1] == 9:
+        shading = np.einsum("bkc,bc->bk", sh_basis(clean), light)
+    else:
+        shading = np.stack([point_shading(clean[b], light[b]) for b in range(len(light))]) if len(light) \
+            else np.zeros(values.shape)
+    predicted = np.asarray(albedo, dtype=np.float64) * shading
+    usable = np.isfinite(values) & np.isfinite(predicted) & (predicted > 0) & np.isfinite(normals).all(axis=-1)
+    relative = np.abs(np.where(usable, values, 0.0) - predicted) / np.where(usable, predicted, 1.0)
+    return usable_median(relative, usable)
 
 
 def light_shading(normals: np.ndarray, light: np.ndarray, floor: float = 0.05) -> np.ndarray:

@@ -70,7 +70,12 @@ class AppearanceModel:
     light_model : the light the templates' and each frame's shading are modelled by
     (:data:`facepipe.core.lighting.LIGHT_MODELS`; models before it: ``sh9``), and with
     ``point`` light_point_albedo (K,) : the light points' albedo under it. ``light_albedo`` is
-    theirs under the nine-term light, which the stream and the textures carry whichever it is.
+    theirs under the nine-term light, which the stream and the textures carry whichever it is;
+    light_residual : the median over the example frames of what each one's light leaves
+    unexplained of its light points' brightness
+    (:func:`facepipe.pipeline.appearance_light.frame_light_residuals`): what a frame whose
+    geometry lies on the face reads, against which classification checks its footage (None:
+    no light points, or models before it).
     """
 
     names: list
@@ -116,6 +121,7 @@ class AppearanceModel:
     min_event: float = 0.0  # seconds (models written before it: 0, every reading kept)
     light_model: str = "sh9"  # (models written before it: the nine-term light)
     light_point_albedo: np.ndarray | None = None
+    light_residual: float | None = None  # (models written before it: None, footage not checked against it)
 
     @property
     def extra_tiles(self) -> list:
@@ -191,6 +197,8 @@ def save_appearance(path, model) -> None:
         arrays["light_colour"] = model.light_colour
     if model.light_point_albedo is not None:
         arrays["light_point_albedo"] = model.light_point_albedo
+    if model.light_residual is not None:
+        arrays["light_residual"] = np.array(float(model.light_residual))
     if model.extra_tiles:
         arrays.update(tiles=np.asarray(model.tiles, dtype=np.int64), tile_neutral=model.tile_neutral)
         if model.tile_albedo is not None:
@@ -232,10 +240,13 @@ def load_appearance(path):
                                int(d["tile"]) if "tile" in d else 1001, d.get("shading_orders"),
                                str(d["peak_interpolation"]) if "peak_interpolation" in d else "parabola",
                                float(s[7]) if len(s) > 7 else 0.0,
-                               str(d["light_model"]) if "light_model" in d else "sh9", d.get("light_point_albedo"))
+                               str(d["light_model"]) if "light_model" in d else "sh9", d.get("light_point_albedo"),
+                               float(d["light_residual"]) if "light_residual" in d else None)
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
+        if model.light_residual is not None and not (np.isfinite(model.light_residual) and model.light_residual >= 0):
+            raise ValueError(f"light_residual {model.light_residual} is not a share ≥ 0")
         if not (np.isfinite(model.min_event) and model.min_event >= 0):
             raise ValueError(f"min_event {model.min_event} is not a duration ≥ 0")
         if model.peak_interpolation not in PEAK_INTERPOLATIONS:

@@ -149,6 +149,7 @@ class Classification:
     light: np.ndarray | None = None
     brief: np.ndarray | None = None  # (T, R) readings set back to rest as brief (``min_event``)
     in_view: np.ndarray | None = None  # (T, R) share of each region's stable template points in view (NaN: skipped)
+    light_residual: np.ndarray | None = None  # (T,) what each frame's light leaves unexplained (NaN: skipped)
 
 
 def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarray, numbers: np.ndarray,
@@ -168,6 +169,7 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     visible = np.zeros((T, Rn), dtype=bool)
     in_view = np.full((T, Rn), np.nan)
     light = None if model.light_face is None else np.full((T, 12), np.nan)
+    light_residual = None if model.light_face is None else np.full(T, np.nan)
     problems = []
     bank = region_bank(model)
     rows, grays, images = [], [], []
@@ -180,6 +182,7 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
             raw[rows], visible[rows], in_view[rows] = readings.q, readings.visible, readings.in_view
             if light is not None:
                 light[rows] = readings.light
+                light_residual[rows] = readings.light_residual
             if progress is not None:
                 progress(len(rows))
         rows.clear()
@@ -209,7 +212,31 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     q = ap.drop_short_events(held, times, model.min_event)
     return Classification(list(model.names), q, raw, visible, np.asarray(numbers), np.asarray(times), problems,
                           None if light is None else _held(light, WHITE_LIGHT), brief=(held > 0) & (q == 0),
-                          in_view=in_view)
+                          in_view=in_view, light_residual=light_residual)
+
+
+#: A frame whose light leaves more than this many times the example footage's share of its light
+#: points' brightness unexplained (:func:`off_face_frames`) has geometry that misses the face in
+#: the image. A frame whose geometry lies on the face reads a few times the examples' share at most
+#: (another light, the head turned); geometry off by a head turn or a few frames reads ten times it
+#: and more.
+OFF_FACE_RATIO = 6.0
+
+
+def off_face_frames(result: "Classification", model: AppearanceModel) -> dict | None:
+    """Whether the take's geometry lies on the face in its footage, frame by frame: each classified
+    frame's light residual (``result.light_residual``) against the example footage's
+    (``model.light_residual``); None for a model without light points or written before the check.
+
+    Returns {"examples": the examples' residual, "median": the take's, "ratio": their ratio,
+    "limit": :data:`OFF_FACE_RATIO`, "off_face": (T,) bool, the frames above it}."""
+    if result.light_residual is None or model.light_residual is None or not model.light_residual > 0:
+        return None
+    read = np.isfinite(result.light_residual)
+    ratio = np.where(read, result.light_residual, 0.0) / model.light_residual
+    median = float(np.median(result.light_residual[read])) if read.any() else float("nan")
+    return {"examples": float(model.light_residual), "median": median, "ratio": median / model.light_residual,
+            "limit": OFF_FACE_RATIO, "off_face": read & (ratio > OFF_FACE_RATIO)}
 
 
 #: A hidden region holds its last reading taken with at least this share of its template's stable
@@ -239,13 +266,16 @@ def _held(rows: np.ndarray, default: np.ndarray) -> np.ndarray:
 class FrameReadings:
     """What :func:`classify_decoded` reads of frames: Q (F, R), NaN where a region is hidden;
     each region's visibility (F, R); each frame's nine-term light (F, 9), or (F, 12) with its
-    colour where the frames' RGB images were given (None for a model without light points); and
-    the share of each region's stable template points in view (F, R; :func:`_classify_chunk`)."""
+    colour where the frames' RGB images were given (None for a model without light points); the
+    share of each region's stable template points in view (F, R; :func:`_classify_chunk`); and what
+    each frame's light leaves unexplained (F,) (:func:`~facepipe.pipeline.appearance_light.frame_light_residuals`;
+    None without light points)."""
 
     q: np.ndarray
     visible: np.ndarray
     light: np.ndarray | None
     in_view: np.ndarray
+    light_residual: np.ndarray | None = None
 
 
 def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None,
@@ -259,14 +289,16 @@ def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: App
     if len(grays) == 0:
         n = len(model.names)
         light = None if model.light_face is None else np.zeros((0, 9 if images is None else 12))
-        return FrameReadings(np.zeros((0, n)), np.zeros((0, n), dtype=bool), light, np.zeros((0, n)))
+        return FrameReadings(np.zeros((0, n)), np.zeros((0, n), dtype=bool), light, np.zeros((0, n)),
+                             None if light is None else np.zeros(0))
     with serial_blas():  # process-wide: entered once here, not by each thread
         parts = map_blocks(lambda i: _classify_chunk(grays[i:i + chunk], camera_positions[i:i + chunk], model, bank,
                                                      None if images is None else images[i:i + chunk]),
                            range(0, len(grays), chunk))
+    lit = model.light_face is not None
     return FrameReadings(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
-                         None if model.light_face is None else np.concatenate([p[2] for p in parts]),
-                         np.concatenate([p[3] for p in parts]))
+                         np.concatenate([p[2] for p in parts]) if lit else None,
+                         np.concatenate([p[3] for p in parts]), np.concatenate([p[4] for p in parts]) if lit else None)
 
 
 def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
@@ -283,15 +315,16 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
 
 def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, images=None):
     """Q (F, R), visibility (F, R), each frame's light (:func:`frame_shading`; None without light
-    points) and the share of each region's stable template points in view (F, R): in the image
-    and not hidden by the face, however edge-on."""
+    points), the share of each region's stable template points in view (F, R): in the image
+    and not hidden by the face, however edge-on, and what each frame's light leaves unexplained
+    (F,) (None without light points)."""
     bank = region_bank(model) if bank is None else bank
     points = template_positions(camera_positions, model)
     patches, visible, seen = sample_template_frames(grays, camera_positions, model, points)
     in_view = seen_fraction(seen, model)  # in the image, not hidden by the face (edge-on or not)
-    normals = light = None
+    normals = light = residual = None
     if model.light_face is not None:
-        shading, normals, light = frame_shading(grays, camera_positions, model, images)
+        shading, normals, light, residual = frame_shading(grays, camera_positions, model, images)
         patches = patches / shading
     if model.min_point_facing > 0:
         seen = seen & (template_point_facing(camera_positions, model, normals, points) > model.min_point_facing)
@@ -304,7 +337,7 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, image
     visible &= np.isfinite(q)
     if model.rest_floor is not None:
         q = ap.above_rest(q, model.rest_floor, model.layer_counts)
-    return np.where(visible, q, np.nan), visible, light, in_view
+    return np.where(visible, q, np.nan), visible, light, in_view, residual
 
 
 def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None

@@ -32,6 +32,7 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import frames_at, open_footage, read_frames_of, to_gray
 from facepipe.pipeline.appearance import (TakeGeometry, check_frame_size, classify_decoded, read_take_geometry,
                                           region_bank)
+from facepipe.pipeline.appearance_light import frame_light_residuals
 from facepipe.pipeline.appearance_points import (locate_uv, point_facing, point_normals, points_seen_well, surface_points,
                                                  template_points, texel_map, triangle_normals, unwrap,
                                                  with_unseen_margin)
@@ -307,11 +308,14 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
+    if light is not None:
+        model.light_residual = float(np.nanmedian(frame_light_residuals(*_example_stack(frames, cam_pos), model)))
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
             "albedo": model.albedo, "rest": rest, "shading": surfaces, "peak_interpolation": model.peak_interpolation,
             "notes": notes}
     if light is not None:
-        info["light"] = {"model": model.light_model, "examples": light["light"].tolist()}
+        info["light"] = {"model": model.light_model, "examples": light["light"].tolist(),
+                         "residual": model.light_residual}
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
                                 "rim_vertices": int(cards.rim_sizes[c]),
@@ -322,6 +326,12 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
 
 #: A rest floor is kept to at most this many layers; above half a layer the build says so.
 MOST_REST_FLOOR = 1.0
+
+
+def _example_stack(frames: dict, cam_pos: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The example frames' luminance (F, H, W) and geometry in camera space (F, V, 3), in frame order."""
+    numbers = sorted(frames)
+    return np.stack([to_gray(frames[n][0]) for n in numbers]), np.stack([cam_pos[n] for n in numbers])
 
 
 def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, notes: list) -> dict:
@@ -336,8 +346,7 @@ def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, not
     its own first layer.
     """
     numbers = sorted(frames)
-    grays = np.stack([to_gray(frames[n][0]) for n in numbers])
-    cams = np.stack([cam_pos[n] for n in numbers])
+    grays, cams = _example_stack(frames, cam_pos)
     bank = region_bank(model)
     readings = classify_decoded(grays, cams, model, bank).q
     at_rest = np.array([[n not in set(region.frames[1:]) for region in cfg.regions] for n in numbers])

@@ -15,7 +15,7 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import to_gray
 from facepipe.pipeline.appearance_points import stencil_normals, point_normals
 
-__all__ = ["frame_lights", "frame_colours", "frame_light", "frame_shading"]
+__all__ = ["frame_lights", "frame_colours", "frame_light", "frame_light_residuals", "frame_shading"]
 
 
 def _light_points(camera_positions: np.ndarray, model: AppearanceModel, stencil=None):
@@ -82,24 +82,45 @@ def frame_light(image: np.ndarray, camera_positions: np.ndarray, model: Appearan
                           axis=1)[0]
 
 
+def _fitted_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, points, values):
+    """The frames' nine-term lights (F, 9) (the stream's), their lights under the model's own light
+    model (the templates' shading: a point light's terminator is a kink nine terms round off) and
+    what those leave unexplained of the light points' brightness (F,)
+    (:func:`facepipe.core.lighting.light_residual`)."""
+    light = frame_lights(grays, camera_positions, model, points, values)
+    if model.light_model == "point":
+        own = lighting.fit_point_light(values, model.light_point_albedo, points[0], start=light)
+        residual = lighting.light_residual(values, model.light_point_albedo, points[0], own)
+    else:
+        own = light
+        residual = lighting.light_residual(values, model.light_albedo, points[0], own)
+    return light, own, residual
+
+
+def frame_light_residuals(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
+    """(F,) what each frame's light leaves unexplained of its light points' brightness
+    (:func:`facepipe.core.lighting.light_residual`): a few percent where the geometry (F, V, 3,
+    camera space) lies on the face in the frames (F, H, W), several times more where it misses it."""
+    points = _light_points(camera_positions, model)
+    return _fitted_lights(grays, camera_positions, model, points, _light_point_values(grays, points))[2]
+
+
 def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, images=None):
     """The shading (F, R, 5, size, size) at the template points of frames under each frame's light
-    (fitted as the model's ``light_model`` says), the template points' unit normals (F, R, 5, N, 3)
-    and the nine-term lights (:func:`frame_lights`), which the stream carries: (F, 9),
+    (fitted as the model's ``light_model`` says), the template points' unit normals (F, R, 5, N, 3),
+    the nine-term lights (:func:`frame_lights`), which the stream carries: (F, 9),
     or with the frames' RGB ``images`` (F, H, W, 3) (F, 12), their colour after them
-    (:func:`frame_colours`, from the same light points)."""
+    (:func:`frame_colours`, from the same light points), and what the lights leave unexplained
+    (F,) (:func:`frame_light_residuals`)."""
     stencil = stencil_normals(camera_positions, model)
     vn, local = stencil
     points = _light_points(camera_positions, model, stencil)
     values = _light_point_values(grays, points)
-    light = frame_lights(grays, camera_positions, model, points, values)  # (F, 9): the stream's light
-    # the templates' shading under the model's own light (a point light's terminator is a kink nine terms round off)
-    shading_light = lighting.fit_point_light(values, model.light_point_albedo, points[0], start=light) \
-        if model.light_model == "point" else light
+    light, shading_light, residual = _fitted_lights(grays, camera_positions, model, points, values)
     if images is not None:
         light = np.concatenate([light, frame_colours(images, camera_positions, model, light, points)], axis=1)
     t_normals = point_normals(camera_positions, local[model.faces], model.template_face, model.template_bary, 1.0,
                               vn)  # (F, R, 5, N, 3)
     out = np.stack([lighting.light_shading(t_normals[f], shading_light[f]) for f in range(len(grays))])
     s = model.template_size
-    return out.reshape(out.shape[:3] + (s, s)), t_normals, light
+    return out.reshape(out.shape[:3] + (s, s)), t_normals, light, residual
