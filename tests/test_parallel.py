@@ -161,7 +161,9 @@ def test_nested_blocks_run_in_their_worker():
         assert len({ident for _, _, ident in rows}) == 1
 
 
-def _wpsd_problem(V=600, E=6, F=12):
+def _wpsd_problem(V=600, E=6, F=12, vertices=slice(None)):
+    """A WPSD fit's kernel matrices (V, E, E) and details (E, V, 3), as the fit lays them out; of
+    ``vertices`` alone where given (the same problem without the others)."""
     rng = np.random.default_rng(0)
     features = rng.normal(scale=0.1, size=(E, F))
     features[0] = 0.0
@@ -169,9 +171,9 @@ def _wpsd_problem(V=600, E=6, F=12):
     details[0] = 0.0
     index = np.stack([rng.choice(F, 5, replace=False) for _ in range(V)]).astype(np.int32)
     weight = rng.uniform(0.1, 1.0, size=(V, 5))
-    alpha = edge_weight_matrix(index, (weight / weight.sum(1, keepdims=True)).astype(np.float32), F)
+    alpha = edge_weight_matrix(index, (weight / weight.sum(1, keepdims=True)).astype(np.float32), F)[vertices]
     phi = np.moveaxis(wpsd_distances(features, features, alpha), 1, 0)
-    return phi, details
+    return phi, details[:, vertices]
 
 
 @pytest.mark.parametrize("limit", ["FACEPIPE_THREADS", "OMP_NUM_THREADS"])
@@ -183,6 +185,33 @@ def test_one_thread_from_the_environment_runs_the_solve_here_with_the_same_resul
     one = solve_rbf(phi, details, chunk=50)
     assert seen == {threading.get_ident()}
     assert np.array_equal(one[0], many[0]) and np.array_equal(one[1], many[1])
+
+
+def test_vertices_without_details_are_zero_and_the_others_solved_as_alone():
+    """Vertices whose details are zero in every pose (skin the anchors hold) get the zero solution
+    without a solve; every other vertex's weights are the same bit for bit as when the vertices
+    without details are left out of the problem."""
+    phi, details = _wpsd_problem()
+    still = np.zeros(len(phi), dtype=bool)
+    still[::3] = True
+    details[:, still] = 0.0
+    calls = []
+    original = psd._solve_block
+
+    def counted(block_phi, *args):
+        calls.append(len(block_phi))
+        return original(block_phi, *args)
+
+    psd._solve_block = counted
+    try:
+        w, c = solve_rbf(phi, details, chunk=50)
+    finally:
+        psd._solve_block = original
+    assert sum(calls) == (~still).sum()
+    assert not w[still].any() and not c[still].any()
+    moving = np.flatnonzero(~still)
+    w_without, c_without = solve_rbf(*_wpsd_problem(vertices=moving), chunk=50)
+    assert np.array_equal(w[moving], w_without) and np.array_equal(c[moving], c_without)
 
 
 def test_one_allowed_cpu_runs_the_edge_weights_here(monkeypatch):

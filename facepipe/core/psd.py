@@ -191,20 +191,36 @@ def solve_rbf(phi: np.ndarray, targets: np.ndarray, rcond: float = DEFAULT_RCOND
         x = _solve_block(phi[None], targets.reshape(R, -1)[None], rcond, smoothing)[0]  # (P+1, V*3)
         x = x.reshape(P + 1, V, 3)
         return np.moveaxis(x[:P], 0, 1), x[P]
-    weights = np.empty((V, P, 3))
-    const = np.empty((V, 3))
+    weights = np.zeros((V, P, 3))
+    const = np.zeros((V, 3))
+    # a vertex whose details are zero in every row (skin the anchors hold, parts no marker moves:
+    # a fifth of a face with its head and neck) has the zero solution of its linear system: only
+    # the others are solved
+    moving = np.flatnonzero(np.any(targets != 0, axis=(0, 2)))
+    every = len(moving) == V
 
     def block(start):
-        stop = min(V, start + chunk)
-        rhs = np.moveaxis(targets[:, start:stop], 1, 0)  # (n, R, 3)
-        x = _solve_block(phi[start:stop], rhs, rcond, smoothing)  # (n, P+1, 3)
-        weights[start:stop] = x[:, :P]
-        const[start:stop] = x[:, P]
+        rows = slice(start, min(V, start + chunk)) if every else moving[start:start + chunk]
+        rhs = np.moveaxis(targets[:, rows], 1, 0)  # (n, R, 3)
+        x = _solve_block(_rows_in_layout(phi, rows), rhs, rcond, smoothing)  # (n, P+1, 3)
+        weights[rows] = x[:, :P]
+        const[rows] = x[:, P]
 
-    # the blocks write disjoint rows and each vertex sees the same arithmetic on any thread, so
-    # the result is the same bit for bit however many threads share them
-    map_blocks(block, range(0, V, chunk))
+    # the blocks write disjoint rows and each vertex sees the same arithmetic on any thread and in
+    # any block, so the result is the same bit for bit however many threads share them
+    map_blocks(block, range(0, len(moving), chunk))
     return weights, const
+
+
+def _rows_in_layout(a: np.ndarray, rows) -> np.ndarray:
+    """``a[rows]`` laid out in memory as a slice of ``a`` is (its axes' order in memory kept): a
+    reduction over it then adds in the same order as over a slice, so a row's sums are the same
+    bit for bit whichever rows it is gathered with."""
+    if isinstance(rows, slice):
+        return a[rows]
+    out = np.empty_like(a[:len(rows)])  # order "K": a's layout
+    out[...] = a[rows]
+    return out
 
 
 def _solve_block(phi: np.ndarray, rhs: np.ndarray, rcond: float, smoothing: float) -> np.ndarray:
