@@ -87,15 +87,23 @@ def main() -> None:
             row[label] = dict(zip(("spearman", "spearman_active_frames"), spearman(q, act)))
             layers = np.array(json.loads((work / "appearance.json").read_text())["layers"])
             row[label]["q_rms_error_layers"] = np.sqrt(((q - act * (layers - 1)) ** 2).mean(axis=0)).tolist()
+            check = json.loads((classified / "appearance.json").read_text())["footage_check"]
+            residual = np.array([np.nan if x is None else x for x in check["light_residual"]])
+            row[label]["footage_check"] = {"ratio_median": check["ratio_median"],
+                                           "ratio_max": float(np.nanmax(residual) / check["light_residual_examples"]),
+                                           "frames_off_face": check["frames_off_face"], "frames": len(residual)}
         lifted = np.load(replay / "positions.npy")
         face = np.linalg.norm(lifted[:, :9409] - in_camera[:, :9409], axis=-1)
         row["lifted_face_rms_cm"] = float(np.sqrt((face ** 2).mean(axis=1)).mean())
         row["reprojection_px"] = json.loads((replay / "replay.json").read_text())["video"]["reprojection_px"]["mean"]
         result[take] = row
         for label in ("lifted", "truth_geometry"):
+            check = row[label]["footage_check"]
             print(take, f"{label:15s}", "all", " ".join(f"{v:.2f}" for v in row[label]["spearman"]), "| active",
                   " ".join(f"{v:.2f}" for v in row[label]["spearman_active_frames"]), "| Q error",
-                  " ".join(f"{v:.2f}" for v in row[label]["q_rms_error_layers"]))
+                  " ".join(f"{v:.2f}" for v in row[label]["q_rms_error_layers"]),
+                  f"| light residual {check['ratio_median']:.1f}x the examples' (largest {check['ratio_max']:.1f}x), "
+                  f"{check['frames_off_face']} frames off the face")
         print(take, f"lifted face RMS {row['lifted_face_rms_cm']:.3f} cm (camera coordinates), landmark reprojection "
                     f"{row['reprojection_px']:.2f} px")
     Path(args.json).write_text(json.dumps(result, indent=1))

@@ -824,6 +824,23 @@ def test_bad_examples_exit_2(kit, tmp_path, capsys):
     assert "calibration" in capsys.readouterr().err
 
 
+def test_an_example_frame_whose_geometry_misses_the_face_is_noted(kit, tmp_path, capsys):
+    """One example frame's geometry moved off its face in the image (as another frame's geometry,
+    or a shifted frame number, would be): the build names that frame, and only that one."""
+    cfg = _edited_config(kit, tmp_path, "neutral_frame = 0", "neutral_frame = 0")
+    examples = cfg.parent / "examples.npz"
+    with np.load(examples) as d:
+        data = {k: d[k] for k in d.files}
+    number = 7  # the brows' second layer
+    row = int(np.flatnonzero(data["frame"] == number)[0])
+    data["positions"] = data["positions"].copy()
+    data["positions"][row] += np.array([1.5, 0.0, 0.0], dtype=data["positions"].dtype)  # 1.5 cm aside
+    np.savez(examples, **data)
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz") == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "seems to miss the face" in line]
+    assert len(notes) == 1 and notes[0].startswith(f"note: example frame {number}:"), notes
+
+
 @pytest.mark.parametrize("edit,message", [
     (lambda d: (d / "regions" / "mouth.txt").write_text("12\n99999999\n"), "line 2"),
     (lambda d: (d / "regions" / "mouth.txt").write_text("# no vertices\n"), "empty"),

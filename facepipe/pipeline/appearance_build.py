@@ -30,8 +30,8 @@ from facepipe.core.raster import udim_corner, udim_tile_numbers
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import frames_at, open_footage, read_frames_of, to_gray
-from facepipe.pipeline.appearance import (TakeGeometry, check_frame_size, classify_decoded, read_take_geometry,
-                                          region_bank)
+from facepipe.pipeline.appearance import (OFF_FACE_RATIO, TakeGeometry, check_frame_size, classify_decoded,
+                                          read_take_geometry, region_bank)
 from facepipe.pipeline.appearance_light import frame_light_residuals
 from facepipe.pipeline.appearance_points import (locate_uv, point_facing, point_normals, points_seen_well, surface_points,
                                                  template_points, texel_map, triangle_normals, unwrap,
@@ -309,7 +309,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
     if light is not None:
-        model.light_residual = float(np.nanmedian(frame_light_residuals(*_example_stack(frames, cam_pos), model)))
+        model.light_residual = _example_light_residual(model, frames, cam_pos, notes)
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
             "albedo": model.albedo, "rest": rest, "shading": surfaces, "peak_interpolation": model.peak_interpolation,
             "notes": notes}
@@ -332,6 +332,22 @@ def _example_stack(frames: dict, cam_pos: dict) -> tuple[np.ndarray, np.ndarray]
     """The example frames' luminance (F, H, W) and geometry in camera space (F, V, 3), in frame order."""
     numbers = sorted(frames)
     return np.stack([to_gray(frames[n][0]) for n in numbers]), np.stack([cam_pos[n] for n in numbers])
+
+
+def _example_light_residual(model: AppearanceModel, frames: dict, cam_pos: dict, notes: list) -> float:
+    """The example frames' median light residual (:func:`frame_light_residuals`), which
+    classification checks footage against; an example frame leaving more than
+    :data:`~facepipe.pipeline.appearance.OFF_FACE_RATIO` times it unexplained is noted: its
+    geometry misses the face in its image (another frame's geometry, a shifted frame number), and
+    the layers taken from it are not that face."""
+    residual = frame_light_residuals(*_example_stack(frames, cam_pos), model)
+    median = float(np.nanmedian(residual))
+    for number, r in zip(sorted(frames), residual):
+        if median > 0 and r > OFF_FACE_RATIO * median:
+            notes.append(f"example frame {number}: its light leaves {r / median:.0f}× the other example frames' share "
+                         "of the face's brightness unexplained: its geometry seems to miss the face in the image "
+                         "(check the frame's number and its geometry)")
+    return median
 
 
 def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, notes: list) -> dict:
