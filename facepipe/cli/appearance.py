@@ -149,13 +149,11 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
     check = off_face_frames(result, model)
     if check is not None:
         off = check["off_face"]
-        def finite(x):  # JSON has no NaN: a take with no frame read has no median
-            return float(x) if np.isfinite(x) else None
-
         figures["footage_check"] = {
-            "light_residual_examples": check["examples"], "light_residual_median": finite(check["median"]),
-            "ratio_median": finite(check["ratio"]), "ratio_limit": check["limit"], "frames_off_face": int(off.sum()),
-            "light_residual": [None if not np.isfinite(x) else round(float(x), 5) for x in result.light_residual]}
+            "light_residual_examples": check["examples"], "light_residual_median": _json_number(check["median"]),
+            "ratio_median": _json_number(check["ratio"]), "ratio_limit": check["limit"],
+            "frames_off_face": int(off.sum()),
+            "light_residual": [_json_number(round(float(x), 5)) for x in result.light_residual]}
         if off.any():
             spans = hidden_spans(["off"], ~off[:, None], numbers)["off"][1]
             rep.say(f"warning: {int(off.sum())} of {len(numbers)} frames (frames {spans}) do not match the geometry: "
@@ -173,6 +171,11 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
             f"({figures['frames_per_second']:.0f} frames/s, reading included); stream (Q {q_bits}{light}) {bits} bits "
             f"a frame = {figures['stream_kbit_s']:.2f} kbit/s at {fps:.4g} Hz; wrote {path}")
     return result
+
+
+def _json_number(x: float) -> float | None:
+    """x, or None where it is not finite (JSON has no NaN: a frame not read has no residual)."""
+    return float(x) if np.isfinite(x) else None
 
 
 def hidden_spans(names, visible: np.ndarray, numbers: np.ndarray, skipped=(), most: int = 3) -> dict:
