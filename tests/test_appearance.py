@@ -1111,6 +1111,8 @@ def test_geometry_that_misses_the_face_in_the_footage_is_named_by_frame(kit, tmp
     said, check = checks["take_turned"]
     assert check["frames_off_face"] == 0 and check["ratio_median"] < check["ratio_limit"] / 2
     assert "warning" not in said and len(check["light_residual"]) == frames
+    assert f"footage check: the geometry lies on the face in every frame read (the light leaves " \
+           f"{check['ratio_median']:.1f}×" in said
     with np.load(kit / "app.npz") as d:
         older = {k: d[k] for k in d.files if k != "light_residual"}
     np.savez(tmp_path / "older.npz", **older)

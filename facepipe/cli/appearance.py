@@ -162,6 +162,10 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
                     f"{100 * check['examples']:.1f} %). The geometry misses the face in the image there and Q read "
                     "there is not to be trusted: check that --geometry is this footage's take (its head pose and "
                     "frame numbers) and that the footage is from the camera the model was built with")
+        elif check["ratio"] == check["ratio"]:  # (a take with no frame read has nothing to check)
+            rep.say(f"footage check: the geometry lies on the face in every frame read (the light leaves "
+                    f"{check['ratio']:.1f}× the example footage's share of the face's brightness unexplained; "
+                    f"over {check['limit']:g}× would name the frame)")
     elif model.light_face is not None:
         rep.detail("note: the model predates the footage check (rebuild it to check the geometry against the footage)")
     path = write_stream(output, model_path, result, model.layer_counts, footage=_absolute_footage(footage),
