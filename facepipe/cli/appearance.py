@@ -162,7 +162,7 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
                     f"{100 * check['examples']:.1f} %). The geometry misses the face in the image there and Q read "
                     "there is not to be trusted: check that --geometry is this footage's take (its head pose and "
                     "frame numbers) and that the footage is from the camera the model was built with")
-        elif check["ratio"] == check["ratio"]:  # (a take with no frame read has nothing to check)
+        elif np.isfinite(check["ratio"]):  # (a take with no frame read has nothing to check)
             rep.say(f"footage check: the geometry lies on the face in every frame read (the light leaves "
                     f"{check['ratio']:.1f}× the example footage's share of the face's brightness unexplained; "
                     f"over {check['limit']:g}× would name the frame)")

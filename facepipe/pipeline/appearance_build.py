@@ -307,9 +307,14 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             light_point_albedo=None if light is None else light["point_albedo"])
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
-    rest = calibrate_rest(model, cfg, frames, cam_pos, notes) if cfg.rest_calibration else {}
+    numbers = sorted(frames)
+    grays, cams = np.stack([to_gray(frames[n][0]) for n in numbers]), np.stack([cam_pos[n] for n in numbers])
+    # the example frames classified once: their readings set the rest floors, their lights the residual
+    readings = classify_decoded(grays, cams, model, region_bank(model)) if cfg.rest_calibration else None
+    rest = calibrate_rest(model, cfg, numbers, readings.q, notes) if cfg.rest_calibration else {}
     if light is not None:
-        model.light_residual = _example_light_residual(model, frames, cam_pos, notes)
+        model.light_residual = _example_light_residual(
+            frame_light_residuals(grays, cams, model) if readings is None else readings.light_residual, numbers, notes)
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
             "albedo": model.albedo, "rest": rest, "shading": surfaces, "peak_interpolation": model.peak_interpolation,
             "notes": notes}
@@ -328,21 +333,14 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
 MOST_REST_FLOOR = 1.0
 
 
-def _example_stack(frames: dict, cam_pos: dict) -> tuple[np.ndarray, np.ndarray]:
-    """The example frames' luminance (F, H, W) and geometry in camera space (F, V, 3), in frame order."""
-    numbers = sorted(frames)
-    return np.stack([to_gray(frames[n][0]) for n in numbers]), np.stack([cam_pos[n] for n in numbers])
-
-
-def _example_light_residual(model: AppearanceModel, frames: dict, cam_pos: dict, notes: list) -> float:
-    """The example frames' median light residual (:func:`frame_light_residuals`), which
-    classification checks footage against; an example frame leaving more than
-    :data:`~facepipe.pipeline.appearance.OFF_FACE_RATIO` times it unexplained is noted: its
+def _example_light_residual(residual: np.ndarray, numbers: list, notes: list) -> float:
+    """The example frames' (``numbers``) median light residual (:func:`frame_light_residuals`:
+    ``residual``), which classification checks footage against; an example frame leaving more
+    than :data:`~facepipe.pipeline.appearance.OFF_FACE_RATIO` times it unexplained is noted: its
     geometry misses the face in its image (another frame's geometry, a shifted frame number), and
     the layers taken from it are not that face."""
-    residual = frame_light_residuals(*_example_stack(frames, cam_pos), model)
     median = float(np.nanmedian(residual))
-    for number, r in zip(sorted(frames), residual):
+    for number, r in zip(numbers, residual):
         if median > 0 and r > OFF_FACE_RATIO * median:
             notes.append(f"example frame {number}: its light leaves {r / median:.0f}× the other example frames' share "
                          "of the face's brightness unexplained: its geometry seems to miss the face in the image "
@@ -350,8 +348,9 @@ def _example_light_residual(model: AppearanceModel, frames: dict, cam_pos: dict,
     return median
 
 
-def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, notes: list) -> dict:
-    """Set the model's rest floors from the example frames, and return them per region.
+def calibrate_rest(model: AppearanceModel, cfg, numbers: list, readings: np.ndarray, notes: list) -> dict:
+    """Set the model's rest floors from the example frames (their ``numbers``, in order, and their
+    readings (F, R): :func:`~facepipe.pipeline.appearance.classify_decoded`), and return them per region.
 
     A region is at rest in every example frame but its own layers above the neutral one (the
     neutral frame, the other regions' examples and the ``rest_frames``, other expressions where
@@ -361,10 +360,6 @@ def calibrate_rest(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, not
     sees another region's motion (a brow lowered over the lid), and the floor hides that much of
     its own first layer.
     """
-    numbers = sorted(frames)
-    grays, cams = _example_stack(frames, cam_pos)
-    bank = region_bank(model)
-    readings = classify_decoded(grays, cams, model, bank).q
     at_rest = np.array([[n not in set(region.frames[1:]) for region in cfg.regions] for n in numbers])
     floor, row = ap.rest_floor(readings, at_rest, MOST_REST_FLOOR)
     model.rest_floor = floor
