@@ -1,7 +1,12 @@
 import numpy as np
 
-from facepipe.core.tangent_frames import frame_neighbors, local_frames, to_local, to_world, vertex_normals
+import pytest
+
+from facepipe.core.tangent_frames import (frame_neighbors, frames_from_normals, local_frames, to_local, to_world,
+                                         vertex_face_matrix, vertex_normals)
 from facepipe.core.shell import large_scale_positions, shell_basis
+from facepipe.core.vectors import cross, lengths
+from facepipe.pipeline.fit import Geometry
 from tests.conftest import grid
 
 
@@ -39,6 +44,71 @@ def test_batched_frames_equal_single(sheet):
     R = local_frames(batch, F, nb)
     for i in range(3):
         assert np.allclose(R[i], local_frames(batch[i], F, nb))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_cross_and_lengths_are_numpys_bit_for_bit(dtype):
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(2, 1000, 3)).astype(dtype) * 10.0 ** rng.integers(-6, 6, size=(2, 1000, 1))
+    assert np.array_equal(cross(a, b), np.cross(a, b)) and cross(a, b).dtype == np.cross(a, b).dtype
+    axis = np.array([0.0, 1.0, 0.0])  # broadcast, as the frames' fallbacks use it
+    assert np.array_equal(cross(a, axis), np.cross(a, axis))
+    batch = a.reshape(10, 100, 3)
+    assert np.array_equal(cross(batch, b.reshape(10, 100, 3)), np.cross(batch, b.reshape(10, 100, 3)))
+    assert np.array_equal(lengths(a), np.linalg.norm(a, axis=-1))
+    assert np.array_equal(lengths(batch, keepdims=True), np.linalg.norm(batch, axis=-1, keepdims=True))
+
+
+def _frames_by_numpy(V, F, nb):
+    """The frames as numpy's own operations give them, spelled out: area-weighted normals, the
+    edge to the frame neighbour projected, its fallbacks, b = n × t."""
+    fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    vn = np.asarray(vertex_face_matrix(F, len(V)) @ fn)
+    norm = np.linalg.norm(vn, axis=-1, keepdims=True)
+    n = np.where(norm > 1e-30, vn / np.where(norm > 1e-30, norm, 1.0), np.array([0.0, 0.0, 1.0])).astype(V.dtype)
+    return _frames_from_normals_by_numpy(n, V[nb] - V).astype(V.dtype)
+
+
+def _frames_from_normals_by_numpy(n, e):
+    t = e - np.einsum("...i,...i->...", e, n)[..., None] * n
+    alt = np.cross(n, np.array([1.0, 0.0, 0.0]))
+    alt = np.where(np.linalg.norm(alt, axis=-1, keepdims=True) < 1e-6, np.cross(n, np.array([0.0, 1.0, 0.0])), alt)
+    keep = np.linalg.norm(t, axis=-1, keepdims=True) > 1e-6 * np.maximum(np.linalg.norm(e, axis=-1, keepdims=True),
+                                                                         1e-30)
+    t = np.where(keep, t, alt)
+    tn = np.linalg.norm(t, axis=-1, keepdims=True)
+    t = np.where(tn > 1e-30, t / np.where(tn > 1e-30, tn, 1.0), np.array([1.0, 0.0, 0.0]))
+    return np.stack([t, np.cross(n, t), n], axis=-1)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_frames_are_numpys_own_arithmetic_bit_for_bit(sheet, dtype):
+    V, F = sheet
+    V = V.astype(dtype)
+    nb = frame_neighbors(F, len(V))
+    V[nb[7]] = V[7] + 0.5 * vertex_normals(V, F)[7]  # an edge to the frame neighbour along the normal
+    V[nb[30]] = V[30]  # a frame neighbour on top of its vertex
+    assert np.array_equal(local_frames(V, F, nb), _frames_by_numpy(V, F, nb))
+    # the fallbacks themselves: an edge along the normal, along x (the first fallback is then zero), none
+    n = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    e = np.array([[0.0, 0.0, 2.0], [3.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    R = frames_from_normals(n.astype(dtype), e.astype(dtype))
+    assert np.array_equal(R, _frames_from_normals_by_numpy(n.astype(dtype), e.astype(dtype)))
+    assert np.allclose(R[:, :, 0], [[0, 1, 0], [0, 0, 1], [0, 0, -1]]) and np.allclose(R[:, :, 2], n)
+
+
+def test_details_of_a_pose_at_rest_are_zero_and_the_others_as_alone(sheet):
+    V, F = sheet
+    H = np.arange(0, len(V), 9)
+    B = shell_basis(V, F, H)
+    geo = Geometry(V, F, H, B, np.array([[0, 1]]), np.array([1.0]), frame_neighbors(F, len(V)), 1.0)
+    rng = np.random.default_rng(8)
+    moved = [V + 0.2 * np.sin(V[:, [1, 2, 0]] * k) + 0.01 * rng.normal(size=V.shape) for k in (1, 2)]
+    d = geo.details(np.stack([V, moved[0], V, moved[1]]))
+    assert not d[0].any() and not d[2].any()
+    for row, pose in zip((1, 3), moved):
+        large = large_scale_positions(V, B, (pose[H] - V[H])[None])[0]
+        assert np.array_equal(d[row], to_local(local_frames(large, F, geo.neighbors), pose - large))
 
 
 def test_detail_round_trip(sheet):

@@ -136,6 +136,30 @@ def test_repeated_vertex_in_polygon():
     assert "use a vertex twice" in message(e) and "polygon 2" in message(e)
 
 
+@pytest.mark.parametrize("sizes", [[3], [4], [3, 4, 5], [3, 9]])
+def test_polygons_listing_a_vertex_twice_are_found_whatever_their_sizes(sizes):
+    """Uniform sizes (a table), mixed small ones (corner pairs) and large ones (a sort) against a
+    plain per-polygon count."""
+    from facepipe.core.mesh import _polygons_with_repeats
+
+    rng = np.random.default_rng(len(sizes))
+    size = rng.choice(sizes, size=400)
+    offsets = np.r_[0, np.cumsum(size)]
+    pv = rng.integers(0, 40, size=offsets[-1])
+    expected = [len(set(pv[a:b])) < b - a for a, b in zip(offsets[:-1], offsets[1:])]
+    assert 0 < sum(expected) < 400
+    assert _polygons_with_repeats(offsets, pv, size).tolist() == expected
+
+
+def test_the_checked_mesh_gives_its_edges_once_each():
+    m = grid()
+    check_mesh(m)  # (it sorts the edges' keys, which the edges then reuse)
+    expected = sorted({tuple(sorted((int(t[i]), int(t[(i + 1) % 3])))) for t in m.faces for i in range(3)})
+    assert m.edges.tolist() == [list(e) for e in expected] and m.edges.dtype == np.int64
+    assert unique_edges(m.faces).tolist() == m.edges.tolist()
+    assert grid().edges.tolist() == m.edges.tolist()  # unchecked: the same
+
+
 def test_repeated_vertex_in_large_ngon():
     # polygons bigger than the pairwise-comparison path go through the sorting path
     n = 12

@@ -11,7 +11,9 @@ from facepipe.io.mesh_read import load_mesh
 from facepipe.io.mesh_write import save_obj
 from facepipe.errors import InputError
 from facepipe.export.common import write_obj_sequence
-from facepipe.io.model_file import Model, load_model, model_arrays, model_from_fit, save_model
+from facepipe.io.model_file import (Model, add_model_arrays, geometry_to, load_model, model_arrays, model_from_fit,
+                                    save_model)
+from facepipe.io.npz_file import NpzWriter
 from facepipe.pipeline.fit import fit_rig
 from facepipe.pipeline.rig import load_rig
 from facepipe.sample_rig import write_sample_rig
@@ -135,3 +137,51 @@ def test_corrupt_groups_are_refused(grouped, tmp_path, change, message):
     save_model(tmp_path / "bad.npz", arrays, meta)
     with pytest.raises(InputError, match=message):
         load_model(tmp_path / "bad.npz")
+
+
+def test_a_bake_that_writes_its_geometry_while_fitting_writes_the_same_file(grouped, tmp_path):
+    """The bake hands the geometry to the writer as soon as it is solved (``on_geometry``) and the
+    rest at the end: the file holds what save_model writes at once, member for member."""
+    _, _, rig, fit = grouped
+    arrays, meta = model_arrays(fit, rig)
+    save_model(tmp_path / "at_once.npz", arrays, meta)
+    with NpzWriter(tmp_path / "in_parts.npz") as npz:
+        refit = fit_rig(rig, on_geometry=geometry_to(npz))
+        assert "B" in npz and "rbf_weights" not in npz  # the geometry went first
+        add_model_arrays(npz, *model_arrays(refit, rig))
+    with np.load(tmp_path / "at_once.npz") as a, np.load(tmp_path / "in_parts.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for name in a.files:
+            assert a[name].dtype == b[name].dtype and np.array_equal(a[name], b[name]), name
+    assert load_model(tmp_path / "in_parts.npz").meta == meta
+
+
+def test_an_archive_written_in_parts_is_whole_or_absent(tmp_path):
+    rng = np.random.default_rng(2)
+    big = rng.normal(size=(300, 89))
+    with NpzWriter(tmp_path / "a.npz") as npz:
+        npz.add("big", np.asfortranarray(big), np.float32)
+        npz.add("names", np.asarray(["brow", "jaw"]))
+        with pytest.raises(ValueError, match="already in the archive"):
+            npz.add("big", big)
+    with np.load(tmp_path / "a.npz") as a:
+        assert a["big"].dtype == np.float32 and np.array_equal(a["big"], big.astype(np.float32))
+        assert a["names"].tolist() == ["brow", "jaw"]
+    # an error in the caller's block: no file under the name, no temporary file left beside it
+    with pytest.raises(KeyboardInterrupt):
+        with NpzWriter(tmp_path / "b.npz") as npz:
+            npz.add("big", big)
+            raise KeyboardInterrupt
+    # an error in a background write (here an array that cannot be cast) is raised at the end
+    with pytest.raises(ValueError):
+        with NpzWriter(tmp_path / "c.npz") as npz:
+            npz.add("big", big)
+            npz.add("text", np.asarray(["not a number"]), np.float64)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz"]
+    # an existing file of the name is replaced only by a whole one
+    (tmp_path / "d.npz").write_bytes(b"the previous bake")
+    with pytest.raises(RuntimeError):
+        with NpzWriter(tmp_path / "d.npz") as npz:
+            npz.add("big", big)
+            raise RuntimeError("the fit failed")
+    assert (tmp_path / "d.npz").read_bytes() == b"the previous bake"

@@ -14,17 +14,19 @@ from pathlib import Path
 from facepipe.errors import InputError
 from facepipe.io.config import load_config
 from facepipe.io.outputs import check_output_path
-from facepipe.io.model_file import fit_to_model, model_arrays, save_fit, save_model
+from facepipe.io.model_file import add_model_arrays, fit_to_model, geometry_to, model_arrays, save_fit
+from facepipe.io.npz_file import NpzWriter
 from facepipe.cli.progress import StageBar
 from facepipe.pipeline.fit import FIT_STAGES, fit_config
 from facepipe.pipeline.tune import choose_parameters
 
 
-def run_fit(config, rep, tune: bool = True):
+def run_fit(config, rep, tune: bool = True, on_geometry=None):
     """Load the rig, choose its parameters by validation (``tune``), fit: (rig, FitResult).
 
     The validation's report is ``fit.report["tune"]`` when it ran; ``fit.report["validation"]``
-    says whether it did and, if not, why."""
+    says whether it did and, if not, why. ``on_geometry``: see
+    :func:`~facepipe.pipeline.fit.fit_rig`."""
     t0 = time.perf_counter()
     choice = {}
 
@@ -44,7 +46,8 @@ def run_fit(config, rep, tune: bool = True):
     config = load_config(config)  # a missing or malformed config is said alone, before any bar
     # the validation's bars appear under the steps' bar, in its second step
     with StageBar(len(FIT_STAGES), "fit", quiet=rep.quiet) as steps:
-        rig, fit = fit_config(config, progress=progress, prepare=prepare, stage=steps.step, early_basis=not tune)
+        rig, fit = fit_config(config, progress=progress, prepare=prepare, stage=steps.step, early_basis=not tune,
+                              on_geometry=on_geometry)
     rep.detail(solver_line(fit.report["deformer"], fit.report["shell_solver"], fit.report["shell_solver_passed_over"]))
     report = choice["report"]
     if report["validated"]:
@@ -201,9 +204,10 @@ def bake_command(rep, source: str, output: str, tune: bool) -> None:
         shell = meta.get("shell", {})
         rep.detail(solver_line(shell.get("method", "shell"), shell.get("solver", "not recorded (an older fit file)")))
     else:
-        rig, result = run_fit(source, rep, tune=tune)
-        arrays, meta = model_arrays(result, rig)
-        save_model(output, arrays, meta)
+        with NpzWriter(output) as npz:  # the geometry is written while the details are fitted
+            rig, result = run_fit(source, rep, tune=tune, on_geometry=geometry_to(npz))
+            arrays, meta = model_arrays(result, rig)
+            add_model_arrays(npz, arrays, meta)
         print_fit_summary(rep, result, rig.config.units)
     size = Path(output).stat().st_size / 1e6
     rep.say(f"wrote {output}: method {meta['method']}, {len(meta['basis']) - 1} basis poses, "

@@ -20,6 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from facepipe.core.runs import offsets_within
+from facepipe.core.vectors import cross, lengths
 from facepipe.errors import InputError
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -91,8 +92,16 @@ class Mesh:
     def edges(self) -> np.ndarray:
         """(E, 2) int64 unique undirected edges of :attr:`faces`, ``edges[:, 0] < edges[:, 1]``."""
         if getattr(self, "_edges", None) is None:
-            self._edges = unique_edges(self.faces)
+            self._edges = _edges_from_keys(self.sorted_edge_keys(), self.n_vertices)
+            self._edge_keys = None  # (only the edges and the mesh check read them)
         return self._edges
+
+    def sorted_edge_keys(self) -> np.ndarray:
+        """:func:`sorted_edge_keys` of :attr:`faces` (kept: :func:`check_mesh` sorts them to count
+        each edge's triangles, and :attr:`edges` are their runs)."""
+        if getattr(self, "_edge_keys", None) is None:
+            self._edge_keys = sorted_edge_keys(self.faces, self.n_vertices)
+        return self._edge_keys
 
     def with_vertices(self, vertices: np.ndarray) -> "Mesh":
         """The same topology and UVs with other vertex positions (V, 3)."""
@@ -165,22 +174,31 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     >>> unique_edges(np.array([[0, 1, 2], [0, 2, 3]])).tolist()
     [[0, 1], [0, 2], [0, 3], [1, 2], [2, 3]]
     """
+    faces = np.asarray(faces, dtype=np.int64)
+    if faces.shape[0] == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    n = int(faces.max()) + 1
+    return _edges_from_keys(sorted_edge_keys(faces, n), n)
+
+
+def sorted_edge_keys(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(3T,) int64: every triangle's edges as keys i · n_vertices + j (i < j), sorted.
+
+    An edge appears once per triangle that uses it: the runs of equal keys are the mesh's
+    edges, and their lengths the number of triangles sharing each. (One int64 key per edge,
+    sorted: several times faster than unique(axis=0), and than numpy 2's hash-based np.unique
+    on millions of keys.)"""
     e = triangle_edges(faces)
-    if e.shape[0] == 0:
-        return e
-    # one int64 key per edge, sorted: several times faster than unique(axis=0), and than
-    # numpy 2's hash-based np.unique on millions of keys
-    n = int(e.max()) + 1
-    key = _sorted_unique(e[:, 0] * n + e[:, 1])
-    return np.stack([key // n, key % n], axis=1)
+    return np.sort(e[:, 0] * n_vertices + e[:, 1])
 
 
-def _sorted_unique(key: np.ndarray) -> np.ndarray:
-    key = np.sort(key)
-    keep = np.empty(key.shape, dtype=bool)
+def _edges_from_keys(skey: np.ndarray, n_vertices: int) -> np.ndarray:
+    """The unique edges (E, 2) of :func:`sorted_edge_keys`' keys."""
+    keep = np.empty(skey.shape, dtype=bool)
     keep[:1] = True
-    np.not_equal(key[1:], key[:-1], out=keep[1:])
-    return key[keep]
+    np.not_equal(skey[1:], skey[:-1], out=keep[1:])
+    key = skey[keep]
+    return np.stack([key // n_vertices, key % n_vertices], axis=1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -240,13 +258,13 @@ def check_mesh(mesh: Mesh, *, area_tolerance: float = 1e-10, path: str | os.Path
     repeated_poly = _polygons_with_repeats(offsets, pv, sizes)
     problems += _repeated_corner_problems(repeated_poly, offsets, pv)
     if sizes.shape[0]:
-        faces, face_poly = triangulate(offsets, pv)
+        faces, face_poly = mesh.faces, mesh.face_polygon  # (kept by the mesh for what follows)
     else:
         faces, face_poly = np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=np.int64)
     if faces.shape[0] and finite.all():
         problems += _degenerate_triangle_problems(V, faces, face_poly, repeated_poly, offsets, pv, area_tolerance)
     if faces.shape[0]:
-        problems += _non_manifold_problems(faces, face_poly, V.shape[0])
+        problems += _non_manifold_problems(faces, face_poly, V.shape[0], mesh.sorted_edge_keys())
         problems += _duplicate_triangle_problems(faces, face_poly, V.shape[0])
     problems += _unused_vertex_problems(pv, V.shape[0])
     _raise_problems(problems, where)
@@ -300,9 +318,11 @@ def _degenerate_triangle_problems(V, faces, face_poly, repeated_poly, offsets, p
     """Triangles whose area is below ``area_tolerance`` × the mean squared edge length: their
     cotangent weights are unbounded."""
     a, b, c = V[faces[:, 0]], V[faces[:, 1]], V[faces[:, 2]]
-    double_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    mean_e2 = float(np.mean(np.concatenate([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1),
-                                             ((a - c) ** 2).sum(1)])))
+    ab, ac = b - a, c - a
+    double_area = lengths(cross(ab, ac))
+    bc = c - b
+    mean_e2 = (np.einsum("ij,ij->", ab, ab) + np.einsum("ij,ij->", bc, bc) + np.einsum("ij,ij->", ac, ac)) \
+        / (3 * faces.shape[0])
     tiny = (0.5 * double_area <= area_tolerance * mean_e2) & ~repeated_poly[face_poly]
     if not tiny.any():
         return []
@@ -317,10 +337,8 @@ def _degenerate_triangle_problems(V, faces, face_poly, repeated_poly, offsets, p
             "collapse or re-triangulate it"]
 
 
-def _non_manifold_problems(faces: np.ndarray, face_poly: np.ndarray, n_v: int) -> list[str]:
-    e = triangle_edges(faces)
-    key = e[:, 0] * n_v + e[:, 1]
-    skey = np.sort(key)
+def _non_manifold_problems(faces: np.ndarray, face_poly: np.ndarray, n_v: int, skey: np.ndarray) -> list[str]:
+    """Edges used by more than two triangles (``skey``: :func:`sorted_edge_keys` of ``faces``)."""
     # runs of equal keys in the sorted list: their lengths are the edges' face counts
     starts = np.flatnonzero(np.r_[True, skey[1:] != skey[:-1]])
     counts = np.diff(np.r_[starts, skey.shape[0]])
@@ -329,7 +347,8 @@ def _non_manifold_problems(faces: np.ndarray, face_poly: np.ndarray, n_v: int) -
         return []
     k = int(over[0])
     i, j = divmod(int(skey[starts[k]]), n_v)
-    using = np.unique(face_poly[np.flatnonzero(key == skey[starts[k]]) % len(faces)])
+    e = triangle_edges(faces)
+    using = np.unique(face_poly[np.flatnonzero((e[:, 0] == i) & (e[:, 1] == j)) % len(faces)])
     return [f"{len(over)} non-manifold edges: edge ({i}, {j}) is used by {int(counts[k])} triangles "
             f"(polygons {_first(using)}); an edge may be shared by at most two faces"]
 
@@ -366,9 +385,15 @@ def _polygons_with_repeats(offsets: np.ndarray, pv: np.ndarray, sizes: np.ndarra
     n_poly = sizes.shape[0]
     if n_poly == 0:
         return np.zeros(0, dtype=bool)
-    corner_poly = np.repeat(np.arange(n_poly, dtype=np.int64), sizes)
     max_size = int(sizes.max())
     repeated = np.zeros(n_poly, dtype=bool)
+    if max_size <= 8 and int(sizes.min()) == max_size:  # polygons of one size (all triangles): a table
+        corners = pv.reshape(n_poly, max_size)
+        for i in range(max_size):
+            for j in range(i + 1, max_size):
+                repeated |= corners[:, i] == corners[:, j]
+        return repeated
+    corner_poly = np.repeat(np.arange(n_poly, dtype=np.int64), sizes)
     if max_size <= 8:
         # compare every corner with the ones after it in its polygon: O(C * size), no sort
         end = offsets[1:][corner_poly]

@@ -19,7 +19,6 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import nnls
 
 logger = logging.getLogger(__name__)
 
@@ -391,6 +390,8 @@ def _finish_exactly(c: np.ndarray, active: np.ndarray, site: np.ndarray, query: 
     """Solve the still ``active`` fits exactly in place (``c``: (U, E, B) coefficients of units of
     the sites ``site`` (U,) and queries ``query`` (U, B), in the unit-norm examples' scale); marks
     them done. Returns how many."""
+    from scipy.optimize import nnls  # (rarely needed: SciPy's optimize is a tenth of a second to import)
+
     done = 0
     for u, j in np.argwhere(active):
         try:

@@ -63,6 +63,12 @@ def cotmatrix(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     >>> np.allclose(cotmatrix(V, F).sum(axis=1), 0)
     True
     """
+    return _cotmatrix_and_areas(vertices, faces)[0]
+
+
+def _cotmatrix_and_areas(vertices: np.ndarray, faces: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """:func:`cotmatrix` and each triangle's |(b − a) × (c − a)| (twice its area), which it
+    computes on the way (:func:`massmatrix` takes them rather than gathering the corners again)."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     n = vertices.shape[0]
@@ -98,7 +104,7 @@ def cotmatrix(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     vals = np.concatenate(vals)
     off = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))  # duplicates (an edge's two triangles) summed
     diag = -np.asarray(off.sum(axis=1)).ravel()
-    return (off + sp.diags(diag)).tocsr()
+    return (off + sp.diags(diag)).tocsr(), cross
 
 
 def clamped_angles(angles: np.ndarray) -> np.ndarray:
@@ -128,7 +134,7 @@ def clamped_angles(angles: np.ndarray) -> np.ndarray:
     return MIN_ANGLE + share * (np.pi - 3.0 * MIN_ANGLE)
 
 
-def massmatrix(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def massmatrix(vertices: np.ndarray, faces: np.ndarray, double_areas: np.ndarray | None = None) -> np.ndarray:
     """Lumped (barycentric) vertex areas: a third of the area of each incident triangle.
 
     Barycentric lumping stays positive on obtuse triangles, where the Voronoi areas
@@ -137,6 +143,7 @@ def massmatrix(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     vertices : (V, 3) float; faces : (T, 3) int.
+    double_areas : (T,) |(b − a) × (c − a)| of each triangle, if at hand (the same arithmetic).
 
     Returns
     -------
@@ -145,9 +152,10 @@ def massmatrix(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
-    area = 0.5 * np.linalg.norm(
-        np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1
-    )
+    if double_areas is None:
+        double_areas = np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
+                                               vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1)
+    area = 0.5 * double_areas
     mass = np.bincount(faces.ravel(), weights=np.repeat(area / 3.0, 3), minlength=vertices.shape[0])
     floor = 1e-8 * max(float(mass.mean()), 1e-300)
     return np.maximum(mass, floor)
@@ -175,10 +183,10 @@ def shell_operator(vertices: np.ndarray, faces: np.ndarray, k_stretch: float, k_
     -------
     A : (V, V) csr_matrix float64.
     """
-    K = cotmatrix(vertices, faces)
     if not k_bend:  # K M⁻¹ K is not needed
+        K = cotmatrix(vertices, faces)
         return ((k_stretch / spacing**2) * K).tocsr() if k_stretch else sp.csr_matrix(K.shape)
-    return ShellParts.of(vertices, faces, K).operator(k_stretch, k_bend, spacing)
+    return ShellParts.of(vertices, faces).operator(k_stretch, k_bend, spacing)
 
 
 @dataclass(frozen=True)
@@ -191,9 +199,9 @@ class ShellParts:
     KMK: sp.csr_matrix
 
     @classmethod
-    def of(cls, vertices: np.ndarray, faces: np.ndarray, K: sp.csr_matrix | None = None) -> "ShellParts":
-        K = cotmatrix(vertices, faces) if K is None else K
-        Minv = sp.diags(1.0 / massmatrix(vertices, faces))
+    def of(cls, vertices: np.ndarray, faces: np.ndarray) -> "ShellParts":
+        K, double_areas = _cotmatrix_and_areas(vertices, faces)
+        Minv = sp.diags(1.0 / massmatrix(vertices, faces, double_areas))
         return cls(K, K @ Minv @ K)
 
     def operator(self, k_stretch: float, k_bend: float, spacing: float = 1.0) -> sp.csr_matrix:
@@ -206,10 +214,6 @@ class ShellParts:
         if not terms:
             return sp.csr_matrix(self.K.shape)
         return (terms[0] + terms[1] if len(terms) == 2 else terms[0]).tocsr()
-
-
-# PARDISO is told the right-hand sides are sparse when at most 1 / this of the rows are non-zero
-SPARSE_RHS_FRACTION = 4
 
 
 class CholeskyFactor:
@@ -231,19 +235,14 @@ class CholeskyFactor:
     """
 
     def __init__(self, A: sp.spmatrix, backends: tuple[str, ...] = ("pardiso", "cholmod", "superlu"),
-                 upper: bool = False, rhs_rows: np.ndarray | None = None, single: bool = False):
+                 upper: bool = False, single: bool = False):
         """``upper``: A holds only the upper triangle of the matrix (what PARDISO reads, so it
-        is not cut out again). ``rhs_rows``: the rows where the right-hand sides given to
-        :meth:`solve` may be non-zero (they must be zero elsewhere); PARDISO then skips the
-        forward substitution's work below the other rows (its sparse right-hand sides,
-        iparm[30] = 2: the handle columns of the shell solve touch a few thousand rows of a
-        large mesh, so most of the substitution is skipped). ``single``: PARDISO factors and
+        is not cut out again). ``single``: PARDISO factors and
         solves in single precision (float32: half the memory traffic, several times quicker for
         many right-hand sides; solutions to ~1e-6 relative) for filters whose results are float32
         anyway; the other backends stay in double precision. :attr:`single` says which was used."""
         A = sp.csr_matrix(A)
         self.single = False
-        self._rhs_rows = rhs_rows
         self.n = A.shape[0]
         self._solver = None
         self.backend: str | None = None
@@ -254,7 +253,7 @@ class CholeskyFactor:
         for backend in backends:
             try:
                 if backend == "pardiso":
-                    self._solver = _BACKENDS[backend](A if upper else _upper_triangle(A), rhs_rows, single=single)
+                    self._solver = _BACKENDS[backend](A if upper else _upper_triangle(A), single=single)
                     self.single = single
                 else:
                     if full is None:
@@ -274,8 +273,7 @@ class CholeskyFactor:
         return self._solver.solve(np.asarray(b, dtype=np.float32 if self.single else np.float64))
 
     def refactor(self, A: sp.spmatrix, upper: bool = False) -> None:
-        """Factor another matrix in place of this one (``upper`` as for the constructor; the same
-        right-hand-side rows). Where it has the same sparsity pattern PARDISO keeps its analysis
+        """Factor another matrix in place of this one (``upper`` as for the constructor). Where it has the same sparsity pattern PARDISO keeps its analysis
         (the ordering and the symbolic factor: most of a factorisation's time on a large mesh)
         and only factors the new values; otherwise, and on the other backends, it factors afresh."""
         A = sp.csr_matrix(A)
@@ -286,7 +284,7 @@ class CholeskyFactor:
                 self._solver.refactor(U.data)
                 return
         self.close()
-        self.__init__(A, backends=(self.backend,), upper=upper, rhs_rows=self._rhs_rows, single=self.single)
+        self.__init__(A, backends=(self.backend,), upper=upper, single=self.single)
 
     def close(self) -> None:
         """Free the factor now (PARDISO holds it outside Python's memory)."""
@@ -392,8 +390,8 @@ class _Pardiso:
 
     MTYPE = 2  # real symmetric positive definite
 
-    def __init__(self, U: sp.csr_matrix, rhs_rows: np.ndarray | None = None, single: bool = False):
-        """``U``: the matrix's upper triangle (:func:`_upper_triangle`); ``rhs_rows``, ``single``: see
+    def __init__(self, U: sp.csr_matrix, single: bool = False):
+        """``U``: the matrix's upper triangle (:func:`_upper_triangle`); ``single``: see
         :class:`CholeskyFactor`."""
         self._fn = _mkl_pardiso()
         U.sort_indices()
@@ -415,13 +413,10 @@ class _Pardiso:
         if single:
             iparm[27] = 1  # single precision: matrix, factor, right-hand sides and solutions in float32
             iparm[24] = 2  # the solve parallel over right-hand sides too (many of them here: frames × xyz)
-        self._perm = np.zeros(1, dtype=np.int32)
-        # sparse right-hand sides pay where most rows are empty (and MKL 2026's two-level
-        # factorisation fails or crashes in that mode when every row is marked)
-        if rhs_rows is not None and len(np.unique(rhs_rows)) <= self.n // SPARSE_RHS_FRACTION:
-            iparm[30] = 2  # sparse right-hand sides, non-zero where perm is 1; every solution row computed
-            self._perm = np.zeros(self.n, dtype=np.int32)
-            self._perm[np.asarray(rhs_rows, dtype=np.int64)] = 1
+        # (PARDISO's sparse right-hand sides, iparm[30], skip most of the shell basis's forward
+        # substitution, but the ordering they impose costs the factor more fill than they save:
+        # at 530k vertices 86M non-zeros against 76M, factor and solve 0.3 s slower)
+        self._perm = np.zeros(1, dtype=np.int32)  # (no user ordering)
         self._open = True
         try:
             self._call(12, np.zeros(1, self._dtype), np.zeros(1, self._dtype), 1)  # analysis + factorisation
@@ -540,10 +535,10 @@ def solve_shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarr
     A = shell_operator(vertices, faces, k_stretch, k_bend, spacing)
     free, constrained = constrained_split(n, handles, anchors)
     driven = handles if columns is None else np.concatenate([handles, np.asarray(columns, dtype=np.int64)])
-    U, R, rhs_rows = constrained_system(A, constrained, driven)
+    U, R = constrained_system(A, constrained, driven)
     if not len(free):
         return ShellBasis(np.ascontiguousarray(R), None)
-    factor = CholeskyFactor(U, upper=True, rhs_rows=rhs_rows)
+    factor = CholeskyFactor(U, upper=True)
     del U
     B = factor.solve(R)
     factor.close()
@@ -586,7 +581,7 @@ def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.nda
     A = sp.csr_matrix(parts.operator(k_stretch, k_bend, spacing) if parts is not None
                       else shell_operator(vertices, faces, k_stretch, k_bend, spacing))
     free, constrained = constrained_split(n, handles, anchors)
-    U, _, _ = constrained_system(A, constrained, handles[:0])
+    U, _ = constrained_system(A, constrained, handles[:0])
     x = np.zeros((n, 3 * E))
     x[handles] = np.moveaxis(u_h, 0, 1).reshape(len(handles), 3 * E)
     # the free rows move with −A_fh u_h; the prescribed rows hold their values (as B's columns do)
@@ -597,7 +592,7 @@ def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.nda
         return np.moveaxis(rhs.reshape(n, E, 3), 1, 0).copy()
     factor = None if keep is None else keep.get("factor")
     if factor is None:
-        factor = CholeskyFactor(U, upper=True, rhs_rows=np.union1d(A[handles].indices, handles))
+        factor = CholeskyFactor(U, upper=True)
     else:
         factor.refactor(U, upper=True)
     del U
@@ -612,12 +607,12 @@ def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.nda
 
 
 def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarray
-                       ) -> tuple[sp.csr_matrix, np.ndarray, np.ndarray]:
+                       ) -> tuple[sp.csr_matrix, np.ndarray]:
     """The symmetric system A with its constrained rows and columns replaced by the identity.
 
     Returns its upper triangle U (what PARDISO reads), the right-hand sides R (n, D) in column
     order (−A[:, driven] on the free rows, the identity on the driven rows, zero on the other
-    constrained rows) and the rows where R may be non-zero. U X = R gives X[free] =
+    constrained rows). U X = R gives X[free] =
     −A_ff⁻¹ A_f,driven and X = R on the constrained rows: the basis B itself, without cutting
     the free block out of A (at 530k vertices a second copy of 12M non-zeros and a second
     pass to cut its triangle).
@@ -655,9 +650,8 @@ def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarr
     # A's columns of the driven vertices are its rows (symmetric): a few thousand entries
     driven = np.asarray(driven, dtype=np.int64)
     rows_d = A[driven]
-    # only the few rows the driven columns reach are written: the rest of R's pages stay untouched
-    # zeros (PARDISO reads just the rhs_rows; zeroing the constrained rows explicitly would touch
-    # pages all over a 0.4 GB array)
+    # only the few rows the driven columns reach are written (zeroing the constrained rows
+    # explicitly would touch pages all over a 0.4 GB array that calloc left untouched)
     R = np.zeros((n, len(driven)), order="F")
     for j in range(len(driven)):
         lo, hi = rows_d.indptr[j], rows_d.indptr[j + 1]
@@ -665,8 +659,7 @@ def constrained_system(A: sp.spmatrix, constrained: np.ndarray, driven: np.ndarr
         on_free = ~constrained[rows]
         R[rows[on_free], j] = -rows_d.data[lo:hi][on_free]
     R[driven, np.arange(len(driven))] = 1.0
-    rhs_rows = np.union1d(rows_d.indices, driven)
-    return U, R, rhs_rows
+    return U, R
 
 
 def large_scale_positions(rest: np.ndarray, B: np.ndarray, handle_displacements: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from facepipe.core.vectors import cross, lengths
 from facepipe.parallel import map_blocks
 
 
@@ -56,20 +57,25 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray, incidence: sp.csr_ma
     n = vertices.shape[-2]
     if incidence is None:
         incidence = vertex_face_matrix(faces, n)
-    v0 = vertices[..., faces[:, 0], :]
-    fn = np.cross(vertices[..., faces[:, 1], :] - v0, vertices[..., faces[:, 2], :] - v0)
-    lead = fn.shape[:-2]
-    # sum over incident faces for all frames at once: (V, T) @ (T, batch*3)
-    flat = np.moveaxis(fn, -2, 0).reshape(fn.shape[-2], -1)
-    vn = np.asarray(incidence @ flat).reshape((n,) + lead + (3,))
+    lead = vertices.shape[:-2]
+    # face normals on the faces' axis first, (T, batch, 3), so the sum over incident faces is one
+    # sparse product for all frames at once: (V, T) @ (T, batch*3)
+    corners = np.moveaxis(vertices, -2, 0)[np.asarray(faces).T]  # (3, T, ..., 3)
+    corners[1] -= corners[0]
+    corners[2] -= corners[0]
+    fn = cross(corners[1], corners[2])
+    vn = np.asarray(incidence @ fn.reshape(fn.shape[0], -1)).reshape((n,) + lead + (3,))
     vn = np.moveaxis(vn, 0, -2)
     return _normalize(vn, fallback=np.array([0.0, 0.0, 1.0])).astype(vertices.dtype, copy=False)
 
 
-def _normalize(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+def _normalize(v: np.ndarray, fallback: np.ndarray, norm: np.ndarray | None = None) -> np.ndarray:
+    """v / |v| over the last axis, ``fallback`` where |v| ≤ 1e-30 (``norm``: |v|, if at hand)."""
+    norm = lengths(v, keepdims=True) if norm is None else norm
     ok = norm > 1e-30
-    return np.where(ok, v / np.where(ok, norm, 1.0), fallback)
+    out = np.empty(v.shape, dtype=np.result_type(v, fallback))
+    out[...] = fallback
+    return np.divide(v, norm, out=out, where=ok)
 
 
 def local_frames(vertices: np.ndarray, faces: np.ndarray, neighbors: np.ndarray,
@@ -107,15 +113,24 @@ def frames_from_normals(n: np.ndarray, e: np.ndarray) -> np.ndarray:
     """The frames of :func:`local_frames` from unit normals n and the edges e to the frame
     neighbours (both (..., V, 3)): R (..., V, 3, 3), columns t, b, n."""
     t = e - np.einsum("...i,...i->...", e, n)[..., None] * n
+    tlen = lengths(t, keepdims=True)
     # an edge parallel to the normal (degenerate) falls back to any perpendicular direction
-    alt = np.cross(n, np.array([1.0, 0.0, 0.0]))
-    alt = np.where(np.linalg.norm(alt, axis=-1, keepdims=True) < 1e-6, np.cross(n, np.array([0.0, 1.0, 0.0])), alt)
-    tlen = np.linalg.norm(t, axis=-1, keepdims=True)
-    elen = np.linalg.norm(e, axis=-1, keepdims=True)
-    t = np.where(tlen > 1e-6 * np.maximum(elen, 1e-30), t, alt)
-    t = _normalize(t, fallback=np.array([1.0, 0.0, 0.0]))
-    b = np.cross(n, t)
-    return np.stack([t, b, n], axis=-1)
+    parallel = ~(tlen > 1e-6 * np.maximum(lengths(e, keepdims=True), 1e-30))[..., 0]
+    wide = np.result_type(t, np.float64)  # the frames are made in double precision from here on
+    if t.dtype != wide:
+        t = t.astype(wide)
+        tlen = lengths(t, keepdims=True)
+    if parallel.any():
+        alt = cross(n[parallel], np.array([1.0, 0.0, 0.0]))
+        short = lengths(alt) < 1e-6
+        alt[short] = cross(n[parallel][short], np.array([0.0, 1.0, 0.0]))
+        t[parallel] = alt
+        tlen[parallel] = lengths(alt, keepdims=True)
+    R = np.empty(n.shape + (3,), dtype=np.result_type(n, t))
+    R[..., 0] = _normalize(t, fallback=np.array([1.0, 0.0, 0.0]), norm=tlen)
+    cross(n, R[..., 0], out=R[..., 1])
+    R[..., 2] = n
+    return R
 
 
 def to_local(frames: np.ndarray, vectors: np.ndarray) -> np.ndarray:

@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from facepipe.io.atomic import atomic_path
-from facepipe.io.npz_file import open_npz
+from facepipe.io.npz_file import NpzWriter, open_npz
 from facepipe.errors import InputError
 from facepipe.core.mesh import Mesh
 from facepipe.core.psd import DetailModel, edge_weight_matrix
@@ -204,9 +203,10 @@ _MODEL_ARRAYS = {f.name: f.metadata["dtype"] for f in fields(Model) if "dtype" i
 _OPTIONAL = {f.name: f.metadata["dtype"] for f in fields(Model) if "dtype" in f.metadata and f.default is None}
 
 
-def model_arrays(fit, rig) -> tuple[dict, dict]:
-    """Arrays and metadata of a model from a FitResult and its Rig."""
-    geo = fit.geometry
+def geometry_arrays(geo, rig) -> dict:
+    """The arrays of a model that its rig and large-scale geometry fix (the rest mesh, B, the
+    feature graph, ...): known once the shell basis is solved, before the details are fitted, and
+    two thirds of a model file (so a bake writes them while it fits the rest)."""
     mesh = rig.mesh
     arrays = {
         "rest": geo.rest,
@@ -220,22 +220,10 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         "edges": geo.edges,
         "rest_lengths": geo.rest_lengths,
         "frame_neighbors": geo.neighbors,
-        "basis_features": fit.model.basis_features,
-        "rbf_weights": fit.model.weights,
-        "rbf_const": fit.model.const,
-        "edge_index": fit.edge_index,
-        "edge_weight": fit.edge_weight,
         # head-space handle positions of the rest pose and every example: the rig's prior over
         # marker configurations (gap filling, blend-shape baselines)
         "example_handles": np.concatenate([geo.rest[None, geo.handles], rig.example_positions[:, geo.handles]]),
     }
-    gate = fit.model.gate
-    if gate is not None:
-        arrays.update(novelty_index=gate.index, novelty_weight=gate.sqrt_weight, novelty_examples=gate.examples,
-                      novelty_solve=gate.solve)
-        if gate.has_motion:
-            arrays.update(novelty_motion_index=gate.motion_index, novelty_motion_weight=gate.motion_weight,
-                          novelty_motion_examples=gate.motion_examples, novelty_motion_scale=gate.motion_scale)
     if mesh.uvs is not None:
         arrays["uvs"] = mesh.uvs
         arrays["polygon_uvs"] = mesh.polygon_uvs
@@ -244,6 +232,31 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
     if mesh.polygon_groups is not None and any(name != "default" for name in mesh.group_names):
         arrays["polygon_groups"] = mesh.polygon_groups
         arrays["group_names"] = np.asarray(mesh.group_names, dtype=np.str_)
+    if rig.welded is not None:
+        arrays["weld_index"] = rig.weld_index
+    if rig.landmarks is not None:
+        arrays["landmark_vertices"] = rig.landmarks.vertices
+    return arrays
+
+
+def geometry_to(npz: NpzWriter):
+    """An ``on_geometry(rig, geometry)`` for :func:`~facepipe.pipeline.fit.fit_rig` that hands the
+    model's :func:`geometry_arrays` to ``npz`` (the bake writes them while it fits the details)."""
+    return lambda rig, geo: add_model_arrays(npz, geometry_arrays(geo, rig))
+
+
+def model_arrays(fit, rig) -> tuple[dict, dict]:
+    """Arrays and metadata of a model from a FitResult and its Rig."""
+    geo = fit.geometry
+    arrays = dict(geometry_arrays(geo, rig), basis_features=fit.model.basis_features, rbf_weights=fit.model.weights,
+                  rbf_const=fit.model.const, edge_index=fit.edge_index, edge_weight=fit.edge_weight)
+    gate = fit.model.gate
+    if gate is not None:
+        arrays.update(novelty_index=gate.index, novelty_weight=gate.sqrt_weight, novelty_examples=gate.examples,
+                      novelty_solve=gate.solve)
+        if gate.has_motion:
+            arrays.update(novelty_motion_index=gate.motion_index, novelty_motion_weight=gate.motion_weight,
+                          novelty_motion_examples=gate.motion_examples, novelty_motion_scale=gate.motion_scale)
     meta = {
         "kind": MODEL_KIND,
         "format_version": FORMAT_VERSION,
@@ -268,9 +281,7 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
         meta["strain_width"], meta["strain_ridge"] = strain.width, strain.ridge
     if rig.welded is not None:  # [rig] weld: the mesh file's count, the model's, and its vertex order
         meta["welded"] = dict(rig.welded)
-        arrays["weld_index"] = rig.weld_index
     if rig.landmarks is not None:  # a 2D take replays with this map unless --landmarks gives another
-        arrays["landmark_vertices"] = rig.landmarks.vertices
         meta["landmark_names"] = list(rig.landmarks.names)
         meta["landmark_map"] = str(rig.landmarks.path)
     if "tune" in fit.report:  # the values `fit --tune` chose, with their validated error
@@ -280,14 +291,22 @@ def model_arrays(fit, rig) -> tuple[dict, dict]:
 
 def save_model(path, arrays: dict, meta: dict) -> None:
     """Write a model .npz atomically, casting arrays to their stored dtypes."""
-    out = {}
+    with NpzWriter(path) as npz:
+        add_model_arrays(npz, arrays, meta)
+
+
+def add_model_arrays(npz: NpzWriter, arrays: dict, meta: dict | None = None, dtypes: bool = True) -> None:
+    """Hand a model's arrays to an open :class:`~facepipe.io.npz_file.NpzWriter`, each in its
+    stored dtype (``dtypes``; else as computed, as a fit file keeps them), except those it holds
+    already; then ``meta``, if given (the last member: the file is complete).
+
+    A bake hands over :func:`geometry_arrays` as soon as the shell basis is solved, and the
+    rest once fitted: the same file as :func:`save_model` writes at the end."""
     for name, dtype in {**_MODEL_ARRAYS, **_OPTIONAL}.items():
-        if name in arrays and arrays[name] is not None:
-            out[name] = np.ascontiguousarray(arrays[name], dtype=dtype)
-    out["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **out)
+        if arrays.get(name) is not None and name not in npz:
+            npz.add(name, arrays[name], dtype if dtypes else None)
+    if meta is not None:
+        npz.add("meta", np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8))
 
 
 def load_model(path) -> Model:
@@ -363,13 +382,11 @@ def save_fit(path, fit, rig) -> None:
         "example_details": fit.details.astype(np.float32),
         "basis_index": np.asarray(fit.basis, dtype=np.int32),
     }
-    meta = dict(meta, kind=FIT_KIND, report=fit.report)
-    out = {k: np.ascontiguousarray(v) for k, v in arrays.items() if v is not None}
-    out.update(extra)
-    out["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **out)
+    with NpzWriter(path) as npz:
+        add_model_arrays(npz, arrays, dtypes=False)
+        for name, array in extra.items():
+            npz.add(name, array)
+        add_model_arrays(npz, {}, dict(meta, kind=FIT_KIND, report=fit.report))
 
 
 def load_fit(path) -> tuple[dict, dict]:

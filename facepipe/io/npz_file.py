@@ -1,5 +1,6 @@
 """Reading the ``.npz`` archives users hand over (models, fits, truths) with a message that says what
-the file should have been.
+the file should have been; writing large ones while their arrays are still being computed
+(:class:`NpzWriter`).
 
 NumPy reads anything that is not a zip or ``.npy`` file as a pickle, and with
 ``allow_pickle=False`` refuses it with advice to load it unsafely — advice no facepipe user should
@@ -10,11 +11,13 @@ file is checked for the zip signature first, and nothing is ever unpickled.
 from __future__ import annotations
 
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from facepipe.errors import InputError
+from facepipe.io.atomic import atomic_path
 
 _NPY_MAGIC = b"\x93NUMPY"
 
@@ -64,6 +67,82 @@ def open_npz(path, expected: str, hint: str | None = None):
     except Exception as exc:  # a damaged or truncated archive
         raise InputError(f"cannot read this .npz archive ({exc.__class__.__name__}: {exc}); expected {expected}",
                          path=path, hint=hint) from None
+
+
+class NpzWriter:
+    """An ``.npz`` archive written atomically, array by array, by a background thread.
+
+    Arrays are handed over with :meth:`add` as soon as they are known and written while the
+    caller goes on computing the others: a bake knows its mesh and shell basis (two thirds of a
+    model file) seconds before its detail weights. Leaving the ``with`` block normally waits for
+    the writes, finishes the archive and renames it into place; leaving it by an exception
+    removes the temporary file, so nothing half-written ever has the final name. The archive
+    is what ``np.savez`` writes (uncompressed, zip64), its members in the order they were added.
+
+    Example
+    -------
+    >>> with NpzWriter("out.npz") as npz:   # doctest: +SKIP
+    ...     npz.add("rest", rest, np.float32)
+    ...     npz.add("weights", solve(...))
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._atomic = atomic_path(path)
+        tmp = self._atomic.__enter__()
+        try:
+            self._zip = zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True)
+        except BaseException as exc:
+            self._atomic.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="npz-writer")
+        self._writes = []
+        self._names: set[str] = set()
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._names
+
+    def add(self, name: str, array, dtype=None) -> None:
+        """Write ``array`` (cast to ``dtype``, if given) as member ``name``, in the background."""
+        if name in self._names:
+            raise ValueError(f"{name!r} is already in the archive")
+        self._names.add(name)
+        self._writes.append(self._pool.submit(self._write, name, array, dtype))
+
+    def _write(self, name: str, array, dtype) -> None:
+        array = np.ascontiguousarray(array, dtype=dtype)  # (the cast, too, off the caller's thread)
+        with self._zip.open(name + ".npy", "w", force_zip64=True) as member:
+            np.lib.format.write_array(member, array, allow_pickle=False)
+
+    def __enter__(self) -> "NpzWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None:
+            self._abandon(exc)
+            return False
+        try:
+            for write in self._writes:
+                write.result()  # a write's error (a full disk) is raised here
+            self._zip.close()
+        except BaseException as error:
+            self._abandon(error)
+            raise
+        self._pool.shutdown()
+        self._atomic.__exit__(None, None, None)  # the rename
+        return False
+
+    def _abandon(self, error: BaseException) -> None:
+        """Stop writing and remove the temporary file (raising the disk-full error that names the
+        folder, where that was the trouble)."""
+        for write in self._writes:
+            write.cancel()
+        self._pool.shutdown(wait=True)  # a write under way ends before its file is removed
+        try:
+            self._zip.close()
+        except Exception:  # noqa: BLE001 - the file goes anyway; the first error is the one told
+            pass
+        self._atomic.__exit__(type(error), error, error.__traceback__)
 
 
 TRUTH_EXPECTED = "a truth .npz with 'positions' (frames × vertices × 3) and optionally 'frame' (the take's frame numbers)"

@@ -68,11 +68,17 @@ class Geometry:
         return strain_features(handle_positions, self.edges, self.rest_lengths)
 
     def details(self, poses: np.ndarray, chunk: int = 16) -> np.ndarray:
-        """Details d = Rᵀ (pose − large-scale) in the large-scale mesh's local frames: (E, V, 3)."""
-        out = np.empty_like(poses, dtype=np.float64)
-        for s in range(0, poses.shape[0], chunk):
-            large = self.large_scale(poses[s:s + chunk])
-            out[s:s + chunk] = to_local(self.frames(large), poses[s:s + chunk] - large)
+        """Details d = Rᵀ (pose − large-scale) in the large-scale mesh's local frames: (E, V, 3).
+
+        A pose that is the rest mesh itself (the fit's pose 0) is its own large scale: its details
+        are zero without computing its frames (at 530k vertices a seventh of this step)."""
+        out = np.zeros_like(poses, dtype=np.float64)
+        moved = np.flatnonzero([not np.array_equal(p, self.rest) for p in poses])
+        for s in range(0, len(moved), chunk):
+            rows = moved[s:s + chunk]
+            some = poses[rows]
+            large = self.large_scale(some)
+            out[rows] = to_local(self.frames(large), some - large)
         return out
 
 
@@ -204,7 +210,7 @@ FIT_STAGES = ("reading the rig", "validating parameters", "shell and local frame
               "geodesic distances", "WPSD weights", "greedy basis", "final detail model")
 
 
-def fit_config(config, progress=None, prepare=None, stage=None, early_basis: bool = False
+def fit_config(config, progress=None, prepare=None, stage=None, early_basis: bool = False, on_geometry=None
                ) -> tuple[Rig, "FitResult"]:
     """:func:`~facepipe.pipeline.rig.load_rig` and :func:`fit_rig`, with the geodesics from the handles
     started as soon as the rest mesh and markers are read, while the examples are still loading.
@@ -218,6 +224,8 @@ def fit_config(config, progress=None, prepare=None, stage=None, early_basis: boo
     factorisation runs in native code, off Python's lock); the fit uses it unless ``prepare``
     changed the deformer's parameters. Set it where validation will not run (it would compete
     with validation for the cores, for a basis validation may discard).
+
+    ``on_geometry(rig, geometry)``: see :func:`fit_rig`.
     """
     stage = stage or (lambda name: None)
     t0 = time.perf_counter()
@@ -242,7 +250,7 @@ def fit_config(config, progress=None, prepare=None, stage=None, early_basis: boo
         basis = None
         if early and rig.config.shell == early[0][0]:  # else validation chose other values
             basis = early[0][1].result  # waited for in the fit's shell stage
-        fit = fit_rig(rig, progress=progress, geodesics=started[0], stage=stage, basis=basis)
+        fit = fit_rig(rig, progress=progress, geodesics=started[0], stage=stage, basis=basis, on_geometry=on_geometry)
     finally:
         for job in started:
             job.close()
@@ -254,7 +262,8 @@ def fit_config(config, progress=None, prepare=None, stage=None, early_basis: boo
 
 
 def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=None,
-            basis: ShellBasis | Callable[[], ShellBasis] | None = None) -> FitResult:
+            basis: ShellBasis | Callable[[], ShellBasis] | None = None,
+            on_geometry: Callable[[Rig, Geometry], None] | None = None) -> FitResult:
     """Fit the whole rig: geometry, details of every example, greedy basis for PSD and WPSD.
 
     The configured method's model is returned; the error curves of both methods are reported
@@ -263,6 +272,8 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
     ``stage(name)`` is called as each of the :data:`FIT_STAGES` after validation starts.
     ``basis``: the large-scale basis of the rig's deformer, if already solved, or a function that
     waits for it (:func:`fit_config`: solved while the examples loaded).
+    ``on_geometry(rig, geometry)`` is called as soon as the large-scale geometry is final, before
+    the details are fitted (a bake starts writing the model's geometry then).
     """
     stage = stage or (lambda name: None)
     cfg = rig.config.psd
@@ -285,6 +296,8 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
         graph = feature_graph(rig, geodesics.graph)
         beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
         geo = build_geometry(rig, graph=graph, basis=basis() if callable(basis) else basis)
+        if on_geometry is not None:
+            on_geometry(rig, geo)
         lap("geometry")
         poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) \
             else geo.rest[None]
