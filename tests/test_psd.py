@@ -376,3 +376,20 @@ def test_solve_rbf_the_same_in_threads_and_in_one():
     one = solve_rbf(phi, details, chunk=10_000)   # one block
     many = solve_rbf(phi, details, chunk=37)      # blocks in threads
     assert np.array_equal(one[0], many[0]) and np.array_equal(one[1], many[1])
+
+
+def test_edge_weight_matrix_is_the_coordinate_lists_matrix():
+    """The α matrix equals SciPy's from a coordinate list (its columns sorted, a repeated slot
+    summed, the unused slots' zeros dropped), bit for bit."""
+    rng = np.random.default_rng(6)
+    index = rng.integers(0, 7, size=(500, 5)).astype(np.int32)  # repeats within a row, too
+    weight = rng.random((500, 5)).astype(np.float32)
+    weight[weight < 0.3] = 0.0
+    given = index.copy(), weight.copy()
+    W = edge_weight_matrix(index, weight, 7)
+    assert np.array_equal(index, given[0]) and np.array_equal(weight, given[1])  # the caller's arrays untouched
+    ref = sp.csr_matrix((weight.ravel().astype(np.float64), (np.repeat(np.arange(500), 5), index.ravel())), shape=(500, 7))
+    ref.eliminate_zeros()
+    assert W.has_canonical_format and W.nnz == ref.nnz
+    assert np.array_equal(W.indptr, ref.indptr) and np.array_equal(W.indices, ref.indices)
+    assert np.array_equal(W.data, ref.data)

@@ -124,8 +124,12 @@ def wpsd_edge_weights(marker_distances: np.ndarray, edges: np.ndarray, rest_leng
 def edge_weight_matrix(edge_index: np.ndarray, edge_weight: np.ndarray, n_edges: int) -> sp.csr_matrix:
     """The α as a sparse (V, F) matrix, so per-vertex weighted sums are one sparse product."""
     V, K = edge_index.shape
-    rows = np.repeat(np.arange(V), K)
-    W = sp.csr_matrix((edge_weight.ravel().astype(np.float64), (rows, edge_index.ravel())), shape=(V, n_edges))
+    # K slots a row: the rows of a coordinate list, without its conversion; then, as that
+    # conversion does, the columns sorted (a slot repeated summed), and the unused slots dropped
+    index_type = np.int32 if V * K < 2**31 else np.int64
+    W = sp.csr_matrix((edge_weight.astype(np.float64).ravel(), edge_index.astype(index_type).ravel(),
+                       np.arange(0, V * K + 1, K, dtype=index_type)), shape=(V, n_edges))  # (copies: W is changed in place)
+    W.sum_duplicates()
     W.eliminate_zeros()
     return W
 
