@@ -1,6 +1,7 @@
 import numpy as np
 
 import pytest
+import scipy.sparse as sp
 
 from facepipe.core.tangent_frames import (frame_neighbors, frames_from_normals, local_frames, to_local, to_world,
                                          vertex_face_matrix, vertex_normals)
@@ -141,3 +142,19 @@ def test_frames_of_a_patch_are_the_mesh_frames_at_the_subset():
     patch = FramePatch.around(faces, V, subset)
     assert len(patch.vertices) < V / 2
     np.testing.assert_allclose(patch.frames(poses), whole, rtol=0, atol=1e-12)
+
+
+def test_frame_neighbours_and_incidence_against_plain_constructions(sheet):
+    V, F = sheet
+    F = np.r_[F, [[0, 5, 3]]]  # and a face listing its corners out of order
+    n = len(V) + 1  # a vertex in no face: its own neighbour
+    neighbours = [set() for _ in range(n)]
+    for a, b, c in F:
+        neighbours[a] |= {b, c}
+        neighbours[b] |= {a, c}
+        neighbours[c] |= {a, b}
+    assert frame_neighbors(F, n).tolist() == [min(s) if s else v for v, s in enumerate(neighbours)]
+    inc = vertex_face_matrix(F, n)
+    ref = sp.csr_matrix((np.ones(F.size), (F.ravel(), np.repeat(np.arange(len(F)), 3))), shape=(n, len(F)))
+    assert inc.has_sorted_indices and np.array_equal(inc.indptr, ref.indptr) and np.array_equal(inc.indices, ref.indices)
+    assert np.array_equal(inc.data, ref.data)

@@ -20,9 +20,11 @@ from facepipe.parallel import map_blocks
 def vertex_face_matrix(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """(V, T) incidence matrix: summing face quantities onto vertices is one sparse product."""
     faces = np.asarray(faces, dtype=np.int64)
-    rows = faces.ravel()
-    cols = np.repeat(np.arange(faces.shape[0]), 3)
-    return sp.csr_matrix((np.ones(rows.shape[0]), (rows, cols)), shape=(n_vertices, faces.shape[0]))
+    # column by column (a face's three corners) and turned to rows: each row's faces in order,
+    # as a coordinate list would give them, without its sort
+    by_face = sp.csc_matrix((np.ones(faces.size), faces.ravel(), np.arange(0, faces.size + 1, 3)),
+                            shape=(n_vertices, faces.shape[0]))
+    return by_face.tocsr()
 
 
 def frame_neighbors(faces: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -33,10 +35,9 @@ def frame_neighbors(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     (V,) int64; a vertex without neighbours gets itself (its frame falls back to a default).
     """
     faces = np.asarray(faces, dtype=np.int64)
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.concatenate([e, e[:, ::-1]])
     nb = np.full(n_vertices, np.iinfo(np.int64).max, dtype=np.int64)
-    np.minimum.at(nb, e[:, 0], e[:, 1])
+    for k in range(3):  # each corner's lower-index neighbour in its face
+        np.minimum.at(nb, faces[:, k], np.minimum(faces[:, (k + 1) % 3], faces[:, (k + 2) % 3]))
     missing = nb == np.iinfo(np.int64).max
     nb[missing] = np.flatnonzero(missing)
     return nb
