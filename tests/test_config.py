@@ -161,3 +161,27 @@ def test_markers_file_errors_name_the_line(tmp_path, row, expected):
     path.write_text("name,vertex,role\nchin,7\nbrow,9,stable\n" + row + "\nlip,3\n")
     with pytest.raises(InputError, match=expected):
         load_markers(path, 100)
+
+
+@pytest.mark.parametrize("text", ["1\n2\n3\n", "3\r\n1\r\n2\r\n", "5\n4", "007\n8\n", "4\n4\n", "1\n\n2\n", " 1\n2\n",
+                                  "1 2\n", "1\n99\n", "", "\n", "1\n# neck\n", "-1\n", "1.5\n", "1\n2\n\n",
+                                  "99999999999999999999999\n", "x\n"])
+def test_anchors_read_whole_or_line_by_line_alike(tmp_path, monkeypatch, text):
+    """A plain anchors file (one index a line) is read in one piece; anything else line by line,
+    which names the line at fault: both give the same indices, or the same error."""
+    import facepipe.pipeline.rig as rig
+
+    path = tmp_path / "anchors.txt"
+    path.write_text(text)
+
+    def read():
+        try:
+            return rig.load_anchors(path, 10).tolist()
+        except InputError as exc:
+            return str(exc)
+
+    whole = read()
+    plain = text in ("1\n2\n3\n", "3\r\n1\r\n2\r\n", "5\n4", "007\n8\n", "4\n4\n")
+    assert (rig._plain_indices(path.read_bytes(), 10) is not None) == plain  # the plain ones in one piece
+    monkeypatch.setattr(rig, "_plain_indices", lambda data, n: None)
+    assert read() == whole
