@@ -156,5 +156,6 @@ def test_frame_neighbours_and_incidence_against_plain_constructions(sheet):
     assert frame_neighbors(F, n).tolist() == [min(s) if s else v for v, s in enumerate(neighbours)]
     inc = vertex_face_matrix(F, n)
     ref = sp.csr_matrix((np.ones(F.size), (F.ravel(), np.repeat(np.arange(len(F)), 3))), shape=(n, len(F)))
-    assert inc.has_sorted_indices and np.array_equal(inc.indptr, ref.indptr) and np.array_equal(inc.indices, ref.indices)
+    assert inc.has_sorted_indices and np.array_equal(inc.indptr, ref.indptr)
+    assert np.array_equal(inc.indices, ref.indices)
     assert np.array_equal(inc.data, ref.data)

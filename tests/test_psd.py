@@ -388,7 +388,8 @@ def test_edge_weight_matrix_is_the_coordinate_lists_matrix():
     given = index.copy(), weight.copy()
     W = edge_weight_matrix(index, weight, 7)
     assert np.array_equal(index, given[0]) and np.array_equal(weight, given[1])  # the caller's arrays untouched
-    ref = sp.csr_matrix((weight.ravel().astype(np.float64), (np.repeat(np.arange(500), 5), index.ravel())), shape=(500, 7))
+    rows = np.repeat(np.arange(500), 5)
+    ref = sp.csr_matrix((weight.ravel().astype(np.float64), (rows, index.ravel())), shape=(500, 7))
     ref.eliminate_zeros()
     assert W.has_canonical_format and W.nnz == ref.nnz
     assert np.array_equal(W.indptr, ref.indptr) and np.array_equal(W.indices, ref.indices)

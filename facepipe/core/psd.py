@@ -127,8 +127,9 @@ def edge_weight_matrix(edge_index: np.ndarray, edge_weight: np.ndarray, n_edges:
     # K slots a row: the rows of a coordinate list, without its conversion; then, as that
     # conversion does, the columns sorted (a slot repeated summed), and the unused slots dropped
     index_type = np.int32 if V * K < 2**31 else np.int64
+    # (copies: W is changed in place below, and must not share the caller's arrays)
     W = sp.csr_matrix((edge_weight.astype(np.float64).ravel(), edge_index.astype(index_type).ravel(),
-                       np.arange(0, V * K + 1, K, dtype=index_type)), shape=(V, n_edges))  # (copies: W is changed in place)
+                       np.arange(0, V * K + 1, K, dtype=index_type)), shape=(V, n_edges))
     W.sum_duplicates()
     W.eliminate_zeros()
     return W

@@ -237,10 +237,10 @@ class CholeskyFactor:
     def __init__(self, A: sp.spmatrix, backends: tuple[str, ...] = ("pardiso", "cholmod", "superlu"),
                  upper: bool = False, single: bool = False):
         """``upper``: A holds only the upper triangle of the matrix (what PARDISO reads, so it
-        is not cut out again). ``single``: PARDISO factors and
-        solves in single precision (float32: half the memory traffic, several times quicker for
-        many right-hand sides; solutions to ~1e-6 relative) for filters whose results are float32
-        anyway; the other backends stay in double precision. :attr:`single` says which was used."""
+        is not cut out again). ``single``: PARDISO factors and solves in single precision
+        (float32: half the memory traffic, several times quicker for many right-hand sides;
+        solutions to ~1e-6 relative) for filters whose results are float32 anyway; the other
+        backends stay in double precision. :attr:`single` says which was used."""
         A = sp.csr_matrix(A)
         self.single = False
         self.n = A.shape[0]
@@ -273,9 +273,10 @@ class CholeskyFactor:
         return self._solver.solve(np.asarray(b, dtype=np.float32 if self.single else np.float64))
 
     def refactor(self, A: sp.spmatrix, upper: bool = False) -> None:
-        """Factor another matrix in place of this one (``upper`` as for the constructor). Where it has the same sparsity pattern PARDISO keeps its analysis
-        (the ordering and the symbolic factor: most of a factorisation's time on a large mesh)
-        and only factors the new values; otherwise, and on the other backends, it factors afresh."""
+        """Factor another matrix in place of this one (``upper`` as for the constructor). Where it
+        has the same sparsity pattern PARDISO keeps its analysis (the ordering and the symbolic
+        factor: most of a factorisation's time on a large mesh) and only factors the new values;
+        otherwise, and on the other backends, it factors afresh."""
         A = sp.csr_matrix(A)
         if self.backend == "pardiso":
             U = A if upper else _upper_triangle(A)

@@ -103,7 +103,8 @@ class NpzWriter:
         return name in self._names
 
     def add(self, name: str, array, dtype=None) -> None:
-        """Write ``array`` (cast to ``dtype``, if given) as member ``name``, in the background."""
+        """Write ``array`` (cast to ``dtype``, if given) as member ``name``, in the background: it
+        is read when its turn comes, so it must not be changed after it is handed over."""
         if name in self._names:
             raise ValueError(f"{name!r} is already in the archive")
         self._names.add(name)
