@@ -383,10 +383,9 @@ def save_fit(path, fit, rig) -> None:
         "basis_index": np.asarray(fit.basis, dtype=np.int32),
     }
     with NpzWriter(path) as npz:
-        add_model_arrays(npz, arrays, dtypes=False)
         for name, array in extra.items():
             npz.add(name, array)
-        add_model_arrays(npz, {}, dict(meta, kind=FIT_KIND, report=fit.report))
+        add_model_arrays(npz, arrays, dict(meta, kind=FIT_KIND, report=fit.report), dtypes=False)
 
 
 def load_fit(path) -> tuple[dict, dict]:
