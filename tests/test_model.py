@@ -185,3 +185,29 @@ def test_an_archive_written_in_parts_is_whole_or_absent(tmp_path):
             npz.add("big", big)
             raise RuntimeError("the fit failed")
     assert (tmp_path / "d.npz").read_bytes() == b"the previous bake"
+
+
+def test_a_bake_that_fails_after_writing_its_geometry_leaves_no_file(tmp_path, monkeypatch, capsys):
+    """The geometry is already being written when a later stage fails: `facepipe bake` exits 2
+    with the error, and neither the model nor its temporary file is left (an older model of the
+    name stays whole)."""
+    import facepipe.pipeline.fit as fit_module
+    from facepipe.errors import InputError
+    from tests.conftest import run_cli
+
+    info = write_sample_rig(tmp_path / "rig", n_vertices=2000, n_examples=3, n_frames=4)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "model.npz").write_bytes(b"an older bake")
+    written = []
+
+    def greedy_fails(*args, **kwargs):
+        written.extend(p.name for p in out.iterdir())
+        raise InputError("the examples disagree", path=info["config"])
+
+    monkeypatch.setattr(fit_module, "greedy_bases", greedy_fails)
+    assert run_cli("bake", info["config"], "-o", out / "model.npz", "--no-tune", "-q") == 2
+    assert "the examples disagree" in capsys.readouterr().err
+    assert any(name.endswith(".part.npz") for name in written)  # the geometry was being written
+    assert sorted(p.name for p in out.iterdir()) == ["model.npz"]
+    assert (out / "model.npz").read_bytes() == b"an older bake"
