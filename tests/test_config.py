@@ -163,6 +163,14 @@ def test_markers_file_errors_name_the_line(tmp_path, row, expected):
         load_markers(path, 100)
 
 
+@pytest.mark.parametrize("line", ["rcond = -1e-4", "rcond = 1.0", "rcond = 5.0"])
+def test_rbf_cut_off_outside_its_range_is_refused(sample, tmp_path, line):
+    cfg = with_value(sample, tmp_path, "psd", line)
+    with pytest.raises(InputError, match=r"(?s)\[psd\] rcond = .*0 ≤ rcond < 1") as exc:
+        load_config(cfg)
+    assert str(cfg) in str(exc.value)
+
+
 @pytest.mark.parametrize("text", ["1\n2\n3\n", "3\r\n1\r\n2\r\n", "5\n4", "007\n8\n", "4\n4\n", "1\n\n2\n", " 1\n2\n",
                                   "1 2\n", "1\n99\n", "", "\n", "1\n# neck\n", "-1\n", "1.5\n", "1\n2\n\n",
                                   "99999999999999999999999\n", "x\n"])

@@ -219,7 +219,7 @@ def test_rest_exact_solve_sends_repeated_rows_to_the_pseudo_inverse_alone():
     """Systems with two equal rows (coincident poses) skip the inverse: each system of a stack
     mixing them with regular and nearly singular ones is solved as when solved alone, and the
     repeated ones exactly as the constrained pseudo-inverse solves them."""
-    from facepipe.core.psd import DEFAULT_RCOND, constrained_svd_solve, repeated_rows, rest_exact_solve
+    from facepipe.core.psd import DEFAULT_RCOND, constrained_pinv_solve, repeated_rows, rest_exact_solve
 
     rng = np.random.default_rng(5)
     n, P = 60, 6
@@ -236,7 +236,7 @@ def test_rest_exact_solve_sends_repeated_rows_to_the_pseudo_inverse_alone():
     x = rest_exact_solve(A, b, DEFAULT_RCOND)
     for k in range(n):
         assert np.array_equal(x[k], rest_exact_solve(A[k:k + 1], b[k:k + 1], DEFAULT_RCOND)[0])
-    assert np.array_equal(x[singular], constrained_svd_solve(A[singular], b[singular], DEFAULT_RCOND))
+    assert np.array_equal(x[singular], constrained_pinv_solve(A[singular], b[singular], DEFAULT_RCOND))
     assert np.allclose(np.einsum("nij,njc->nic", A[:, :1], x), 0.0, atol=1e-12)  # the rest row, exactly
     regular = np.flatnonzero(~singular)[1::2]
     assert np.allclose(np.einsum("nij,njc->nic", A[regular], x[regular]), b[regular], atol=1e-9)
@@ -366,6 +366,34 @@ def test_svd_solve_matches_the_pseudo_inverse():
     assert np.allclose(svd_solve(A2, b2, 1e-6), np.linalg.pinv(A2, rcond=1e-6) @ b2, rtol=0, atol=1e-13)
     A3, b3 = rng.normal(size=(20, 3, 5)), rng.normal(size=(20, 3, 2))
     assert np.allclose(svd_solve(A3, b3, 1e-6), np.linalg.pinv(A3, rcond=1e-6) @ b3, rtol=0, atol=1e-13)
+
+
+def test_truncated_solve_matches_the_pseudo_inverse_by_either_route():
+    """The normal equations (cut-offs from NORMAL_EQUATIONS_MIN_RCOND up) and the SVD (below it)
+    give ``pinv(A, rcond) @ b``: exactly singular, nearly singular and regular systems, square
+    and least squares."""
+    from facepipe.core.psd import NORMAL_EQUATIONS_MIN_RCOND, svd_solve, truncated_solve
+
+    rng = np.random.default_rng(7)
+    n, P = 400, 7
+    A = rng.normal(size=(n, P, P)) * rng.uniform(0.1, 10.0, size=(n, 1, 1))
+    A[::4, 2] = A[::4, 1]                      # exactly singular (duplicate rows and columns)
+    A[::4, :, 2] = A[::4, :, 1]
+    A[1::4, 3] = A[1::4, 0] * (1 + 1e-9)       # nearly singular: a singular value is cut
+    b = rng.normal(size=(n, P, 3))
+    tall = rng.normal(size=(50, 12, 5))
+    tall[:, :, 4] = tall[:, :, 3] * (1 + 1e-10)
+    b_tall = rng.normal(size=(50, 12, 2))
+    for rcond in (NORMAL_EQUATIONS_MIN_RCOND, 3e-4, 1e-2, 1e-9):
+        for M, rhs in ((A, b), (tall, b_tall)):
+            expected = np.linalg.pinv(M, rcond=rcond) @ rhs
+            scale = np.abs(expected).max(axis=(1, 2), keepdims=True)
+            got = truncated_solve(M, rhs, rcond)
+            assert (np.abs(got - expected) <= 1e-7 * scale).all(), rcond
+            if rcond < NORMAL_EQUATIONS_MIN_RCOND:  # the SVD route, as it was
+                assert np.array_equal(got, svd_solve(M, rhs, rcond))
+    assert truncated_solve(np.zeros((0, 3, 3)), np.zeros((0, 3, 1)), 3e-4).shape == (0, 3, 1)
+    assert not truncated_solve(np.zeros((2, 3, 3)), np.ones((2, 3, 1)), 3e-4).any()  # nothing to keep
 
 
 def test_solve_rbf_the_same_in_threads_and_in_one():

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from facepipe.core.growing_lstsq import GrowingRbfSystems
+from facepipe.core.growing_lstsq import GrowingRbfSystems, truncated_normal_solve
 from facepipe.core.novelty import NoveltyGate
 from facepipe.parallel import map_blocks
 
@@ -148,18 +148,22 @@ def wpsd_distances(features: np.ndarray, basis: np.ndarray, alpha: sp.csr_matrix
     """Per-vertex weighted distances: (Q, F), (P, F), α (V, F) → (Q, V, P).
 
     The squared strain differences form a (Q·P, F) table; the α-weighted sums over each
-    vertex's edges are then one sparse product, taken over blocks of vertices so that the
-    temporaries stay small (each vertex's sum is the same either way).
+    vertex's edges are then one sparse product, taken over blocks of vertices on the shared
+    threads (SciPy's sparse product releases the GIL) so that the temporaries stay small (each
+    vertex's sum is the same either way).
     """
     Q, P = features.shape[0], basis.shape[0]
     sq = ((features[:, None, :] - basis[None, :, :]) ** 2).reshape(Q * P, -1).T  # (F, Q*P)
     V = alpha.shape[0]
     out = np.empty((Q, V, P))
-    for start in range(0, V, chunk):
+
+    def block(start):
         r2 = np.asarray(alpha[start:start + chunk] @ sq)  # (n, Q*P)
         np.maximum(r2, 0.0, out=r2)
         np.sqrt(r2, out=r2)
         out[:, start:start + chunk] = r2.reshape(-1, Q, P).transpose(1, 0, 2)
+
+    map_blocks(block, range(0, V, chunk))
     return out
 
 
@@ -255,7 +259,7 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
 
     Row 0 is the rest pose. Weighting it heavily in one least-squares system would move the
     pseudo-inverse's cut-off with the weight (σ_max grows with it); instead the other rows are
-    solved within the constraint, on the system left once row 0 is met (:func:`constrained_svd_solve`),
+    solved within the constraint, on the system left once row 0 is met (:func:`constrained_pinv_solve`),
     and ``rcond`` is relative to that system's largest singular value, whatever row 0's scale.
 
     Square systems where no singular value is cut satisfy every row exactly: they are solved by
@@ -266,7 +270,7 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     """
     n, R, P = A.shape
     if R != P or n == 0:
-        return constrained_svd_solve(A, b, rcond)
+        return constrained_pinv_solve(A, b, rcond)
     # a system with two equal rows (poses that coincide where a vertex's edges are: most vertices
     # of a face, far from some expression's motion) is exactly singular: it goes to the
     # pseudo-inverse without an inverse tried first (which fails, for its whole stack)
@@ -282,7 +286,7 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     x[try_inverse[clear]] = inv[clear] @ weighted_b[clear]
     to_svd[try_inverse[~clear]] = True
     if to_svd.any():
-        x[to_svd] = constrained_svd_solve(A[to_svd], b[to_svd], rcond)
+        x[to_svd] = constrained_pinv_solve(A[to_svd], b[to_svd], rcond)
     return x
 
 
@@ -352,14 +356,30 @@ def svd_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     return np.matmul(vt.transpose(0, 2, 1), s_inv[:, :, None] * np.matmul(u.transpose(0, 2, 1), b))
 
 
-def constrained_svd_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
+# The truncated solves go through the normal equations (a symmetric eigen-decomposition, a third
+# quicker than the SVD of the system on the small per-vertex systems) where the cut-off leaves
+# them accurate: the kept eigenvalues are then at least rcond² ≥ 1e-8 of the largest, each
+# computed to LAPACK's 1e-16 of the largest, so to 1e-8 or better. Smaller cut-offs use the SVD.
+NORMAL_EQUATIONS_MIN_RCOND = 1e-4
+
+
+def truncated_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
+    """``np.linalg.pinv(A, rcond) @ b`` for a batch (n, R, P), (n, R, k): from the normal
+    equations where ``rcond`` ≥ :data:`NORMAL_EQUATIONS_MIN_RCOND`, else by :func:`svd_solve`."""
+    if rcond < NORMAL_EQUATIONS_MIN_RCOND or A.shape[0] == 0:
+        return svd_solve(A, b, rcond)
+    At = np.swapaxes(A, 1, 2)
+    return truncated_normal_solve(np.matmul(At, A), np.matmul(At, b), rcond)
+
+
+def constrained_pinv_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     """Minimum-norm least squares of rows 1: of A x = b subject to row 0 holding exactly, for a
     batch (n, R, P), (n, R, k); singular values at most ``rcond`` × the largest of the
     constrained system are dropped. Row 0 must not be zero.
 
     A Householder reflection H maps row 0's a₀ onto the first axis (H a₀ = α e₀), so with
     x = H y the constraint fixes y₀ = b₀ / α and leaves y₁: free: the other rows become
-    (A₁H)[:, 1:] y₁: = b₁ − (A₁H)[:, 0] y₀, solved by :func:`svd_solve`. Scaling row 0 (and b₀)
+    (A₁H)[:, 1:] y₁: = b₁ − (A₁H)[:, 0] y₀, solved by :func:`truncated_solve`. Scaling row 0 (and b₀)
     changes neither the constraint nor that system, so it cannot move the cut-off.
     """
     n, R, P = A.shape
@@ -376,7 +396,7 @@ def constrained_svd_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndar
     y0 = b[:, 0] / (-sign * norm)[:, None]  # (n, k)
     C = np.matmul(A[:, 1:], H)  # (n, R−1, P)
     if R > 1 and P > 1:
-        rest = svd_solve(C[:, :, 1:], b[:, 1:] - C[:, :, :1] * y0[:, None, :], rcond)
+        rest = truncated_solve(C[:, :, 1:], b[:, 1:] - C[:, :, :1] * y0[:, None, :], rcond)
     else:  # nothing left to fit, or nothing left to fit it with
         rest = np.zeros((n, P - 1, b.shape[-1]))
     return np.matmul(H, np.concatenate([y0[:, None], rest], axis=1))
