@@ -309,7 +309,9 @@ def run_bench(work_dir: Path, n_vertices: int = 20000, n_frames: int = 64, repea
     results["machine"] = {"cpu": _cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
                           "numpy": np.__version__, "pyopencl": pyopencl.VERSION_TEXT,
                           "load_average_start": load_start, "load_average_end": _load(),
-                          "bench_peak_rss_mb": _peak_rss_mb()}
+                          "bench_peak_rss_mb": _peak_rss_mb(),
+                          # malloc's huge pages, as the command line sets them up (facepipe.cli.large_pages)
+                          "large_pages": "glibc.malloc.hugetlb" in os.environ.get("GLIBC_TUNABLES", "")}
     # ---- exports: sizes and MB/s per format, OBJ against trimesh, on the ICT mesh when
     # ../shared is there, else on this rig's
     from bench.export_speed import run_export_bench
@@ -519,4 +521,9 @@ def main(output, vertices, frames, repeats, bake_repeats, work, markers, example
 
 
 if __name__ == "__main__":
+    from facepipe.cli.large_pages import restart_with_large_pages
+
+    # started as `facepipe` starts (large pages for the heap where they help): the bake children
+    # inherit it, and the replays measured here run as `facepipe replay` would
+    restart_with_large_pages()
     main()
