@@ -4,7 +4,7 @@ A bake or a replay allocates gigabytes: the sparse factor, the large-scale basis
 meshes, the per-frame buffers. NumPy asks the kernel for huge pages for its own large arrays,
 but the memory that glibc's ``malloc`` hands to SciPy, MKL (PARDISO's factor), the OpenCL
 driver and Python's bytes comes in 4 KB pages: on the 530k-vertex bake that is about 850,000
-page faults, several seconds of CPU time on a virtual machine. glibc's tunable
+page faults, each a trip through the kernel (dearer on a virtual machine). glibc's tunable
 ``glibc.malloc.hugetlb=1`` makes ``malloc`` advise huge pages too (where the system's
 transparent huge pages are in ``madvise`` mode). A tunable is read when a process starts, so
 the command line starts itself once more with it set, before it imports anything heavy; its
