@@ -27,12 +27,14 @@ def test_the_tunable_is_added_where_it_helps(madvise_linux):
     assert env["GLIBC_TUNABLES"] == f"glibc.malloc.check=0:{TUNABLE}=1"
 
 
-@pytest.mark.parametrize("case", ["opted out", "set already", "user's own value", "thp always", "thp never",
-                                  "no thp file", "old glibc", "musl", "not linux"])
+@pytest.mark.parametrize("case", ["opted out", "opted out in words", "set already", "user's own value", "thp always",
+                                  "thp never", "no thp file", "old glibc", "musl", "not linux"])
 def test_nothing_changes_where_it_would_not_help(madvise_linux, monkeypatch, case):
     environ = {}
     if case == "opted out":
         environ = {"FACEPIPE_LARGE_PAGES": "0"}
+    elif case == "opted out in words":
+        environ = {"FACEPIPE_LARGE_PAGES": " Off"}
     elif case == "set already":
         environ = {"GLIBC_TUNABLES": f"{TUNABLE}=1"}
     elif case == "user's own value":

@@ -10,8 +10,9 @@ transparent huge pages are in ``madvise`` mode). A tunable is read when a proces
 the command line starts itself once more with it set, before it imports anything heavy; its
 children (the examples' reader, Dask workers) inherit it.
 
-``FACEPIPE_LARGE_PAGES=0`` turns this off. Nothing changes where it cannot help: another OS or C
-library, an older glibc, huge pages ``always`` on (or ``never``), or the tunable already set.
+``FACEPIPE_LARGE_PAGES=0`` (or ``false``, ``no``, ``off``) turns this off. Nothing changes where it
+cannot help: another OS or C library, an older glibc, huge pages ``always`` on (or ``never``), or
+the tunable already set.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def _thp_mode() -> str | None:
 def large_page_environment(environ=None) -> dict | None:
     """The environment with the tunable added, or None where it would change nothing."""
     environ = os.environ if environ is None else environ
-    if sys.platform != "linux" or environ.get(OPT_OUT, "1").strip() == "0":
+    if sys.platform != "linux" or environ.get(OPT_OUT, "1").strip().lower() in ("0", "false", "no", "off"):
         return None
     version = _glibc_version()
     if version is None or version < (2, 35) or _thp_mode() != "madvise":

@@ -141,7 +141,7 @@ def truncated_normal_solve(normal: np.ndarray, rhs: np.ndarray, rcond: float) ->
     dropped (eigenvalues of N at most ``rcond²`` × the largest), as ``pinv(C, rcond) @ r``. By
     the symmetric eigen-decomposition of N (LAPACK's batched ``syevd``: a third quicker than
     an SVD of N on 6 × 6 to 26 × 26 systems). Squaring the condition number costs accuracy
-    only for cut-offs far below the default (see :data:`facepipe.core.psd.NORMAL_EQUATIONS_MIN_RCOND`)."""
+    only for cut-offs far below the default (:data:`facepipe.core.psd.NORMAL_EQUATIONS_MIN_RCOND`)."""
     if normal.shape[1] == 0 or normal.shape[0] == 0:
         return np.zeros(rhs.shape)
     lam, u = np.linalg.eigh(normal)  # ascending: the largest last

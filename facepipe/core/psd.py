@@ -275,8 +275,8 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     # of a face, far from some expression's motion) is exactly singular: it goes to the
     # pseudo-inverse without an inverse tried first (which fails, for its whole stack)
     x = np.empty((n, P, b.shape[-1]))
-    to_svd = repeated_rows(A)  # and below, those whose inverse is not clear of the cut-off
-    try_inverse = np.flatnonzero(~to_svd)
+    to_truncate = repeated_rows(A)  # and below, those whose inverse is not clear of the cut-off
+    try_inverse = np.flatnonzero(~to_truncate)
     weighted = A[try_inverse]
     weighted[:, 0] *= REST_ROW_WEIGHT
     weighted_b = b[try_inverse]
@@ -284,9 +284,9 @@ def rest_exact_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
     inv, clear = _inverse_where_clear(weighted, np.einsum("nij,nij->n", A[try_inverse, 1:], A[try_inverse, 1:]),
                                       rcond)
     x[try_inverse[clear]] = inv[clear] @ weighted_b[clear]
-    to_svd[try_inverse[~clear]] = True
-    if to_svd.any():
-        x[to_svd] = constrained_pinv_solve(A[to_svd], b[to_svd], rcond)
+    to_truncate[try_inverse[~clear]] = True
+    if to_truncate.any():
+        x[to_truncate] = constrained_pinv_solve(A[to_truncate], b[to_truncate], rcond)
     return x
 
 
@@ -359,7 +359,8 @@ def svd_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
 # The truncated solves go through the normal equations (a symmetric eigen-decomposition, a third
 # quicker than the SVD of the system on the small per-vertex systems) where the cut-off leaves
 # them accurate: the kept eigenvalues are then at least rcond² ≥ 1e-8 of the largest, each
-# computed to LAPACK's 1e-16 of the largest, so to 1e-8 or better. Smaller cut-offs use the SVD.
+# computed to about 1e-16 of the largest, so to about 2e-8 of itself or better. Smaller cut-offs
+# use the SVD.
 NORMAL_EQUATIONS_MIN_RCOND = 1e-4
 
 
@@ -379,8 +380,8 @@ def constrained_pinv_solve(A: np.ndarray, b: np.ndarray, rcond: float) -> np.nda
 
     A Householder reflection H maps row 0's a₀ onto the first axis (H a₀ = α e₀), so with
     x = H y the constraint fixes y₀ = b₀ / α and leaves y₁: free: the other rows become
-    (A₁H)[:, 1:] y₁: = b₁ − (A₁H)[:, 0] y₀, solved by :func:`truncated_solve`. Scaling row 0 (and b₀)
-    changes neither the constraint nor that system, so it cannot move the cut-off.
+    (A₁H)[:, 1:] y₁: = b₁ − (A₁H)[:, 0] y₀, solved by :func:`truncated_solve`. Scaling row 0
+    (and b₀) changes neither the constraint nor that system, so it cannot move the cut-off.
     """
     n, R, P = A.shape
     if n == 0:

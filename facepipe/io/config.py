@@ -264,8 +264,8 @@ def load_config(path: str | Path) -> Config:
     if psd.max_poses < 0 or psd.max_edges_per_vertex < 1 or psd.greedy_vertices < 0:
         raise InputError("[psd] max_poses and greedy_vertices must be ≥ 0, max_edges_per_vertex ≥ 1", path=path)
     if not 0.0 <= psd.rcond < 1.0:
-        raise InputError(f"[psd] rcond = {psd.rcond!r}", path=path,
-                         hint=f"a cut-off relative to the largest singular value: 0 ≤ rcond < 1 (default {DEFAULT_RCOND:g})")
+        raise InputError(f"[psd] rcond = {psd.rcond!r}", path=path, hint="a cut-off relative to the largest "
+                         f"singular value: 0 ≤ rcond < 1 (default {DEFAULT_RCOND:g})")
     if shell.method not in ("shell", "rbf"):
         raise InputError(f"[shell] method = {shell.method!r}", path=path, hint="use shell or rbf")
     if shell.rbf_lambda < 0 or shell.phantoms < 0:
