@@ -70,3 +70,19 @@ def test_the_process_restarts_once_with_its_arguments(tmp_path):
 def test_the_command_line_runs_after_its_restart():
     done = subprocess.run([sys.executable, "-m", "facepipe", "--help"], capture_output=True, text=True)
     assert done.returncode == 0 and "Usage:" in done.stdout and done.stderr == ""
+
+
+def test_no_restart_without_an_interpreter_to_run(madvise_linux, monkeypatch):
+    """An embedding interpreter without a binary (sys.executable empty or None) goes on as it is."""
+    calls = []
+    monkeypatch.setattr(large_pages.os, "execve", lambda *a: calls.append(a))
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
+    monkeypatch.delenv("FACEPIPE_LARGE_PAGES", raising=False)
+    for executable in ("", None):
+        monkeypatch.setattr(large_pages.sys, "executable", executable)
+        large_pages.restart_with_large_pages()
+    assert calls == []
+    monkeypatch.setattr(large_pages.sys, "executable", "/usr/bin/python3")
+    large_pages.restart_with_large_pages()
+    assert len(calls) == 1 and calls[0][0] == "/usr/bin/python3"
+    assert calls[0][2]["GLIBC_TUNABLES"] == f"{TUNABLE}=1"

@@ -65,7 +65,7 @@ def restart_with_large_pages() -> None:
     """Replace this process by the same command with the tunable set (see the module's text);
     returns only where that would change nothing, or where the restart fails."""
     environment = large_page_environment()
-    if environment is None:
+    if environment is None or not sys.executable:  # (an embedding interpreter may not know its binary)
         return
     argv = list(getattr(sys, "orig_argv", [])) or [sys.executable, *sys.argv]
     try:
