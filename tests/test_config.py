@@ -164,11 +164,14 @@ def test_markers_file_errors_name_the_line(tmp_path, row, expected):
 
 
 @pytest.mark.parametrize("line", ["rcond = -1e-4", "rcond = 1.0", "rcond = 5.0"])
-def test_rbf_cut_off_outside_its_range_is_refused(sample, tmp_path, line):
+def test_rbf_cut_off_outside_its_range_is_refused(sample, tmp_path, capsys, line):
     cfg = with_value(sample, tmp_path, "psd", line)
     with pytest.raises(InputError, match=r"(?s)\[psd\] rcond = .*0 ≤ rcond < 1") as exc:
         load_config(cfg)
     assert str(cfg) in str(exc.value)
+    assert run_cli("bake", cfg, "-o", tmp_path / "model.npz") == 2  # before any work, nothing written
+    assert "0 ≤ rcond < 1" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir()), "bake wrote something"
 
 
 @pytest.mark.parametrize("text", ["1\n2\n3\n", "3\r\n1\r\n2\r\n", "5\n4", "007\n8\n", "4\n4\n", "1\n\n2\n", " 1\n2\n",

@@ -16,7 +16,7 @@ def madvise_linux(tmp_path, monkeypatch):
     mode.write_text("always [madvise] never\n")
     monkeypatch.setattr(large_pages, "THP_MODE", mode)
     monkeypatch.setattr(large_pages.sys, "platform", "linux")
-    monkeypatch.setattr(large_pages.platform, "libc_ver", lambda: ("glibc", "2.36"))
+    monkeypatch.setattr(large_pages.os, "confstr", lambda name: "glibc 2.36")
     return mode
 
 
@@ -46,9 +46,12 @@ def test_nothing_changes_where_it_would_not_help(madvise_linux, monkeypatch, cas
     elif case == "no thp file":
         madvise_linux.unlink()
     elif case == "old glibc":
-        monkeypatch.setattr(large_pages.platform, "libc_ver", lambda: ("glibc", "2.31"))
+        monkeypatch.setattr(large_pages.os, "confstr", lambda name: "glibc 2.31")
     elif case == "musl":
-        monkeypatch.setattr(large_pages.platform, "libc_ver", lambda: ("", ""))
+        def no_such_name(name):
+            raise ValueError("unrecognized configuration name")  # what a C library without it gives
+
+        monkeypatch.setattr(large_pages.os, "confstr", no_such_name)
     else:
         monkeypatch.setattr(large_pages.sys, "platform", "darwin")
     assert large_page_environment(environ) is None

@@ -18,7 +18,6 @@ the tunable already set.
 from __future__ import annotations
 
 import os
-import platform
 import sys
 from pathlib import Path
 
@@ -28,11 +27,15 @@ THP_MODE = Path("/sys/kernel/mm/transparent_hugepage/enabled")
 
 
 def _glibc_version() -> tuple[int, ...] | None:
-    library, version = platform.libc_ver()
-    if library != "glibc" or not version:
-        return None
+    """glibc's version as the C library itself reports it (``confstr``), or None for another
+    C library or OS."""
     try:
-        return tuple(int(part) for part in version.split("."))
+        text = os.confstr("CS_GNU_LIBC_VERSION") or ""
+    except (ValueError, OSError, AttributeError):  # no such name here: not glibc
+        return None
+    name, _, version = text.partition(" ")
+    try:
+        return tuple(int(part) for part in version.split(".")) if name == "glibc" else None
     except ValueError:
         return None
 
@@ -50,13 +53,14 @@ def _thp_mode() -> str | None:
 def large_page_environment(environ=None) -> dict | None:
     """The environment with the tunable added, or None where it would change nothing."""
     environ = os.environ if environ is None else environ
-    if sys.platform != "linux" or environ.get(OPT_OUT, "1").strip().lower() in ("0", "false", "no", "off"):
+    current = environ.get("GLIBC_TUNABLES", "")
+    # set already (by an earlier start, or by the user): the restarted process stops here
+    if TUNABLE in current or sys.platform != "linux":
+        return None
+    if environ.get(OPT_OUT, "1").strip().lower() in ("0", "false", "no", "off"):
         return None
     version = _glibc_version()
     if version is None or version < (2, 35) or _thp_mode() != "madvise":
-        return None
-    current = environ.get("GLIBC_TUNABLES", "")
-    if TUNABLE in current:  # set already: by an earlier start, or by the user
         return None
     return {**environ, "GLIBC_TUNABLES": f"{current}:{TUNABLE}=1" if current else f"{TUNABLE}=1"}
 
