@@ -145,19 +145,20 @@ def machine_limits(work_dir: Path, device, log) -> dict:
     return limits
 
 
-def stage_bytes(V: int, H: int, P: int, K: float, chunk: int, method: str) -> dict:
+def stage_bytes(V: int, H: int, P: int, K: float, chunk: int, method: str, fan_entries: float = 7.0) -> dict:
     """Bytes each stage must move per frame at least (each array read or written once).
 
     large_scale: B once per chunk, the large-scale positions written; frames: those positions
-    read, the adjacency once per chunk; fine_scale: per-vertex WPSD edges (K used of them) and
-    RBF weights once per chunk; output: positions read, final positions written (plus the
-    write-allocate read of the destination).
+    read, the fans (``fan_entries`` per vertex) and the tangent's neighbour once per chunk;
+    fine_scale: per-vertex WPSD edges (K used of them), distance constants and RBF weights once
+    per chunk; output: positions read, final positions written (plus the write-allocate read of
+    the destination).
     """
     pos = V * 3 * 4
     return {
         "large_scale": V * H * 4 / chunk + pos,
-        "frames": pos + V * (4 + 6 * 8 + 4) / chunk,
-        "fine_scale": 0.0 if method == "none" else V * (K * 8 + 4 + P * 12 + 12) / chunk,
+        "frames": pos + V * (4 + fan_entries * 4 + 4) / chunk,
+        "fine_scale": 0.0 if method == "none" else V * (K * 8 + 4 + P * 16 + 12) / chunk,
         "output": pos + 2 * pos,
     }
 
@@ -420,16 +421,18 @@ def _roofline_tables(model, head, R, t, work_dir: Path, repeats: int, chunk: int
     clocks."""
     from bench.replay_stages import measure_stages
     from bench.roofline import format_table, stage_flops, stage_table
+    from facepipe.opencl.adjacency import vertex_fans
 
     V, H = model.n_vertices, int(len(model.handle_vertices))
     P = int(model.basis_features.shape[0])
     ring = 3.0 * len(model.triangles) / V
-    flops = stage_flops(V, H, P, K_used, ring, model.method)
+    fan_entries = len(vertex_fans(model.triangles, V)[1]) / V
+    flops = stage_flops(V, H, P, K_used, ring, model.method, fans=fan_entries - ring)
     tables = {}
     for name, width in (("before", 8), ("after", None)):
         m = measure_stages(model, head, R, t, work_dir, device=device, chunk=chunk, vector_width=width,
                            repeats=repeats, placed=name == "after")
-        nbytes = stage_bytes(V, H, P, K_used, chunk, model.method)
+        nbytes = stage_bytes(V, H, P, K_used, chunk, model.method, fan_entries)
         nbytes.update(host_tables=0.0, host_copy=2 * V * 3 * 4.0, positions_write=V * 3 * 4.0)
         entry = {"vector_width": m["vector_width"], "threads": m["threads"],
                  "fused_kernel_ms_per_frame": {k: m[k]["fused_kernel"] for k in ("wall", "busy")}}

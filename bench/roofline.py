@@ -217,24 +217,26 @@ def direct_write_rate_gbs(folder: Path, megabytes: int = 256, block: int = 16 <<
             Path(fd_path).unlink(missing_ok=True)
 
 
-def stage_flops(V: int, H: int, P: int, K: float, ring: float, method: str) -> dict:
+def stage_flops(V: int, H: int, P: int, K: float, ring: float, method: str, fans: float = 1.0) -> dict:
     """Floating-point operations per frame of each replay stage, counted from the kernels' source
     (a multiply-add is 2; a square root or division 1).
 
-    large_scale: 3 coordinates × H multiply-adds per vertex. frames: per ring face two edge
-    vectors (6), a cross product (9) and the sum (3); a normalisation (~10); the tangent: the
-    edge (3), its normal part (5 + 6), two lengths (~12), a normalisation (~10), the bitangent
-    (9). fine_scale (WPSD): per used edge and pose a difference, square and multiply-add (4),
-    the gate's multiply-add (2), a square root per pose, 3 multiply-adds per pose for the RBF
-    sum, and the detail to the frame (15). output: the head motion (9 multiply-adds, 3 adds).
+    large_scale: 3 coordinates × H multiply-adds per vertex. frames: per fan entry (``ring``
+    faces and ``fans`` fan starts per vertex) the neighbour's difference (3), per face the cross
+    product summed (6 multiply-adds); a normalisation (~10); the tangent: the edge (3), its
+    normal part (5 + 6), two lengths (~12), a normalisation (~10), the bitangent (9). fine_scale
+    (WPSD, the square expanded): per used edge α·f (1), its square's multiply-add (2), a
+    multiply-add per pose (2) and the gate's (2); per pose the sum, the clamp and the square root
+    (3) and 3 multiply-adds for the RBF sum; the detail to the frame (15). output: the head
+    motion (9 multiply-adds, 3 adds).
     """
-    frames = ring * 18 + 10 + 3 + 11 + 12 + 10 + 9
+    frames = (ring + fans) * 3 + ring * 12 + 10 + 3 + 11 + 12 + 10 + 9
     if method == "none":
         fine = 0.0
     elif method == "psd":
         fine = P * 6 + 15
     else:
-        fine = K * (4 * P + 2) + P + P * 6 + 15
+        fine = K * (2 * P + 5) + P * 3 + P * 6 + 15
     return {"large_scale": V * H * 3 * 2.0, "frames": V * frames, "fine_scale": V * fine, "output": V * 21.0,
             "host_copy": 0.0, "positions_write": 0.0}
 

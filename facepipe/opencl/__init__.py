@@ -8,7 +8,8 @@ opened, so ``import facepipe.opencl`` is cheap and works without OpenCL.
 """
 
 from facepipe.opencl.device import (HINT, OpenCLUnavailable, device_label, list_devices, opencl_available, select_device)
-from facepipe.opencl.engine import OpenCLEvaluator, compact_edges, locality_order, vertex_face_ring
+from facepipe.opencl.adjacency import vertex_face_ring, vertex_fans
+from facepipe.opencl.engine import OpenCLEvaluator, compact_edges, locality_order
 
 __all__ = ["HINT", "OpenCLEvaluator", "OpenCLUnavailable", "compact_edges", "device_label", "list_devices",
-           "locality_order", "opencl_available", "select_device", "vertex_face_ring"]
+           "locality_order", "opencl_available", "select_device", "vertex_face_ring", "vertex_fans"]

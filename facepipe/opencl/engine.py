@@ -29,6 +29,7 @@ import scipy.sparse as sp
 
 from facepipe.core.psd import psd_distances
 from facepipe.core.strain import strain_features
+from facepipe.opencl.adjacency import vertex_face_ring, vertex_fans
 from facepipe.opencl.device import _cl, build_program, device_label, open_device
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 from facepipe.core.psd import edge_weight_matrix, spread_subset
@@ -39,35 +40,6 @@ RV = 4  # vertices per work-item in the B product: 4 rows × 3 coordinates of ac
 
 
 # ----------------------------------------------------------------------------- mesh tables
-
-
-def vertex_face_ring(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """The vertex→face adjacency as a CSR list of (a, b) pairs, for gathering normals.
-
-    Parameters
-    ----------
-    faces : (T, 3) int triangles; n_vertices : V.
-
-    Returns
-    -------
-    ptr : (V + 1,) int32 offsets; ring : (3T, 2) int32. For ``i`` in ``ptr[v]:ptr[v+1]``,
-        (v, ring[i, 0], ring[i, 1]) is an incident face in its own winding (a rotation of the
-        face), so cross(p_a − p_v, p_b − p_v) is that face's area-weighted normal.
-
-    Example
-    -------
-    >>> ptr, ring = vertex_face_ring(np.array([[0, 1, 2]]), 3)
-    >>> ptr.tolist(), ring.tolist()
-    ([0, 1, 2, 3], [[1, 2], [2, 0], [0, 1]])
-    """
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    v = faces.ravel()
-    a = np.roll(faces, -1, axis=1).ravel()
-    b = np.roll(faces, -2, axis=1).ravel()
-    order = np.argsort(v, kind="stable")
-    ptr = np.zeros(n_vertices + 1, dtype=np.int64)
-    np.cumsum(np.bincount(v, minlength=n_vertices), out=ptr[1:])
-    return ptr.astype(np.int32), np.stack([a[order], b[order]], axis=1).astype(np.int32)
 
 
 def locality_order(faces: np.ndarray, n_vertices: int, mode="auto") -> np.ndarray | None:
@@ -282,7 +254,11 @@ class OpenCLEvaluator:
         B[:V] = model.B[order]
         rest = np.zeros((self.Vp, 3), dtype=np.float32)
         rest[:V] = model.rest[order]
-        ptr, ring = vertex_face_ring(inv[model.triangles.astype(np.int64)], V)
+        faces = inv[model.triangles.astype(np.int64)]
+        fan_ptr, fan = vertex_fans(faces, V)
+        # each face's own entry: only the local-strain kernel's sums need it
+        ptr, ring = vertex_face_ring(faces, V) if method == "local_strain" \
+            else (np.zeros(V + 1, np.int32), np.zeros((1, 2), np.int32))
         neighbor = inv[model.frame_neighbors.astype(np.int64)[order]].astype(np.int32)
         if method == "none":
             ei = np.zeros((V, 1), np.int32)
@@ -291,21 +267,23 @@ class OpenCLEvaluator:
             rbf_w = np.zeros((V, 1, 3), np.float32)
             rbf_c = np.zeros((V, 3), np.float32)
             basis = np.zeros((1, F), np.float32)
+            wpsd_const = np.zeros((V, 1), np.float32)
         else:
             ei, ew, count = compact_edges(model.edge_index[order], model.edge_weight[order])
             w, c = (model.rbf_weights, model.rbf_const) if detail_weights is None or method == "local_strain" \
                 else detail_weights
             rbf_w = np.ascontiguousarray(np.asarray(w)[order], dtype=np.float32)
             rbf_c = np.ascontiguousarray(np.asarray(c)[order], dtype=np.float32)
-            basis = np.ascontiguousarray(self.basis, dtype=np.float32)
+            basis, wpsd_const = self._wpsd_tables(ei, ew)
         strain = self._local_strain_tables(model, order, inv)
         if method == "local_strain":  # (a cache take's added bands: detail_weights' kernel weights)
             w = model.strain_weights if detail_weights is None else detail_weights[0]
             rbf_w = np.ascontiguousarray(np.asarray(w)[order], dtype=np.float32)
         self._static = {name: self._upload(a) for name, a in {
-            "B": B, "rest": rest, "ring_ptr": ptr, "ring": ring, "neighbor": neighbor, "edge_count": count,
+            "B": B, "rest": rest, "ring_ptr": ptr, "ring": ring, "fan_ptr": fan_ptr, "fan": fan,
+            "neighbor": neighbor, "edge_count": count,
             "edge_index": ei, "edge_weight": ew, "basis": basis, "rbf_weights": rbf_w, "rbf_const": rbf_c,
-            "out_index": order.astype(np.int32), **strain}.items()}
+            "out_index": order.astype(np.int32), "wpsd_const": wpsd_const, **strain}.items()}
         C = self.chunk
         self._large = self._buffer(self.Vp * 3 * C * 4)
         self._final_vc = None
@@ -314,6 +292,15 @@ class OpenCLEvaluator:
         # a writer's placement memory, kept between replays (NpyWriter(regions=)): pages faulted
         # in once per evaluator, not once per file
         self.placement_regions: dict = {}
+
+    def _wpsd_tables(self, edge_index: np.ndarray, edge_weight: np.ndarray):
+        """The WPSD kernel's expanded distances (replay.cl): the basis as −2 b (P, F) and per vertex
+        Σ_k α_k b_{p,e_k}² (V, P); float32."""
+        const = np.empty((edge_index.shape[0], self.basis.shape[0]), np.float32)
+        alpha = edge_weight.astype(np.float64)
+        for p, row in enumerate(self.basis):  # one pose at a time: a (V, K) temporary
+            const[:, p] = (alpha * row[edge_index] ** 2).sum(axis=1)
+        return np.ascontiguousarray(-2.0 * self.basis, dtype=np.float32), const
 
     def _local_strain_tables(self, model, order: np.ndarray, inv: np.ndarray) -> dict:
         """The local-strain model's tables in the engine's vertex order (placeholders for the other
@@ -420,19 +407,20 @@ class OpenCLEvaluator:
         large = self._large if large is None else large
         final = out["final"] if slot.final is None else slot.final
         self._k_detail.set_args(
-            large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["neighbor"],
+            large, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"], s["ring"], s["fan_ptr"], s["fan"],
+            s["neighbor"],
             s["edge_count"], s["edge_index"], s["edge_weight"], s["basis"], slot.inputs["features"],
             slot.inputs["psd_r"], slot.inputs["site"], s["rbf_weights"], s["rbf_const"], slot.inputs["rigid"],
             s["out_index"], final, out.get("large", final),
             final if self._final_vc is None else self._final_vc,
             np.int32(flags), s["strain_coeff"], s["strain_const"], s["strain_samples"], np.float32(self.strain_inv),
-            np.int32(slot.final_offset if slot.final is not None else 0))
+            np.int32(slot.final_offset if slot.final is not None else 0), s["wpsd_const"])
         ev_detail = cl.enqueue_nd_range_kernel(q, self._k_detail, (lanes, self.Vd), (self.local0, self.local1),
                                                wait_for=wait_for)
         events = {"frames_fine_scale": ev_detail, "last": ev_detail}
         if with_normals:
-            self._k_normals.set_args(self._final_vc, np.int32(C), np.int32(n), np.int32(self.V), s["ring_ptr"],
-                                     s["ring"], slot.inputs["rigid"], s["out_index"], out["normals"])
+            self._k_normals.set_args(self._final_vc, np.int32(C), np.int32(n), np.int32(self.V), s["fan_ptr"],
+                                     s["fan"], slot.inputs["rigid"], s["out_index"], out["normals"])
             events["normals"] = events["last"] = cl.enqueue_nd_range_kernel(
                 q, self._k_normals, (lanes, self.Vd), (self.local0, self.local1))
         return events

@@ -35,6 +35,10 @@
 #define METHOD_WPSD 2
 #define METHOD_LOCAL_STRAIN 3
 
+/* WPSD distances are summed term by term where r² < WPSD_CANCEL × (Σ α f² + Σ α b²): below it
+ * the expanded sum's rounding (a few float ulps of those sums) would show in r = √r² */
+#define WPSD_CANCEL 1e-3f
+
 #if VW == 1
 typedef float vfloat;
 typedef int vint; /* what a comparison of two vfloat gives */
@@ -120,26 +124,31 @@ __kernel void large_scale(__global const float *restrict B, __global const float
     }
 }
 
-/* Area-weighted vertex normal (not normalised) from the faces around v, gathered through the
- * vertex→face adjacency: ring[i] = (a, b) such that (v, a, b) is an incident face in its own
- * winding, so cross(pa − pv, pb − pv) is that face's normal times twice its area. No atomics:
- * every vertex sums its own faces (each face normal is computed by its three vertices). */
-FP_INLINE void ring_normal(__global const float *restrict pos, const int C, const int c0,
-                        __global const int *restrict ring_ptr, __global const int2 *restrict ring,
-                        const int v, const vfloat px, const vfloat py, const vfloat pz,
-                        vfloat *nx, vfloat *ny, vfloat *nz)
+/* Area-weighted vertex normal (not normalised) from the faces around v, walked as fans
+ * (adjacency.vertex_fans): consecutive neighbours a, b of a fan span the face (v, a, b) in its
+ * own winding, so cross(pa − pv, pb − pv) is that face's normal times twice its area. Each
+ * neighbour is loaded and differenced once per fan, not once per face on either side of it; an
+ * entry j < 0 starts a new fan at ~j. No atomics: every vertex sums its own faces. */
+FP_INLINE void fan_normal(__global const float *restrict pos, const int C, const int c0,
+                          __global const int *restrict fan_ptr, __global const int *restrict fan,
+                          const int v, const vfloat px, const vfloat py, const vfloat pz,
+                          vfloat *nx, vfloat *ny, vfloat *nz)
 {
     vfloat sx = (vfloat)(0.0f), sy = (vfloat)(0.0f), sz = (vfloat)(0.0f);
-    const int end = ring_ptr[v + 1];
-    for (int i = ring_ptr[v]; i < end; ++i) {
-        const int2 ab = ring[i];
-        __global const float *pa = pos + (size_t)ab.x * 3 * C + c0;
-        __global const float *pb = pos + (size_t)ab.y * 3 * C + c0;
-        const vfloat ax = VLOAD(pa) - px, ay = VLOAD(pa + C) - py, az = VLOAD(pa + 2 * C) - pz;
+    vfloat ax = (vfloat)(0.0f), ay = (vfloat)(0.0f), az = (vfloat)(0.0f);
+    const int end = fan_ptr[v + 1];
+    for (int i = fan_ptr[v]; i < end; ++i) {
+        const int j = fan[i];
+        __global const float *pb = pos + (size_t)(j < 0 ? ~j : j) * 3 * C + c0;
         const vfloat bx = VLOAD(pb) - px, by = VLOAD(pb + C) - py, bz = VLOAD(pb + 2 * C) - pz;
-        sx += ay * bz - az * by;
-        sy += az * bx - ax * bz;
-        sz += ax * by - ay * bx;
+        if (j >= 0) {
+            sx = FMA(ay, bz, sx) - az * by;
+            sy = FMA(az, bx, sy) - ax * bz;
+            sz = FMA(ax, by, sz) - ay * bx;
+        }
+        ax = bx;
+        ay = by;
+        az = bz;
     }
     *nx = sx;
     *ny = sy;
@@ -207,13 +216,15 @@ FP_INLINE void to_world(__global const float *restrict rigid, const int C, const
  * Frames, fine scale and output: per vertex and VW frames,
  *   n = normalised Σ face normals, t = neighbour edge projected into the tangent plane, b = n × t
  *   d = c_v + Σ_p w_{v,p} φ(r_{v,p})   (φ(r) = r)
- *       WPSD: r²_{v,p} = Σ_k α_{v,k} (f_{e_k} − f_{p,e_k})²   (α sparse, ≤ K edges, zeros last)
+ *       WPSD: r²_{v,p} = Σ_k α_{v,k} (f_{e_k} − f_{p,e_k})²   (α sparse, ≤ K edges, zeros last),
+ *             expanded (see below)
  *       PSD:  r_p = |f − f_p| per frame, from the host (psd_r (P, C))
  *   final = large + t d_0 + b d_1 + n d_2, then the head motion, stored as (C, V, 3).
  * global size (C / VW, V)
  */
 __kernel void detail(__global const float *restrict large, const int C, const int n_frames, const int V,
                      __global const int *restrict ring_ptr, __global const int2 *restrict ring,
+                     __global const int *restrict fan_ptr, __global const int *restrict fan,
                      __global const int *restrict neighbor,
                      __global const int *restrict edge_count, __global const int *restrict edge_index,
                      __global const float *restrict edge_weight, __global const float *restrict basis,
@@ -225,7 +236,7 @@ __kernel void detail(__global const float *restrict large, const int C, const in
                      __global float *restrict final_vc, const int flags,
                      __global const float *restrict strain_coeff, __global const float *restrict strain_const,
                      __global const float *restrict strain_samples, const float strain_inv,
-                     const int out_offset)
+                     const int out_offset, __global const float *restrict wpsd_const)
 {
     const int c0 = get_global_id(0) * VW;
     const int v = get_global_id(1);
@@ -242,7 +253,7 @@ __kernel void detail(__global const float *restrict large, const int C, const in
 #if STAGES & STAGE_FRAMES
     /* ---- local frame of the large-scale surface */
     vfloat nx, ny, nz;
-    ring_normal(large, C, c0, ring_ptr, ring, v, px, py, pz, &nx, &ny, &nz);
+    fan_normal(large, C, c0, fan_ptr, fan, v, px, py, pz, &nx, &ny, &nz);
     normalize_or(&nx, &ny, &nz, 0.0f, 0.0f, 1.0f);
     __global const float *q = large + (size_t)neighbor[v] * 3 * C + c0;
     const vfloat ex = VLOAD(q) - px, ey = VLOAD(q + C) - py, ez = VLOAD(q + 2 * C) - pz;
@@ -301,12 +312,19 @@ __kernel void detail(__global const float *restrict large, const int C, const in
         d2 = FMA((vfloat)(w[i * 3 + 2]), k, d2);
     }
 #elif STAGES & STAGE_FINE
-    /* ---- pose-space distances (and the novelty gate, over the same α) */
+    /* ---- pose-space distances (and the novelty gate, over the same α)
+     * WPSD expands the square: r²_p = Σ_k α_k f_k² − 2 Σ_k α_k b_pk f_k + Σ_k α_k b_pk², the last
+     * sum a per-vertex constant (wpsd_const), the host's basis already −2 b: one FMA per edge and
+     * pose instead of a difference, a square and an FMA. The expansion cancels where a frame is
+     * close to a basis pose (r² small against the sums); there, and only there, the distances are
+     * summed again term by term, so φ(r) = r keeps float accuracy at and near the poses. */
     vfloat r[P];
 #if METHOD == METHOD_WPSD
+    __global const float *bsq = wpsd_const + (size_t)v * P;
+    vfloat norm2 = (vfloat)(0.0f);
 #pragma unroll
     for (int i = 0; i < P; ++i)
-        r[i] = (vfloat)(0.0f);
+        r[i] = (vfloat)(bsq[i]);
 #else
 #pragma unroll
     for (int i = 0; i < P; ++i)
@@ -322,11 +340,11 @@ __kernel void detail(__global const float *restrict large, const int C, const in
         const float a = ew[k];
 #if METHOD == METHOD_WPSD
         const vfloat f = VLOAD(features + e * C + c0);
+        const vfloat af = a * f;
+        norm2 = FMA(af, f, norm2);
 #pragma unroll
-        for (int i = 0; i < P; ++i) {
-            const vfloat d = f - basis[i * F + e];
-            r[i] = FMA((vfloat)(a), d * d, r[i]);
-        }
+        for (int i = 0; i < P; ++i)
+            r[i] = FMA(af, (vfloat)(basis[i * F + e]), r[i]);
 #endif
 #if GATE
         confidence = FMA((vfloat)(a), VLOAD(site + e * C + c0), confidence);
@@ -334,6 +352,36 @@ __kernel void detail(__global const float *restrict large, const int C, const in
     }
 #endif
 #if METHOD == METHOD_WPSD
+    vint near = (vint)(0);
+#pragma unroll
+    for (int i = 0; i < P; ++i) {
+        r[i] += norm2;
+        near |= r[i] < WPSD_CANCEL * (norm2 + bsq[i]);
+    }
+    union {
+        vint v;
+        int s[VW];
+    } lanes;
+    lanes.v = near;
+    int any_near = 0;
+#pragma unroll
+    for (int j = 0; j < VW; ++j)
+        any_near |= lanes.s[j];
+    if (any_near) {
+#pragma unroll
+        for (int i = 0; i < P; ++i)
+            r[i] = (vfloat)(0.0f);
+        for (int k = 0; k < count; ++k) {
+            const int e = ei[k];
+            const float a = ew[k];
+            const vfloat f = VLOAD(features + e * C + c0);
+#pragma unroll
+            for (int i = 0; i < P; ++i) {
+                const vfloat d = f + 0.5f * basis[i * F + e]; /* f − b, exactly as stored: −2b / −2 */
+                r[i] = FMA((vfloat)(a), d * d, r[i]);
+            }
+        }
+    }
 #pragma unroll
     for (int i = 0; i < P; ++i)
         r[i] = VSQRT(MAX(r[i], (vfloat)(0.0f)));
@@ -385,8 +433,8 @@ __kernel void detail(__global const float *restrict large, const int C, const in
  * global size (C / VW, V); reads final_vc written by detail() with WRITE_FINAL_VC.
  */
 __kernel void final_normals(__global const float *restrict final_vc, const int C, const int n_frames,
-                            const int V, __global const int *restrict ring_ptr,
-                            __global const int2 *restrict ring, __global const float *restrict rigid,
+                            const int V, __global const int *restrict fan_ptr,
+                            __global const int *restrict fan, __global const float *restrict rigid,
                             __global const int *restrict out_index, __global float *restrict normals)
 {
     const int c0 = get_global_id(0) * VW;
@@ -395,7 +443,7 @@ __kernel void final_normals(__global const float *restrict final_vc, const int C
         return;
     __global const float *p = final_vc + (size_t)v * 3 * C + c0;
     vfloat nx, ny, nz;
-    ring_normal(final_vc, C, c0, ring_ptr, ring, v, VLOAD(p), VLOAD(p + C), VLOAD(p + 2 * C), &nx, &ny, &nz);
+    fan_normal(final_vc, C, c0, fan_ptr, fan, v, VLOAD(p), VLOAD(p + C), VLOAD(p + 2 * C), &nx, &ny, &nz);
     normalize_or(&nx, &ny, &nz, 0.0f, 0.0f, 1.0f);
     to_world(rigid, C, c0, &nx, &ny, &nz, 0);
     const int o = out_index[v];
