@@ -2,6 +2,7 @@ import ctypes.util
 import importlib.metadata
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -422,6 +423,24 @@ def test_pardiso_without_importing_pypardiso():
             "assert np.allclose(f.solve(np.ones(5)), 0.5)\n"
             "assert 'pypardiso' not in sys.modules, 'pypardiso imported'\n")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)  # this checkout's facepipe
+
+
+@pytest.mark.parametrize("given, expected", [(None, "0"), ("50", "50")])
+def test_pardiso_threads_sleep_when_idle_unless_the_user_says(given, expected):
+    """MKL's OpenMP threads read KMP_BLOCKTIME when they start: facepipe sets it to 0 before MKL
+    loads (idle threads sleep rather than spin beside the bake's other work); a user's value stands."""
+    if not _mkl_installed():
+        pytest.skip("MKL is not installed here")
+    env = {k: v for k, v in os.environ.items() if k != "KMP_BLOCKTIME"}
+    if given is not None:
+        env["KMP_BLOCKTIME"] = given
+    code = ("import os, numpy as np, scipy.sparse as sp\n"
+            "from facepipe.core.shell import CholeskyFactor\n"
+            "f = CholeskyFactor(sp.eye(5, format='csr') * 2.0, backends=('pardiso',))\n"
+            "assert np.allclose(f.solve(np.ones(5)), 0.5)\n"
+            "print(os.environ['KMP_BLOCKTIME'])\n")
+    out = subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, env=env, capture_output=True, text=True)
+    assert out.stdout.strip() == expected
 
 
 def test_constrained_system_is_the_identity_at_the_constraints(sheet):
