@@ -245,7 +245,7 @@ class OpenCLEvaluator:
 
         program = build_program(self.context, {"VW": self.vw, "H": H, "RV": RV, "METHOD": METHOD_CODES[method],
                                                "P": P, "K": K, "F": F, "GATE": int(self.gate is not None),
-                                               "STAGES": int(_stages)})
+                                               "STAGES": int(_stages), "PREFETCH": int(not gpu)})
         self._k_large = cl.Kernel(program, "large_scale")
         self._k_detail = cl.Kernel(program, "detail")
         self._k_normals = cl.Kernel(program, "final_normals")
