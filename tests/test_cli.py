@@ -204,7 +204,7 @@ def test_greedy_scored_on_a_vertex_sample(pipeline):
 
 def test_geodesics_from_a_second_process_give_the_same_fit(pipeline, monkeypatch):
     """On a large mesh a child process starts the geodesics as soon as the rest mesh is read and this
-    one joins in after the shell solve: the same fit as computing them here."""
+    one joins in when it needs them: the same fit as computing them here."""
     import time
 
     from facepipe.pipeline import fit as fit_module
@@ -214,13 +214,13 @@ def test_geodesics_from_a_second_process_give_the_same_fit(pipeline, monkeypatch
     here = fit_module.fit_rig(load_rig(pipeline / "rig" / "sample.toml"))
     monkeypatch.setattr(geodesics, "GEODESICS_IN_A_PROCESS", 0)
     monkeypatch.setattr(geodesics, "GEODESICS_ON_DEVICE", False)  # the second process (the device: test_strain)
-    build = fit_module.build_geometry
+    graph = fit_module.feature_graph
 
-    def slow_build(*args, **kwargs):  # long enough for the child to start and take sources
+    def slow_graph(*args, **kwargs):  # long enough for the child to start and take sources
         time.sleep(2.0)
-        return build(*args, **kwargs)
+        return graph(*args, **kwargs)
 
-    monkeypatch.setattr(fit_module, "build_geometry", slow_build)
+    monkeypatch.setattr(fit_module, "feature_graph", slow_graph)
     _, there = fit_module.fit_config(pipeline / "rig" / "sample.toml")
     assert there.report["seconds"]["geodesics_child_sources"] > 0
     assert there.report["seconds"]["load"] > 0

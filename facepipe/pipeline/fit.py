@@ -206,8 +206,8 @@ def handle_geodesics(mesh, handles: np.ndarray) -> Geodesics:
 
 #: The steps of :func:`fit_config` (``stage`` is called with each as it starts); validation, run
 #: between loading and the geometry by ``prepare``, has progress of its own.
-FIT_STAGES = ("reading the rig", "validating parameters", "shell and local frames", "details of the examples",
-              "geodesic distances", "WPSD weights", "greedy basis", "final detail model")
+FIT_STAGES = ("reading the rig", "validating parameters", "geodesic distances", "WPSD weights",
+              "shell and local frames", "details of the examples", "greedy basis", "final detail model")
 
 
 def fit_config(config, progress=None, prepare=None, stage=None, early_basis: bool = False, on_geometry=None
@@ -291,41 +291,43 @@ def fit_rig(rig: Rig, progress=None, geodesics: Geodesics | None = None, stage=N
         geodesics = handle_geodesics(rig.mesh, handles)
     elif geodesics.n_vertices != rest.shape[0] or not np.array_equal(geodesics.sources, handles):
         raise ValueError("the geodesics were started for another mesh or other handles")
+    # what needs no large-scale basis comes first (the features, the WPSD weights and the novelty
+    # gate): where the basis is still being solved (fit_config) it is done while that runs
     try:
-        stage(FIT_STAGES[2])
         graph = feature_graph(rig, geodesics.graph)
-        beta = cfg.beta or default_beta(graph[1], cfg.beta_scale)
-        geo = build_geometry(rig, graph=graph, basis=basis() if callable(basis) else basis)
-        if on_geometry is not None:
-            on_geometry(rig, geo)
-        lap("geometry")
-        poses = np.concatenate([geo.rest[None], rig.example_positions]) if len(rig.example_positions) \
-            else geo.rest[None]
-        stage(FIT_STAGES[3])
-        details = geo.details(poses)
-        features = geo.features(poses[:, geo.handles])
-        lap("details")
-        stage(FIT_STAGES[4])
+        edges, rest_lengths = graph
+        beta = cfg.beta or default_beta(rest_lengths, cfg.beta_scale)
+        poses = np.concatenate([rest[None], rig.example_positions]) if len(rig.example_positions) else rest[None]
+        features = strain_features(poses[:, handles], edges, rest_lengths)
+        stage(FIT_STAGES[2])
         distances = geodesics.finish()  # (H, V)
     finally:
         geodesics.close()
     lap("geodesics_wait")
     seconds["geodesics_child_sources"] = geodesics.child_sources
-    stage(FIT_STAGES[5])
-    edge_index, edge_weight = wpsd_edge_weights(distances, geo.edges, geo.rest_lengths, beta, cfg.min_edge_weight,
+    stage(FIT_STAGES[3])
+    edge_index, edge_weight = wpsd_edge_weights(distances, edges, rest_lengths, beta, cfg.min_edge_weight,
                                                 cfg.max_edges_per_vertex)
     handle_distances = np.ascontiguousarray(distances[:, handles])
     del distances
-    alpha = edge_weight_matrix(edge_index, edge_weight, len(geo.edges))
+    alpha = edge_weight_matrix(edge_index, edge_weight, len(edges))
     gate = None
     if cfg.novelty_tau > 0 and len(poses) > 1:
         with serial_blas():  # an SVD per site
-            gate = novelty_gate(features[1:], edge_distances(handle_distances, geo.edges), alpha,
-                                cfg.novelty_tau, cfg.novelty_radius * float(np.median(geo.rest_lengths)),
+            gate = novelty_gate(features[1:], edge_distances(handle_distances, edges), alpha,
+                                cfg.novelty_tau, cfg.novelty_radius * float(np.median(rest_lengths)),
                                 example_displacements=poses[1:, handles] - rest[handles],
-                                marker_distance=handle_distances, edges=geo.edges)
-    large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
+                                marker_distance=handle_distances, edges=edges)
     lap("weights")
+    stage(FIT_STAGES[4])
+    geo = build_geometry(rig, graph=graph, basis=basis() if callable(basis) else basis)
+    if on_geometry is not None:
+        on_geometry(rig, geo)
+    lap("geometry")
+    stage(FIT_STAGES[5])
+    details = geo.details(poses)
+    large_only = rms_per_pose(np.zeros_like(details[1:]), details[1:])
+    lap("details")
     methods = ["psd", "wpsd"] if len(poses) > 1 else []
     stage(FIT_STAGES[6])
     curves, models, sample = greedy_bases(cfg, methods, features, details, alpha, progress)
