@@ -295,12 +295,14 @@ class OpenCLEvaluator:
 
     def _wpsd_tables(self, edge_index: np.ndarray, edge_weight: np.ndarray):
         """The WPSD kernel's expanded distances (replay.cl): the basis as −2 b (P, F) and per vertex
-        Σ_k α_k b_{p,e_k}² (V, P); float32."""
-        const = np.empty((edge_index.shape[0], self.basis.shape[0]), np.float32)
+        Σ_k α_k b_{p,e_k}² (V, P); float32. Both from the basis and weights as the kernel holds them
+        (float32), so at a pose's own features the three sums agree but for their rounding."""
+        basis = self.basis.astype(np.float32)
+        const = np.empty((edge_index.shape[0], basis.shape[0]), np.float32)
         alpha = edge_weight.astype(np.float64)
-        for p, row in enumerate(self.basis):  # one pose at a time: a (V, K) temporary
+        for p, row in enumerate(basis.astype(np.float64)):  # one pose at a time: a (V, K) temporary
             const[:, p] = (alpha * row[edge_index] ** 2).sum(axis=1)
-        return np.ascontiguousarray(-2.0 * self.basis, dtype=np.float32), const
+        return np.ascontiguousarray(-2.0 * basis), const
 
     def _local_strain_tables(self, model, order: np.ndarray, inv: np.ndarray) -> dict:
         """The local-strain model's tables in the engine's vertex order (placeholders for the other
