@@ -178,6 +178,42 @@ def test_wpsd_details_keep_float_accuracy_at_the_example_poses(sample):
     assert error <= 4 * np.finfo(np.float32).eps * np.abs(ref_final).max()
 
 
+def test_tangent_fallback_where_the_frame_edge_lies_along_the_normal(sample):
+    """A vertex whose frame neighbour sits straight along its normal has no tangent from that edge:
+    kernel and reference both take n × x̂ (the kernel tests the lengths squared). Made by moving
+    a far vertex (the frame neighbour) onto the normal; details there are a constant in the frame,
+    so a wrong tangent shows in the positions."""
+    import dataclasses
+
+    _device_or_skip()
+    _, rig, fit, _, diag = sample
+    model = model_from_fit(fit, rig, "psd")
+    rest = model.rest.astype(np.float64).copy()
+    normals = vertex_normals(rest, model.triangles.astype(np.int64))
+    handles = set(model.handle_vertices.tolist())
+    faces = model.triangles.astype(np.int64)
+    v = next(i for i in range(0, len(rest), 7) if i not in handles)
+    near = set(faces[(faces == v).any(axis=1)].ravel().tolist())
+    far = np.argsort(-np.linalg.norm(rest - rest[v], axis=1))
+    w = int(next(i for i in far if i not in handles and i not in near))
+    rest[w] = rest[v] + 0.5 * normals[v]
+    neighbors = model.frame_neighbors.copy()
+    neighbors[v] = w
+    const = np.asarray(model.rbf_const).copy()
+    const[v] = [0.3, -0.2, 0.1]
+    model = dataclasses.replace(model, rest=rest.astype(model.rest.dtype), frame_neighbors=neighbors,
+                                rbf_const=const.astype(np.asarray(model.rbf_const).dtype))
+    head = np.repeat(rest[model.handle_vertices][None], 2, axis=0)  # the rest pose: large = rest
+    ref_final, ref_large = NumpyEvaluator(model).evaluate(head, with_large=True)
+    final, large = opencl.OpenCLEvaluator(model).evaluate(head, with_large=True)
+    n = normals[v] / np.linalg.norm(normals[v])
+    t = np.cross(n, [1.0, 0.0, 0.0])
+    t /= np.linalg.norm(t)
+    expected = np.column_stack([t, np.cross(n, t), n]) @ const[v]
+    assert np.abs((ref_final - ref_large)[:, v] - expected).max() < 1e-6  # the reference took the fallback
+    assert np.abs(final - ref_final).max() <= TOL * diag
+
+
 def test_head_motion_normals_and_permuted_order(sample):
     _device_or_skip()
     _, rig, fit, head, diag = sample
