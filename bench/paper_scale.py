@@ -421,12 +421,11 @@ def _roofline_tables(model, head, R, t, work_dir: Path, repeats: int, chunk: int
     clocks."""
     from bench.replay_stages import measure_stages
     from bench.roofline import format_table, stage_flops, stage_table
-    from facepipe.opencl.adjacency import vertex_fans
 
     V, H = model.n_vertices, int(len(model.handle_vertices))
     P = int(model.basis_features.shape[0])
     ring = 3.0 * len(model.triangles) / V
-    fan_entries = len(vertex_fans(model.triangles, V)[1]) / V
+    fan_entries = ev.fan_entries / V
     flops = stage_flops(V, H, P, K_used, ring, model.method, fans=fan_entries - ring)
     tables = {}
     for name, width in (("before", 8), ("after", None)):

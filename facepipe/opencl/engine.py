@@ -256,6 +256,7 @@ class OpenCLEvaluator:
         rest[:V] = model.rest[order]
         faces = inv[model.triangles.astype(np.int64)]
         fan_ptr, fan = vertex_fans(faces, V)
+        self.fan_entries = int(fan.shape[0])  # (the benchmark's byte and FLOP counts)
         # each face's own entry: only the local-strain kernel's sums need it
         ptr, ring = vertex_face_ring(faces, V) if method == "local_strain" \
             else (np.zeros(V + 1, np.int32), np.zeros((1, 2), np.int32))
@@ -274,7 +275,8 @@ class OpenCLEvaluator:
                 else detail_weights
             rbf_w = np.ascontiguousarray(np.asarray(w)[order], dtype=np.float32)
             rbf_c = np.ascontiguousarray(np.asarray(c)[order], dtype=np.float32)
-            basis, wpsd_const = self._wpsd_tables(ei, ew)
+            basis, wpsd_const = self._wpsd_tables(ei, ew) if method == "wpsd" \
+                else (np.zeros((1, F), np.float32), np.zeros((V, 1), np.float32))  # (PSD: distances from the host)
         strain = self._local_strain_tables(model, order, inv)
         if method == "local_strain":  # (a cache take's added bands: detail_weights' kernel weights)
             w = model.strain_weights if detail_weights is None else detail_weights[0]

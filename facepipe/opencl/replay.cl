@@ -127,6 +127,12 @@ __kernel void large_scale(__global const float *restrict B, __global const float
     }
 }
 
+/* The positions' row of the vertex a fan entry names (an entry j < 0 starts a fan at ~j). */
+FP_INLINE __global const float *fan_row(__global const float *restrict pos, const int C, const int c0, const int j)
+{
+    return pos + (size_t)(j < 0 ? ~j : j) * 3 * C + c0;
+}
+
 /* Area-weighted vertex normal (not normalised) from the faces around v, walked as fans
  * (adjacency.vertex_fans): consecutive neighbours a, b of a fan span the face (v, a, b) in its
  * own winding, so cross(pa − pv, pb − pv) is that face's normal times twice its area. Each
@@ -142,7 +148,7 @@ FP_INLINE void fan_normal(__global const float *restrict pos, const int C, const
     const int end = fan_ptr[v + 1];
     for (int i = fan_ptr[v]; i < end; ++i) {
         const int j = fan[i];
-        __global const float *pb = pos + (size_t)(j < 0 ? ~j : j) * 3 * C + c0;
+        __global const float *pb = fan_row(pos, C, c0, j);
         const vfloat bx = VLOAD(pb) - px, by = VLOAD(pb + C) - py, bz = VLOAD(pb + 2 * C) - pz;
         if (j >= 0) {
             sx = FMA(ay, bz, sx) - az * by;
@@ -172,8 +178,7 @@ FP_INLINE void prefetch_fan(__global const float *restrict pos, const int C, con
         return;
     const int end = fan_ptr[w + 1];
     for (int i = fan_ptr[w]; i < end; ++i) {
-        const int j = fan[i];
-        __global const float *p = pos + (size_t)(j < 0 ? ~j : j) * 3 * C + c0;
+        __global const float *p = fan_row(pos, C, c0, fan[i]);
         __builtin_prefetch(p);
         __builtin_prefetch(p + C);
         __builtin_prefetch(p + 2 * C);
