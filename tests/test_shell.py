@@ -363,6 +363,29 @@ def test_cholesky_factor_solves_multiple_rhs(sheet, backend):
 
 
 @pytest.mark.parametrize("backend", ["pardiso", "cholmod", "superlu"])
+def test_overwrite_b_solves_the_same_and_leaves_the_caller_a_result(sheet, backend):
+    """overwrite_b: PARDISO writes the solution over a Fortran-ordered float64 b (the same numbers
+    bit for bit as into a fresh array); b of another layout or type, and other backends, leave
+    b as it was. The result is returned either way."""
+    V, F = sheet
+    A = shell_operator(V, F, 1.0, 1.0) + sp.eye(len(V))
+    factor = _factor_with(backend, A)
+    b = np.asfortranarray(np.random.default_rng(3).normal(size=(len(V), 5)))
+    expected = factor.solve(b.copy(order="F"))
+    given = b.copy(order="F")
+    x = factor.solve(given, overwrite_b=True)
+    assert np.array_equal(x, expected)
+    assert np.shares_memory(x, given) == (backend == "pardiso")
+    c_order = np.ascontiguousarray(b)  # another layout: a copy is solved, b kept
+    x = factor.solve(c_order, overwrite_b=True)
+    assert np.array_equal(x, expected) and np.array_equal(c_order, b)
+    one = b[:, 0].copy()  # one right-hand side (PARDISO's numbers for one column differ from a block's in round-off)
+    assert np.array_equal(factor.solve(one.copy(), overwrite_b=True), factor.solve(one))
+    assert np.array_equal(factor.solve(b), expected) and factor.solve(b) is not b  # without it b is kept
+    factor.close()
+
+
+@pytest.mark.parametrize("backend", ["pardiso", "cholmod", "superlu"])
 def test_refactored_matrix_of_the_same_pattern_solves_as_a_fresh_factor(sheet, backend):
     """refactor: another matrix of the pattern (PARDISO keeps its analysis), then back; a matrix of
     another pattern is factored afresh."""

@@ -268,9 +268,17 @@ class CholeskyFactor:
             why = "; ".join(f"{b}: {reason}" for b, reason in self.passed_over.items())
             raise RuntimeError(f"no sparse solver among {backends} could factor the matrix ({why})")
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """The solution of A x = b (float32 from a single-precision factor, else float64)."""
-        return self._solver.solve(np.asarray(b, dtype=np.float32 if self.single else np.float64))
+    def solve(self, b: np.ndarray, overwrite_b: bool = False) -> np.ndarray:
+        """The solution of A x = b (float32 from a single-precision factor, else float64).
+
+        ``overwrite_b``: b is not needed afterwards, and PARDISO may write the solution over it
+        where it is a Fortran-ordered array of the factor's type (many right-hand sides: the
+        shell basis's 89 columns at 530k vertices are 0.38 GB that need not be written a second
+        time); the result is returned either way, and other backends leave b as it was."""
+        b = np.asarray(b, dtype=np.float32 if self.single else np.float64)
+        if self.backend == "pardiso":
+            return self._solver.solve(b, overwrite_b)
+        return self._solver.solve(b)
 
     def refactor(self, A: sp.spmatrix, upper: bool = False) -> None:
         """Factor another matrix in place of this one (``upper`` as for the constructor). Where it
@@ -462,14 +470,24 @@ class _Pardiso:
         self._a = np.ascontiguousarray(values, dtype=self._dtype)
         self._call(22, np.zeros(1, self._dtype), np.zeros(1, self._dtype), 1)
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
+    def solve(self, b: np.ndarray, overwrite_b: bool = False) -> np.ndarray:
         if not self._open:
             raise RuntimeError("the factor was closed")
         one = b.ndim == 1
         B = np.asfortranarray(b.reshape(self.n, -1), dtype=self._dtype)  # PARDISO wants column-major
+        # in place where b itself is what PARDISO reads (iparm[5] = 1: the solution over b; x must
+        # still be given, but reads back untouched). Bit for bit the same solution, without a
+        # second array of b's size written: each fresh page costs the kernel its zeroing (and a
+        # virtual machine's host its backing: about 2 s of CPU a GB on the 530k bench's machine)
+        in_place = overwrite_b and np.shares_memory(B, b)
         X = np.zeros(B.shape, dtype=self._dtype, order="F")  # (calloc: pages are touched once, by PARDISO)
-        self._call(33, B, X, B.shape[1])
-        return X[:, 0] if one else X
+        self._iparm[5] = 1 if in_place else 0
+        try:
+            self._call(33, B, X, B.shape[1])
+        finally:
+            self._iparm[5] = 0
+        out = B if in_place else X
+        return out[:, 0] if one else out
 
     def close(self) -> None:
         if getattr(self, "_open", False):
@@ -555,7 +573,7 @@ def solve_shell_basis(vertices: np.ndarray, faces: np.ndarray, handles: np.ndarr
         return ShellBasis(np.ascontiguousarray(R), None)
     factor = CholeskyFactor(U, upper=True)
     del U
-    B = factor.solve(R)
+    B = factor.solve(R, overwrite_b=True)  # R's columns become B's
     factor.close()
     del R
     # exactly the prescribed values on the constrained rows (the solve gives them up to round-off);
@@ -611,7 +629,7 @@ def shell_displacements(vertices: np.ndarray, faces: np.ndarray, handles: np.nda
     else:
         factor.refactor(U, upper=True)
     del U
-    out = factor.solve(np.asfortranarray(rhs))
+    out = factor.solve(np.asfortranarray(rhs), overwrite_b=True)
     if keep is None:
         factor.close()
     else:
