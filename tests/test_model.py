@@ -156,6 +156,28 @@ def test_a_bake_that_writes_its_geometry_while_fitting_writes_the_same_file(grou
     assert load_model(tmp_path / "in_parts.npz").meta == meta
 
 
+@pytest.mark.parametrize("chunked_bytes", [0, 4096, 1 << 30])
+def test_large_members_cast_a_chunk_at_a_time_are_the_bytes_np_savez_writes(tmp_path, monkeypatch, chunked_bytes):
+    """Above NpzWriter.CHUNKED_BYTES an array to be cast or laid out anew is converted 16 MB at a
+    time (no whole copy): each member is byte for byte what np.savez writes of the converted array."""
+    import zipfile
+
+    monkeypatch.setattr(NpzWriter, "CHUNKED_BYTES", chunked_bytes)
+    rng = np.random.default_rng(5)
+    arrays = {"f_order": (np.asfortranarray(rng.normal(size=(3000, 89))), np.float32),
+              "strided": (rng.normal(size=(700, 3, 4))[:, ::2], None),
+              "same": (np.arange(5000, dtype=np.int64).reshape(50, 100), np.int32),
+              "one_d": (rng.normal(size=20001), np.float32),
+              "empty": (np.zeros((0, 3)), np.float32)}
+    with NpzWriter(tmp_path / "parts.npz") as npz:
+        for name, (a, dtype) in arrays.items():
+            npz.add(name, a, dtype)
+    np.savez(tmp_path / "whole.npz", **{name: np.ascontiguousarray(a, dtype=dtype) for name, (a, dtype) in arrays.items()})
+    with zipfile.ZipFile(tmp_path / "parts.npz") as p, zipfile.ZipFile(tmp_path / "whole.npz") as w:
+        for name in arrays:
+            assert p.read(name + ".npy") == w.read(name + ".npy"), name
+
+
 def test_an_archive_written_in_parts_is_whole_or_absent(tmp_path):
     rng = np.random.default_rng(2)
     big = rng.normal(size=(300, 89))
