@@ -432,6 +432,7 @@ def test_obj_mixed_corner_layouts_and_continuation(tmp_path):
         ("v 0 0 0\nv 1 0 0\nv 0 1 0\n", r"3 vertices but no faces"),
         ("", r"the file is empty"),
         ("  \n\n", r"the file is empty"),
+        ("\t \r\n\x0b\x0c", r"the file is empty"),  # every byte that strip() takes for blank
     ],
 )
 def test_obj_garbage_is_an_input_error_naming_the_line(tmp_path, text, expected):

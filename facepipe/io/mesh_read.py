@@ -75,7 +75,7 @@ def _load_obj(path: Path) -> Mesh:
 
 def _read_obj_bytes(path: Path) -> bytes:
     data = path.read_bytes()
-    if not data.strip():
+    if not data or data.isspace():  # (not strip(): a copy of the whole file to test for blanks)
         raise InputError("the file is empty", path=path, hint="re-export the mesh")
     nul = data.find(b"\0")
     if nul >= 0:
