@@ -275,10 +275,7 @@ class CholeskyFactor:
         where it is a Fortran-ordered array of the factor's type (many right-hand sides: the
         shell basis's 89 columns at 530k vertices are 0.38 GB that need not be written a second
         time); the result is returned either way, and other backends leave b as it was."""
-        b = np.asarray(b, dtype=np.float32 if self.single else np.float64)
-        if self.backend == "pardiso":
-            return self._solver.solve(b, overwrite_b)
-        return self._solver.solve(b)
+        return self._solver.solve(np.asarray(b, dtype=np.float32 if self.single else np.float64), overwrite_b)
 
     def refactor(self, A: sp.spmatrix, upper: bool = False) -> None:
         """Factor another matrix in place of this one (``upper`` as for the constructor). Where it
@@ -310,7 +307,7 @@ class _Cholmod:
         self._solver = cholespy.CholeskySolverD(A.shape[0], coo.row.astype(np.int32), coo.col.astype(np.int32),
                                                 coo.data.astype(np.float64), cholespy.MatrixType.COO)
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
+    def solve(self, b: np.ndarray, overwrite_b: bool = False) -> np.ndarray:  # (b is never overwritten here)
         b = np.ascontiguousarray(b)
         x = np.zeros_like(b)
         self._solver.solve(b, x)
@@ -322,7 +319,7 @@ class _SuperLU:
 
         self._solver = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A")
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
+    def solve(self, b: np.ndarray, overwrite_b: bool = False) -> np.ndarray:  # (b is never overwritten here)
         return self._solver.solve(b)
 
 
