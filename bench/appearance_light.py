@@ -72,7 +72,7 @@ def main() -> None:
     if args.light_model is not None:
         config.appearance.light_model = args.light_model
     model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
-    model.rest_floor = None  # the raw reading
+    model = model.without_rest_floors()  # the raw reading
     surface = [r for r, region in enumerate(config.appearance.regions) if not region.card]  # no eyeballs drawn here
     texture_size = int(config.appearance.texture_size)
     skin = skin_texture(texture_size, 0)  # the kit's skin (seed 0): the neutral texture

@@ -105,6 +105,10 @@ def _edited_config(kit, tmp_path, old, new):
     ("texture_size = 512", "texture_size = 512\nunseen_margin = -1.0", "unseen_margin = -1.0 is not in [0, 8)"),
     ("camera_rotation = [", "camera_rotation = 2 #", "camera_rotation must be 3 × 3 numbers"),  # (was a TypeError)
     ("texture_size = 512", "texture_size = 512\nmin_event = -0.1", "min_event and scale_weights must be ≥ 0"),
+    ("texture_size = 512", "texture_size = 512\nrest_explain = 1.5", "rest_explain = 1.5 is not in [0, 1] layers"),
+    ("texture_size = 512", "texture_size = 512\nrest_path_tolerance = -1.0", "rest_path_tolerance = -1.0 is not"),
+    ("texture_size = 512", "texture_size = 512\nrest_path_tolerance = inf", "rest_path_tolerance = inf is not"),
+    ("texture_size = 512", 'texture_size = 512\nrest_explain = "high"', "expected"),
 ])
 def test_bad_config(kit, tmp_path, capsys, old, new, message):
     cfg = _edited_config(kit, tmp_path, old, new)
@@ -1023,19 +1027,11 @@ def test_sample_appearance_without_its_drivers_exits_2_before_writing(tmp_path, 
     assert not d.exists()
 
 
-def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
-    """Rest calibration: every region reads exactly 0 in the example frames where it is at rest
-    (the neutral frame, the other regions' examples), still rises to its extreme layer in its
-    own, and the build reports the floors. Without it the model has none and Q is the raw one."""
-    from facepipe.io.appearance_file import load_appearance, save_appearance
-    from facepipe.io.config import load_config
-    from facepipe.pipeline.appearance import _read_geometry, classify_frames
+def _examples_read_zero_at_rest_and_rise(model, cfg, positions, numbers):
+    """Q of the example frames: 0 wherever a region is at rest, rising through its own layers to
+    the last."""
+    from facepipe.pipeline.appearance import classify_frames
 
-    model = load_appearance(kit / "app.npz")
-    assert model.rest_floor.shape == (len(model.names),)
-    assert (model.rest_floor >= 0).all() and (model.rest_floor <= 1.0).all() and model.rest_floor.max() > 0
-    cfg = load_config(kit / "appearance" / "appearance.toml").appearance
-    positions, numbers = _read_geometry(cfg.geometry, int(model.faces.max()) + 1)
     q = classify_frames(model, cfg.footage, positions, numbers, numbers / 30.0).q
     row = {int(n): i for i, n in enumerate(numbers)}
     # the sample's other expressions (no region's driver) are its rest frames: at rest for every region
@@ -1046,6 +1042,65 @@ def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
         assert (q[rest, r] == 0.0).all(), (region.name, q[rest, r])
         assert q[own[-1], r] == pytest.approx(len(region.frames) - 1, abs=0.05)
         assert np.all(np.diff(q[own, r]) > 0)
+    return q
+
+
+def test_at_rest_examples_reading_high_are_explained_away(kit, tmp_path, capsys):
+    """rest_explain: an example frame where a region is at rest but reads above it has its change
+    left out of that region's match. It then reads 0 before any floor, the region's floor drops,
+    its own layers still rise to the last, the build names the frames, and the model keeps the
+    directions (at most three a region)."""
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.config import load_config
+    from facepipe.pipeline.appearance import _read_geometry
+    from facepipe.io.footage import open_footage, read_frames, to_gray
+    from facepipe.pipeline.appearance import classify_decoded
+
+    base = load_appearance(kit / "app.npz")
+    assert base.rest_floor.max() < 0.2 and all(n is None for n in base.rest_nuisance)  # the default: none here
+    config = _edited_config(kit, tmp_path, "texture_size = 512", "texture_size = 512\nrest_explain = 0.05")
+    out = tmp_path / "explained.npz"
+    assert _run("appearance", "build", config, "-o", out) == 0
+    said = capsys.readouterr().out
+    report = json.loads(out.with_suffix(".json").read_text())
+    explained = {n: v["explained"] for n, v in report["rest"].items() if v["explained"]}
+    high = [n for n, f in zip(base.names, base.rest_floor) if f > 0.05]
+    assert explained and set(explained) <= set(high)
+    assert "explained away" in said
+    model = load_appearance(out)
+    cfg = load_config(config).appearance
+    positions, numbers = _read_geometry(cfg.geometry, model.n_vertices)
+    grays = np.stack([to_gray(im) for _, im, _ in read_frames(open_footage(cfg.footage), numbers)])
+    raw = classify_decoded(grays, np.stack([model.to_camera(p) for p in positions]),
+                           model.without_rest_floors()).q
+    row = {int(n): i for i, n in enumerate(numbers)}
+    for r, name in enumerate(model.names):
+        directions = model.rest_nuisance[r]
+        assert (directions is not None) == (name in explained)
+        if directions is None:
+            continue
+        assert len(directions) == len(explained[name]) <= 3 and directions.shape[1] == model.template_size ** 2
+        # the frame explained away matches the neutral template exactly, and sets the floor no more
+        assert all(raw[row[f], r] == pytest.approx(0.0, abs=1e-6) for f in explained[name])
+        assert report["rest"][name]["frame"] not in explained[name]
+        assert model.rest_floor[r] < base.rest_floor[r]
+    _examples_read_zero_at_rest_and_rise(model, cfg, positions, numbers)
+
+
+def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
+    """Rest calibration: every region reads exactly 0 in the example frames where it is at rest
+    (the neutral frame, the other regions' examples), still rises to its extreme layer in its
+    own, and the build reports the floors. Without it the model has none and Q is the raw one."""
+    from facepipe.io.appearance_file import load_appearance, save_appearance
+    from facepipe.io.config import load_config
+    from facepipe.pipeline.appearance import _read_geometry
+
+    model = load_appearance(kit / "app.npz")
+    assert model.rest_floor.shape == (len(model.names),)
+    assert (model.rest_floor >= 0).all() and (model.rest_floor <= 1.0).all() and model.rest_floor.max() > 0
+    cfg = load_config(kit / "appearance" / "appearance.toml").appearance
+    positions, numbers = _read_geometry(cfg.geometry, int(model.faces.max()) + 1)
+    q = _examples_read_zero_at_rest_and_rise(model, cfg, positions, numbers)
     # the floors, as the build printed them
     out = tmp_path / "again.npz"
     assert _run("appearance", "build", kit / "appearance" / "appearance.toml", "-o", out) == 0
@@ -1057,11 +1112,22 @@ def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
     raw_path = tmp_path / "raw.npz"
     assert _run("appearance", "build", config, "-o", raw_path, "-q") == 0
     raw = load_appearance(raw_path)
-    assert raw.rest_floor is None
-    q_raw = classify_frames(raw, cfg.footage, positions, numbers, numbers / 30.0).q
+    assert raw.rest_floor is None and raw.rest_readings is None
+    assert all(n is None for n in raw.rest_nuisance)
+    # Q measured from each reading's own floor (the at-rest readings as far off the layer path
+    # that hide it): the same readings with the floors stripped, then measured from them
     from facepipe.core.appearance import above_rest
+    from facepipe.io.footage import open_footage, read_frames, to_gray
+    from facepipe.pipeline.appearance import classify_decoded, rest_floors
 
-    np.testing.assert_allclose(above_rest(q_raw, model.rest_floor, model.layer_counts), q, atol=1e-12)
+    grays = np.stack([to_gray(im) for _, im, _ in read_frames(open_footage(cfg.footage), numbers)])
+    cams = np.stack([model.to_camera(p) for p in positions])
+    floored = classify_decoded(grays, cams, model)
+    stripped = classify_decoded(grays, cams, model.without_rest_floors())
+    np.testing.assert_allclose(floored.off_path, stripped.off_path, atol=1e-12)
+    np.testing.assert_allclose(above_rest(stripped.q, rest_floors(model, stripped.off_path), model.layer_counts),
+                               floored.q, atol=1e-12)
+    np.testing.assert_allclose(floored.q, q, atol=1e-12)
     # a model saved without floors (as before them) loads with none
     save_appearance(tmp_path / "old.npz", raw)
     assert load_appearance(tmp_path / "old.npz").rest_floor is None

@@ -739,3 +739,153 @@ def test_config_offers_the_light_models_classification_knows():
     from facepipe.io.config import LIGHT_MODELS as offered
 
     assert offered == LIGHT_MODELS
+
+
+def _line_layers(rng, n=5, size=16):
+    """n templates (n, size, size) evenly along a straight line in texel space (1 plus patterns
+    without a plane's part: the shading plane of any sum of them is 1, so the normalisation
+    leaves them as they are) and an off-line pattern, part of it along the layers' step: another
+    expression that reads as the region's first layers."""
+    yy, xx = np.mgrid[0:size, 0:size] - (size - 1) / 2.0
+    plane = np.stack([np.ones(size * size), xx.ravel(), yy.ravel()], axis=1)
+
+    def pattern():
+        p = ndimage.gaussian_filter(rng.normal(size=(size, size)), 1.0).ravel()
+        p = p - plane @ np.linalg.lstsq(plane, p, rcond=None)[0]
+        return (0.1 * p / p.std()).reshape(size, size)
+    start, step = 1.0 + pattern(), pattern()
+    off = 0.6 * step + pattern()
+    layers = np.stack([start + k * step for k in range(n)])
+    return layers, step, off
+
+
+def _bank(layers, nuisance=None, keep=64):
+    templates = haar_coefficients(normalise_patches(layers))
+    return RegionBank([templates], [select_coefficients(templates, keep)], coefficient_weights(16),
+                      nuisance=None if nuisance is None else [nuisance])
+
+
+def test_explained_away_directions_are_left_out_of_every_distance():
+    """With directions explained away, a patch's distance to a template is the least weighted
+    distance over the kept terms once any combination of the directions is taken off: checked
+    against a least-squares solve, wholly seen and over part of the texels."""
+    from facepipe.core.appearance import rest_direction
+
+    rng = np.random.default_rng(31)
+    layers, _, off = _line_layers(rng)
+    plain = _bank(layers)
+    extra = 1.0 + _line_layers(rng)[2]
+    dirs = np.stack([rest_direction(plain, 1.0 + off, 0), rest_direction(plain, extra, 0)])
+    bank = _bank(layers, dirs)
+    H, _ = haar_matrix(16)
+    idx = np.asarray(select_coefficients(plain.templates[0], 64))
+    root = np.sqrt(coefficient_weights(16)[idx])
+
+    def least(diff_pixels, directions):  # weighted kept-term residual of a texel difference
+        a = (directions @ H.T)[:, idx].T * root[:, None]
+        b = (diff_pixels @ H.T)[idx] * root
+        x, *_ = np.linalg.lstsq(a, b, rcond=None)
+        return float(((b - a @ x) ** 2).sum())
+
+    patches = 1.0 + 0.1 * rng.normal(size=(6, 16, 16))
+    coefficients = haar_coefficients(normalise_patches(patches))
+    d = bank.distances(coefficients[:, None, None, :])[:, 0, 0]              # (6, n)
+    pixels = normalise_patches(patches).reshape(6, -1)
+    for i in range(6):
+        for k in range(5):
+            assert d[i, k] == pytest.approx(least(pixels[i] - bank.pixels[0, k], dirs), rel=1e-9, abs=1e-12)
+    # the layer steps as the solve leaves them
+    for k in range(4):
+        assert bank.gaps[0, k] == pytest.approx(least(bank.pixels[0, k + 1] - bank.pixels[0, k], dirs), rel=1e-9)
+    # over part of the texels: the directions over those texels only
+    seen = np.ones((6, 16, 16), dtype=bool)
+    seen[:, :5] = False
+    norm = np.stack([normalise_patches(p, True, m) for p, m in zip(patches, seen)])
+    masked = bank.masked_distances(norm, seen, np.zeros(6, dtype=int))
+    templates = bank._masked_templates(seen.reshape(6, -1), np.zeros(6, dtype=int), True)
+    scale = 256 / seen[0].sum()
+    m = seen.reshape(6, -1)
+    for i in range(6):
+        for k in range(5):
+            diff = np.where(m[i], norm[i].reshape(-1) - templates[i, k], 0.0)
+            assert masked[i, k] == pytest.approx(scale * least(diff, dirs * m[i]), rel=1e-9, abs=1e-12)
+
+
+def test_a_patch_off_its_layers_by_explained_directions_reads_its_layer():
+    """A template plus any amount of an explained-away pattern reads the template's index,
+    wholly seen or partly; without it the pattern's share along the layers moves Q."""
+    from facepipe.core.appearance import kept_step_shares, rest_direction
+
+    rng = np.random.default_rng(32)
+    layers, step, off = _line_layers(rng)
+    plain = _bank(layers)
+    direction = rest_direction(plain, layers[0] + off, 0)   # an example at rest: the neutral plus it
+    np.testing.assert_allclose(direction, off.reshape(-1), atol=1e-12)
+    bank = _bank(layers, direction[None])
+    k = np.array([0, 1, 2, 3, 4, 0, 2])
+    amount = np.array([0.5, 1.0, -0.7, 0.3, 0.8, 1.5, 0.0])
+    patches = (layers[k] + amount[:, None, None] * off)[:, None, None]       # (7, R=1, S=1, 16, 16)
+    q, _ = classify_regions(patches, bank)
+    np.testing.assert_allclose(q[:, 0], k, atol=1e-9)
+    q_plain, _ = classify_regions(patches, plain)
+    assert 0.1 < q_plain[0, 0] < q_plain[5, 0]   # the neutral plus the pattern reads part of a layer
+    # partly seen (the top rows hidden by something else): the pattern over the seen texels goes too
+    seen = np.ones(patches.shape, dtype=bool)
+    seen[..., :4, :] = False
+    # (near: the shading plane fitted over the seen texels is no longer exactly 1)
+    q_seen, _ = classify_regions(np.where(seen, patches, 3.0), bank, seen=seen)
+    q_seen_plain, _ = classify_regions(np.where(seen, patches, 3.0), plain, seen=seen)
+    assert np.abs(q_seen[:, 0] - k).max() < 0.1 < q_seen_plain[5, 0]
+    # the share of each layer step that survives: all of it for an unrelated pattern, none for
+    # the step itself
+    assert kept_step_shares(plain, 0, step.reshape(1, -1)) == pytest.approx(0.0, abs=1e-9)
+    shares = kept_step_shares(plain, 0, direction[None])
+    assert np.all((shares > 0.0) & (shares < 1.0))
+    unrelated = _line_layers(np.random.default_rng(5))[1].reshape(1, -1)
+    assert kept_step_shares(plain, 0, unrelated).min() > 0.9
+    with pytest.raises(ValueError, match="nuisance has 2 regions"):
+        RegionBank([plain.templates[0]], [select_coefficients(plain.templates[0], 64)], coefficient_weights(16),
+                   nuisance=[None, None])
+
+
+def test_off_path_ratio_is_the_same_at_any_weight_of_another_expression():
+    """Another expression at weight w reads w times its Q and lies w² times its squared distance
+    off the layers: the off-path ratio is its own at every weight; the region's own motion reads
+    none (on the path)."""
+    from facepipe.core.appearance import off_path_ratio
+
+    rng = np.random.default_rng(33)
+    layers, step, off = _line_layers(rng)
+    bank = _bank(layers)
+    w = np.array([0.1, 0.25, 0.5, 1.0])
+    patches = (layers[0] + w[:, None, None] * off)[:, None, None]
+    q, d = classify_regions(patches, bank)
+    ratio = off_path_ratio(q, d, bank.gaps[:, 0])[:, 0]
+    assert np.all(q[:, 0] > 0) and np.all(np.diff(q[:, 0]) > 0)
+    np.testing.assert_allclose(ratio, ratio[-1], rtol=1e-6)
+    on = (layers[0] + w[:, None, None] * step)[:, None, None]
+    q_on, d_on = classify_regions(on, bank)
+    np.testing.assert_allclose(q_on[:, 0], w, atol=1e-9)
+    assert np.all(off_path_ratio(q_on, d_on, bank.gaps[:, 0]) < 1e-9)
+    # Q 0 (or hidden, NaN) is taken at the least Q: finite
+    assert np.isfinite(off_path_ratio(np.array([[0.0], [np.nan]]), np.array([[0.2], [0.3]]), bank.gaps[:, 0])).all()
+
+
+def test_conditional_floor_counts_only_at_rest_readings_as_far_off_the_path():
+    from facepipe.core.appearance import conditional_floor
+
+    # region 0: an expression reading 0.4 far off the path (ratio 2) and noise reading 0.1 off
+    # it by 50; region 1: nothing at rest (NaN), region 2: a reading capped at 1 layer
+    rest_q = np.array([[0.4, np.nan, 1.7], [0.1, np.nan, 0.2], [np.nan, np.nan, 0.3]])
+    rest_ratio = np.array([[2.0, np.nan, 0.5], [50.0, np.nan, 1.0], [np.nan, np.nan, 1.0]])
+    off = np.array([[0.01, 1.0, 0.1],      # on the path: nothing hides it
+                    [1.0, 1.0, 0.3],       # half as far off as the expression: tolerance 2 hides it
+                    [0.9, 5.0, 0.5],       # under half
+                    [30.0, 0.0, 10.0]])    # noise-like: the noise's floor and the expression's
+    got = conditional_floor(off, rest_q, rest_ratio, 2.0)
+    np.testing.assert_allclose(got, [[0.0, 0.0, 0.0], [0.4, 0.0, 1.0], [0.0, 0.0, 1.0], [0.4, 0.0, 1.0]])
+    # infinite tolerance: the highest at-rest reading for every reading (rest_floor's)
+    floor, _ = rest_floor(rest_q, np.isfinite(rest_q))
+    np.testing.assert_allclose(conditional_floor(off, rest_q, rest_ratio, np.inf), np.broadcast_to(floor, off.shape))
+    # a frame reading below its own floor reads 0; above it, measured from it
+    np.testing.assert_allclose(above_rest(np.array([[0.3, 2.0, 0.5]]), got[1:2], [5, 5, 5]), [[0.0, 2.0, 0.0]])

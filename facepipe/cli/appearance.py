@@ -52,8 +52,12 @@ def build_command(config_path, output, rep, write_json) -> dict:
     if "cards_obj" in info:
         rep.say(f"the cards at rest, with their UVs: {info['cards_obj']}")
     if info.get("rest"):
-        rep.say("rest floors (Q read at rest in the examples, measured from): "
-                + ", ".join(f"{n} {v['floor']:.2f}" for n, v in info["rest"].items()))
+        rep.say("rest floors (the highest Q read at rest in the examples): " + ", ".join(
+            f"{n} {v['floor']:.2f}" + (f" (frames {', '.join(map(str, v['explained']))} explained away)"
+                                       if v.get("explained") else "") for n, v in info["rest"].items()))
+        if info.get("rest_path_tolerance"):
+            rep.say("each reading is measured from the at-rest readings that lie as far off the region's layers "
+                    f"for their Q (within × {info['rest_path_tolerance']:g}), not from the highest")
     if info.get("shading"):
         rep.say("shading surfaces (share of the layers' contrast a quadratic keeps): " + ", ".join(
             f"{n} {v['surface']}" + ("" if v["contrast_kept"] is None else f" ({v['contrast_kept']:.2f})")

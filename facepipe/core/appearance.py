@@ -31,7 +31,13 @@ Q ∈ [0, n − 1]:
   eyelid);
 * **rest floor**: the highest Q a region reads while it is at rest (in the examples of the
   other regions, where the rest of the face moves): Q is measured from it (:func:`above_rest`),
-  so a region at rest reads exactly 0, not a level of its own that flickers;
+  so a region at rest reads exactly 0, not a level of its own that flickers; or each reading
+  from its own (:func:`conditional_floor`): only the at-rest readings that lie as far off the
+  path for their Q (:func:`off_path_ratio`) hide it, so a small activation on the path is not
+  hidden by another expression that reads as much off it;
+* **explained away**: another expression's change of a region's patch (:func:`rest_direction`)
+  left out of its match (:class:`RegionBank`'s ``nuisance``), so that expression at any weight
+  reads the neutral layer;
 * **visibility**: a region facing away from the camera keeps its last value, decaying
   exponentially to neutral (0).
 
@@ -57,7 +63,8 @@ __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normali
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
            "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "drop_short_events", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "DIAGONAL_OFFSETS", "SHADING_ORDERS",
-           "QUADRATIC_LEAST_KEPT", "layer_contrast", "shading_order"]
+           "QUADRATIC_LEAST_KEPT", "layer_contrast", "shading_order", "rest_direction", "kept_step_shares",
+           "off_path_ratio", "conditional_floor", "OFF_PATH_LEAST_Q", "MOST_REST_FLOOR"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
 DEFAULT_SCALE_WEIGHTS = (2.0, 4.0, 2.0, 1.0, 0.0)
@@ -313,7 +320,11 @@ def segment_index(distances: np.ndarray, gaps: np.ndarray) -> tuple[np.ndarray, 
     return np.where(np.isfinite(residual), q, np.nan), np.maximum(residual, 0.0)
 
 
-def rest_floor(readings: np.ndarray, at_rest: np.ndarray, most: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+#: A rest floor is kept to at most this many layers.
+MOST_REST_FLOOR = 1.0
+
+
+def rest_floor(readings: np.ndarray, at_rest: np.ndarray, most: float = MOST_REST_FLOOR) -> tuple[np.ndarray, np.ndarray]:
     """Each region's rest floor: the highest Q (R,) it reads among frames where it is at rest, at
     most ``most`` layers, and the row (R,) that reads it (−1 where no frame is at rest).
 
@@ -331,10 +342,53 @@ def rest_floor(readings: np.ndarray, at_rest: np.ndarray, most: float = 1.0) -> 
     return np.where(found, np.clip(top, 0.0, most), 0.0), np.where(found, row, -1)
 
 
+#: Q under which a reading's off-path ratio is taken at this Q (:func:`off_path_ratio`): a reading
+#: at rest is off the path by its noise whatever its Q, and its ratio stays finite.
+OFF_PATH_LEAST_Q = 0.01
+
+
+def off_path_ratio(q: np.ndarray, distance: np.ndarray, first_gap: np.ndarray) -> np.ndarray:
+    """(..., R) how far readings lie off their region's layer path for their Q: the squared
+    distance to the path (:func:`classify_regions`' second output, (..., R)) over the first layer
+    step's squared length (R,) and over Q² (Q at least :data:`OFF_PATH_LEAST_Q`).
+
+    Why over Q²: another expression at weight w moves a region's patch w times its full change
+    (to first order), so it reads w times its Q and lies w² times its squared distance off the
+    path: the ratio is the expression's at any weight, while the region's own motion lies on the
+    path (a ratio of noise over Q², small once Q is).
+    """
+    q = np.maximum(np.nan_to_num(np.asarray(q, dtype=np.float64), nan=0.0), OFF_PATH_LEAST_Q)
+    return np.asarray(distance, dtype=np.float64) / (np.asarray(first_gap, dtype=np.float64) * q * q)
+
+
+def conditional_floor(off_path: np.ndarray, rest_q: np.ndarray, rest_off_path: np.ndarray, tolerance: float,
+                      most: float = MOST_REST_FLOOR) -> np.ndarray:
+    """(..., R) each reading's rest floor: the highest Q (at most ``most``) among the at-rest
+    readings (K, R) (NaN: not at rest or not seen) at most ``tolerance`` times as far off the
+    path (:func:`off_path_ratio`) as the reading (..., R); 0 where none is.
+
+    An example at rest that reads Q because another expression moves the region's patch off
+    its path only hides readings as far off the path, scaled to their Q, as it is: the same
+    expression at a smaller weight (``tolerance`` for how far from linear the patch's change
+    is), or noise. A reading on the path (the region's own motion) is hidden only by at-rest
+    readings on the path too. ``tolerance`` inf: every at-rest reading counts, the floor of
+    :func:`rest_floor`.
+    """
+    rest_q = np.asarray(rest_q, dtype=np.float64)
+    usable = np.isfinite(rest_q) & ~np.isnan(np.asarray(rest_off_path, dtype=np.float64))
+    values = np.where(usable, np.clip(np.nan_to_num(rest_q), 0.0, most), 0.0)          # (K, R)
+    if not np.isfinite(tolerance):
+        return np.broadcast_to(values.max(axis=0, initial=0.0), np.shape(off_path)).copy()
+    limit = np.where(usable, rest_off_path, np.inf)
+    applies = limit <= tolerance * np.asarray(off_path, dtype=np.float64)[..., None, :]   # (..., K, R)
+    return np.where(applies, values, 0.0).max(axis=-2, initial=0.0)
+
+
 def above_rest(q: np.ndarray, floor: np.ndarray, layers) -> np.ndarray:
-    """Q (..., R) measured from the regions' rest floors (R,): 0 at or below its floor, rising
-    linearly to n − 1 at n − 1 (the extreme layer stays where it is), NaN kept. Monotone: the
-    order of the frames above the floor is unchanged."""
+    """Q (..., R) measured from the regions' rest floors (R,), or each reading's own (..., R)
+    (:func:`conditional_floor`): 0 at or below its floor, rising linearly to n − 1 at n − 1 (the
+    extreme layer stays where it is), NaN kept. Monotone for one floor: the order of the frames
+    above it is unchanged."""
     q = np.asarray(q, dtype=np.float64)
     floor = np.asarray(floor, dtype=np.float64)
     top = np.asarray(layers, dtype=np.float64) - 1.0
@@ -382,11 +436,20 @@ class RegionBank:
     that mask), and a region's patches are matched on them alone (:func:`classify_regions`).
     None: every texel. orders : optional (R,) each region's shading surface
     (:func:`normalise_patches`; its templates were normalised by it); None: the plane for all.
+
+    nuisance : optional, per region None or (k, size²) texel differences from its neutral
+    template (normalised as the templates are, zero off its stable texels) that are not the
+    region's own motion: what another expression does to its patch (:func:`rest_direction`). They
+    are **explained away**: every distance (to a template, between adjacent templates) is measured
+    with its component in their span (weighted, over the kept terms) left out, so a patch that
+    differs from a template only by some of them matches it; on a partly seen sample, by the span
+    of their seen texels. Each region's own layers still read their index as long as the span
+    leaves part of every layer step (the build checks: :func:`kept_step_shares`).
     """
 
     MASK_CACHE = 1024  # (region, mask) pairs whose normalised templates are kept: 12 kB each at 6 layers of 16²
 
-    def __init__(self, templates, indices, weights, masks=None, orders=None):
+    def __init__(self, templates, indices, weights, masks=None, orders=None, nuisance=None):
         self._mask_cache: dict = {}
         R = len(templates)
         C = len(weights)
@@ -421,6 +484,18 @@ class RegionBank:
         for r, idx in enumerate(indices):
             self.kept_rows[r, :len(idx)] = H[idx]
             self.kept_weights[r, :len(idx)] = np.asarray(weights, dtype=np.float64)[idx]
+        # explained-away directions: per region None or (C, m), columns whose products with a
+        # coefficient difference are its weighted components in their span (orthonormal there)
+        self.nuisance = [None] * R if nuisance is None else [None if n is None or len(n) == 0
+                                                              else np.asarray(n, dtype=np.float64).reshape(len(n), -1)
+                                                              for n in nuisance]
+        if len(self.nuisance) != R:
+            raise ValueError(f"nuisance has {len(self.nuisance)} regions, the templates {R}")
+        self.spans = [None if n is None else _weighted_span(n @ H.T, self.weights[r]) for r, n in enumerate(self.nuisance)]
+        for r, span in enumerate(self.spans):
+            if span is not None:
+                self.gaps[r] = np.where(np.isfinite(self.gaps[r]),
+                                        np.maximum(self.gaps[r] - _span_norms(step[r], span), 0.0), self.gaps[r])
 
     def order_groups(self, shading: bool = True):
         """(order, region indices) for each shading surface the regions use (0, the mean, for all
@@ -447,20 +522,30 @@ class RegionBank:
         templates = self._masked_templates(m[:, 0], np.asarray(region), shading)  # (M, n, size²)
         diff = np.asarray(normalised).reshape(M, 1, -1) - templates              # 0 off the mask
         scale = (self.mask_count[region] / np.maximum(m.sum(axis=(1, 2)), 1.0))[:, None]
-        d = self._kept_norms(diff, region) * scale
+        steps = np.diff(templates, axis=1) if with_gaps else None
+        d = self._kept_norms(diff, region, m[:, 0]) * scale
         d = np.where(self.absent[region], np.inf, d)
         if not with_gaps:
             return d
-        gaps = self._kept_norms(np.diff(templates, axis=1), region) * scale
+        gaps = self._kept_norms(steps, region, m[:, 0]) * scale
         return d, np.where(self.absent[region][:, 1:], np.inf, gaps)
 
-    def _kept_norms(self, diff: np.ndarray, region: np.ndarray) -> np.ndarray:
-        """(M, k) weighted squared norms of texel differences (M, k, size²) in their regions' kept Haar terms."""
+    def _kept_norms(self, diff: np.ndarray, region: np.ndarray, seen: np.ndarray | None = None) -> np.ndarray:
+        """(M, k) weighted squared norms of texel differences (M, k, size²) in their regions' kept
+        Haar terms, less their components in the region's explained-away span over the ``seen``
+        texels (M, size²)."""
         out = np.empty(diff.shape[:2])
+        seen = np.ones((len(region), diff.shape[-1]), dtype=bool) if seen is None else np.asarray(seen, dtype=bool)
         for r in np.unique(region):  # each region's kept Haar rows on its own patches (no gathered copies)
             rows = region == r
             c = diff[rows] @ self.kept_rows[r].T                                  # (m, k, kept)
             out[rows] = (c * c) @ self.kept_weights[r]
+            if self.nuisance[r] is not None:
+                # the directions over each sample's seen texels, in the same kept terms
+                seen_dirs = (self.nuisance[r][None] * seen[rows][:, None, :]) @ self.kept_rows[r].T   # (m, j, kept)
+                root = np.sqrt(self.kept_weights[r])
+                basis = _orthonormal_columns(np.swapaxes(seen_dirs * root, 1, 2))              # (m, kept, j)
+                out[rows] = np.maximum(out[rows] - (((c * root) @ basis) ** 2).sum(-1), 0.0)
         return out
 
     def _masked_templates(self, masks: np.ndarray, region: np.ndarray, shading: bool) -> np.ndarray:
@@ -508,7 +593,62 @@ class RegionBank:
         qq = np.einsum("...rsc,rc->...rs", q * q, self.weights)
         qt = np.einsum("...rsc,rnc->...rsn", q, self.wt)
         d = qq[..., None] - 2.0 * qt + self.tt[:, None, :]
+        for r, span in enumerate(self.spans):
+            if span is not None:
+                part = (q[..., r, :, None, :] - self.templates[r]) @ span   # (..., S, n, m)
+                d[..., r, :, :] = np.maximum(d[..., r, :, :] - (part * part).sum(-1), 0.0)
         return np.where(self.absent[:, None, :], np.inf, d)
+
+
+def _weighted_span(directions: np.ndarray, weights: np.ndarray) -> np.ndarray | None:
+    """(C, m) columns V with V.T @ x the components of a coefficient vector x (C,) in an
+    orthonormal basis of the span of ``directions`` (k, C) under the metric diag(weights); None
+    where they span nothing."""
+    root = np.sqrt(np.asarray(weights, dtype=np.float64))
+    basis = _orthonormal_columns((np.asarray(directions, dtype=np.float64) * root).T[None])[0]
+    basis = basis[:, np.abs(basis).sum(axis=0) > 0]
+    return None if basis.shape[1] == 0 else root[:, None] * basis
+
+
+def _orthonormal_columns(a: np.ndarray) -> np.ndarray:
+    """Orthonormal bases (..., n, k) of the column spaces of a stack of matrices (..., n, k),
+    columns that add nothing (a direction within the others' span, or zero) set to zero."""
+    q, r = np.linalg.qr(a)
+    diag = np.abs(np.diagonal(r, axis1=-2, axis2=-1))                      # (..., k)
+    scale = np.abs(r).max(axis=(-2, -1), keepdims=True)[..., 0]            # (..., 1)
+    return q * (diag > 1e-9 * np.maximum(scale, 1e-300))[..., None, :]
+
+
+def _span_norms(diff: np.ndarray, span: np.ndarray) -> np.ndarray:
+    """(...) squared norms of coefficient differences (..., C) within a span (:func:`_weighted_span`)."""
+    part = np.asarray(diff) @ span
+    return (part * part).sum(-1)
+
+
+def rest_direction(bank: RegionBank, patch: np.ndarray, region: int, shading: bool = True) -> np.ndarray:
+    """(size²,) the texel difference of a wholly seen patch (size, size) of ``region`` (raw
+    intensities, e.g. an example frame where the region is at rest) from its neutral template,
+    both normalised as the region's templates are (zero off its stable texels): a direction to
+    explain away (:class:`RegionBank`'s ``nuisance``)."""
+    patch = np.asarray(patch, dtype=np.float64)
+    size = patch.shape[-1]
+    one = np.zeros((1, len(bank.templates), 1, size, size))
+    one[0, region, 0] = patch
+    normalised = _normalise_regions(one, bank, shading)[0, region, 0].reshape(-1)
+    return np.where(bank.masks[region], normalised - bank.pixels[region, 0], 0.0)
+
+
+def kept_step_shares(bank: RegionBank, region: int, directions: np.ndarray) -> np.ndarray:
+    """(n − 1,) the share of each of a region's layer steps (squared weighted distance between
+    adjacent templates) left once ``directions`` (k, size²) are explained away: 1 where they are
+    unlike the region's motion, near 0 where they would take a layer step with them."""
+    H, _ = haar_matrix(int(round(np.sqrt(bank.templates.shape[-1]))))
+    span = _weighted_span(np.asarray(directions, dtype=np.float64) @ H.T, bank.weights[region])
+    n = int((~bank.absent[region]).sum())
+    step = np.diff(bank.templates[region, :n], axis=0)
+    whole = (step * step) @ bank.weights[region]
+    kept = whole if span is None else whole - _span_norms(step, span)
+    return np.clip(kept / np.maximum(whole, 1e-300), 0.0, 1.0)
 
 
 def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True, seen: np.ndarray | None = None,

@@ -3,6 +3,7 @@ and each frame's light (light.csv)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +46,13 @@ class AppearanceModel:
     (to render the layered texture; None in models before it);
     rest_floor : (R,) the highest Q each region read at rest in the examples, which
     classification measures Q from (None: 0, models before it or built without it);
+    rest_nuisance : per region None or (k, N) texel directions explained away in its match
+    (:class:`facepipe.core.appearance.RegionBank`'s ``nuisance``: what other expressions in the
+    examples do to its patch; None: none, models before it);
+    rest_readings, rest_off_path : (K, R) the example frames' Q and off-path ratio where each
+    region is at rest (NaN elsewhere), and rest_tolerance : with them a reading's own floor
+    (:func:`facepipe.core.appearance.conditional_floor`) replaces ``rest_floor`` (None, or
+    tolerance 0: ``rest_floor`` for every reading, as in models before them);
     card_rest (N, 3), card_stable (K,), card_stable_rest (K, 3) : cards across holes
     (:mod:`facepipe.core.hole_cards`): vertex V + i of ``faces`` is ``card_rest[i]`` moved by the
     rigid motion of the rest mesh's vertices ``card_stable`` from ``card_stable_rest`` (None: no cards);
@@ -122,6 +130,10 @@ class AppearanceModel:
     light_model: str = "sh9"  # (models written before it: the nine-term light)
     light_point_albedo: np.ndarray | None = None
     light_residual: float | None = None  # (models written before it: None, footage not checked against it)
+    rest_nuisance: list | None = None
+    rest_readings: np.ndarray | None = None
+    rest_off_path: np.ndarray | None = None
+    rest_tolerance: float = 0.0
 
     @property
     def extra_tiles(self) -> list:
@@ -163,6 +175,11 @@ class AppearanceModel:
     def layer_counts(self) -> list:
         return [len(t) for t in self.templates]
 
+    def without_rest_floors(self) -> "AppearanceModel":
+        """The same model reading raw Q: no rest floor of any kind (what is explained away in the
+        match stays)."""
+        return dataclasses.replace(self, rest_floor=None, rest_readings=None, rest_off_path=None)
+
 
 def save_appearance(path, model) -> None:
     """Write an :class:`AppearanceModel` (atomically)."""
@@ -185,6 +202,12 @@ def save_appearance(path, model) -> None:
         arrays["template_mask"] = model.template_mask
     if model.rest_floor is not None:
         arrays["rest_floor"] = model.rest_floor
+    if model.rest_readings is not None:
+        arrays.update(rest_readings=model.rest_readings, rest_off_path=model.rest_off_path,
+                      rest_tolerance=np.array(float(model.rest_tolerance)))
+    for r, directions in enumerate(model.rest_nuisance or []):
+        if directions is not None and len(directions):
+            arrays[f"rest_nuisance_{r}"] = np.asarray(directions)
     if model.shading_orders is not None:
         arrays["shading_orders"] = np.asarray(model.shading_orders, dtype=np.int64)
     if model.card_rest is not None:
@@ -241,7 +264,9 @@ def load_appearance(path):
                                str(d["peak_interpolation"]) if "peak_interpolation" in d else "parabola",
                                float(s[7]) if len(s) > 7 else 0.0,
                                str(d["light_model"]) if "light_model" in d else "sh9", d.get("light_point_albedo"),
-                               float(d["light_residual"]) if "light_residual" in d else None)
+                               float(d["light_residual"]) if "light_residual" in d else None,
+                               [d.get(f"rest_nuisance_{r}") for r in range(n)], d.get("rest_readings"),
+                               d.get("rest_off_path"), float(d["rest_tolerance"]) if "rest_tolerance" in d else 0.0)
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
@@ -260,6 +285,17 @@ def load_appearance(path):
         if model.shading_orders is not None and (model.shading_orders.shape != (n,)
                                                  or not np.isin(model.shading_orders, (1, 2)).all()):
             raise ValueError(f"shading_orders {model.shading_orders.tolist()} is not 1 or 2 for each of its {n} regions")
+        if model.rest_readings is not None and (model.rest_off_path is None or model.rest_readings.ndim != 2
+                                                or model.rest_readings.shape[1] != n
+                                                or model.rest_off_path.shape != model.rest_readings.shape):
+            raise ValueError(f"rest_readings and rest_off_path are not the same (frames, {n}) array")
+        if not model.rest_tolerance >= 0:
+            raise ValueError(f"rest_tolerance {model.rest_tolerance} is not ≥ 0")
+        points = model.template_size ** 2
+        for name, directions in zip(model.names, model.rest_nuisance):
+            if directions is not None and (directions.ndim != 2 or directions.shape[1] != points
+                                           or not np.isfinite(directions).all()):
+                raise ValueError(f"region {name}: its explained-away directions are not finite rows of {points} texels")
         tiles = len(model.extra_tiles)
         if tiles and not (model.tile_neutral is not None and len(model.tile_neutral) == tiles
                           and (model.tile_albedo is None) == (model.neutral_albedo is None)

@@ -128,6 +128,14 @@ class AppearanceConfig:
     unseen_margin: float = 1.0  # pixels: template points this near (along x and y) one an example does not show well left out too (their samples read it)
     rest_calibration: bool = True  # Q measured from the highest value each region reads at rest in the other regions' examples
     rest_frames: list = field(default_factory=list)  # more example frames where no region is active (other expressions), for the rest floors
+    # layers: an example frame where a region is at rest but reads above this (another
+    # expression moving its patch: a raised lid in the eyelid's) is explained away, its change
+    # left out of that region's match (at most 3 per region; 0: none)
+    rest_explain: float = 0.2
+    # how far off a region's layer path (for its Q) a reading may lie and still be hidden by an
+    # at-rest example as far off, × that example's: each reading gets its own rest floor (0: one
+    # floor per region, the highest at-rest reading)
+    rest_path_tolerance: float = 2.0
     regions: list = field(default_factory=list)
 
 
@@ -174,6 +182,7 @@ _TYPES: dict[str, dict[str, object]] = {
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float, "min_event": float,
                    "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float,
                    "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
+                   "rest_explain": float, "rest_path_tolerance": float,
                    "regions": dict},
     "video": {"landmarks": str},
 }
@@ -378,6 +387,12 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         raise InputError(f"[appearance] unseen_margin = {out.unseen_margin} is not in [0, 8) pixels", path=path,
                          hint="0 keeps every point seen well; 1 drops those whose bilinear samples reach one that is not")
     out.rest_frames = [checked_value(x, int, path, "appearance", "rest_frames") for x in out.rest_frames]
+    if not 0.0 <= out.rest_explain <= 1.0:
+        raise InputError(f"[appearance] rest_explain = {out.rest_explain} is not in [0, 1] layers", path=path,
+                         hint="0 explains no at-rest example away; 0.2 those that read above a fifth of a layer")
+    if not (out.rest_path_tolerance >= 0 and math.isfinite(out.rest_path_tolerance)):
+        raise InputError(f"[appearance] rest_path_tolerance = {out.rest_path_tolerance} is not a finite number ≥ 0",
+                         path=path, hint="0 keeps one rest floor per region; 2 (the default) gives each reading its own")
     _check_surface(out.shading_surface, path, "appearance")
     if out.peak_interpolation not in PEAK_INTERPOLATIONS:
         raise InputError(f"[appearance] peak_interpolation = {_toml(out.peak_interpolation)} is not one of "

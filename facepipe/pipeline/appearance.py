@@ -44,7 +44,8 @@ __all__ = ["classify_frames", "classify_image", "classify_decoded", "classify_ch
 
 def region_bank(model: AppearanceModel) -> ap.RegionBank:
     """The model's templates for :func:`facepipe.core.appearance.classify_regions`."""
-    return ap.RegionBank(model.templates, model.indices, model.weights, model.template_mask, model.shading_orders)
+    return ap.RegionBank(model.templates, model.indices, model.weights, model.template_mask, model.shading_orders,
+                         model.rest_nuisance)
 
 
 @dataclass
@@ -267,15 +268,17 @@ class FrameReadings:
     """What :func:`classify_decoded` reads of frames: Q (F, R), NaN where a region is hidden;
     each region's visibility (F, R); each frame's nine-term light (F, 9), or (F, 12) with its
     colour where the frames' RGB images were given (None for a model without light points); the
-    share of each region's stable template points in view (F, R; :func:`_classify_chunk`); and what
+    share of each region's stable template points in view (F, R; :func:`_classify_chunk`); what
     each frame's light leaves unexplained (F,) (:func:`~facepipe.pipeline.appearance_light.frame_light_residuals`;
-    None without light points)."""
+    None without light points); and how far each reading lies off its region's layer path for its
+    Q (F, R; :func:`facepipe.core.appearance.off_path_ratio`)."""
 
     q: np.ndarray
     visible: np.ndarray
     light: np.ndarray | None
     in_view: np.ndarray
     light_residual: np.ndarray | None = None
+    off_path: np.ndarray | None = None
 
 
 def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None,
@@ -290,7 +293,7 @@ def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: App
         n = len(model.names)
         light = None if model.light_face is None else np.zeros((0, 9 if images is None else 12))
         return FrameReadings(np.zeros((0, n)), np.zeros((0, n), dtype=bool), light, np.zeros((0, n)),
-                             None if light is None else np.zeros(0))
+                             None if light is None else np.zeros(0), np.zeros((0, n)))
     with serial_blas():  # process-wide: entered once here, not by each thread
         parts = map_blocks(lambda i: _classify_chunk(grays[i:i + chunk], camera_positions[i:i + chunk], model, bank,
                                                      None if images is None else images[i:i + chunk]),
@@ -298,7 +301,8 @@ def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: App
     lit = model.light_face is not None
     return FrameReadings(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
                          np.concatenate([p[2] for p in parts]) if lit else None,
-                         np.concatenate([p[3] for p in parts]), np.concatenate([p[4] for p in parts]) if lit else None)
+                         np.concatenate([p[3] for p in parts]), np.concatenate([p[4] for p in parts]) if lit else None,
+                         np.concatenate([p[5] for p in parts]))
 
 
 def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None
@@ -316,9 +320,25 @@ def classify_chunk(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
 def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, images=None):
     """Q (F, R), visibility (F, R), each frame's light (:func:`frame_shading`; None without light
     points), the share of each region's stable template points in view (F, R): in the image
-    and not hidden by the face, however edge-on, and what each frame's light leaves unexplained
-    (F,) (None without light points)."""
+    and not hidden by the face, however edge-on, what each frame's light leaves unexplained
+    (F,) (None without light points), and how far each reading lies off its layer path (F, R)."""
     bank = region_bank(model) if bank is None else bank
+    patches, visible, seen, in_view, light, residual = sample_patches(grays, camera_positions, model, images)
+    q, distance = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen, model.peak_interpolation)
+    visible &= np.isfinite(q)
+    off_path = np.where(visible, ap.off_path_ratio(q, distance, bank.gaps[:, 0]), np.nan)
+    floor = rest_floors(model, off_path)
+    if floor is not None:
+        q = ap.above_rest(q, floor, model.layer_counts)
+    return np.where(visible, q, np.nan), visible, light, in_view, residual, off_path
+
+
+def sample_patches(grays, camera_positions, model: AppearanceModel, images=None):
+    """What classification matches, per frame (F, H, W) with its geometry in camera space (F, V,
+    3): the template patches (F, R, S, size, size) with each frame's light divided out, each
+    region's visibility (F, R), the template points each sample sees (F, R, S, size, size), the
+    share of the stable points in view (F, R), each frame's light and what it leaves unexplained
+    (None without light points)."""
     points = template_positions(camera_positions, model)
     patches, visible, seen = sample_template_frames(grays, camera_positions, model, points)
     in_view = seen_fraction(seen, model)  # in the image, not hidden by the face (edge-on or not)
@@ -333,11 +353,17 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, image
             s = model.template_size
             seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
         visible &= seen_fraction(seen, model) >= model.min_seen
-    q, _ = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen, model.peak_interpolation)
-    visible &= np.isfinite(q)
-    if model.rest_floor is not None:
-        q = ap.above_rest(q, model.rest_floor, model.layer_counts)
-    return np.where(visible, q, np.nan), visible, light, in_view, residual
+    return patches, visible, seen, in_view, light, residual
+
+
+def rest_floors(model: AppearanceModel, off_path: np.ndarray) -> np.ndarray | None:
+    """Each reading's rest floor (F, R) from how far it lies off its layer path (F, R): the
+    at-rest examples' readings that hide it (:func:`facepipe.core.appearance.conditional_floor`,
+    ``model.rest_tolerance``), or the regions' single floors (R,) where the model keeps no such
+    readings (built before them, or with ``rest_path_tolerance = 0``); None without a floor."""
+    if model.rest_readings is not None and model.rest_tolerance > 0:
+        return ap.conditional_floor(off_path, model.rest_readings, model.rest_off_path, model.rest_tolerance)
+    return model.rest_floor
 
 
 def classify_image(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, bank=None

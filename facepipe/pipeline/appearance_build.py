@@ -31,14 +31,14 @@ from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import frames_at, open_footage, read_frames_of, to_gray
 from facepipe.pipeline.appearance import (OFF_FACE_RATIO, TakeGeometry, check_frame_size, classify_decoded,
-                                          read_take_geometry, region_bank)
+                                          read_take_geometry, region_bank, sample_patches)
 from facepipe.pipeline.appearance_light import frame_light_residuals
 from facepipe.pipeline.appearance_points import (locate_uv, point_facing, point_normals, points_seen_well, surface_points,
                                                  template_points, texel_map, triangle_normals, unwrap,
                                                  with_unseen_margin)
 from facepipe.pipeline.appearance_texture import to_albedo
 
-__all__ = ["build_appearance", "calibrate_rest", "region_cards", "free_uv_squares"]
+__all__ = ["build_appearance", "calibrate_rest", "explain_rest", "region_cards", "free_uv_squares"]
 
 
 def _example_frames(cfg, footage_numbers_needed, geometry: TakeGeometry, camera: Camera) -> dict:
@@ -311,13 +311,17 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     grays, cams = np.stack([to_gray(frames[n][0]) for n in numbers]), np.stack([cam_pos[n] for n in numbers])
     # the example frames classified once: their readings set the rest floors, their lights the residual
     readings = classify_decoded(grays, cams, model, region_bank(model)) if cfg.rest_calibration else None
-    rest = calibrate_rest(model, cfg, numbers, readings.q, notes) if cfg.rest_calibration else {}
+    explained = {}
+    if cfg.rest_calibration and cfg.rest_explain > 0:
+        readings, explained = explain_rest(model, cfg, numbers, grays, cams, readings, notes)
+    rest = calibrate_rest(model, cfg, numbers, readings, notes, explained) if cfg.rest_calibration else {}
     if light is not None:
         model.light_residual = _example_light_residual(
             frame_light_residuals(grays, cams, model) if readings is None else readings.light_residual, numbers, notes)
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
-            "albedo": model.albedo, "rest": rest, "shading": surfaces, "peak_interpolation": model.peak_interpolation,
-            "notes": notes}
+            "albedo": model.albedo, "rest": rest,
+            "rest_path_tolerance": model.rest_tolerance if model.rest_readings is not None else 0.0,
+            "shading": surfaces, "peak_interpolation": model.peak_interpolation, "notes": notes}
     if light is not None:
         info["light"] = {"model": model.light_model, "examples": light["light"].tolist(),
                          "residual": model.light_residual}
@@ -330,7 +334,12 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
 
 
 #: A rest floor is kept to at most this many layers; above half a layer the build says so.
-MOST_REST_FLOOR = 1.0
+MOST_REST_FLOOR = ap.MOST_REST_FLOOR
+#: At most this many example frames are explained away in one region's match.
+MOST_EXPLAINED = 3
+#: An example frame is explained away only where each of the region's layer steps keeps at least
+#: this share of its (squared) length: else the region's own motion would go with it.
+LEAST_STEP_KEPT = 0.25
 
 
 def _example_light_residual(residual: np.ndarray, numbers: list, notes: list) -> float:
@@ -348,9 +357,74 @@ def _example_light_residual(residual: np.ndarray, numbers: list, notes: list) ->
     return median
 
 
-def calibrate_rest(model: AppearanceModel, cfg, numbers: list, readings: np.ndarray, notes: list) -> dict:
+def _at_rest(cfg, numbers: list) -> np.ndarray:
+    """(F, R) whether each region is at rest in each example frame (``numbers``): every frame but
+    its own layers above the neutral one."""
+    return np.array([[n not in set(region.frames[1:]) for region in cfg.regions] for n in numbers])
+
+
+def explain_rest(model: AppearanceModel, cfg, numbers: list, grays: np.ndarray, cams: np.ndarray, readings,
+                 notes: list) -> tuple:
+    """Explain away, in each region's match, the example frames where it is at rest but reads
+    above ``cfg.rest_explain`` layers: another expression moves its patch along its layers (an
+    eye looking up raises the lid the eyelid's templates close). Greedily, the highest such
+    reading first, each frame's patch difference from the neutral template becomes one of the
+    region's ``rest_nuisance`` directions (:class:`facepipe.core.appearance.RegionBank`) and the
+    example frames are read again; at most :data:`MOST_EXPLAINED` per region.
+
+    Only a frame that shows the region wholly (its centre sample sees every stable point) is
+    explained away, and only while it is the region's highest reading at rest: a partly covered
+    patch (a lid over the eyeball) changes with how far it is covered, which one direction does
+    not describe. A frame whose direction would leave less than :data:`LEAST_STEP_KEPT` of any
+    layer step is kept (and noted): it looks like the region's own motion.
+
+    Returns the example frames' readings (:class:`~facepipe.pipeline.appearance.FrameReadings`)
+    with the explained-away directions in the match, and per region the frame numbers explained.
+    """
+    at_rest = _at_rest(cfg, numbers)
+    patches, _, seen, *_ = sample_patches(grays, cams, model)
+    bank = region_bank(model)
+    R, size = len(model.names), model.template_size
+    wholly = (seen[:, :, 0] & bank.masks.reshape(R, size, size)).sum(axis=(-2, -1)) >= bank.mask_count  # (F, R)
+    directions, frames, done = [[] for _ in range(R)], [[] for _ in range(R)], np.zeros(R, dtype=bool)
+    for _ in range(MOST_EXPLAINED):
+        q = np.where(at_rest & np.isfinite(readings.q), readings.q, -np.inf)
+        added = False
+        for r in np.flatnonzero(~done):
+            f = int(np.argmax(q[:, r]))
+            if not (q[f, r] > cfg.rest_explain and wholly[f, r]) or numbers[f] in frames[r]:
+                done[r] = True
+                continue
+            direction = ap.rest_direction(bank, patches[f, r, 0], r, model.shading)
+            kept = ap.kept_step_shares(bank, r, np.array(directions[r] + [direction]))
+            if kept.min() < LEAST_STEP_KEPT:
+                notes.append(f"region {model.names[r]}: example frame {numbers[f]} reads Q {q[f, r]:.2f} at rest but "
+                             f"changes its patch much as its own layers do (a layer step would keep "
+                             f"{kept.min():.0%}): not explained away")
+                done[r] = True
+                continue
+            directions[r].append(direction)
+            frames[r].append(int(numbers[f]))
+            added = True
+        done |= np.array([len(d) >= MOST_EXPLAINED for d in directions])
+        if not added:
+            break
+        model.rest_nuisance = [np.array(d) if d else None for d in directions]
+        readings = classify_decoded(grays, cams, model, region_bank(model))
+    explained = {model.names[r]: frames[r] for r in range(R) if frames[r]}
+    for name, explained_frames in explained.items():
+        notes.append(f"region {name}: example frame{'s' if len(explained_frames) > 1 else ''} "
+                     f"{', '.join(map(str, explained_frames))} (at rest, reading above {cfg.rest_explain:g} layers) "
+                     "explained away in its match")
+    return readings, explained
+
+
+def calibrate_rest(model: AppearanceModel, cfg, numbers: list, readings, notes: list,
+                   explained: dict | None = None) -> dict:
     """Set the model's rest floors from the example frames (their ``numbers``, in order, and their
-    readings (F, R): :func:`~facepipe.pipeline.appearance.classify_decoded`), and return them per region.
+    readings: :class:`~facepipe.pipeline.appearance.FrameReadings` of
+    :func:`~facepipe.pipeline.appearance.classify_decoded`), and return them per region
+    (with the frames ``explained`` away in each region's match: :func:`explain_rest`).
 
     A region is at rest in every example frame but its own layers above the neutral one (the
     neutral frame, the other regions' examples and the ``rest_frames``, other expressions where
@@ -360,17 +434,25 @@ def calibrate_rest(model: AppearanceModel, cfg, numbers: list, readings: np.ndar
     sees another region's motion (a brow lowered over the lid), and the floor hides that much of
     its own first layer.
     """
-    at_rest = np.array([[n not in set(region.frames[1:]) for region in cfg.regions] for n in numbers])
-    floor, row = ap.rest_floor(readings, at_rest, MOST_REST_FLOOR)
+    at_rest = _at_rest(cfg, numbers)
+    q = readings.q
+    floor, row = ap.rest_floor(q, at_rest, MOST_REST_FLOOR)
     model.rest_floor = floor
+    model.rest_tolerance = float(cfg.rest_path_tolerance)
+    if cfg.rest_path_tolerance > 0 and readings.off_path is not None:
+        # each at-rest reading hides only readings as far off the path as it (conditional_floor)
+        kept = at_rest & np.isfinite(q)
+        model.rest_readings = np.where(kept, q, np.nan)
+        model.rest_off_path = np.where(kept, readings.off_path, np.nan)
+    explained = explained or {}
     out = {}
     for r, name in enumerate(model.names):
         frame = int(numbers[row[r]]) if row[r] >= 0 else None
-        out[name] = {"floor": float(floor[r]), "frame": frame}
+        out[name] = {"floor": float(floor[r]), "frame": frame, "explained": explained.get(name, [])}
         if frame is None:
             notes.append(f"region {name}: no example frame shows it at rest (seen): its rest floor is 0")
-        elif readings[row[r], r] > 0.5 * MOST_REST_FLOOR:
-            notes.append(f"region {name} reads Q {readings[row[r], r]:.2f} at rest in example frame {frame}: its "
+        elif q[row[r], r] > 0.5 * MOST_REST_FLOOR:
+            notes.append(f"region {name} reads Q {q[row[r], r]:.2f} at rest in example frame {frame}: its "
                          f"template sees that frame's motion; Q is measured from {floor[r]:.2f}")
     return out
 
