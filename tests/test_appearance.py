@@ -1087,6 +1087,19 @@ def test_at_rest_examples_reading_high_are_explained_away(kit, tmp_path, capsys)
     _examples_read_zero_at_rest_and_rise(model, cfg, positions, numbers)
 
 
+def test_an_at_rest_example_like_the_regions_own_motion_is_not_explained_away(kit, tmp_path, capsys, monkeypatch):
+    """A frame whose direction would take too much of a layer step with it is kept and noted."""
+    import facepipe.pipeline.appearance_build as build
+
+    monkeypatch.setattr(build, "LEAST_STEP_KEPT", 1.0)  # every direction shares some of a step
+    config = _edited_config(kit, tmp_path, "texture_size = 512", "texture_size = 512\nrest_explain = 0.05")
+    out = tmp_path / "kept.npz"
+    assert _run("appearance", "build", config, "-o", out, "-q") == 0
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert not any(v["explained"] for v in report["rest"].values())
+    assert any("not explained away" in note for note in report["notes"])
+
+
 def test_regions_read_zero_at_rest_in_the_examples(kit, tmp_path, capsys):
     """Rest calibration: every region reads exactly 0 in the example frames where it is at rest
     (the neutral frame, the other regions' examples), still rises to its extreme layer in its
