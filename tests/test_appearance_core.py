@@ -887,5 +887,8 @@ def test_conditional_floor_counts_only_at_rest_readings_as_far_off_the_path():
     # infinite tolerance: the highest at-rest reading for every reading (rest_floor's)
     floor, _ = rest_floor(rest_q, np.isfinite(rest_q))
     np.testing.assert_allclose(conditional_floor(off, rest_q, rest_ratio, np.inf), np.broadcast_to(floor, off.shape))
+    # at-rest readings at or below the noise level hide every reading, on the path or off it
+    np.testing.assert_allclose(conditional_floor(off, rest_q, rest_ratio, 2.0, noise=0.2),
+                               [[0.1, 0.0, 0.2], [0.4, 0.0, 1.0], [0.1, 0.0, 1.0], [0.4, 0.0, 1.0]])
     # a frame reading below its own floor reads 0; above it, measured from it
     np.testing.assert_allclose(above_rest(np.array([[0.3, 2.0, 0.5]]), got[1:2], [5, 5, 5]), [[0.0, 2.0, 0.0]])

@@ -362,24 +362,27 @@ def off_path_ratio(q: np.ndarray, distance: np.ndarray, first_gap: np.ndarray) -
 
 
 def conditional_floor(off_path: np.ndarray, rest_q: np.ndarray, rest_off_path: np.ndarray, tolerance: float,
-                      most: float = MOST_REST_FLOOR) -> np.ndarray:
+                      noise: float = 0.0, most: float = MOST_REST_FLOOR) -> np.ndarray:
     """(..., R) each reading's rest floor: the highest Q (at most ``most``) among the at-rest
-    readings (K, R) (NaN: not at rest or not seen) at most ``tolerance`` times as far off the
-    path (:func:`off_path_ratio`) as the reading (..., R); 0 where none is.
+    readings (K, R) (NaN: not at rest or not seen) that are at most ``noise`` layers, or at most
+    ``tolerance`` times as far off the path (:func:`off_path_ratio`) as the reading (..., R); 0
+    where none is.
 
-    An example at rest that reads Q because another expression moves the region's patch off
-    its path only hides readings as far off the path, scaled to their Q, as it is: the same
-    expression at a smaller weight (``tolerance`` for how far from linear the patch's change
-    is), or noise. A reading on the path (the region's own motion) is hidden only by at-rest
-    readings on the path too. ``tolerance`` inf: every at-rest reading counts, the floor of
-    :func:`rest_floor`.
+    An example at rest that reads above the noise because another expression moves the
+    region's patch off its path only hides readings as far off the path, scaled to their Q, as
+    it is: the same expression at a smaller weight (``tolerance`` for how far from linear the
+    patch's change is). A reading on the path (the region's own motion) is hidden only by the
+    noise's readings. Those hide every reading: noise moves a patch along the path as readily
+    as off it, and the examples are too few to sample where. ``tolerance`` inf: every at-rest
+    reading counts, the floor of :func:`rest_floor`.
     """
     rest_q = np.asarray(rest_q, dtype=np.float64)
     usable = np.isfinite(rest_q) & ~np.isnan(np.asarray(rest_off_path, dtype=np.float64))
     values = np.where(usable, np.clip(np.nan_to_num(rest_q), 0.0, most), 0.0)          # (K, R)
     if not np.isfinite(tolerance):
         return np.broadcast_to(values.max(axis=0, initial=0.0), np.shape(off_path)).copy()
-    limit = np.where(usable, rest_off_path, np.inf)
+    # noise-level readings hide every reading: noise lies off the path or along it alike
+    limit = np.where(usable, np.where(values <= noise, 0.0, rest_off_path), np.inf)
     applies = limit <= tolerance * np.asarray(off_path, dtype=np.float64)[..., None, :]   # (..., K, R)
     return np.where(applies, values, 0.0).max(axis=-2, initial=0.0)
 

@@ -50,9 +50,9 @@ class AppearanceModel:
     (:class:`facepipe.core.appearance.RegionBank`'s ``nuisance``: what other expressions in the
     examples do to its patch; None: none, models before it);
     rest_readings, rest_off_path : (K, R) the example frames' Q and off-path ratio where each
-    region is at rest (NaN elsewhere), and rest_tolerance : with them a reading's own floor
-    (:func:`facepipe.core.appearance.conditional_floor`) replaces ``rest_floor`` (None, or
-    tolerance 0: ``rest_floor`` for every reading, as in models before them);
+    region is at rest (NaN elsewhere), and rest_tolerance, rest_noise : with them a reading's
+    own floor (:func:`facepipe.core.appearance.conditional_floor`) replaces ``rest_floor`` (None,
+    or tolerance 0: ``rest_floor`` for every reading, as in models before them);
     card_rest (N, 3), card_stable (K,), card_stable_rest (K, 3) : cards across holes
     (:mod:`facepipe.core.hole_cards`): vertex V + i of ``faces`` is ``card_rest[i]`` moved by the
     rigid motion of the rest mesh's vertices ``card_stable`` from ``card_stable_rest`` (None: no cards);
@@ -134,6 +134,7 @@ class AppearanceModel:
     rest_readings: np.ndarray | None = None
     rest_off_path: np.ndarray | None = None
     rest_tolerance: float = 0.0
+    rest_noise: float = 0.0
 
     @property
     def extra_tiles(self) -> list:
@@ -204,7 +205,7 @@ def save_appearance(path, model) -> None:
         arrays["rest_floor"] = model.rest_floor
     if model.rest_readings is not None:
         arrays.update(rest_readings=model.rest_readings, rest_off_path=model.rest_off_path,
-                      rest_tolerance=np.array(float(model.rest_tolerance)))
+                      rest_tolerance=np.array(float(model.rest_tolerance)), rest_noise=np.array(float(model.rest_noise)))
     for r, directions in enumerate(model.rest_nuisance or []):
         if directions is not None and len(directions):
             arrays[f"rest_nuisance_{r}"] = np.asarray(directions)
@@ -266,7 +267,8 @@ def load_appearance(path):
                                str(d["light_model"]) if "light_model" in d else "sh9", d.get("light_point_albedo"),
                                float(d["light_residual"]) if "light_residual" in d else None,
                                [d.get(f"rest_nuisance_{r}") for r in range(n)], d.get("rest_readings"),
-                               d.get("rest_off_path"), float(d["rest_tolerance"]) if "rest_tolerance" in d else 0.0)
+                               d.get("rest_off_path"), float(d["rest_tolerance"]) if "rest_tolerance" in d else 0.0,
+                               float(d["rest_noise"]) if "rest_noise" in d else 0.0)
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
@@ -289,8 +291,8 @@ def load_appearance(path):
                                                 or model.rest_readings.shape[1] != n
                                                 or model.rest_off_path.shape != model.rest_readings.shape):
             raise ValueError(f"rest_readings and rest_off_path are not the same (frames, {n}) array")
-        if not model.rest_tolerance >= 0:
-            raise ValueError(f"rest_tolerance {model.rest_tolerance} is not ≥ 0")
+        if not (model.rest_tolerance >= 0 and model.rest_noise >= 0):
+            raise ValueError(f"rest_tolerance {model.rest_tolerance} or rest_noise {model.rest_noise} is not ≥ 0")
         points = model.template_size ** 2
         for name, directions in zip(model.names, model.rest_nuisance):
             if directions is not None and (directions.ndim != 2 or directions.shape[1] != points

@@ -128,13 +128,13 @@ class AppearanceConfig:
     unseen_margin: float = 1.0  # pixels: template points this near (along x and y) one an example does not show well left out too (their samples read it)
     rest_calibration: bool = True  # Q measured from the highest value each region reads at rest in the other regions' examples
     rest_frames: list = field(default_factory=list)  # more example frames where no region is active (other expressions), for the rest floors
-    # layers: an example frame where a region is at rest but reads above this (another
-    # expression moving its patch: a raised lid in the eyelid's) is explained away, its change
-    # left out of that region's match (at most 3 per region; 0: none)
+    # layers: an example frame where a region is at rest but reads above this is another
+    # expression moving its patch (a raised lid in the eyelid's), not noise: it is explained
+    # away, its change left out of that region's match (at most 3 per region; 0: none)
     rest_explain: float = 0.2
     # how far off a region's layer path (for its Q) a reading may lie and still be hidden by an
-    # at-rest example as far off, × that example's: each reading gets its own rest floor (0: one
-    # floor per region, the highest at-rest reading)
+    # at-rest example above rest_explain as far off, × that example's: each reading gets its
+    # own rest floor (0: one floor per region, the highest at-rest reading)
     rest_path_tolerance: float = 2.0
     regions: list = field(default_factory=list)
 

@@ -359,10 +359,11 @@ def sample_patches(grays, camera_positions, model: AppearanceModel, images=None)
 def rest_floors(model: AppearanceModel, off_path: np.ndarray) -> np.ndarray | None:
     """Each reading's rest floor (F, R) from how far it lies off its layer path (F, R): the
     at-rest examples' readings that hide it (:func:`facepipe.core.appearance.conditional_floor`,
-    ``model.rest_tolerance``), or the regions' single floors (R,) where the model keeps no such
+    ``model.rest_tolerance``, ``model.rest_noise``), or the regions' single floors (R,) where the model keeps no such
     readings (built before them, or with ``rest_path_tolerance = 0``); None without a floor."""
     if model.rest_readings is not None and model.rest_tolerance > 0:
-        return ap.conditional_floor(off_path, model.rest_readings, model.rest_off_path, model.rest_tolerance)
+        return ap.conditional_floor(off_path, model.rest_readings, model.rest_off_path, model.rest_tolerance,
+                                    model.rest_noise)
     return model.rest_floor
 
 

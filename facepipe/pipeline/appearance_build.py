@@ -439,6 +439,7 @@ def calibrate_rest(model: AppearanceModel, cfg, numbers: list, readings, notes: 
     floor, row = ap.rest_floor(q, at_rest, MOST_REST_FLOOR)
     model.rest_floor = floor
     model.rest_tolerance = float(cfg.rest_path_tolerance)
+    model.rest_noise = float(cfg.rest_explain)  # at-rest readings up to it are noise: they hide every reading
     if cfg.rest_path_tolerance > 0 and readings.off_path is not None:
         # each at-rest reading hides only readings as far off the path as it (conditional_floor)
         kept = at_rest & np.isfinite(q)
