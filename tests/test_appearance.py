@@ -953,6 +953,23 @@ def test_peak_interpolation_saved_and_fixed_by_the_config(kit, tmp_path, capsys)
     _assert_model_refused(kit, tmp_path, capsys, data, peak_interpolation=np.array("cubic"))
 
 
+def test_rest_readings_and_directions_in_a_model_file_are_checked(kit, tmp_path, capsys):
+    """A model without the per-reading floors (written before them) loads with one floor per
+    region; broken ones are refused by name."""
+    from facepipe.io.appearance_file import load_appearance
+
+    data = dict(np.load(kit / "app.npz"))
+    assert data["rest_readings"].shape == data["rest_off_path"].shape and "rest_noise" in data
+    old = {k: v for k, v in data.items() if not k.startswith(("rest_readings", "rest_off_path", "rest_tolerance",
+                                                             "rest_noise", "rest_nuisance"))}
+    np.savez(tmp_path / "old.npz", **old)
+    model = load_appearance(tmp_path / "old.npz")
+    assert model.rest_readings is None and model.rest_tolerance == 0.0 and model.rest_floor is not None
+    for name, broken in (("rest_off_path", data["rest_off_path"][:, :2]), ("rest_tolerance", np.array(-1.0)),
+                         ("rest_nuisance_0", np.full((1, 7), np.nan))):
+        _assert_model_refused(kit, tmp_path, capsys, {k: v for k, v in data.items() if k != name}, **{name: broken})
+
+
 def test_light_model_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     """The model keeps the light it was built under (an ambient term and a point light by default,
     the nine terms when the config asks); both follow the take; models before the choice read the

@@ -294,10 +294,11 @@ def load_appearance(path):
         if not (model.rest_tolerance >= 0 and model.rest_noise >= 0):
             raise ValueError(f"rest_tolerance {model.rest_tolerance} or rest_noise {model.rest_noise} is not ≥ 0")
         points = model.template_size ** 2
-        for name, directions in zip(model.names, model.rest_nuisance):
+        for r, (name, directions) in enumerate(zip(model.names, model.rest_nuisance)):
             if directions is not None and (directions.ndim != 2 or directions.shape[1] != points
                                            or not np.isfinite(directions).all()):
-                raise ValueError(f"region {name}: its explained-away directions are not finite rows of {points} texels")
+                raise ValueError(f"rest_nuisance_{r} (region {name}): its explained-away directions are not finite "
+                                 f"rows of {points} texels")
         tiles = len(model.extra_tiles)
         if tiles and not (model.tile_neutral is not None and len(model.tile_neutral) == tiles
                           and (model.tile_albedo is None) == (model.neutral_albedo is None)
