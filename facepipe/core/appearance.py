@@ -538,14 +538,15 @@ class RegionBank:
         Haar terms, less their components in the region's explained-away span over the ``seen``
         texels (M, size²)."""
         out = np.empty(diff.shape[:2])
-        seen = np.ones((len(region), diff.shape[-1]), dtype=bool) if seen is None else np.asarray(seen, dtype=bool)
         for r in np.unique(region):  # each region's kept Haar rows on its own patches (no gathered copies)
             rows = region == r
             c = diff[rows] @ self.kept_rows[r].T                                  # (m, k, kept)
             out[rows] = (c * c) @ self.kept_weights[r]
             if self.nuisance[r] is not None:
-                # the directions over each sample's seen texels, in the same kept terms
-                seen_dirs = (self.nuisance[r][None] * seen[rows][:, None, :]) @ self.kept_rows[r].T   # (m, j, kept)
+                # the directions over each sample's seen texels (all without ``seen``), in the same kept terms
+                dirs = self.nuisance[r][None] if seen is None else self.nuisance[r][None] * seen[rows][:, None, :]
+                seen_dirs = dirs @ self.kept_rows[r].T                                    # (m or 1, j, kept)
+                seen_dirs = np.broadcast_to(seen_dirs, (int(rows.sum()),) + seen_dirs.shape[1:])
                 root = np.sqrt(self.kept_weights[r])
                 basis = _orthonormal_columns(np.swapaxes(seen_dirs * root, 1, 2))              # (m, kept, j)
                 out[rows] = np.maximum(out[rows] - (((c * root) @ basis) ** 2).sum(-1), 0.0)
@@ -634,10 +635,9 @@ def rest_direction(bank: RegionBank, patch: np.ndarray, region: int, shading: bo
     both normalised as the region's templates are (zero off its stable texels): a direction to
     explain away (:class:`RegionBank`'s ``nuisance``)."""
     patch = np.asarray(patch, dtype=np.float64)
-    size = patch.shape[-1]
-    one = np.zeros((1, len(bank.templates), 1, size, size))
-    one[0, region, 0] = patch
-    normalised = _normalise_regions(one, bank, shading)[0, region, 0].reshape(-1)
+    order = int(bank.orders[region]) if shading else 0  # as _normalise_regions normalises the region
+    stable = bank.masks[region].reshape(patch.shape) if bank.masked else None
+    normalised = normalise_patches(patch, order, stable).reshape(-1)
     return np.where(bank.masks[region], normalised - bank.pixels[region, 0], 0.0)
 
 

@@ -324,13 +324,21 @@ def _classify_chunk(grays, camera_positions, model: AppearanceModel, bank, image
     (F,) (None without light points), and how far each reading lies off its layer path (F, R)."""
     bank = region_bank(model) if bank is None else bank
     patches, visible, seen, in_view, light, residual = sample_patches(grays, camera_positions, model, images)
+    q, visible, off_path = read_patches(patches, visible, seen, model, bank)
+    return q, visible, light, in_view, residual, off_path
+
+
+def read_patches(patches, visible, seen, model: AppearanceModel, bank):
+    """Q (F, R) of sampled patches (:func:`sample_patches`) measured from the rest floors (NaN
+    where a region is hidden or reads nothing), the visibility (F, R) with the regions that read
+    nothing hidden, and how far each reading lies off its layer path (F, R)."""
     q, distance = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen, model.peak_interpolation)
-    visible &= np.isfinite(q)
+    visible = visible & np.isfinite(q)
     off_path = np.where(visible, ap.off_path_ratio(q, distance, bank.gaps[:, 0]), np.nan)
     floor = rest_floors(model, off_path)
     if floor is not None:
         q = ap.above_rest(q, floor, model.layer_counts)
-    return np.where(visible, q, np.nan), visible, light, in_view, residual, off_path
+    return np.where(visible, q, np.nan), visible, off_path
 
 
 def sample_patches(grays, camera_positions, model: AppearanceModel, images=None):

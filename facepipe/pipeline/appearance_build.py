@@ -30,8 +30,9 @@ from facepipe.core.raster import udim_corner, udim_tile_numbers
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import frames_at, open_footage, read_frames_of, to_gray
+from facepipe.parallel import serial_blas
 from facepipe.pipeline.appearance import (OFF_FACE_RATIO, TakeGeometry, check_frame_size, classify_decoded,
-                                          read_take_geometry, region_bank, sample_patches)
+                                          read_patches, read_take_geometry, region_bank, sample_patches)
 from facepipe.pipeline.appearance_light import frame_light_residuals
 from facepipe.pipeline.appearance_points import (locate_uv, point_facing, point_normals, points_seen_well, surface_points,
                                                  template_points, texel_map, triangle_normals, unwrap,
@@ -382,7 +383,7 @@ def explain_rest(model: AppearanceModel, cfg, numbers: list, grays: np.ndarray, 
     with the explained-away directions in the match, and per region the frame numbers explained.
     """
     at_rest = _at_rest(cfg, numbers)
-    patches, _, seen, *_ = sample_patches(grays, cams, model)
+    patches, visible, seen, *_ = sample_patches(grays, cams, model)  # sampled once, read again as directions add
     bank = region_bank(model)
     R, size = len(model.names), model.template_size
     wholly = (seen[:, :, 0] & bank.masks.reshape(R, size, size)).sum(axis=(-2, -1)) >= bank.mask_count  # (F, R)
@@ -410,7 +411,9 @@ def explain_rest(model: AppearanceModel, cfg, numbers: list, grays: np.ndarray, 
         if not added:
             break
         model.rest_nuisance = [np.array(d) if d else None for d in directions]
-        readings = classify_decoded(grays, cams, model, region_bank(model))
+        with serial_blas():  # small products (classify_chunk's reason)
+            q_read, seen_read, off_path = read_patches(patches, visible, seen, model, region_bank(model))
+        readings = replace(readings, q=q_read, visible=seen_read, off_path=off_path)
     explained = {model.names[r]: frames[r] for r in range(R) if frames[r]}
     for name, explained_frames in explained.items():
         notes.append(f"region {name}: example frame{'s' if len(explained_frames) > 1 else ''} "
