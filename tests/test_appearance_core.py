@@ -488,6 +488,24 @@ def test_partly_hidden_patch_classified_on_its_seen_texels():
     assert np.isnan(classify_regions(covered, bank, seen=np.zeros_like(seen))[0]).all()
 
 
+def test_partly_seen_exact_template_reads_its_own_index_with_either_shading():
+    # templates stored divided by their mean (shading off) or by their plane: a partly seen
+    # sample of a template reads that template's index either way (its stored surface, taken
+    # back before the seen texels' surface is divided out, is the one it was stored by; exactly
+    # for the mean, to the plane of a plane-divided template for the plane)
+    rng = np.random.default_rng(21)
+    a, b, layers = _blend_templates(rng, 5)
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    lit = np.stack(layers) * (1.0 + 0.04 * xx + 0.02 * yy)   # a strong gradient: plane and mean differ
+    seen = np.ones((5, 1, 1, 16, 16), dtype=bool)
+    seen[..., :5, :] = False
+    for shading in (True, False):
+        templates = haar_coefficients(normalise_patches(lit, shading))
+        bank = RegionBank([templates], [select_coefficients(templates, 50)], coefficient_weights(16))
+        q, _ = classify_regions(lit[:, None, None], bank, shading=shading, seen=seen)
+        np.testing.assert_allclose(q[:, 0], np.arange(5), atol=0.02 if shading else 1e-9)
+
+
 def test_masked_templates_kept_per_mask_give_the_same_distances():
     # the templates normalised over a mask are kept and reused: distances from a bank that has
     # seen the masks (and one whose store overflows and is emptied) equal a fresh bank's, and each

@@ -476,10 +476,14 @@ class RegionBank:
         self.gaps = np.where(self.absent[:, 1:], np.inf, np.einsum("rkc,rc->rk", step * step, self.weights))
         H, _ = haar_matrix(int(round(np.sqrt(C))))
         self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
-        # their surfaces over the stable texels (:func:`normalise_patches` of the normalised template: near 1)
-        self.plane_all = np.empty_like(self.pixels)
-        for order, rows in self.order_groups(True):
-            self.plane_all[rows] = _masked_plane(self.pixels[rows], self.masks[rows][:, None, :], order)[0]
+        # their surfaces over the stable texels (:func:`normalise_patches` of the normalised template:
+        # near 1), with shading (each region's own surface) and without (the mean: templates stored
+        # divided by their mean are 1 on average exactly)
+        self.plane_all = {}
+        for shading in (True, False):
+            self.plane_all[shading] = np.empty_like(self.pixels)
+            for order, rows in self.order_groups(shading):
+                self.plane_all[shading][rows] = _masked_plane(self.pixels[rows], self.masks[rows][:, None, :], order)[0]
         # the Haar rows of each region's kept coefficients (padded with zero-weight rows)
         kept = max(len(i) for i in indices)
         self.kept_rows = np.zeros((R, kept, C))
@@ -583,7 +587,7 @@ class RegionBank:
                 rows = order == o
                 plane_seen[rows], mean[rows] = _masked_plane(templates[rows], m[rows], int(o))
             floor = np.maximum(0.1 * np.abs(mean), 1e-6)
-            normalised = np.where(m, templates * self.plane_all[region[first]] / np.maximum(plane_seen, floor), 0.0)
+            normalised = np.where(m, templates * self.plane_all[bool(shading)][region[first]] / np.maximum(plane_seen, floor), 0.0)
             found = dict(zip(new, normalised))
         out = np.stack([found[k] if k in found else kept[k] for k in keys])
         if len(cache) + len(found) > self.MASK_CACHE:
