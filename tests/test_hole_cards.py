@@ -87,6 +87,42 @@ def test_cards_move_with_the_head_not_with_the_lids():
         cards.extend(P[:-1])
 
 
+def _long_head():
+    """A long strip of vertices: the still part (x < 7, the skull) and the face at one end (x ≥ 7)."""
+    x, y = np.meshgrid(np.linspace(0.0, 10.0, 41), np.linspace(0.0, 1.0, 5))
+    P = np.stack([x.ravel(), y.ravel(), 0.1 * np.sin(x.ravel())], axis=1)
+    return P, P[:, 0] >= 7.0
+
+
+def test_stable_vertices_are_the_still_ones_however_far_from_the_moving_face():
+    P, face = _long_head()
+    rng = np.random.default_rng(3)
+    # expressions move the face end a lot and coherently (a least-squares fit over the whole strip
+    # turns to follow it, so far still vertices seem to move); some face vertices barely move
+    amount = np.where(face, rng.uniform(0.002, 1.0, len(P)), 0.0)
+    frames = np.stack([P + np.outer(amount * w, [0.0, 1.0, 0.3]) for w in (0.5, 1.0, -0.7)])
+    stable = stable_vertices(P, frames, share=(~face).mean())
+    assert not face[stable].any()
+    assert P[stable, 0].min() == 0.0  # the far end is among them
+
+
+def test_card_follows_the_head_when_some_stable_vertices_move_in_a_take():
+    P, faces, _ = _grid_with_hole()
+    hole = boundary_loops(faces)[1]
+    stable = np.arange(0, len(P), 3)
+    cards = hole_cards(P, [hole], np.array([[0.0, 0.0, 0.2, 0.2]]), stable)
+    rest_card = cards.extend(P)[len(P):]
+    angle = 0.2
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    moved = P.copy()
+    jaw = stable[: len(stable) // 5]                    # a fifth of them move (a jaw the examples never opened)
+    moved[jaw] += [0.0, -0.3, 0.1]
+    turned = moved @ R.T + [0.5, -1.0, 2.0]
+    np.testing.assert_allclose(cards.extend(turned)[len(P):], rest_card @ R.T + [0.5, -1.0, 2.0], atol=1e-6)
+    frames = np.stack([turned, P])                    # frames at once: each its own fit
+    np.testing.assert_allclose(cards.extend(frames)[1, len(P):], rest_card, atol=1e-9)
+
+
 # --------------------------------------------------------------------------- end to end
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from facepipe.core.rigid import rigid_fit
+from facepipe.core.rigid import rigid_fit, robust_rigid_fit
 
 __all__ = ["boundary_loops", "HoleCards", "hole_cards", "card_positions", "with_card_vertices", "stable_vertices"]
 
@@ -93,24 +93,61 @@ def with_card_vertices(positions: np.ndarray, stable: np.ndarray, stable_rest: n
     return np.concatenate([positions, card_positions(positions, stable, stable_rest, rest)], axis=-2)
 
 
+#: A frame whose stable vertices all lie within this share of their extent of a rigid motion of
+#: their rest positions moved rigidly; beyond it some moved on their own and the fit is robust.
+STILL_RESIDUAL = 1e-4
+
+
 def card_positions(positions: np.ndarray, stable: np.ndarray, stable_rest: np.ndarray, rest: np.ndarray) -> np.ndarray:
     """The cards' vertices (..., N, 3) in frames (..., V, 3): their rest positions (N, 3) moved by
-    the rigid motion of the ``stable`` vertices (K,) from ``stable_rest`` (K, 3)."""
-    R, t = rigid_fit(stable_rest, np.asarray(positions, dtype=np.float64)[..., stable, :])
+    the rigid motion of the ``stable`` vertices (K,) from ``stable_rest`` (K, 3).
+
+    The motion is fitted robustly (:func:`~facepipe.core.rigid.robust_rigid_fit`): a vertex that
+    stayed still in every example may move in a take (a jaw opening the examples never show), and
+    a card pulled along with it would shift over the eyeball as a gaze does."""
+    target = np.asarray(positions, dtype=np.float64)[..., stable, :]
+    flat = target.reshape((-1,) + target.shape[-2:])
+    R, t = rigid_fit(stable_rest, flat)
+    # the robust fit only for frames whose stable vertices did not all follow (it costs ten fits)
+    residual = np.linalg.norm(np.einsum("fij,kj->fki", R, stable_rest) + t[:, None] - flat, axis=-1).max(axis=-1)
+    moved = residual > STILL_RESIDUAL * float(np.ptp(stable_rest, axis=0).max(initial=0.0))
+    if moved.any():
+        R[moved], t[moved], _ = robust_rigid_fit(stable_rest, flat[moved])
+    R, t = R.reshape(target.shape[:-2] + (3, 3)), t.reshape(target.shape[:-2] + (3,))
     return np.einsum("...ij,nj->...ni", R, rest) + t[..., None, :]
 
 
+#: Rounds of :func:`stable_vertices`' trimmed fit at most (it stops once its set repeats).
+STABLE_ROUNDS = 20
+
+
 def stable_vertices(rest: np.ndarray, frames: np.ndarray, share: float = 0.1, most: int = 2000) -> np.ndarray:
-    """The vertices (at least 3, at most ``most``, evenly taken) that move least, after each
-    frame's rigid fit, over ``frames`` (F, V, 3): a ``share`` of them; every vertex where no frame
-    moves one (then the head's rigid motion is carried by the whole mesh)."""
+    """The vertices (at least 3, at most ``most``, evenly taken) that move least over ``frames``
+    (F, V, 3) after each frame's rigid fit of those vertices themselves: a ``share`` of them;
+    every vertex where no frame moves one (then the head's rigid motion is carried by the whole
+    mesh).
+
+    The fit is trimmed (least trimmed squares' concentration steps): fitted to the set, the set
+    is the ``share`` of vertices it leaves the least squared residual over the frames, until the
+    set repeats; each step lowers the set's residual. A least-squares fit of the whole mesh is
+    pulled by the expression's moving part, and the rotation it gets wrong moves still vertices
+    by their distance from the centroid: far ones (the back of the head) would rank as moving
+    and ones near the middle (a jaw's side, still in the examples, not in every take) as still."""
     rest = np.asarray(rest, dtype=np.float64)
     frames = np.asarray(frames, dtype=np.float64).reshape(-1, *rest.shape)
-    R, t = rigid_fit(rest, frames)
-    moved = np.linalg.norm(np.einsum("fij,fvj->fvi", R, rest[None].repeat(len(frames), 0)) + t[:, None] - frames,
-                           axis=-1).max(axis=0) if len(frames) else np.zeros(len(rest))
     count = max(3, int(share * len(rest)))
-    least = np.sort(np.argsort(moved, kind="stable")[:count])
+    least = np.arange(count)
+    if len(frames):
+        chosen = np.arange(len(rest))
+        for _ in range(STABLE_ROUNDS):
+            R, t = rigid_fit(rest[chosen], frames[:, chosen])
+            moved = np.zeros(len(rest))
+            for f in range(len(frames)):  # a frame at a time: a large mesh's frames at once would not fit
+                moved += ((rest @ R[f].T + t[f] - frames[f]) ** 2).sum(axis=1)
+            least = np.sort(np.argsort(moved, kind="stable")[:count])
+            if len(least) == len(chosen) and np.array_equal(least, chosen):
+                break
+            chosen = least
     return least[np.linspace(0, len(least) - 1, min(most, len(least))).round().astype(np.int64)]
 
 
