@@ -457,7 +457,7 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
                          take_weights: np.ndarray, take_names: list, *, mesh_path: str, markers_path: str,
                          layers: int = 5, size: int = 512, texture_size: int = 512, turn_degrees: float = 15.0,
                          noise: float = 0.005, seed: int = 0, progress=None, eyes: dict | None = None,
-                         gaze: dict | None = None, two_sided_light: bool = False) -> dict:
+                         gaze: dict | None = None, two_sided_light: bool = False, rom_degrees: float = 10.0) -> dict:
     """Write footage of a known performance and an appearance config for it into ``out_dir``.
 
     expressions : name → (V, 3) positions at weight 1; drivers : region → expression names.
@@ -467,8 +467,9 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
     expression → (region, yaw, pitch), the degrees it turns that region's eyeball at full weight.
     two_sided_light: light as the footage before 2026-12 was (:attr:`Scene.two_sided`).
     Writes ``camera.json``, ``examples/`` (per region, its drivers at ``layers`` strengths from 0 to
-    1, frame 0 neutral; then every expression that drives no region at full strength, the
-    config's ``rest_frames``: the range of motion an actor would show) with ``examples.npz``,
+    1, frame 0 neutral; then every expression that drives no region at full strength and the
+    neutral face with the head turned ``rom_degrees`` left, right, up and down, the config's
+    ``rest_frames``: the range of motion an actor would show) with ``examples.npz``,
     ``take/`` and ``take_turned/`` (the head turned up to ``turn_degrees`` and another light) each
     with its geometry ``.npz`` (positions in world space, frame numbers) and truth ``_truth.csv``
     (activation per region), ``regions/NAME.txt`` and ``appearance.toml``. Returns the paths and
@@ -520,6 +521,13 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
         w[column[name]] = 1.0
         ex_weights.append(w)
         rest_frames.append(len(ex_world) - 1)
+    # the head turned with the face at rest: what a take's head motion does to every region
+    pivot = neck_pivot(rest)
+    for yaw, pitch in ((rom_degrees, 0.0), (-rom_degrees, 0.0), (0.0, rom_degrees), (0.0, -rom_degrees)) if rom_degrees else ():
+        ex_world.append((rest - pivot) @ _yaw_pitch(np.deg2rad(yaw), np.deg2rad(pitch)).T + pivot)
+        ex_act.append(np.zeros(len(names)))
+        ex_weights.append(no_weights)
+        rest_frames.append(len(ex_world) - 1)
     ex_world = np.asarray(ex_world)
 
     def gaze_table(expression_list):  # (K, E, 2): the degrees each expression turns each eyeball
@@ -530,7 +538,8 @@ def write_appearance_kit(out_dir, mesh, rest: np.ndarray, expressions: dict, dri
                 table[k, eye_names.index(region)] = (yaw, pitch)
         return table
 
-    ex_eyes = eye_poses(eyeballs, np.asarray(ex_weights), gaze_table(expression_names)) if eyes else None
+    ex_eyes = eye_poses(eyeballs, np.asarray(ex_weights), gaze_table(expression_names),
+                        *head_motion(rest, expressions, ex_world)) if eyes else None
     write_appearance_footage(out / "examples", ex_world, np.asarray(ex_act), faces, corner_uv, skin, fields, scene,
                              noise=noise, seed=seed + 1, progress=progress, eyes=ex_eyes)
     _save_geometry(out / "examples.npz", ex_world, np.arange(len(ex_world)))
