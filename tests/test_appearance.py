@@ -970,6 +970,24 @@ def test_rest_readings_and_directions_in_a_model_file_are_checked(kit, tmp_path,
         _assert_model_refused(kit, tmp_path, capsys, {k: v for k, v in data.items() if k != name}, **{name: broken})
 
 
+def test_template_samples_in_a_model_file(kit, tmp_path, capsys):
+    """The model keeps each region's layer samples before normalising (a partly seen sample's
+    templates are normalised from them); a model without them loads and classifies as before;
+    broken ones are refused by name."""
+    from facepipe.io.appearance_file import load_appearance
+
+    data = dict(np.load(kit / "app.npz"))
+    model = load_appearance(kit / "app.npz")
+    assert len(model.template_patches) == len(model.names)
+    for r, patches in enumerate(model.template_patches):
+        assert patches.shape == (len(model.templates[r]), model.template_size ** 2)
+    np.savez(tmp_path / "old.npz", **{k: v for k, v in data.items() if not k.startswith("template_patches")})
+    assert load_appearance(tmp_path / "old.npz").template_patches is None
+    for broken in (data["template_patches_0"][:-1], np.full_like(data["template_patches_0"], np.nan)):
+        _assert_model_refused(kit, tmp_path, capsys, {k: v for k, v in data.items() if k != "template_patches_0"},
+                              template_patches_0=broken)
+
+
 def test_light_model_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     """The model keeps the light it was built under (an ambient term and a point light by default,
     the nine terms when the config asks); both follow the take; models before the choice read the

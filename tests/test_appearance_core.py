@@ -506,6 +506,35 @@ def test_partly_seen_exact_template_reads_its_own_index_with_either_shading():
         np.testing.assert_allclose(q[:, 0], np.arange(5), atol=0.02 if shading else 1e-9)
 
 
+def test_partly_seen_samples_match_templates_normalised_from_their_samples():
+    # with the layers' samples kept, a partly seen sample's templates are normalised over its
+    # seen texels as it is: any layer, however little of it is seen and whatever the surface,
+    # reads its own index; from the normalised templates alone that holds only while most is seen
+    rng = np.random.default_rng(22)
+    a, b, layers = _blend_templates(rng, 5)
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    lit = np.stack(layers) * (1.0 + 0.04 * xx + 0.02 * yy + 0.002 * xx * yy)
+    seen = np.ones((5, 1, 1, 16, 16), dtype=bool)
+    seen[..., :9, :] = False                            # over half the patch hidden (a lid over an eye)
+    for order in (0, 1, 2):
+        templates = haar_coefficients(normalise_patches(lit, order))
+        indices, w = [select_coefficients(templates, 50)], coefficient_weights(16)
+        exact = RegionBank([templates], indices, w, orders=[max(order, 1)], patches=[lit.reshape(5, -1)])
+        q, residual = classify_regions(lit[:, None, None], exact, shading=order > 0, seen=seen, min_seen=0.3)
+        np.testing.assert_allclose(q[:, 0], np.arange(5), atol=1e-9)
+        assert residual.max() < 1e-9
+        # the distances are those of the templates normalised over the seen texels by hand (scaled
+        # by the texels over those seen, so partly and wholly seen samples compare)
+        part = normalise_patches(lit[2], order, seen[0, 0, 0])
+        by_hand = haar_coefficients(normalise_patches(lit, order, seen[0, 0, 0]))
+        d = exact.masked_distances(part[None], seen[0, 0, :1], np.array([0]), shading=order > 0)
+        diff = (haar_coefficients(part) - by_hand)[:, indices[0]]
+        scale = 256 / seen[0, 0, 0].sum()
+        np.testing.assert_allclose(d[0], scale * (diff ** 2 * w[indices[0]]).sum(-1), rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError, match="patches"):
+        RegionBank([templates], indices, w, patches=[lit.reshape(5, -1)[:4]])
+
+
 def test_masked_templates_kept_per_mask_give_the_same_distances():
     # the templates normalised over a mask are kept and reused: distances from a bank that has
     # seen the masks (and one whose store overflows and is emptied) equal a fresh bank's, and each

@@ -448,11 +448,17 @@ class RegionBank:
     differs from a template only by some of them matches it; on a partly seen sample, by the span
     of their seen texels. Each region's own layers still read their index as long as the span
     leaves part of every layer step (the build checks: :func:`kept_step_shares`).
+
+    patches : optional, per region (n_r, size²) its templates' samples before normalising. A
+    partly seen sample's templates are then normalised from them over its seen texels, exactly as
+    the sample is; without them, from the normalised templates (their surface over the stable
+    texels put back, the seen texels' divided out), which is close only while most of a patch is
+    seen (a lid over half the eyeball read 0.5 layer of gaze that way, 0.07 exactly).
     """
 
     MASK_CACHE = 1024  # (region, mask) pairs whose normalised templates are kept: 12 kB each at 6 layers of 16²
 
-    def __init__(self, templates, indices, weights, masks=None, orders=None, nuisance=None):
+    def __init__(self, templates, indices, weights, masks=None, orders=None, nuisance=None, patches=None):
         self._mask_cache: dict = {}
         R = len(templates)
         C = len(weights)
@@ -476,6 +482,13 @@ class RegionBank:
         self.gaps = np.where(self.absent[:, 1:], np.inf, np.einsum("rkc,rc->rk", step * step, self.weights))
         H, _ = haar_matrix(int(round(np.sqrt(C))))
         self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
+        self.raw = None                                          # (R, n, size²) their samples before normalising
+        if patches is not None:
+            if len(patches) != R or any(np.shape(p) != (len(t), C) for p, t in zip(patches, templates)):
+                raise ValueError("patches are not (templates, texels) for every region")
+            self.raw = np.ones((R, n_max, C))                     # (absent templates: never matched)
+            for r, p in enumerate(patches):
+                self.raw[r, :len(p)] = p
         # their surfaces over the stable texels (:func:`normalise_patches` of the normalised template:
         # near 1), with shading (each region's own surface) and without (the mean: templates stored
         # divided by their mean are 1 on average exactly)
@@ -559,8 +572,10 @@ class RegionBank:
     def _masked_templates(self, masks: np.ndarray, region: np.ndarray, shading: bool) -> np.ndarray:
         """(M, n, size²) each region's templates normalised over a mask (M, size²), zero off it.
 
-        The stored templates were normalised over the region's stable texels (by their plane over
-        those): that plane back, the plane of the seen texels out (the same with all seen). What a
+        With the templates' samples (``patches``) they are normalised over the mask as a sample is
+        (exact). Else from the stored templates, normalised over the region's stable texels (by
+        their surface over those): that surface back, the seen texels' surface out (the same with
+        all seen; close while most of the patch is seen). What a
         camera cannot see of a region (a fold turned edge-on, a brow over the lid) changes slowly,
         so the same masks come back frame after frame: each (region, mask) is normalised once and
         kept (up to ``MASK_CACHE`` of them)."""
@@ -580,14 +595,16 @@ class RegionBank:
         if new:
             first = np.fromiter(new.values(), dtype=np.int64, count=len(new))
             m = masks[first][:, None, :]
-            templates = self.pixels[region[first]]
+            # from the samples where the model keeps them (exact), else from the normalised templates
+            templates = (self.pixels if self.raw is None else self.raw)[region[first]]
             plane_seen, mean = np.empty_like(templates), np.empty(templates.shape[:-1] + (1,))
             order = np.array([k[1] for k in new])
             for o in np.unique(order):
                 rows = order == o
                 plane_seen[rows], mean[rows] = _masked_plane(templates[rows], m[rows], int(o))
             floor = np.maximum(0.1 * np.abs(mean), 1e-6)
-            normalised = np.where(m, templates * self.plane_all[bool(shading)][region[first]] / np.maximum(plane_seen, floor), 0.0)
+            stored = 1.0 if self.raw is not None else self.plane_all[bool(shading)][region[first]]
+            normalised = np.where(m, templates * stored / np.maximum(plane_seen, floor), 0.0)
             found = dict(zip(new, normalised))
         out = np.stack([found[k] if k in found else kept[k] for k in keys])
         if len(cache) + len(found) > self.MASK_CACHE:

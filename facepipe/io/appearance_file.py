@@ -53,6 +53,9 @@ class AppearanceModel:
     region is at rest (NaN elsewhere), and rest_tolerance, rest_noise : with them a reading's
     own floor (:func:`facepipe.core.appearance.conditional_floor`) replaces ``rest_floor`` (None,
     or tolerance 0: ``rest_floor`` for every reading, as in models before them);
+    template_patches : per region (n, size²) its layers' template samples before normalising
+    (light divided out where fitted): a partly seen sample's templates are normalised from them
+    over the same texels (None, models before them: from the normalised templates, approximately);
     card_rest (N, 3), card_stable (K,), card_stable_rest (K, 3) : cards across holes
     (:mod:`facepipe.core.hole_cards`): vertex V + i of ``faces`` is ``card_rest[i]`` moved by the
     rigid motion of the rest mesh's vertices ``card_stable`` from ``card_stable_rest`` (None: no cards);
@@ -135,6 +138,7 @@ class AppearanceModel:
     rest_off_path: np.ndarray | None = None
     rest_tolerance: float = 0.0
     rest_noise: float = 0.0
+    template_patches: list | None = None  # (models written before them: None)
 
     @property
     def extra_tiles(self) -> list:
@@ -206,6 +210,8 @@ def save_appearance(path, model) -> None:
     if model.rest_readings is not None:
         arrays.update(rest_readings=model.rest_readings, rest_off_path=model.rest_off_path,
                       rest_tolerance=np.array(float(model.rest_tolerance)), rest_noise=np.array(float(model.rest_noise)))
+    for r, patches in enumerate(model.template_patches or []):
+        arrays[f"template_patches_{r}"] = np.asarray(patches, dtype=np.float64)
     for r, directions in enumerate(model.rest_nuisance or []):
         if directions is not None and len(directions):
             arrays[f"rest_nuisance_{r}"] = np.asarray(directions)
@@ -268,7 +274,8 @@ def load_appearance(path):
                                float(d["light_residual"]) if "light_residual" in d else None,
                                [d.get(f"rest_nuisance_{r}") for r in range(n)], d.get("rest_readings"),
                                d.get("rest_off_path"), float(d["rest_tolerance"]) if "rest_tolerance" in d else 0.0,
-                               float(d["rest_noise"]) if "rest_noise" in d else 0.0)
+                               float(d["rest_noise"]) if "rest_noise" in d else 0.0,
+                               [d[f"template_patches_{r}"] for r in range(n)] if "template_patches_0" in d else None)
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
@@ -299,6 +306,10 @@ def load_appearance(path):
                                            or not np.isfinite(directions).all()):
                 raise ValueError(f"rest_nuisance_{r} (region {name}): its explained-away directions are not finite "
                                  f"rows of {points} texels")
+        for r, (name, patches) in enumerate(zip(model.names, model.template_patches or [])):
+            if patches.shape != (len(model.templates[r]), points) or not np.isfinite(patches).all():
+                raise ValueError(f"template_patches_{r} (region {name}): not finite rows of {points} texels, one "
+                                 f"per template ({len(model.templates[r])})")
         tiles = len(model.extra_tiles)
         if tiles and not (model.tile_neutral is not None and len(model.tile_neutral) == tiles
                           and (model.tile_albedo is None) == (model.neutral_albedo is None)

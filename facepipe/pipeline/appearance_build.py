@@ -213,6 +213,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                            cfg.light_model) if cfg.light_fit else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
+    template_patches = []  # the layers' samples before normalising: a partly seen sample's templates are normalised from them
     facing_examples, masks, layer_seen, orders, surfaces = [], [], [], [], {}
     if not in_udim.all():
         notes.append(f"{int((~in_udim).sum())} triangles of the rest mesh (the first: {int(np.argmin(in_udim))}) have "
@@ -287,6 +288,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         tfaces.append(face)
         tbarys.append(bary)
         templates.append(coeffs)
+        template_patches.append(stack.reshape(len(stack), -1))
         indices.append(ap.select_coefficients(coeffs, cfg.keep))
         if progress is not None:
             progress(1)
@@ -302,7 +304,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             light_colour=None if light is None else light["colour"].astype(np.float32),
                             tiles=np.array(list(tiles), dtype=np.int64) if tiles else None,
                             tile_neutral=np.stack([t["texture"] for t in tiles.values()]) if tiles else None,
-                            tile=home, shading_orders=np.asarray(orders, dtype=np.int64),
+                            tile=home, shading_orders=np.asarray(orders, dtype=np.int64), template_patches=template_patches,
                             peak_interpolation=cfg.peak_interpolation, min_event=cfg.min_event,
                             light_model=cfg.light_model if light is not None else "sh9",
                             light_point_albedo=None if light is None else light["point_albedo"])
