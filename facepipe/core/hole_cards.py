@@ -129,25 +129,39 @@ def stable_vertices(rest: np.ndarray, frames: np.ndarray, share: float = 0.1, mo
 
     The fit is trimmed (least trimmed squares' concentration steps): fitted to the set, the set
     is the ``share`` of vertices it leaves the least squared residual over the frames, until the
-    set repeats; each step lowers the set's residual. A least-squares fit of the whole mesh is
-    pulled by the expression's moving part, and the rotation it gets wrong moves still vertices
-    by their distance from the centroid: far ones (the back of the head) would rank as moving
-    and ones near the middle (a jaw's side, still in the examples, not in every take) as still."""
+    set repeats; each step lowers the set's residual, to a local least. A least-squares fit of
+    the whole mesh is pulled by the expression's moving part, and the rotation it gets wrong
+    moves still vertices by their distance from the centroid (far ones, the back of the head,
+    look moved; ones near the middle, a jaw's side, look still); and where the expressions move
+    most of the mesh a little (a blendshape rig's deltas rarely end where the skull does), its
+    steps can settle on a block that moves together. So the steps start three ways, from the
+    whole mesh's fit, from a robust fit's (:func:`~facepipe.core.rigid.robust_rigid_fit`) and
+    from the vertices that move least without any fit (the examples' head still), and the set
+    with the least residual is kept."""
     rest = np.asarray(rest, dtype=np.float64)
     frames = np.asarray(frames, dtype=np.float64).reshape(-1, *rest.shape)
     count = max(3, int(share * len(rest)))
     least = np.arange(count)
     if len(frames):
-        chosen = np.arange(len(rest))
-        for _ in range(STABLE_ROUNDS):
-            R, t = rigid_fit(rest[chosen], frames[:, chosen])
-            moved = np.zeros(len(rest))
-            for f in range(len(frames)):  # a frame at a time: a large mesh's frames at once would not fit
-                moved += ((rest @ R[f].T + t[f] - frames[f]) ** 2).sum(axis=1)
-            least = np.sort(np.argsort(moved, kind="stable")[:count])
-            if len(least) == len(chosen) and np.array_equal(least, chosen):
-                break
-            chosen = least
+        def residuals(R, t):  # (V,) squared, summed over the frames, a frame at a time (a large mesh's would not fit)
+            out = np.zeros(len(rest))
+            for f in range(len(frames)):
+                out += ((rest @ R[f].T + t[f] - frames[f]) ** 2).sum(axis=1)
+            return out
+
+        def concentrate(moved):
+            chosen = None
+            for _ in range(STABLE_ROUNDS):
+                picked = np.sort(np.argsort(moved, kind="stable")[:count])
+                if chosen is not None and np.array_equal(picked, chosen):
+                    break
+                chosen = picked
+                moved = residuals(*rigid_fit(rest[chosen], frames[:, chosen]))
+            return moved[chosen].sum(), chosen
+
+        unmoved = ((frames - rest) ** 2).sum(axis=(0, 2))
+        starts = [residuals(*rigid_fit(rest, frames)), residuals(*robust_rigid_fit(rest, frames)[:2]), unmoved]
+        least = min((concentrate(moved) for moved in starts), key=lambda found: found[0])[1]
     return least[np.linspace(0, len(least) - 1, min(most, len(least))).round().astype(np.int64)]
 
 
