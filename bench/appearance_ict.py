@@ -126,6 +126,28 @@ def correlations(q: np.ndarray, act: np.ndarray, names: list) -> dict:
             "zero_activation_fraction": {n: float((act[:, r] <= 0).mean()) for r, n in enumerate(names)}}
 
 
+#: An eye card is read over the frames where its lid is this far closed at most (its eyelid
+#: region's activation, the blink): beyond it the lid covers much of the card.
+LID_OPEN = 0.3
+
+
+def open_lid_correlations(q: np.ndarray, act: np.ndarray, names: list) -> dict:
+    """Spearman and Pearson of each eyeball region's Q with its truth over the frames where its
+    eye's lid is open (its eyelid region's activation under :data:`LID_OPEN`), and how many: a
+    closing lid covers the card and the region holds its last reading, which the all-frames
+    figures of a take that blinks through its gazes (the sweep) are mostly made of."""
+    out = {}
+    for r, name in enumerate(names):
+        lid = name.replace("eyeball", "eyelid")
+        if name.startswith("eyeball") and lid in names:
+            open_ = act[:, names.index(lid)] < LID_OPEN
+            a, x = act[open_, r], q[open_, r]
+            ok = open_.sum() > 2 and np.ptp(a) > 0 and np.ptp(x) > 0
+            out[name] = {"frames": int(open_.sum()), "spearman": float(spearmanr(x, a).statistic) if ok else float("nan"),
+                         "pearson": float(pearsonr(x, a).statistic) if ok else float("nan")}
+    return {"eyeballs_lid_open": out}
+
+
 def footage_check(c, model) -> dict:
     """The classification's footage check (:func:`off_face_frames`): each frame's light residual
     over the example footage's, its median and largest, and the frames it calls off the face."""
@@ -277,6 +299,7 @@ def main() -> None:
         act = np.loadtxt(out / f"{take}_truth.csv", delimiter=",", skiprows=1, ndmin=2)[:, 1:]
         q = np.round(c.q, STREAM_DECIMALS)  # the stream as written
         result[take] = {**correlations(q, act, model.names), **q_errors(q, act, model.names, model.layer_counts),
+                        **open_lid_correlations(q, act, model.names),
                         "frames_per_second_with_reading": len(numbers) / seconds,
                         "visible_fraction": float(c.visible.mean()), "footage_check": footage_check(c, model)}
         if take == "take":
@@ -290,6 +313,9 @@ def main() -> None:
         print(take, "ceiling ", " ".join(f"{n} {v:.3f}" for n, v in r["spearman_of_truth_with_1pct_noise"].items()))
         print(take, "Q error ", " ".join(f"{n} {v:.3f}" for n, v in r["q_rms_error_layers"].items()),
               f"(mean {r['q_rms_error_layers_mean']:.3f} layers)")
+        if r["eyeballs_lid_open"]:
+            print(take, "lid open", " ".join(f"{n} {v['spearman']:.3f} ({v['frames']} frames)"
+                                             for n, v in r["eyeballs_lid_open"].items()))
         print(take, f"{r['frames_per_second_with_reading']:.1f} frames/s with reading",
               f"visible {r['visible_fraction']:.3f}", _check_words(r["footage_check"]))
     # the head-turned footage with the frontal take's geometry: what the footage check says of a wrong take
