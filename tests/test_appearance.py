@@ -972,8 +972,8 @@ def test_rest_readings_and_directions_in_a_model_file_are_checked(kit, tmp_path,
 
 def test_template_samples_in_a_model_file(kit, tmp_path, capsys):
     """The model keeps each region's layer samples before normalising (a partly seen sample's
-    templates are normalised from them); a model without them loads and classifies as before;
-    broken ones are refused by name."""
+    templates are normalised from them); a model without them loads (its partly seen samples
+    matched the old way); broken ones are refused by name."""
     from facepipe.io.appearance_file import load_appearance
 
     data = dict(np.load(kit / "app.npz"))
