@@ -489,11 +489,12 @@ class RegionBank:
             self.raw = np.ones((R, n_max, C))                     # (absent templates: never matched)
             for r, p in enumerate(patches):
                 self.raw[r, :len(p)] = p
-        # their surfaces over the stable texels (:func:`normalise_patches` of the normalised template:
-        # near 1), with shading (each region's own surface) and without (the mean: templates stored
-        # divided by their mean are 1 on average exactly)
+        # without the samples: the normalised templates' surfaces over the stable texels
+        # (:func:`normalise_patches` of a normalised template: near 1), with shading (each region's
+        # own surface) and without (the mean: templates stored divided by their mean are 1 on
+        # average exactly), which a partly seen sample's templates put back (_masked_templates)
         self.plane_all = {}
-        for shading in (True, False):
+        for shading in (True, False) if self.raw is None else ():
             self.plane_all[shading] = np.empty_like(self.pixels)
             for order, rows in self.order_groups(shading):
                 self.plane_all[shading][rows] = _masked_plane(self.pixels[rows], self.masks[rows][:, None, :], order)[0]

@@ -159,8 +159,8 @@ def stable_vertices(rest: np.ndarray, frames: np.ndarray, share: float = 0.1, mo
                 moved = residuals(*rigid_fit(rest[chosen], frames[:, chosen]))
             return moved[chosen].sum(), chosen
 
-        unmoved = ((frames - rest) ** 2).sum(axis=(0, 2))
-        starts = [residuals(*rigid_fit(rest, frames)), residuals(*robust_rigid_fit(rest, frames)[:2]), unmoved]
+        still = (np.broadcast_to(np.eye(3), (len(frames), 3, 3)), np.zeros((len(frames), 3)))  # no fit at all
+        starts = [residuals(*rigid_fit(rest, frames)), residuals(*robust_rigid_fit(rest, frames)[:2]), residuals(*still)]
         least = min((concentrate(moved) for moved in starts), key=lambda found: found[0])[1]
     return least[np.linspace(0, len(least) - 1, min(most, len(least))).round().astype(np.int64)]
 
