@@ -87,6 +87,23 @@ def test_cards_move_with_the_head_not_with_the_lids():
         cards.extend(P[:-1])
 
 
+def test_cards_set_back_to_other_depths():
+    P, faces, _ = _grid_with_hole()
+    hole = boundary_loops(faces)[1]
+    stable = stable_vertices(P, P[None])
+    squares = np.array([[0.4, 0.4, 0.6, 0.6]])
+    cards = hole_cards(P, [hole], squares, stable, rings=3, depth=0.1)
+    deep = hole_cards(P, [hole], squares, stable, rings=3, depth=np.array([0.3]))
+    moved = cards.at_depths(0.3)
+    assert np.allclose(moved.rest, deep.rest) and moved.depths.tolist() == [0.3]
+    # every vertex moved by the same 0.2 × the rim's width, along the card's normal into the hole
+    shift = moved.rest - cards.rest
+    assert np.allclose(shift, shift[0]) and np.isclose(np.linalg.norm(shift[0]), 0.2 * cards.widths[0])
+    assert np.allclose(shift[0] / np.linalg.norm(shift[0]), -cards.normals[0])
+    assert np.allclose(moved.at_depths(0.1).rest, cards.rest)
+    assert cards.vertex_card.tolist() == [0] * len(cards.rest)
+
+
 def _long_head():
     """A long strip of vertices: the still part (x < 7, the skull) and the face at one end (x ≥ 7)."""
     x, y = np.meshgrid(np.linspace(0.0, 10.0, 41), np.linspace(0.0, 1.0, 5))
@@ -142,10 +159,21 @@ def test_card_follows_the_head_when_some_stable_vertices_move_in_a_take():
 # --------------------------------------------------------------------------- end to end
 
 
-def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160):
+def _head_turn(yaw: float, pitch: float, about: np.ndarray):
+    """The rigid motion (R, t) turning a head by yaw and pitch (degrees) about a point."""
+    y, p = np.radians(yaw), np.radians(pitch)
+    R = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]]) @ \
+        np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])
+    return R, about - R @ about
+
+
+def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160, rest_turns=(), eye_front=None, extra_config=()):
     """Footage of a grid with a hole, an eyeball behind it turning by the given yaws (degrees):
     the examples (neutral first) and a take, with their geometry and an appearance config with
-    one card region."""
+    one card region. ``rest_turns``: more example frames, the eye at rest and the head turned by
+    each (yaw, pitch) in degrees (the config's rest_frames; the others' head is still);
+    ``eye_front``: the eyeball's front this far behind the rim's centre, × the opening's width
+    (else :func:`eyes_behind`'s)."""
     from facepipe.appearance_sample import (_save_geometry, eye_poses, eyes_behind, make_scene, scene_json,
                                             skin_texture, write_appearance_footage)
     from facepipe.io.mesh_write import save_obj
@@ -163,13 +191,21 @@ def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160):
     corner_uv = uv[faces]
     skin = skin_texture(256)
     eyes = eyes_behind(P, [hole])
+    if eye_front is not None:
+        (eye,) = eyes
+        width = eye.radius / 0.55
+        eye.centre = P[hole].mean(axis=0) - (eye_front * width + eye.radius) * eye.axes[:, 2]
     no_fields = np.zeros((1, 256, 256), dtype=np.float32)
-    for name, yaws in (("examples", yaws_examples), ("take", yaws_take)):
+    for name, yaws, turns in (("examples", list(yaws_examples) + [0.0] * len(rest_turns),
+                               [(0.0, 0.0)] * len(yaws_examples) + list(rest_turns)),
+                              ("take", yaws_take, [(0.0, 0.0)] * len(yaws_take))):
         yaws = np.asarray(yaws, dtype=np.float64)
-        world = np.repeat(P[None], len(yaws), axis=0)
+        head = [_head_turn(*turn, P.mean(axis=0)) for turn in turns]
+        Rs, ts = np.array([R for R, _ in head]), np.array([t for _, t in head])
+        world = P @ Rs.transpose(0, 2, 1) + ts[:, None]
         gaze = np.zeros((1, 1, 2))
         gaze[0, 0] = (1.0, 0.0)
-        poses = eye_poses(eyes, yaws[:, None], gaze)
+        poses = eye_poses(eyes, yaws[:, None], gaze, Rs, ts)
         write_appearance_footage(tmp_path / name, world, np.zeros((len(yaws), 1)), faces, corner_uv, skin, no_fields,
                                  scene, eyes=poses, seed=3 if name == "take" else 1)
         _save_geometry(tmp_path / f"{name}.npz", world, np.arange(len(yaws)))
@@ -178,8 +214,12 @@ def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160):
         "[rig]", 'mesh = "patch.obj"', 'markers = "markers.csv"', "", "[appearance]", 'camera = "camera.json"',
         f"camera_rotation = {scene.rotation.tolist()}", f"camera_translation = {scene.translation.tolist()}",
         'footage = "examples/frame_%04d.png"', 'geometry = "examples.npz"', "neutral_frame = 0",
-        "texture_size = 256", "", "[appearance.regions.eyeball]", 'vertices = "rim.txt"',
+        f"rest_frames = {list(range(len(frames), len(frames) + len(rest_turns)))}", "texture_size = 256", "", "[appearance.regions.eyeball]", 'vertices = "rim.txt"',
         "template = [0.2, 0.2, 0.8, 0.8]", f"frames = {frames}", "card = true", ""]))
+    if extra_config:  # more [appearance] keys, before the region's table
+        text = (tmp_path / "appearance.toml").read_text()
+        (tmp_path / "appearance.toml").write_text(text.replace("\n\n[appearance.regions", "\n" + "\n".join(extra_config)
+                                                               + "\n\n[appearance.regions"))
     return tmp_path
 
 
@@ -213,6 +253,73 @@ def test_an_eyeball_region_on_a_card_follows_the_gaze(tmp_path, capsys):
     assert run("export", kit / "cls", "--format", "textures", "-o", kit / "tex", "-q") == 0
     assert run("preview", kit / "cls", "-o", kit / "preview.png", "-q") == 0
     capsys.readouterr()
+
+
+def _built(kit):
+    from facepipe.io.camera_file import read_camera
+    from facepipe.io.config import load_config
+    from facepipe.io.mesh_read import load_mesh
+    from facepipe.pipeline.appearance_build import build_appearance
+
+    config = load_config(kit / "appearance.toml")
+    return build_appearance(config, load_mesh(config.mesh), read_camera(config.appearance.camera))
+
+
+#: Rest frames of a capture session's range of motion: the head turned (yaw, pitch), the eye ahead.
+HEAD_TURNS = [(8.0, 0.0), (-8.0, 0.0), (0.0, 8.0), (0.0, -8.0)]
+
+
+@pytest.mark.parametrize("front", [0.0, 0.25])
+def test_card_depth_is_fitted_where_the_rendered_iris_lies(tmp_path, front):
+    """The eyeball's front drawn ``front`` × the opening's width behind the rim's centre; its
+    pupil's edge lies 0.008 behind the front, its iris' edge (the limbus) 0.057: the fitted card
+    lies between them (the default, 0.1, lies outside both bands)."""
+    kit = _eye_kit(tmp_path, [0.0, 6.0, 12.0, 18.0, 24.0], [3.0], size=160, rest_turns=HEAD_TURNS, eye_front=front)
+    model, info = _built(kit)
+    card = info["cards"]["eyeball"]
+    assert card["depth_fitted"] and card["depth_frames"] == 4 and card["depth_parallax_px"] > 1.0
+    assert front <= card["depth"] <= front + 0.06
+    assert any("set back" in note for note in info["notes"])
+    # the model's card is the fitted one: its centre that far behind the rim's centre
+    P = load_mesh_vertices(kit)
+    hole = boundary_loops(model.faces[model.faces.max(axis=1) < model.n_vertices])[1]
+    rim = P[hole]
+    width = np.ptp((rim - rim.mean(axis=0))[:, 0])  # the hole is widest along x, the patch faces +z
+    assert np.isclose(rim.mean(axis=0)[2] - model.card_rest[0][2], card["depth"] * width, rtol=0.02)
+    # the cards hide nothing, and the light is fitted on the skin alone
+    assert (model.occluders < model.n_vertices).all() and len(model.occluders) < len(model.faces)
+    assert (model.light_face < len(model.occluders)).all()
+
+
+def load_mesh_vertices(kit):
+    from facepipe.io.mesh_read import load_mesh
+
+    return load_mesh(kit / "patch.obj").vertices
+
+
+def test_card_depth_kept_where_the_head_never_turns_or_set(tmp_path):
+    kit = _eye_kit(tmp_path / "still", [0.0, 10.0, 20.0], [5.0], size=96)
+    _, info = _built(kit)
+    card = info["cards"]["eyeball"]
+    assert not card["depth_fitted"] and card["depth"] == 0.1
+    assert any("turn the head too little" in note for note in info["notes"])
+    kit = _eye_kit(tmp_path / "set", [0.0, 10.0, 20.0], [5.0], size=96, rest_turns=HEAD_TURNS,
+                   extra_config=["card_depth = 0.3"])
+    _, info = _built(kit)
+    assert info["cards"]["eyeball"]["depth"] == 0.3 and not info["cards"]["eyeball"]["depth_fitted"]
+
+
+@pytest.mark.parametrize("value, said", [('"deep"', '"auto" or a number'), ("1.5", "not in [0, 1]"),
+                                         ("-0.1", "not in [0, 1]")])
+def test_card_depth_setting_is_checked(tmp_path, capsys, value, said):
+    from facepipe.cli.commands import main
+
+    kit = _eye_kit(tmp_path, [0.0, 10.0, 20.0], [5.0], size=64, extra_config=[f"card_depth = {value}"])
+    with pytest.raises(SystemExit) as exc:
+        main(["appearance", "build", str(kit / "appearance.toml"), "-o", str(kit / "app.npz"), "-q"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "card_depth" in err and said in err and "appearance.toml" in err
 
 
 def test_a_card_region_must_rim_a_hole(tmp_path, capsys):

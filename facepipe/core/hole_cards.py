@@ -14,7 +14,7 @@ wind as the mesh's around the rim, so their normals face the same side.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -65,7 +65,9 @@ class HoleCards:
     ones, their rest positions — whose rigid motion each frame moves the cards; faces : (T, 3)
     the cards' triangles (indices V … V + N − 1); corner_uv : (T, 3, 2); card : (T,) which card
     each triangle belongs to; squares : (C, 4) each card's UV square [u0, v0, u1, v1];
-    rim_sizes : (C,) the vertices of each card's rim.
+    rim_sizes : (C,) the vertices of each card's rim; depths (C,), widths (C,), normals (C, 3):
+    each card set back by depth × its rim's width along −normal (its rim's outward normal);
+    vertex_card (N,) : which card each vertex belongs to.
     """
 
     n_vertices: int
@@ -77,6 +79,16 @@ class HoleCards:
     card: np.ndarray
     squares: np.ndarray
     rim_sizes: np.ndarray
+    depths: np.ndarray
+    widths: np.ndarray
+    normals: np.ndarray
+    vertex_card: np.ndarray
+
+    def at_depths(self, depths) -> "HoleCards":
+        """The same cards set back by ``depths`` (a number, or one per card) × their rims' widths."""
+        depths = np.broadcast_to(np.asarray(depths, dtype=np.float64), self.depths.shape).copy()
+        shift = ((self.depths - depths) * self.widths)[self.vertex_card, None] * self.normals[self.vertex_card]
+        return replace(self, rest=self.rest + shift, depths=depths)
 
     def extend(self, positions: np.ndarray) -> np.ndarray:
         """Positions (..., V, 3) with the cards' vertices after the mesh's: (..., V + N, 3)."""
@@ -177,16 +189,17 @@ def _plane_axes(points: np.ndarray, normal: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def hole_cards(rest: np.ndarray, loops: list[np.ndarray], squares: np.ndarray, stable: np.ndarray,
-               rings: int = 4, depth: float = 0.1) -> HoleCards:
+               rings: int = 4, depth=0.1) -> HoleCards:
     """Cards across the holes ``loops`` (from :func:`boundary_loops`) of a mesh with rest
     positions (V, 3), each textured over its UV square (C, 4) [u0, v0, u1, v1]; ``rings`` rings of
     triangles from the centre to the rim, the card set back into the hole by ``depth`` × the
     rim's width (so lids that close over the opening lie in front of it); carried by the rigid
-    motion of the ``stable`` vertices (:func:`stable_vertices`)."""
+    motion of the ``stable`` vertices (:func:`stable_vertices`); ``depth`` a number, or one per card."""
     rest = np.asarray(rest, dtype=np.float64)
     V = rest.shape[0]
     stable = np.asarray(stable, dtype=np.int64)
-    positions, faces, uvs, card = [], [], [], []
+    positions, faces, uvs, card, normals, widths = [], [], [], [], [], []
+    depths = np.broadcast_to(np.asarray(depth, dtype=np.float64), (len(loops),)).copy()
     for c, (loop, square) in enumerate(zip(loops, np.asarray(squares, dtype=np.float64))):
         loop = np.asarray(loop, dtype=np.int64)
         L = loop.shape[0]
@@ -205,7 +218,9 @@ def hole_cards(rest: np.ndarray, loops: list[np.ndarray], squares: np.ndarray, s
         s = np.arange(1, rings + 1) / rings
         ring_pos = (1 - s)[:, None, None] * centre + s[:, None, None] * P[None]  # (K, L, 3)
         first = V + sum(len(p) for p in positions)
-        positions.append(np.concatenate([centre[None], ring_pos.reshape(-1, 3)]) - depth * width * normal)
+        positions.append(np.concatenate([centre[None], ring_pos.reshape(-1, 3)]) - depths[c] * width * normal)
+        normals.append(normal)
+        widths.append(width)
         ids = first + 1 + np.arange(rings * L).reshape(rings, L)
         # the rim walked as the mesh's boundary edges run (a → b): the card runs each edge b → a,
         # winding as the mesh's triangles that end at the rim
@@ -233,4 +248,6 @@ def hole_cards(rest: np.ndarray, loops: list[np.ndarray], squares: np.ndarray, s
                      np.concatenate(uvs) if uvs else np.zeros((0, 3, 2)),
                      np.concatenate(card) if card else np.zeros(0, dtype=np.int64),
                      np.asarray(squares, dtype=np.float64).reshape(-1, 4),
-                     np.array([len(loop) for loop in loops], dtype=np.int64))
+                     np.array([len(loop) for loop in loops], dtype=np.int64), depths,
+                     np.array(widths, dtype=np.float64), np.array(normals, dtype=np.float64).reshape(-1, 3),
+                     np.repeat(np.arange(len(positions)), [len(p) for p in positions]).astype(np.int64))

@@ -4,6 +4,7 @@ and each frame's light (light.csv)."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -164,6 +165,13 @@ class AppearanceModel:
     def n_vertices(self) -> int:
         """The rest mesh's vertex count (``faces`` also index the cards' vertices after them)."""
         return int(self.faces.max()) + 1 - (0 if self.card_rest is None else len(self.card_rest))
+
+    @functools.cached_property
+    def occluders(self) -> np.ndarray:
+        """The rest mesh's own triangles (T, 3): what can hide a template point. A card stands in
+        for an eyeball, which lies behind the skin, so it hides nothing (a closing lid that dips
+        behind a card's plane still covers the eye)."""
+        return self.faces[self.faces.max(axis=1) < self.n_vertices]
 
     def with_cards(self, world: np.ndarray) -> np.ndarray:
         """Positions (..., V, 3) of the rest mesh's vertices with the cards' after them."""

@@ -136,6 +136,9 @@ class AppearanceConfig:
     # at-rest example above rest_explain as far off, × that example's: each reading gets its
     # own rest floor (0: one floor per region, the highest at-rest reading)
     rest_path_tolerance: float = 2.0
+    # how far a card is set back into its opening, × the opening's width: "auto" fits it from the
+    # example frames where its eye is at rest and the head turned (else 0.1), or a number
+    card_depth: object = "auto"
     regions: list = field(default_factory=list)
 
 
@@ -170,6 +173,7 @@ class Config:
 # The type of every key (``_PATHS``: a string or a list of strings); the tables read into a
 # dataclass take the types of its defaults.
 _PATHS = "paths"
+_AUTO_OR_NUMBER = "auto or a number"
 _TYPES: dict[str, dict[str, object]] = {
     "rig": {"mesh": str, "markers": str, "anchors": str, "units": str, "weld": bool},
     "examples": {"meshes": _PATHS, "sequence": str, "sequence_stride": int, "sequence_frames": list},
@@ -182,7 +186,7 @@ _TYPES: dict[str, dict[str, object]] = {
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float, "min_event": float,
                    "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float,
                    "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
-                   "rest_explain": float, "rest_path_tolerance": float,
+                   "rest_explain": float, "rest_path_tolerance": float, "card_depth": "auto or a number",
                    "regions": dict},
     "video": {"landmarks": str},
 }
@@ -393,6 +397,9 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if not (out.rest_path_tolerance >= 0 and math.isfinite(out.rest_path_tolerance)):
         raise InputError(f"[appearance] rest_path_tolerance = {out.rest_path_tolerance} is not a finite number ≥ 0",
                          path=path, hint="0 keeps one rest floor per region; 2 (the default) gives each reading its own")
+    if out.card_depth != "auto" and not (0.0 <= out.card_depth <= 1.0):
+        raise InputError(f"[appearance] card_depth = {out.card_depth} is not in [0, 1] (× the opening's width)",
+                         path=path, hint='"auto" (the default) fits it; 0.1 sets the cards a tenth of the width back')
     _check_surface(out.shading_surface, path, "appearance")
     if out.peak_interpolation not in PEAK_INTERPOLATIONS:
         raise InputError(f"[appearance] peak_interpolation = {_toml(out.peak_interpolation)} is not one of "
@@ -451,7 +458,7 @@ def checked_value(value, expected, path, section: str, key: str, example=None):
     2.0
     """
     if _is(value, expected):
-        return float(value) if expected is float else value
+        return float(value) if expected is float or (expected == _AUTO_OR_NUMBER and value != "auto") else value
     if expected is list and isinstance(value, list):
         bad = next(v for v in value if not _is(v, float))
         got = f"{_toml(value)} holds {_toml(bad)} ({_kind(bad)})"
@@ -465,7 +472,8 @@ def checked_value(value, expected, path, section: str, key: str, example=None):
 
 
 _EXPECTED = {int: "an integer", float: "a number", bool: "true or false", str: "a string in quotes",
-             list: "a list of numbers", _PATHS: "a string or a list of strings"}
+             list: "a list of numbers", _PATHS: "a string or a list of strings",
+             _AUTO_OR_NUMBER: '"auto" or a number'}
 
 
 def _is(value, expected) -> bool:
@@ -476,6 +484,8 @@ def _is(value, expected) -> bool:
         return isinstance(value, (int, float))
     if expected is list:
         return isinstance(value, list) and all(_is(v, float) for v in value)
+    if expected == _AUTO_OR_NUMBER:
+        return value == "auto" or isinstance(value, (int, float))
     if expected == _PATHS:
         return isinstance(value, str) or (isinstance(value, list) and all(isinstance(v, str) for v in value))
     return isinstance(value, expected)
@@ -500,6 +510,8 @@ def _as(value, expected):
         return items if items and all(v is not None for v in items) else None
     if expected == _PATHS:
         return None if isinstance(value, (dict, list)) else [_as(value, str)]
+    if expected == _AUTO_OR_NUMBER:
+        return "auto" if isinstance(value, str) and value.strip().lower() == "auto" else _as(value, float)
     if expected is str:
         if isinstance(value, (dict, list)):
             return None

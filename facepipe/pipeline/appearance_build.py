@@ -33,6 +33,7 @@ from facepipe.io.footage import frames_at, open_footage, read_frames_of, to_gray
 from facepipe.parallel import serial_blas
 from facepipe.pipeline.appearance import (OFF_FACE_RATIO, TakeGeometry, check_frame_size, classify_decoded,
                                           read_patches, read_take_geometry, region_bank, sample_patches)
+from facepipe.pipeline.appearance_card_depth import GRID as CARD_DEPTH_GRID, MIN_PARALLAX, fit_card_depth
 from facepipe.pipeline.appearance_light import frame_light_residuals
 from facepipe.pipeline.appearance_points import (locate_uv, point_facing, point_normals, points_seen_well, surface_points,
                                                  template_points, texel_map, triangle_normals, unwrap,
@@ -134,6 +135,54 @@ def region_cards(cfg, mesh, groups: dict, corner_uv: np.ndarray, positions: np.n
     return cards, card_of
 
 
+def _template_rect(region, cards, card_of: dict) -> list:
+    """A region's template rectangle in the UV layout: a card region's ``template`` is in its
+    card's own square."""
+    if region.name not in card_of:
+        return region.template
+    square = cards.squares[card_of[region.name]]
+    u0, v0, u1, v1 = region.template
+    return [square[0] + u0 * (square[2] - square[0]), square[1] + v0 * (square[3] - square[1]),
+            square[0] + u1 * (square[2] - square[0]), square[1] + v1 * (square[3] - square[1])]
+
+
+def card_depths(cfg, cards, card_of: dict, frames: dict, faces: np.ndarray, corner_uv: np.ndarray, camera: Camera,
+                normal_sign: float, config_path, notes: list) -> tuple:
+    """The cards at ``cfg.card_depth``, or (``"auto"``) each at the depth fitted from the example
+    ``frames`` (number → (image, positions with the cards')) where its region is at rest
+    (:func:`facepipe.pipeline.appearance_card_depth.fit_card_depth`; where they turn the head too
+    little, the default depth, noted); and region name → the fit's report."""
+    if cfg.card_depth != "auto":
+        return cards.at_depths(cfg.card_depth), {}
+    numbers = [cfg.neutral_frame] + sorted(n for n in frames if n != cfg.neutral_frame)
+    at_rest = _at_rest(cfg, numbers)
+    R = np.asarray(cfg.camera_rotation, dtype=np.float64)
+    t = np.asarray(cfg.camera_translation, dtype=np.float64)
+    V = cards.n_vertices
+    grays = {n: to_gray(frames[n][0]) for n in numbers}
+    depths, fits = cards.depths.copy(), {}
+    for r, region in enumerate(cfg.regions):
+        if region.name not in card_of:
+            continue
+        use = [n for n, rest in zip(numbers, at_rest[:, r]) if rest]  # the neutral frame first
+        face, bary = _region_template(region, _template_rect(region, cards, card_of), corner_uv, CARD_DEPTH_GRID,
+                                      config_path)
+        c = card_of[region.name]
+        fit = fit_card_depth(cards, c, face[0], bary[0], np.stack([grays[n] for n in use]),
+                             np.stack([frames[n][1][:V] for n in use]), camera, R, t, faces, normal_sign, cfg)
+        fits[region.name] = fit
+        if fit["fitted"]:
+            depths[c] = fit["depth"]
+            notes.append(f"region {region.name}: its card set back {fit['depth']:.3f} × the opening's width, fitted "
+                         f"over {fit['frames']} example frames at rest (the head's turn moves its samples up to "
+                         f"{fit['parallax']:.1f} px)")
+        else:
+            notes.append(f"region {region.name}: the example frames at rest turn the head too little to fit its card's "
+                         f"depth (its samples move {fit['parallax']:.2f} px, under {MIN_PARALLAX:g}): set back "
+                         f"{depths[c]:g} × the opening's width; add frames of the neutral face with the head turned")
+    return cards.at_depths(depths), fits
+
+
 def group_masks(cfg, n_vertices: int, config_path) -> dict:
     """Region name → (V,) mask of its vertex group, each group file read and checked once."""
     masks = {}
@@ -201,6 +250,13 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     cos = ap.facing(triangle_normals(neutral_cam, faces, texel_face[covered]),
                     surface_points(neutral_cam, faces, texel_face[covered], texel_bary[covered]))
     normal_sign = 1.0 if np.median(cos) >= 0 else -1.0
+    depth_fits, notes = {}, []
+    if cards is not None:  # each card's depth, and the frames' card vertices there
+        cards, depth_fits = card_depths(cfg, cards, card_of, frames, faces, corner_uv, camera, normal_sign,
+                                        config.path, notes)
+        frames = {n: (image, cards.extend(p[:mesh.n_vertices])) for n, (image, p) in frames.items()}
+        cam_pos = {n: positions_world @ R.T + t for n, (_, positions_world) in frames.items()}
+        neutral_cam = cam_pos[cfg.neutral_frame]
     neutral, seen = unwrap(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_face, texel_bary, camera,
                            min_facing=cfg.min_facing, normal_sign=normal_sign)
     # texels the neutral frame does not show (edge-on, behind the head) continue the skin around them
@@ -209,27 +265,24 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     tiles = {t: _tile_neutral(frames[cfg.neutral_frame][0], neutral_cam, faces, texel_map(corner_uv, S, t), camera,
                               cfg, normal_sign, np.median(neutral[seen], axis=0) if seen.any() else 0.5)
              for t in np.unique(tile_of[in_udim]).tolist() if t != home}
-    light = _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, normal_sign,
-                           cfg.light_model) if cfg.light_fit else None
+    # the light is fitted on the skin alone: a card's texels show an eyeball, whose moving iris
+    # and wet sheen follow no shading of the card's plane
+    light = _example_light(neutral, seen & (texel_face < len(mesh.faces)), neutral_cam, faces, texel_face, texel_bary,
+                           normal_sign, cfg.light_model) if cfg.light_fit else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
-    names, volumes, alphas, boxes, tfaces, tbarys, templates, indices, notes = [], [], [], [], [], [], [], [], []
+    names, volumes, alphas, boxes, tfaces, tbarys, templates, indices = [], [], [], [], [], [], [], []
     template_patches = []  # the layers' samples before normalising: a partly seen sample's templates are normalised from them
     facing_examples, masks, layer_seen, orders, surfaces = [], [], [], [], {}
     if not in_udim.all():
         notes.append(f"{int((~in_udim).sum())} triangles of the rest mesh (the first: {int(np.argmin(in_udim))}) have "
                      "UVs outside the UDIM range (u in 0–10, v ≥ 0): the textures leave them out")
     for region in cfg.regions:
+        triangles = np.zeros(len(faces), dtype=bool)
         if region.name in card_of:
-            triangles = np.zeros(len(faces), dtype=bool)
             triangles[len(mesh.faces):] = cards.card == card_of[region.name]
-            square = cards.squares[card_of[region.name]]
-            u0, v0, u1, v1 = region.template  # in the card's own square
-            rect = [square[0] + u0 * (square[2] - square[0]), square[1] + v0 * (square[3] - square[1]),
-                    square[0] + u1 * (square[2] - square[0]), square[1] + v1 * (square[3] - square[1])]
         else:
-            triangles = np.zeros(len(faces), dtype=bool)
             triangles[:len(mesh.faces)] = groups[region.name][mesh.faces].all(axis=1)
-            rect = region.template
+        rect = _template_rect(region, cards, card_of)
         vol, alpha, box, seen_in = _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face,
                                                   texel_bary, camera, neutral, cfg, normal_sign)
         layer_seen.append(seen_in)
@@ -240,7 +293,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                                        for f in region.frames], axis=0))
         seen_well, pixels = points_seen_well(np.stack([cam_pos[f] for f in region.frames]), faces, face[0], bary[0],
                                              camera, cfg.template_size, normal_sign, cfg.min_point_facing,
-                                             cfg.occlusion, cfg.min_relative_facing)
+                                             cfg.occlusion, cfg.min_relative_facing, mesh.faces)
         stable = with_unseen_margin(seen_well, pixels, cfg.unseen_margin)
         # a small template in few pixels (a lid at low resolution): where the margin would take too
         # much of it, a narrower one (halved twice, then none), since matching on too little of
@@ -331,7 +384,11 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     if cards is not None:
         info["cards"] = {name: {"uv_square": cards.squares[c].tolist(),
                                 "rim_vertices": int(cards.rim_sizes[c]),
-                                "carried_by_vertices": int(len(cards.stable))}
+                                "carried_by_vertices": int(len(cards.stable)),
+                                "depth": float(cards.depths[c]),
+                                "depth_fitted": bool(depth_fits.get(name, {}).get("fitted", False)),
+                                **({"depth_parallax_px": round(depth_fits[name]["parallax"], 2),
+                                    "depth_frames": depth_fits[name]["frames"]} if name in depth_fits else {})}
                          for name, c in card_of.items()}
     return model, info
 

@@ -53,10 +53,25 @@ def locate_uv(points: np.ndarray, corner_uv: np.ndarray, candidates: int = 32) -
     """The triangle (N,) (−1 where none) and barycentric coordinates (N, 3) of UV points (N, 2)."""
     from scipy.spatial import cKDTree  # SciPy's import cost only where a model is built
 
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     centres = corner_uv.mean(axis=1)
     k = min(candidates, len(centres))
     _, near = cKDTree(centres).query(points, k=k)
-    near = near.reshape(len(points), k)
+    face, bary = _first_containing(points, corner_uv, near.reshape(len(points), k))
+    # a point in a long sliver (a card's fan around its centre) may lie in none of the triangles
+    # with the nearest centroids: those are searched among every triangle whose box holds them
+    low, high = corner_uv.min(axis=1), corner_uv.max(axis=1)
+    for i in np.flatnonzero(face < 0):
+        boxed = np.flatnonzero(((low <= points[i] + 1e-9) & (points[i] - 1e-9 <= high)).all(axis=1))
+        if len(boxed):
+            f, b = _first_containing(points[i:i + 1], corner_uv, boxed[None])
+            face[i], bary[i] = f[0], b[0]
+    return face, bary
+
+
+def _first_containing(points: np.ndarray, corner_uv: np.ndarray, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Of each point's candidate triangles (N, k), the first that holds it (−1: none), and its
+    barycentric coordinates there."""
     a, b, c = (corner_uv[near, i] for i in range(3))  # (N, k, 2)
     e1, e2, d = b - a, c - a, points[:, None] - a
     det = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
@@ -66,8 +81,8 @@ def locate_uv(points: np.ndarray, corner_uv: np.ndarray, candidates: int = 32) -
         b0 = 1 - b1 - b2
     inside = (np.abs(det) > 1e-14) & (b0 >= -1e-9) & (b1 >= -1e-9) & (b2 >= -1e-9)
     first = np.argmax(inside, axis=1)
-    found = inside[np.arange(len(points)), first]
     rows = np.arange(len(points))
+    found = inside[rows, first]
     face = np.where(found, near[rows, first], -1)
     bary = np.stack([b0[rows, first], b1[rows, first], b2[rows, first]], axis=1)
     return face, np.where(found[:, None], bary, 0.0)
@@ -173,7 +188,7 @@ def template_points_hidden(X: np.ndarray, camera_positions: np.ndarray, model: A
     are cast for the template's grid in place; an offset sample (half a step away) takes its
     grid point's answer: an occluder's edge is not resolved finer than the grid anyway."""
     F, R, S, N = X.shape[:4]
-    hidden = grid_points_hidden(X[:, :, 0], camera_positions, model.faces, model.template_size)
+    hidden = grid_points_hidden(X[:, :, 0], camera_positions, model.occluders, model.template_size)
     return np.broadcast_to(hidden[:, :, None], (F, R, S, N))
 
 
@@ -229,15 +244,18 @@ def well_seen_points(camera_positions: np.ndarray, faces: np.ndarray, face: np.n
 
 def points_seen_well(camera_positions: np.ndarray, faces: np.ndarray, face: np.ndarray, bary: np.ndarray,
                      camera: Camera, size: int, normal_sign: float, min_point_facing: float, occlusion: bool = True,
-                     min_relative_facing: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                     min_relative_facing: float = 0.0, occluders: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`well_seen_points`' tests frame by frame, before the margin: (F, N) whether each frame
-    shows each point well, and the points' pixels (F, N, 2)."""
+    shows each point well, and the points' pixels (F, N, 2); ``occluders`` the triangles that may
+    hide a point (default ``faces``: a model's are its ``occluders``, the mesh's own)."""
     X = np.einsum("nk,fnkc->fnc", bary, camera_positions[:, faces[face]])     # (F, N, 3)
     pixels = project_distorted_fast(camera, X)
     _, inside = ap.bilinear_sample(np.zeros((camera.height, camera.width)), pixels)
     good = inside & (X[..., 2] > 0)
     if occlusion:
-        good &= ~grid_points_hidden(X[:, None], camera_positions, faces, size)[:, 0]
+        good &= ~grid_points_hidden(X[:, None], camera_positions, faces if occluders is None else occluders,
+                                    size)[:, 0]
     if min_point_facing > 0 or min_relative_facing > 0:
         cos = np.stack([point_facing(c, faces, face, bary, normal_sign) for c in camera_positions])  # (F, N)
         good &= cos > min_point_facing
