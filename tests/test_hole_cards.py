@@ -367,3 +367,26 @@ def test_free_uv_squares_on_another_udim_tile():
     for (a, _), (b, _) in zip(on_1001, on_1002):
         np.testing.assert_allclose(np.asarray(b) - [1.0, 0.0, 1.0, 0.0], a, atol=1e-12)
         assert 1.0 <= b[0] < b[2] <= 2.0 and 0.0 <= b[1] < b[3] <= 1.0
+
+
+def test_uv_points_in_a_cards_fan_of_slivers_are_located():
+    """A card over a hole with a long rim: its first ring is a fan of slivers around the centre,
+    whose centroids lie far from points near the centre (a nearest-centroid search misses them)."""
+    from facepipe.pipeline.appearance_points import locate_uv
+
+    angle = np.linspace(0.0, 2 * np.pi, 240, endpoint=False)
+    rim = np.stack([1.4 * np.cos(angle), np.sin(angle), 0.05 * np.cos(3 * angle)], axis=1)
+    P = np.concatenate([rim, rim * 2.0])
+    L = len(rim)
+    i, j = np.arange(L), (np.arange(L) + 1) % L
+    faces = np.concatenate([np.stack([i, L + i, L + j], 1), np.stack([i, L + j, j], 1)])  # a ring around the hole
+    hole = boundary_loops(faces)[1]
+    cards = hole_cards(P, [hole], np.array([[0.2, 0.2, 0.8, 0.8]]), np.arange(L), rings=4)
+    rng = np.random.default_rng(3)
+    points = 0.5 + rng.uniform(-0.05, 0.05, size=(200, 2))  # near the card's centre (0.5, 0.5)
+    face, bary = locate_uv(points, cards.corner_uv)
+    assert (face >= 0).all()
+    assert np.allclose(np.einsum("nk,nkc->nc", bary, cards.corner_uv[face]), points, atol=1e-9)
+    assert (bary >= -1e-9).all()
+    outside = locate_uv(np.array([[0.05, 0.05]]), cards.corner_uv)[0]
+    assert outside.tolist() == [-1]
