@@ -48,7 +48,8 @@ def build_command(config_path, output, rep, write_json) -> dict:
     for name, card in info.get("cards", {}).items():
         u0, v0, u1, v1 = card["uv_square"]
         rep.say(f"card {name}: across a hole of {card['rim_vertices']} rim vertices, textured in UV "
-                f"[{u0:.4f}, {v0:.4f}, {u1:.4f}, {v1:.4f}], carried by {card['carried_by_vertices']} vertices")
+                f"[{u0:.4f}, {v0:.4f}, {u1:.4f}, {v1:.4f}], carried by {card['carried_by_vertices']} vertices, "
+                f"set back {card['depth']:.3f} × its width ({'fitted' if card['depth_fitted'] else 'not fitted'})")
     if "cards_obj" in info:
         rep.say(f"the cards at rest, with their UVs: {info['cards_obj']}")
     if info.get("rest"):

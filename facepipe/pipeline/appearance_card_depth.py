@@ -20,6 +20,7 @@ import numpy as np
 
 from facepipe.core import appearance as ap
 from facepipe.core.hole_cards import HoleCards, card_positions
+from facepipe.core.camera import project_distorted_fast
 from facepipe.pipeline.appearance_points import points_seen_well
 
 __all__ = ["DEPTH_CANDIDATES", "MIN_PARALLAX", "MIN_COMMON", "fit_card_depth"]
@@ -54,41 +55,55 @@ def fit_card_depth(cards: HoleCards, card: int, face: np.ndarray, bary: np.ndarr
 
     Returns {"depth": fitted (or the card's own where not observable), "fitted": bool,
     "parallax": the largest shift (pixels) between the candidates' samples in a frame against the
-    neutral one, "frames": the frames compared, "cost": (D,) 1 − mean correlation per candidate,
-    "candidates": (D,)}.
+    neutral one, "frames": how many frames were compared, "cost": (D,) 1 − mean correlation per
+    candidate (NaN where not fitted), "candidates": (D,); fitted, also "counted": the frames
+    compared (indices into ``grays``) and "frame_cost": (D, counted) each one's}.
     """
+    if (faces[face] < cards.n_vertices).any():
+        raise ValueError("the sample points must lie on the cards' triangles")
     candidates = np.asarray(candidates, dtype=np.float64)
     worlds = np.asarray(worlds, dtype=np.float64)
-    mesh_cam = worlds @ rotation.T + translation
+
+    def card_camera(depth, frames):  # the cards' vertices in camera space, this card at ``depth``
+        moved = cards.at_depths(np.where(np.arange(len(cards.depths)) == card, depth, cards.depths))
+        return card_positions(worlds[frames], moved.stable, moved.stable_rest, moved.rest) @ rotation.T + translation
+
+    corners = faces[face] - cards.n_vertices  # the sample points' triangles lie on the cards
+
+    def points(card_cam):  # the sample points (F, N, 3)
+        return np.einsum("nk,fnkc->fnc", bary, card_cam[:, corners])
+
+    # how far the candidates move each frame's samples against the neutral frame's: only frames
+    # that turn the head against it tell the depths apart (a still frame's samples change with
+    # none, and its noise would only blur the others')
+    every = np.arange(len(worlds))
+    ends = [project_distorted_fast(camera, points(card_camera(d, every))) for d in candidates[[0, -1]]]
+    shift = (ends[1] - ends[0]) - (ends[1][:1] - ends[0][:1])  # (F, N, 2)
+    moved = np.median(np.linalg.norm(shift, axis=-1), axis=1)  # (F,)
+    parallax = float(moved[1:].max(initial=0.0))
+    turned = np.concatenate([[0], np.flatnonzero(moved[1:] >= MIN_PARALLAX) + 1])
+    out = {"depth": float(cards.depths[card]), "fitted": False, "parallax": parallax, "frames": 0,
+           "cost": np.full(len(candidates), np.nan), "candidates": candidates, "frame_cost": None}
+    if len(turned) < 2:
+        return out
+    mesh_cam = worlds[turned] @ rotation.T + translation
     size = int(round(np.sqrt(len(face))))
     occluders = faces[faces.max(axis=1) < cards.n_vertices]  # the mesh's own: a card hides nothing
-    values, seen, pixels = [], [], []
+    values, seen = [], []
     for depth in candidates:
-        moved = cards.at_depths(np.where(np.arange(len(cards.depths)) == card, depth, cards.depths))
-        cam = np.concatenate([mesh_cam, card_positions(worlds, moved.stable, moved.stable_rest, moved.rest)
-                              @ rotation.T + translation], axis=1)
+        cam = np.concatenate([mesh_cam, card_camera(depth, turned)], axis=1)
         good, px = points_seen_well(cam, faces, face, bary, camera, size, normal_sign, settings.min_point_facing,
                                     settings.occlusion, settings.min_relative_facing, occluders)
         sampled = np.empty(good.shape)
-        for f in range(len(grays)):
-            sampled[f], inside = ap.bilinear_sample(grays[f], px[f])
-            good[f] &= inside
+        for k, f in enumerate(turned):
+            sampled[k], inside = ap.bilinear_sample(grays[f], px[k])
+            good[k] &= inside
         values.append(sampled)
         seen.append(good)
-        pixels.append(px)
-    values, seen, pixels = np.stack(values), np.stack(seen), np.stack(pixels)  # (D, F, N[, 2])
+    values, seen = np.stack(values), np.stack(seen)  # (D, 1 + turned frames, N)
     common = seen & seen[:, :1]
     counted = np.flatnonzero((common.mean(axis=2) >= MIN_COMMON).all(axis=0)[1:]) + 1
-    # how far the candidates move the samples of a frame against the neutral frame's
-    shift = (pixels[-1] - pixels[0]) - (pixels[-1, :1] - pixels[0, :1])  # (F, N, 2)
-    moved = np.median(np.linalg.norm(shift, axis=-1), axis=1)  # (F,)
-    # only frames that turn the head against the neutral one tell the depths apart (a still
-    # frame's samples change with none, and its noise would only blur the others')
-    counted = counted[moved[counted] >= MIN_PARALLAX]
-    parallax = float(moved[1:].max(initial=0.0))
-    out = {"depth": float(cards.depths[card]), "fitted": False, "parallax": parallax,
-           "frames": int(len(counted)), "cost": np.full(len(candidates), np.nan), "candidates": candidates,
-           "frame_cost": None}
+    out["frames"] = int(len(counted))
     if not len(counted):
         return out
     frame_cost = np.array([[1.0 - _ncc(values[d, 0, common[d, f]], values[d, f, common[d, f]]) for f in counted]
@@ -101,5 +116,5 @@ def fit_card_depth(cards: HoleCards, card: int, face: np.ndarray, bary: np.ndarr
         curve = left - 2 * mid + right
         if curve > 0:
             depth += 0.5 * (left - right) / curve * (candidates[best + 1] - candidates[best])
-    out.update(depth=float(depth), fitted=True, cost=cost, frame_cost=frame_cost, counted=counted)
+    out.update(depth=float(depth), fitted=True, cost=cost, frame_cost=frame_cost, counted=turned[counted])
     return out
