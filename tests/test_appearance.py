@@ -548,7 +548,8 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
         low, high = shading[on][:, 0].min() / light[t][9], shading[on][:, 0].max() / light[t][9]
         direct = np.clip(np.maximum(sh_basis(normals) @ light[t][:9], 1e-9), low, high)
         np.testing.assert_allclose(shading[on][:, 0], direct * light[t][9], rtol=1e-9)
-        unclipped = (flat > 1e-3) & (flat < 1 - 1e-3) & (got < 1 - 1e-3)
+        # on the layout (beyond it each texture repeats its own nearest island texel: edge padding)
+        unclipped = (flat > 1e-3) & (flat < 1 - 1e-3) & (got < 1 - 1e-3) & (texel_face >= 0)[..., None]
         np.testing.assert_allclose(got[unclipped], (flat * shading)[unclipped], atol=2e-4)
         image = next(im for _, im, _ in read_frames(footage, numbers[t:t + 1]))
         truth, seen = unwrap(image, camera_positions, model.faces, texel_face, texel_bary, model.camera,
@@ -744,6 +745,20 @@ def test_the_neutral_frame_rebuilt_from_its_albedo_is_its_texture(kit):
     assert use.sum() > 0.5 * seen.sum()
     # the regions' alpha ramps blend layer 0 (the same frame) into the neutral albedo: the same values
     np.testing.assert_allclose(rebuilt[use], model.neutral[use], rtol=2e-3, atol=2e-4)
+    # the texels just beyond the UV islands (a bilinear lookup's reach at a border) repeat the
+    # nearest island texel, shaded as the frame; those far beyond are left alone
+    from scipy import ndimage
+
+    from facepipe.pipeline.appearance_texture import EDGE_PADDING
+
+    covered = texels[0] >= 0
+    distance, (ii, jj) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    ring = ~covered & (distance <= 1.5)
+    assert ring.sum() > 0
+    np.testing.assert_array_equal(rebuilt[ring], rebuilt[ii[ring], jj[ring]])
+    far = ~covered & (distance > EDGE_PADDING)
+    unpadded = model.base_texture  # beyond the padding: the albedo's own values (unshaded)
+    np.testing.assert_array_equal(rebuilt[far], unpadded[far])
 
 
 def test_texture_export_refuses_overwrite_resumes_and_writes_exr(kit, tmp_path):

@@ -166,17 +166,54 @@ def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.nd
     region lies) their neutral texture. For a model that holds albedo, that albedo times the
     shading of the frame's surface (V, 3, camera space) under its light (12,) on the skin (as the
     camera saw it); the albedo alone where either is not given. ``texels``: the tile's
-    :func:`texel_map` where already made."""
+    :func:`texel_map` where already made. The texels beyond the UV islands are edge-padded
+    (:func:`_padded`)."""
     tile = model.tile if tile is None else tile
     if tile == model.tile:
         texture = layered_texture.compose_texture(model.base_texture, model.volumes, model.alphas, model.boxes, q)
     else:
         k = model.extra_tiles.index(tile)
         texture = model.tile_albedo[k] if model.albedo else model.tile_neutral[k]
-    if not (model.albedo and camera_positions is not None and light is not None):
+    if model.corner_uv is None:  # (models before UVs were kept: no layout to pad)
         return texture
-    texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0], tile) if texels is None else texels
-    return texture * texel_shading(model, camera_positions, light, texel_face, texel_bary)
+    if texels is None:  # the layout's texel map, made once per tile
+        maps = model.__dict__.setdefault("_texel_maps", {})
+        if tile not in maps:
+            maps[tile] = texel_map(model.corner_uv, model.neutral.shape[0], tile)
+        texels = maps[tile]
+    texel_face, texel_bary = texels
+    if model.albedo and camera_positions is not None and light is not None:
+        texture = texture * texel_shading(model, camera_positions, light, texel_face, texel_bary)
+    return _padded(model, texture, texel_face, tile)
+
+
+#: Texels of edge padding around the UV islands of a frame's texture.
+EDGE_PADDING = 8
+
+
+def _padded(model: AppearanceModel, texture: np.ndarray, texel_face: np.ndarray, tile: int) -> np.ndarray:
+    """``texture`` with the texels outside the UV layout, up to :data:`EDGE_PADDING` from it, given
+    their nearest covered texel's value: a renderer's bilinear lookup (and its mip-maps) at an
+    island's border blends texels beyond it, which would otherwise hold a fill unshaded by the
+    frame (a seam along every island's border wherever the frame's shading is far from 1)."""
+    kept = model.__dict__.setdefault("_edge_padding", {})
+    if tile not in kept:
+        from scipy import ndimage  # lazy: only where textures are made
+
+        covered = texel_face >= 0
+        if covered.any() and not covered.all():
+            distance, nearest = ndimage.distance_transform_edt(~covered, return_indices=True)
+            pad = ~covered & (distance <= EDGE_PADDING)
+            kept[tile] = (np.flatnonzero(pad), np.ravel_multi_index((nearest[0][pad], nearest[1][pad]), covered.shape))
+        else:
+            kept[tile] = (np.zeros(0, dtype=np.int64),) * 2
+    targets, sources = kept[tile]
+    if not len(targets):
+        return texture
+    out = np.array(texture, copy=True)
+    flat = out.reshape(-1, out.shape[-1])
+    flat[targets] = flat[sources]
+    return out
 
 
 def texture_differences(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, image: np.ndarray,
