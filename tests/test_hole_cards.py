@@ -303,6 +303,12 @@ def test_card_depth_kept_where_the_head_never_turns_or_set(tmp_path):
     card = info["cards"]["eyeball"]
     assert not card["depth_fitted"] and card["depth"] == 0.1
     assert any("turn the head too little" in note for note in info["notes"])
+    # turned so far that the card faces away: the frame moves its samples but shows none of them
+    kit = _eye_kit(tmp_path / "away", [0.0, 10.0, 20.0], [5.0], size=96, rest_turns=[(75.0, 0.0)])
+    _, info = _built(kit)
+    card = info["cards"]["eyeball"]
+    assert not card["depth_fitted"] and card["depth"] == 0.1 and card["depth_parallax_px"] > 0.5
+    assert any("show too little of its card" in note for note in info["notes"])
     kit = _eye_kit(tmp_path / "set", [0.0, 10.0, 20.0], [5.0], size=96, rest_turns=HEAD_TURNS,
                    extra_config=["card_depth = 0.3"])
     _, info = _built(kit)

@@ -33,7 +33,7 @@ from facepipe.io.footage import frames_at, open_footage, read_frames_of, to_gray
 from facepipe.parallel import serial_blas
 from facepipe.pipeline.appearance import (OFF_FACE_RATIO, TakeGeometry, check_frame_size, classify_decoded,
                                           read_patches, read_take_geometry, region_bank, sample_patches)
-from facepipe.pipeline.appearance_card_depth import GRID as CARD_DEPTH_GRID, MIN_PARALLAX, fit_card_depth
+from facepipe.pipeline.appearance_card_depth import GRID as CARD_DEPTH_GRID, MIN_COMMON, MIN_PARALLAX, fit_card_depth
 from facepipe.pipeline.appearance_light import frame_light_residuals
 from facepipe.pipeline.appearance_points import (locate_uv, point_facing, point_normals, points_seen_well, surface_points,
                                                  template_points, texel_map, triangle_normals, unwrap,
@@ -174,12 +174,16 @@ def card_depths(cfg, cards, card_of: dict, frames: dict, faces: np.ndarray, corn
         if fit["fitted"]:
             depths[c] = fit["depth"]
             notes.append(f"region {region.name}: its card set back {fit['depth']:.3f} × the opening's width, fitted "
-                         f"over {fit['frames']} example frames at rest (the head's turn moves its samples up to "
+                         f"over {fit['frames']} example frame{'s' if fit['frames'] != 1 else ''} at rest (the head's turn moves its samples up to "
                          f"{fit['parallax']:.1f} px)")
-        else:
+        elif fit["parallax"] < MIN_PARALLAX:
             notes.append(f"region {region.name}: the example frames at rest turn the head too little to fit its card's "
                          f"depth (its samples move {fit['parallax']:.2f} px, under {MIN_PARALLAX:g}): set back "
                          f"{depths[c]:g} × the opening's width; add frames of the neutral face with the head turned")
+        else:
+            notes.append(f"region {region.name}: the example frames at rest that turn the head show too little of its "
+                         f"card (under {MIN_COMMON:.0%} of its template, seen in them and the neutral frame) to fit its "
+                         f"depth: set back {depths[c]:g} × the opening's width; add head-turned frames with the eye open")
     return cards.at_depths(depths), fits
 
 
