@@ -90,11 +90,12 @@ def _light_words(light: dict) -> str:
 def write_cards_obj(path: Path, model) -> Path:
     """The model's cards at rest (their own vertices, triangles and UVs) as an OBJ, atomically:
     the layered textures' card squares map onto it; it moves rigidly with the head."""
+    from facepipe.core.hole_cards import card_triangles
     from facepipe.core.mesh import Mesh
     from facepipe.io.mesh_write import save_obj
 
     V = model.n_vertices
-    on_card = model.faces.min(axis=1) >= V  # the cards' triangles use only the cards' vertices
+    on_card = card_triangles(model.faces, V)
     faces = model.faces[on_card] - V
     corner_uv = np.asarray(model.corner_uv[on_card], dtype=np.float64).reshape(-1, 2)
     mesh = Mesh(np.asarray(model.card_rest, dtype=np.float64), np.arange(len(faces) + 1, dtype=np.int64) * 3,

@@ -20,7 +20,8 @@ import numpy as np
 
 from facepipe.core.rigid import rigid_fit, robust_rigid_fit
 
-__all__ = ["boundary_loops", "HoleCards", "hole_cards", "card_positions", "with_card_vertices", "stable_vertices"]
+__all__ = ["boundary_loops", "HoleCards", "hole_cards", "card_positions", "card_triangles", "with_card_vertices",
+           "stable_vertices"]
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
@@ -96,6 +97,12 @@ class HoleCards:
         if positions.shape[-2] != self.n_vertices:
             raise ValueError(f"positions of {positions.shape[-2]} vertices for a mesh of {self.n_vertices}")
         return with_card_vertices(positions, self.stable, self.stable_rest, self.rest)
+
+
+def card_triangles(faces: np.ndarray, n_vertices: int) -> np.ndarray:
+    """(T,) which triangles of a mesh of ``n_vertices`` with cards appended (their vertices after
+    its, their triangles after its) lie on a card: a card's triangles use only its vertices."""
+    return np.asarray(faces).min(axis=1) >= n_vertices
 
 
 def with_card_vertices(positions: np.ndarray, stable: np.ndarray, stable_rest: np.ndarray,

@@ -73,3 +73,16 @@ def udim_tile_numbers(corner_uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def udim_corner(tile):
     """The UV corner (u₀, v₀) of UDIM tiles (int or array): 1001 is (0, 0), 1002 (1, 0), 1011 (0, 1)."""
     return (tile - 1001) % 10, (tile - 1001) // 10
+
+
+def edge_padding(covered: np.ndarray, padding: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The texels (flat indices) outside ``covered`` (H, W) but within ``padding`` texels of it, the
+    covered texel nearest each (flat indices) and their distances: where edge padding takes its
+    values from (a bilinear lookup or a mip-map at an island's border reaches beyond it)."""
+    from scipy import ndimage  # lazy: only where textures are made
+
+    if not covered.any() or covered.all():
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+    distance, (ni, nj) = ndimage.distance_transform_edt(~covered, return_indices=True)
+    pad = ~covered & (distance <= padding)
+    return np.flatnonzero(pad), (ni * covered.shape[1] + nj)[pad], distance[pad]

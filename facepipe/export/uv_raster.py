@@ -44,10 +44,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.ndimage
 import scipy.sparse as sp
 
-from facepipe.core.raster import triangle_pixels, udim_corner, udim_tile_numbers
+from facepipe.core.raster import edge_padding, triangle_pixels, udim_corner, udim_tile_numbers
 from facepipe.errors import InputError
 import scipy.sparse.linalg as spla
 
@@ -292,16 +291,15 @@ def uv_raster(corner_uv: np.ndarray, corner_slots: np.ndarray, n_slots: int, wid
     owner[texel] = tri
 
     if padding > 0 and texel.shape[0]:
-        dist, (ni, nj) = scipy.ndimage.distance_transform_edt(~covered, return_indices=True)
-        pad = (~covered) & (dist <= padding)
-        pi, pj = np.nonzero(pad)
-        src_tri = owner[ni[pi, pj] * width + nj[pi, pj]]
+        padded, nearest, dist = edge_padding(covered, padding)
+        pi, pj = np.divmod(padded, width)
+        src_tri = owner[nearest]
         q = np.stack([pj, pi], axis=-1).astype(np.float64)
         pad_bary = _closest_point_barycentric(p[src_tri], q)
         src = p[src_tri]
         e1s, e2s = src[:, 1] - src[:, 0], src[:, 2] - src[:, 0]
         linear = _barycentric(src, q, e1s, e2s, e1s[:, 0] * e2s[:, 1] - e1s[:, 1] * e2s[:, 0])
-        near = (dist[pi, pj] <= 1.5) & (linear >= -1.0).all(axis=1)
+        near = (dist <= 1.5) & (linear >= -1.0).all(axis=1)
         pad_bary[near] = linear[near]
         texel = np.concatenate([texel, pi * width + pj])
         tri = np.concatenate([tri, src_tri])

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from facepipe.core.camera import Camera
-from facepipe.core.hole_cards import with_card_vertices
+from facepipe.core.hole_cards import card_triangles, with_card_vertices
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
@@ -171,7 +171,7 @@ class AppearanceModel:
         """The rest mesh's own triangles (T, 3): what can hide a template point. A card stands in
         for an eyeball, which lies behind the skin, so it hides nothing (a closing lid that dips
         behind a card's plane still covers the eye)."""
-        return self.faces[self.faces.max(axis=1) < self.n_vertices]
+        return self.faces[~card_triangles(self.faces, self.n_vertices)]
 
     def with_cards(self, world: np.ndarray) -> np.ndarray:
         """Positions (..., V, 3) of the rest mesh's vertices with the cards' after them."""

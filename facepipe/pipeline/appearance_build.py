@@ -159,7 +159,6 @@ def card_depths(cfg, cards, card_of: dict, frames: dict, faces: np.ndarray, corn
     R = np.asarray(cfg.camera_rotation, dtype=np.float64)
     t = np.asarray(cfg.camera_translation, dtype=np.float64)
     V = cards.n_vertices
-    grays = {n: to_gray(frames[n][0]) for n in numbers}
     depths, fits = cards.depths.copy(), {}
     for r, region in enumerate(cfg.regions):
         if region.name not in card_of:
@@ -168,7 +167,7 @@ def card_depths(cfg, cards, card_of: dict, frames: dict, faces: np.ndarray, corn
         face, bary = _region_template(region, _template_rect(region, cards, card_of), corner_uv, CARD_DEPTH_GRID,
                                       config_path)
         c = card_of[region.name]
-        fit = fit_card_depth(cards, c, face[0], bary[0], np.stack([grays[n] for n in use]),
+        fit = fit_card_depth(cards, c, face[0], bary[0], [frames[n][0] for n in use],
                              np.stack([frames[n][1][:V] for n in use]), camera, R, t, faces, normal_sign, cfg)
         fits[region.name] = fit
         if fit["fitted"]:

@@ -19,8 +19,9 @@ from __future__ import annotations
 import numpy as np
 
 from facepipe.core import appearance as ap
-from facepipe.core.hole_cards import HoleCards, card_positions
+from facepipe.core.hole_cards import HoleCards, card_positions, card_triangles
 from facepipe.core.camera import project_distorted_fast
+from facepipe.io.footage import to_gray
 from facepipe.pipeline.appearance_points import points_seen_well
 
 __all__ = ["DEPTH_CANDIDATES", "MIN_PARALLAX", "MIN_COMMON", "fit_card_depth"]
@@ -44,11 +45,12 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / scale) if scale > 0 else 0.0
 
 
-def fit_card_depth(cards: HoleCards, card: int, face: np.ndarray, bary: np.ndarray, grays: np.ndarray,
+def fit_card_depth(cards: HoleCards, card: int, face: np.ndarray, bary: np.ndarray, images: list,
                    worlds: np.ndarray, camera, rotation: np.ndarray, translation: np.ndarray, faces: np.ndarray,
                    normal_sign: float, settings, candidates: np.ndarray = DEPTH_CANDIDATES) -> dict:
-    """Fit card ``card``'s depth from frames (grays (F, H, W) with the mesh's world positions
-    (F, V, 3), the neutral frame first, the others where its eye is at rest), sampled at points
+    """Fit card ``card``'s depth from frames (``images``, F RGB images, with the mesh's
+    world positions (F, V, 3); the neutral frame first, the others where its eye is at rest; only
+    the frames that turn the head are read), sampled at points
     (face (GRID²,), bary (GRID², 3): fixed barycentric coordinates on ``faces``, the mesh's and
     the cards' triangles) over its template area, seen through ``camera`` at the world → camera
     pose ``rotation``, ``translation``; ``settings`` the [appearance] table (its visibility tests).
@@ -57,9 +59,9 @@ def fit_card_depth(cards: HoleCards, card: int, face: np.ndarray, bary: np.ndarr
     "parallax": the largest shift (pixels) between the candidates' samples in a frame against the
     neutral one, "frames": how many frames were compared, "cost": (D,) 1 − mean correlation per
     candidate (NaN where not fitted), "candidates": (D,); fitted, also "counted": the frames
-    compared (indices into ``grays``) and "frame_cost": (D, counted) each one's}.
+    compared (indices into ``images``) and "frame_cost": (D, counted) each one's}.
     """
-    if (faces[face] < cards.n_vertices).any():
+    if not card_triangles(faces[face], cards.n_vertices).all():
         raise ValueError("the sample points must lie on the cards' triangles")
     candidates = np.asarray(candidates, dtype=np.float64)
     worlds = np.asarray(worlds, dtype=np.float64)
@@ -88,15 +90,16 @@ def fit_card_depth(cards: HoleCards, card: int, face: np.ndarray, bary: np.ndarr
         return out
     mesh_cam = worlds[turned] @ rotation.T + translation
     size = int(round(np.sqrt(len(face))))
-    occluders = faces[faces.max(axis=1) < cards.n_vertices]  # the mesh's own: a card hides nothing
+    occluders = faces[~card_triangles(faces, cards.n_vertices)]  # the mesh's own: a card hides nothing
+    grays = [to_gray(images[f]) for f in turned]
     values, seen = [], []
     for depth in candidates:
         cam = np.concatenate([mesh_cam, card_camera(depth, turned)], axis=1)
         good, px = points_seen_well(cam, faces, face, bary, camera, size, normal_sign, settings.min_point_facing,
                                     settings.occlusion, settings.min_relative_facing, occluders)
         sampled = np.empty(good.shape)
-        for k, f in enumerate(turned):
-            sampled[k], inside = ap.bilinear_sample(grays[f], px[k])
+        for k, gray in enumerate(grays):
+            sampled[k], inside = ap.bilinear_sample(gray, px[k])
             good[k] &= inside
         values.append(sampled)
         seen.append(good)

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from facepipe.core import layered_texture, lighting
+from facepipe.core.hole_cards import card_triangles
+from facepipe.core.raster import edge_padding
 from facepipe.core.tangent_frames import vertex_normals
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.pipeline.appearance_light import frame_light
@@ -93,7 +95,7 @@ def _texel_facing(model: AppearanceModel, camera_positions: np.ndarray, texel_fa
 
 def skin_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
     """(S, S) the texels on the rest mesh's triangles (not on a card, not outside the UV layout)."""
-    on_card = model.faces.min(axis=1) >= model.n_vertices  # a card's triangles use only its vertices
+    on_card = card_triangles(model.faces, model.n_vertices)
     return (texel_face >= 0) & ~on_card[np.maximum(texel_face, 0)]
 
 
@@ -198,15 +200,7 @@ def _padded(model: AppearanceModel, texture: np.ndarray, texel_face: np.ndarray,
     frame (a seam along every island's border wherever the frame's shading is far from 1)."""
     kept = model.__dict__.setdefault("_edge_padding", {})
     if tile not in kept:
-        from scipy import ndimage  # lazy: only where textures are made
-
-        covered = texel_face >= 0
-        if covered.any() and not covered.all():
-            distance, nearest = ndimage.distance_transform_edt(~covered, return_indices=True)
-            pad = ~covered & (distance <= EDGE_PADDING)
-            kept[tile] = (np.flatnonzero(pad), np.ravel_multi_index((nearest[0][pad], nearest[1][pad]), covered.shape))
-        else:
-            kept[tile] = (np.zeros(0, dtype=np.int64),) * 2
+        kept[tile] = edge_padding(texel_face >= 0, EDGE_PADDING)[:2]
     targets, sources = kept[tile]
     if not len(targets):
         return texture
