@@ -214,7 +214,9 @@ def texture_ratio(model, mesh, out: Path, take: str, positions: np.ndarray, numb
     and with the truth activation as Q (what the layered texture itself reaches). The
     reconstruction is the frame's texture as facepipe exports it: the layered albedo shaded by the
     frame's geometry under the light classification fitted to the frame (``light``: (T, 9), or None
-    for a model that holds the footage's values)."""
+    for a model that holds the footage's values). Also each region's RMS difference itself
+    (``texture_rms_per_region``, intensities 0–1, at the classified Q): under another light than
+    the examples' the neutral texture is off everywhere and the ratio flatters every region."""
     texel_face, texel_bary = texel_map(model.corner_uv, model.neutral.shape[0], model.tile)  # the cards' squares too
     sums = np.zeros((2, len(model.names), 3))
     active = np.zeros((2, len(model.names), 3))  # each region's sums over the frames it is active in
@@ -236,6 +238,7 @@ def texture_ratio(model, mesh, out: Path, take: str, positions: np.ndarray, numb
             "texture_rms_ratio": float(np.sqrt(sums[0, :, 0].sum() / sums[0, :, 1].sum())),
             "texture_rms_ratio_at_truth_q": float(np.sqrt(sums[1, :, 0].sum() / sums[1, :, 1].sum())),
             "texture_rms_ratio_per_region": dict(zip(model.names, np.sqrt(sums[0, :, 0] / sums[0, :, 1]).tolist())),
+            "texture_rms_per_region": dict(zip(model.names, np.sqrt(sums[0, :, 0] / np.maximum(sums[0, :, 2], 1)).tolist())),
             "texture_rms_ratio_at_truth_q_per_region": dict(zip(model.names,
                                                                 np.sqrt(sums[1, :, 0] / sums[1, :, 1]).tolist()))}
 
@@ -304,8 +307,8 @@ def main() -> None:
                         "visible_fraction": float(c.visible.mean()), "footage_check": footage_check(c, model)}
         if take == "take":
             result[take].update(throughput(model, out, take, positions, numbers))
-            q_truth = act * (np.asarray(model.layer_counts) - 1)  # the examples: activation 0 … 1 over the layers
-            result[take].update(texture_ratio(model, mesh, out, take, positions, numbers, q, q_truth, c.light))
+        q_truth = act * (np.asarray(model.layer_counts) - 1)  # the examples: activation 0 … 1 over the layers
+        result[take].update(texture_ratio(model, mesh, out, take, positions, numbers, q, q_truth, c.light))
         r = result[take]
         print(take, "spearman", " ".join(f"{n} {v:.3f}" for n, v in r["spearman"].items()))
         print(take, "pearson ", " ".join(f"{n} {v:.3f}" for n, v in r["pearson"].items()))
@@ -316,6 +319,8 @@ def main() -> None:
         if r["eyeballs_lid_open"]:
             print(take, "lid open", " ".join(f"{n} {v['spearman']:.3f} ({v['frames']} frames)"
                                              for n, v in r["eyeballs_lid_open"].items()))
+        print(take, "texture RMS", " ".join(f"{n} {v:.3f}" for n, v in r["texture_rms_per_region"].items()),
+              f"(ratio to the neutral texture's {r['texture_rms_ratio']:.3f})")
         print(take, f"{r['frames_per_second_with_reading']:.1f} frames/s with reading",
               f"visible {r['visible_fraction']:.3f}", _check_words(r["footage_check"]))
     # the head-turned footage with the frontal take's geometry: what the footage check says of a wrong take

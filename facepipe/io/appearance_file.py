@@ -60,6 +60,9 @@ class AppearanceModel:
     card_rest (N, 3), card_stable (K,), card_stable_rest (K, 3) : cards across holes
     (:mod:`facepipe.core.hole_cards`): vertex V + i of ``faces`` is ``card_rest[i]`` moved by the
     rigid motion of the rest mesh's vertices ``card_stable`` from ``card_stable_rest`` (None: no cards);
+    cards_shaded : whether the cards' texels, with ``neutral_albedo``, hold albedo too (divided by
+    the shading of the card's plane) and a frame's light shades them as the skin (False in models
+    before it: they keep the footage's values);
     neutral : (S, S, 3) texture, as the neutral frame shows it; volumes : per region (n, h, w, 3);
     alphas : per region (h, w); boxes : (R, 2) top-left texel of each volume;
     neutral_albedo : (S, S, 3) the neutral texture with its frame's shading divided out, and then
@@ -140,6 +143,7 @@ class AppearanceModel:
     rest_tolerance: float = 0.0
     rest_noise: float = 0.0
     template_patches: list | None = None  # (models written before them: None)
+    cards_shaded: bool = False  # (models written before it: the cards' texels as the footage showed them)
 
     @property
     def extra_tiles(self) -> list:
@@ -226,7 +230,8 @@ def save_appearance(path, model) -> None:
     if model.shading_orders is not None:
         arrays["shading_orders"] = np.asarray(model.shading_orders, dtype=np.int64)
     if model.card_rest is not None:
-        arrays.update(card_rest=model.card_rest, card_stable=model.card_stable, card_stable_rest=model.card_stable_rest)
+        arrays.update(card_rest=model.card_rest, card_stable=model.card_stable, card_stable_rest=model.card_stable_rest,
+                      cards_shaded=np.array(bool(model.cards_shaded)))
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     if model.neutral_albedo is not None:
@@ -283,7 +288,8 @@ def load_appearance(path):
                                [d.get(f"rest_nuisance_{r}") for r in range(n)], d.get("rest_readings"),
                                d.get("rest_off_path"), float(d["rest_tolerance"]) if "rest_tolerance" in d else 0.0,
                                float(d["rest_noise"]) if "rest_noise" in d else 0.0,
-                               [d[f"template_patches_{r}"] for r in range(n)] if "template_patches_0" in d else None)
+                               [d[f"template_patches_{r}"] for r in range(n)] if "template_patches_0" in d else None,
+                               bool(d["cards_shaded"]) if "cards_shaded" in d else False)
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 

@@ -18,7 +18,8 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.pipeline.appearance_light import frame_light
 from facepipe.pipeline.appearance_points import point_facing, point_normals, surface_points, texel_map, unwrap
 
-__all__ = ["frame_texture", "texel_shading", "skin_texels", "to_albedo", "texture_differences"]
+__all__ = ["frame_texture", "texel_shading", "skin_texels", "card_texels", "shaded_texels", "to_albedo",
+           "texture_differences"]
 
 
 def _neutral_albedo(model: AppearanceModel, texture: np.ndarray, seen: np.ndarray, texels, neutral_cam: np.ndarray,
@@ -53,15 +54,19 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     Each example frame's light is fitted as a classified frame's is (:func:`frame_light`). A
     layer's texels that its own frame does not show hold the neutral albedo; texels the neutral
     frame does not show are filled (:func:`facepipe.core.layered_texture.fill_unseen`) from those it
-    sees better than ``min_point_facing``. The cards' texels (an eye behind its opening) keep
-    their values: a card's plane is not the surface the footage shows there. ``tiles``: the
+    sees better than ``min_point_facing``. A card's texels (an eye behind its opening) are divided
+    by the shading of the card's plane, seen or not: its plane is not the eyeball's surface, but
+    it faces where the eyeball's visible front does, so a frame's light brightens or darkens the
+    eye as it does the skin around it (the classification divides a card's samples by the same
+    shading); unseen texels keep their fill, scaled alike. ``tiles``: the
     layout's other UDIM tiles (:func:`_tile_neutral` of each), whose neutral texture becomes
     ``tile_albedo`` the same way."""
     texel_face, texel_bary = texels
     used = sorted({cfg.neutral_frame} | {f for region in cfg.regions for f in region.frames})
     # a frame at a time: the frames' positions together would be the examples' count times the mesh
     lights = {f: frame_light(frames[f][0], cam_pos[f], model) for f in used}
-    skin = skin_texels(model, texel_face)
+    model.cards_shaded = True
+    skin, card = skin_texels(model, texel_face), card_texels(model, texel_face)
     neutral_cam, neutral_light = cam_pos[cfg.neutral_frame], lights[cfg.neutral_frame]
     albedo = _neutral_albedo(model, model.neutral, neutral_seen, texels, neutral_cam, neutral_light, cfg)
     if tiles:
@@ -76,7 +81,8 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
             own = texel_shading(model, cam_pos[f], lights[f], texel_face, texel_bary, rows, cols)
             layer = np.where((layer_seen[r][k] & skin[rows, cols])[..., None], model.volumes[r][k] / own,
                              albedo[rows, cols])
-            layers.append(np.where(skin[rows, cols][..., None], layer, model.volumes[r][k]))
+            layer = np.where(card[rows, cols][..., None], model.volumes[r][k] / own, layer)
+            layers.append(np.where((skin | card)[rows, cols][..., None], layer, model.volumes[r][k]))
         volumes.append(np.stack(layers).astype(np.float32))
     model.neutral_albedo, model.volumes = albedo.astype(np.float32), volumes
 
@@ -99,12 +105,26 @@ def skin_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
     return (texel_face >= 0) & ~on_card[np.maximum(texel_face, 0)]
 
 
+def card_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
+    """(S, S) the texels on the cards' triangles (an eye behind its opening)."""
+    on_card = card_triangles(model.faces, model.n_vertices)
+    return (texel_face >= 0) & on_card[np.maximum(texel_face, 0)]
+
+
+def shaded_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
+    """(S, S) the texels a frame's light shades: the skin's, and the cards' where the model's layers
+    hold their albedo (``cards_shaded``; models built before it keep the cards as the footage
+    showed them)."""
+    on = skin_texels(model, texel_face)
+    return on | card_texels(model, texel_face) if model.cards_shaded else on
+
+
 def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, texel_face: np.ndarray,
                   texel_bary: np.ndarray, rows=slice(None), cols=slice(None)) -> np.ndarray:
     """(h, w, 3) the shading of the texels [rows, cols] on one frame's surface (V, 3), camera
     space, under its light (12,): the grey light's (:func:`facepipe.core.lighting.light_shading`
     of its first nine values) times its colour (the last three; white for a light of nine); 1
-    off the skin.
+    where the light shades nothing (:func:`shaded_texels`).
 
     Kept within the shading of the light points the frame's light was fitted on (those facing the
     camera): a normal the fit never saw (the face's rim, turned away) would get the nine terms'
@@ -124,19 +144,20 @@ def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: n
 
 
 def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, key=None):
-    """The skin texels (h, w) of a texel map and the sparse matrix (N, V) that interpolates vertex
-    values at them (their barycentric weights): a frame's texel normals are one sparse product.
-    With ``key`` (the whole texel map: one per UDIM tile) the pair is kept on the model for the
-    next frame."""
+    """The shaded texels (h, w) of a texel map (:func:`shaded_texels`) and the sparse matrix (N, V)
+    that interpolates vertex values at them (their barycentric weights): a frame's texel normals are
+    one sparse product. With ``key`` (the whole texel map: one per UDIM tile) the pair is kept on
+    the model for the next frame."""
     kept = getattr(model, "_texel_interpolations", None)
     if kept is None:
         kept = model._texel_interpolations = {}
-    cached = kept.get(id(key)) if key is not None else None
+    slot = (id(key), bool(model.cards_shaded))  # the build turns the cards' shading on
+    cached = kept.get(slot) if key is not None else None
     if cached is not None and cached[0] is key:
         return cached[1], cached[2]
     import scipy.sparse as sp
 
-    on = skin_texels(model, texel_face)
+    on = shaded_texels(model, texel_face)
     face, bary = texel_face[on], texel_bary[on]
     n = len(face)
     matrix = sp.csr_matrix((np.asarray(bary, dtype=np.float64).ravel(), (np.repeat(np.arange(n), 3),
@@ -144,7 +165,7 @@ def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_b
     if key is not None:
         if len(kept) >= 16:  # a texel map per UDIM tile: a head has a few
             kept.clear()
-        kept[id(key)] = (key, on, matrix)
+        kept[slot] = (key, on, matrix)
     return on, matrix
 
 
