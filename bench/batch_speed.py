@@ -62,13 +62,15 @@ def write_takes(take_csv: Path, out_dir: Path, count: int, frames: int | None = 
 def one_process(takes: list[Path], model_path: Path, out: Path, backend: str) -> None:
     """Replay every take in this process, loading the model and building the evaluator once."""
     from facepipe.io.model_file import load_model
-    from facepipe.batch.jobs import ReplayOptions, make_evaluator, replay_into
+    from facepipe.batch.jobs import ModelRef, ReplayOptions, file_digest, replay_into
 
     options = ReplayOptions(backend=backend)
     model = load_model(model_path)
-    evaluator, _ = make_evaluator(model, options.backend, options.device, options.chunk)
+    # the evaluator is this process's for the model (made for the first take, reused by the rest),
+    # as each batch worker holds one
+    ref = ModelRef(str(Path(model_path).resolve()), file_digest(model_path))
     for take in takes:
-        replay_into(str(take), out / take.stem, model, evaluator, options, {})
+        replay_into(str(take), out / take.stem, model, ref, options, {"batch": {}})
 
 
 def _usage() -> tuple[float, int]:

@@ -124,6 +124,17 @@ def _same_as_serial(root: Path, out: Path, take: Path) -> bool:
 # ----------------------------------------------------------------------------- without a cluster
 
 
+def test_the_benchs_one_process_reference_replays_as_serially(takes, tmp_path):
+    """bench.batch_speed's "one process" run (every take in one process, one evaluator, as a
+    worker holds it) gives each take's positions as ``facepipe replay`` does, to the byte."""
+    from bench.batch_speed import one_process
+
+    root, model, paths = takes
+    one_process(paths[:2], model, tmp_path, "numpy")
+    for take in paths[:2]:
+        assert _same_as_serial(root, tmp_path, take)
+
+
 def test_takes_from_files_folders_and_patterns(tmp_path):
     for name in ("a.csv", "b.c3d", "notes.md"):
         (tmp_path / name).write_text("x")
