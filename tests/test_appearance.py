@@ -1003,6 +1003,14 @@ def test_template_samples_in_a_model_file(kit, tmp_path, capsys):
                               template_patches_0=broken)
 
 
+def test_a_broken_cards_shaded_flag_is_refused(kit, tmp_path, capsys):
+    """A model file whose cards_shaded flag is not a true/false, or is set on a model without
+    cards (the sample's), is refused by name: exit 2, no stream written."""
+    data = dict(np.load(kit / "app.npz"))
+    for broken in (np.array([1, 0]), np.array(True)):
+        _assert_model_refused(kit, tmp_path, capsys, data, cards_shaded=broken)
+
+
 def test_light_model_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     """The model keeps the light it was built under (an ambient term and a point light by default,
     the nine terms when the config asks); both follow the take; models before the choice read the

@@ -307,6 +307,17 @@ def test_a_frames_light_shades_the_card_as_it_shades_the_skin(tmp_path):
     np.savez(kit / "old.npz", **arrays)
     old = load_appearance(kit / "old.npz")
     assert not old.cards_shaded
+    # a broken flag is refused, naming it (the CLI exits 2 with the message)
+    from facepipe.errors import InputError
+
+    for broken in (np.array([1, 0]), np.array(5)):
+        np.savez(kit / "broken.npz", **arrays, cards_shaded=broken)
+        with pytest.raises(InputError, match="cards_shaded"):
+            load_appearance(kit / "broken.npz")
+    no_albedo = {k: v for k, v in arrays.items() if k != "neutral_albedo"}
+    np.savez(kit / "broken.npz", **no_albedo, cards_shaded=np.array(True))
+    with pytest.raises(InputError, match="cards_shaded"):
+        load_appearance(kit / "broken.npz")
     cam = old.to_camera(positions[0])
     np.testing.assert_array_equal(frame_texture(old, c.q[0], cam, c.light[0], texels)[card],
                                   frame_texture(old, c.q[0], None, None, texels)[card])

@@ -256,6 +256,16 @@ def save_appearance(path, model) -> None:
             np.savez_compressed(fh, **arrays)
 
 
+def _flag(d: dict, name: str) -> bool:
+    """A stored true/false (False where absent: models written before it)."""
+    if name not in d:
+        return False
+    value = np.asarray(d[name])
+    if value.shape != () or value.item() not in (0, 1):
+        raise ValueError(f"{name} {value.tolist()!r} is not true or false")
+    return bool(value.item())
+
+
 def load_appearance(path):
     """Read a model written by :func:`save_appearance`."""
     path = Path(path)
@@ -289,7 +299,7 @@ def load_appearance(path):
                                d.get("rest_off_path"), float(d["rest_tolerance"]) if "rest_tolerance" in d else 0.0,
                                float(d["rest_noise"]) if "rest_noise" in d else 0.0,
                                [d[f"template_patches_{r}"] for r in range(n)] if "template_patches_0" in d else None,
-                               bool(d["cards_shaded"]) if "cards_shaded" in d else False)
+                               _flag(d, "cards_shaded"))
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
@@ -324,6 +334,8 @@ def load_appearance(path):
             if patches.shape != (len(model.templates[r]), points) or not np.isfinite(patches).all():
                 raise ValueError(f"template_patches_{r} (region {name}): not finite rows of {points} texels, one "
                                  f"per template ({len(model.templates[r])})")
+        if model.cards_shaded and (model.card_rest is None or model.neutral_albedo is None):
+            raise ValueError("cards_shaded is set, but the model has no cards or holds no albedo")
         tiles = len(model.extra_tiles)
         if tiles and not (model.tile_neutral is not None and len(model.tile_neutral) == tiles
                           and (model.tile_albedo is None) == (model.neutral_albedo is None)

@@ -79,10 +79,10 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
         layers = []
         for k, f in enumerate(region.frames):
             own = texel_shading(model, cam_pos[f], lights[f], texel_face, texel_bary, rows, cols)
-            layer = np.where((layer_seen[r][k] & skin[rows, cols])[..., None], model.volumes[r][k] / own,
-                             albedo[rows, cols])
-            layer = np.where(card[rows, cols][..., None], model.volumes[r][k] / own, layer)
-            layers.append(np.where((skin | card)[rows, cols][..., None], layer, model.volumes[r][k]))
+            # divided by its own shading: the skin its frame shows, and the card, seen or not
+            divided = card[rows, cols] | (layer_seen[r][k] & skin[rows, cols])
+            layers.append(np.where(divided[..., None], model.volumes[r][k] / own,
+                                   np.where(skin[rows, cols][..., None], albedo[rows, cols], model.volumes[r][k])))
         volumes.append(np.stack(layers).astype(np.float32))
     model.neutral_albedo, model.volumes = albedo.astype(np.float32), volumes
 
@@ -115,8 +115,7 @@ def shaded_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
     """(S, S) the texels a frame's light shades: the skin's, and the cards' where the model's layers
     hold their albedo (``cards_shaded``; models built before it keep the cards as the footage
     showed them)."""
-    on = skin_texels(model, texel_face)
-    return on | card_texels(model, texel_face) if model.cards_shaded else on
+    return texel_face >= 0 if model.cards_shaded else skin_texels(model, texel_face)
 
 
 def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, texel_face: np.ndarray,
