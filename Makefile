@@ -40,6 +40,8 @@ test-fast: venv
 # rendered ICT footage (bench/appearance_ict.json, a few minutes, where the kit is beside the checkout)
 bench: venv
 	$(BIN)/python -m bench.paper_scale -o bench/results.json --vertices 530000 --markers 89 --examples 6 --frames 128 --bake-repeats 5
+	@# where the fused kernel's stages spend their time: the stage table for builds with one part taken out
+	$(BIN)/python -m bench.kernel_variants --work bench/work --json bench/kernel_variants.json
 	$(BIN)/python -m bench.point_caches_speed --frames 128 --json bench/point_caches_speed.json
 	@# the host's share of a marker replay: cleaning and the novelty gate's fits, ms a frame (ICT takes where the kit is here)
 	$(BIN)/python -m bench.host_stages --json bench/host_stages.json

@@ -470,6 +470,20 @@ def test_driver_that_cannot_compile_for_this_cpu_is_unavailable(monkeypatch):
         opencl.device.build_program(context, {"FOR_THIS_TEST": 1})
 
 
+def test_a_changed_kernel_source_is_compiled_again(monkeypatch):
+    """The program cache keys on the source text: a kernel changed in the same process (a
+    benchmark's variant) is built from the new text, while the same text is built once."""
+    _device_or_skip()
+    context, _ = opencl.device.open_device(None)
+    texts = iter(["__kernel void k(__global float *x) { x[0] = 1.0f; }",
+                  "__kernel void k(__global float *x) { x[0] = 1.0f; }",
+                  "__kernel void k(__global float *x) { x[0] = 2.0f; }"])
+    monkeypatch.setattr(opencl.device, "kernel_source", lambda name="replay.cl": next(texts))
+    first = opencl.device.build_program(context, {"FOR_THIS_TEST": 2})
+    assert opencl.device.build_program(context, {"FOR_THIS_TEST": 2}) is first
+    assert opencl.device.build_program(context, {"FOR_THIS_TEST": 2}) is not first
+
+
 def test_cli_bad_device_is_input_error(baked, capsys):
     _device_or_skip()
     d = baked

@@ -172,15 +172,20 @@ def kernel_source(name: str = "replay.cl") -> str:
 
 
 def build_program(context, defines: dict, name: str = "replay.cl"):
-    """Compile a kernel file with ``-D`` constants, once per (context, constants) per process."""
+    """Compile a kernel file with ``-D`` constants, once per (context, source, constants) per process.
+
+    The key holds the source text itself, not only the file's name: a source changed in the same
+    process (an edited kernel, a benchmark's variant of it) is compiled, not served the program
+    built from the old text."""
     cl = _cl()
     options = tuple(f"-D{k}={v}" for k, v in sorted(defines.items())) + ("-cl-mad-enable",)
-    key = (context.int_ptr, name, options)
+    source = kernel_source(name)
+    key = (context.int_ptr, name, source, options)
     with _lock:
         program = _programs.get(key)
         if program is None:
             try:
-                program = cl.Program(context, kernel_source(name)).build(options=list(options))
+                program = cl.Program(context, source).build(options=list(options))
             except cl.RuntimeError:
                 device = context.devices[0]
                 if compiles(device):
