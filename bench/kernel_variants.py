@@ -42,6 +42,20 @@ _FEATURES = ("        const vfloat f = VLOAD(features + e * C + c0);\n        co
 #: every vertex's edge loop run to K (the padding's weights are 0)
 _TRIPS = ("    const int count = edge_count[v];", "    const int count = K;")
 
+#: the frames' gathers: each fan neighbour's position made from its index instead of loaded, and
+#: not prefetched (the cross products, sums and normalisations stay)
+_FAN_LOADS = ("""        __global const float *pb = fan_row(pos, C, c0, j);
+        const vfloat bx = VLOAD(pb) - px, by = VLOAD(pb + C) - py, bz = VLOAD(pb + 2 * C) - pz;""",
+              """        const vfloat nb = (vfloat)((float)j);
+        const vfloat bx = nb - px, by = nb + 1.0f - py, bz = nb + 2.0f - pz;""")
+_PREFETCH = ("#if PREFETCH\n    if (w >= V)", "#if 0\n    if (w >= V)")
+
+#: the frames' two normalisations without their square root and division (the products stay)
+_NORMALISE = ("""    const vfloat len = VSQRT(*x * *x + *y * *y + *z * *z);
+    const vfloat inv = 1.0f / SELECT((vfloat)(1.0f), len, len > 1e-30f);""",
+              """    const vfloat len = *x * *x + *y * *y + *z * *z;
+    const vfloat inv = SELECT((vfloat)(1.0f), len, len > 1e-30f);""")
+
 VARIANTS: dict[str, tuple] = {
     "as built": (),
     "without the output's stores": (_STORES,),
@@ -52,6 +66,9 @@ VARIANTS: dict[str, tuple] = {
     "edge loop run to K": (_TRIPS,),
     "without the near-pose test and square roots": (_NEAR, _SQRT),
     "without the near-pose test, square roots and stores": (_NEAR, _SQRT, _STORES),
+    "without the fans' neighbour loads": (_FAN_LOADS, _PREFETCH),
+    "without the fans' neighbour loads and the stores": (_FAN_LOADS, _PREFETCH, _STORES),
+    "without the normalisations' roots and divisions": (_NORMALISE,),
 }
 
 
