@@ -157,6 +157,10 @@ def main(work, variants, rounds, repeats, device, json_path, quiet):
 
     say = (lambda text: None) if quiet else click.echo
     labels = list(variants) or list(VARIANTS)
+    missing = [name for name in ("model.npz", "rig/take_truth.npz") if not (Path(work) / name).is_file()]
+    if missing:
+        raise click.UsageError(f"{work} has no {' or '.join(missing)}: build the bench's model and take first "
+                               f"(python -m bench.paper_scale --work {work}, as make bench does)")
     result = run_variants(Path(work), labels, rounds=rounds, repeats=repeats, device=device, log=say)
     say("busy clock, ms a frame (least over the rounds); the fine scale ÷ its FMA limit:")
     for label, entry in result["variants"].items():

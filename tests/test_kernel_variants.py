@@ -46,3 +46,13 @@ def test_a_variant_is_compiled_from_its_own_text(tmp_path, monkeypatch):
     out[:] = np.nan
     opencl.OpenCLEvaluator(model, chunk=8).evaluate(head, out=out)
     assert not np.isfinite(out).any() or not np.allclose(out, reference, atol=1e-4 * float(np.ptp(reference)))
+
+
+def test_a_work_folder_without_the_benchs_model_is_refused_by_name(tmp_path):
+    from click.testing import CliRunner
+
+    from bench.kernel_variants import main
+
+    result = CliRunner().invoke(main, ["--work", str(tmp_path)])
+    assert result.exit_code == 2
+    assert "no model.npz or rig/take_truth.npz" in result.output and "bench.paper_scale" in result.output
