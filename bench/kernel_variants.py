@@ -73,7 +73,7 @@ VARIANTS: dict[str, tuple] = {
 
 
 def variant_source(source: str, replacements: tuple, label: str = "") -> str:
-    """``source`` with each (old, new) replaced once; an ``old`` not in it is an error naming it."""
+    """``source`` with each (old, new) replaced; an ``old`` not in it exactly once is an error naming the variant."""
     for old, new in replacements:
         if source.count(old) != 1:
             raise ValueError(f"kernel variant {label!r}: {old.strip()!r} is in the kernel "
@@ -120,8 +120,9 @@ def run_variants(work_dir: Path, labels: list[str], rounds: int = 2, repeats: in
                     + f" ms ({time.perf_counter() - t0:.0f} s)")
     finally:
         opencl_device.kernel_source = shipped
-    for entry in best.values():
-        entry["fine_scale_ratio_to_limit"] = entry["busy"]["fine_scale"] / limit["ms_per_frame"]
+    for entry in best.values():  # (a model without details has no fine scale to hold to a limit)
+        entry["fine_scale_ratio_to_limit"] = (entry["busy"]["fine_scale"] / limit["ms_per_frame"]
+                                              if limit["ms_per_frame"] > 0 else None)
     return {"fine_scale_limit": limit, "variants": best}
 
 
@@ -166,7 +167,7 @@ def main(work, variants, rounds, repeats, device, json_path, quiet):
     for label, entry in result["variants"].items():
         say(f"  {label:52s} " + " ".join(f"{s} {entry['busy'][s]:.3f}"
                                          for s in ("frames", "fine_scale", "output", "fused_kernel"))
-            + f"  ({entry['fine_scale_ratio_to_limit']:.2f})")
+            + (f"  ({entry['fine_scale_ratio_to_limit']:.2f})" if entry["fine_scale_ratio_to_limit"] else ""))
     if json_path:
         with atomic_path(Path(json_path)) as tmp:
             tmp.write_text(json.dumps({"rounds": rounds, "repeats": repeats, **result}, indent=2))
