@@ -513,10 +513,18 @@ def _json_value(o):
 def main(output, vertices, frames, repeats, bake_repeats, work, markers, examples, chunk, device, kit, exr_resolution,
          quiet):
     """Measure bake and replay speed on a generated rig; write the figures as JSON."""
+    from facepipe.errors import InputError
+    from facepipe.opencl.device import select_device
+
     say = (lambda text: None) if quiet else click.echo
-    results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, chunk=chunk,
-                        n_markers=markers, n_examples=examples, device=device, bake_repeats=bake_repeats,
-                        use_kit=kit, exr_resolution=exr_resolution, log=say)
+    try:
+        if device is not None:  # before the bake: a device that is not there is said at once, not minutes later
+            select_device(device)
+        results = run_bench(Path(work), n_vertices=vertices, n_frames=frames, repeats=repeats, chunk=chunk,
+                            n_markers=markers, n_examples=examples, device=device, bake_repeats=bake_repeats,
+                            use_kit=kit, exr_resolution=exr_resolution, log=say)
+    except InputError as e:
+        raise click.UsageError(str(e)) from None
     with atomic_path(Path(output)) as tmp:
         tmp.write_text(json.dumps(results, indent=2, default=_json_value))
     say(f"wrote {output}")

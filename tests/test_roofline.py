@@ -61,3 +61,19 @@ def test_fma_kernel_runs_every_iteration(width):
     x0 = np.arange(items)[:, None] + np.arange(_CHAINS)[None, :]
     xn = x0 * a ** n + b * (1 - a ** n) / (1 - a)
     assert np.allclose(got, 2 * xn.sum(axis=1), rtol=1e-4)
+
+
+def test_the_bench_refuses_a_device_that_is_not_there_before_it_bakes(tmp_path):
+    """`python -m bench.paper_scale --device X` names the devices it found and exits 2 at once,
+    not after the bake (minutes at the paper's scale)."""
+    from click.testing import CliRunner
+
+    from bench.paper_scale import main
+
+    if not opencl.opencl_available():
+        pytest.skip("no OpenCL device that compiles kernels")
+    result = CliRunner().invoke(main, ["--work", str(tmp_path / "work"), "--device", "no-such-device-xyz",
+                                       "-o", str(tmp_path / "r.json")])
+    assert result.exit_code == 2
+    assert "matches no OpenCL device" in result.output and "found:" in result.output
+    assert not (tmp_path / "work").exists() and not (tmp_path / "r.json").exists()
