@@ -154,7 +154,9 @@ def _fine_scale_limit(model, device) -> dict:
 @click.option("--quiet", "-q", is_flag=True)
 def main(work, variants, rounds, repeats, device, json_path, quiet):
     """Time the replay kernel's stages with parts of the kernel taken out."""
+    from facepipe.errors import InputError
     from facepipe.io.atomic import atomic_path
+    from facepipe.opencl.device import select_device
 
     say = (lambda text: None) if quiet else click.echo
     labels = list(variants) or list(VARIANTS)
@@ -162,7 +164,12 @@ def main(work, variants, rounds, repeats, device, json_path, quiet):
     if missing:
         raise click.UsageError(f"{work} has no {' or '.join(missing)}: build the bench's model and take first "
                                f"(python -m bench.paper_scale --work {work}, as make bench does)")
-    result = run_variants(Path(work), labels, rounds=rounds, repeats=repeats, device=device, log=say)
+    try:
+        if device is not None:  # before the 530k model is read
+            select_device(device)
+        result = run_variants(Path(work), labels, rounds=rounds, repeats=repeats, device=device, log=say)
+    except InputError as e:  # a device that is not there, a model file that is not one
+        raise click.UsageError(str(e)) from None
     say("busy clock, ms a frame (least over the rounds); the fine scale ÷ its FMA limit:")
     for label, entry in result["variants"].items():
         say(f"  {label:52s} " + " ".join(f"{s} {entry['busy'][s]:.3f}"

@@ -56,3 +56,19 @@ def test_a_work_folder_without_the_benchs_model_is_refused_by_name(tmp_path):
     result = CliRunner().invoke(main, ["--work", str(tmp_path)])
     assert result.exit_code == 2
     assert "no model.npz or rig/take_truth.npz" in result.output and "bench.paper_scale" in result.output
+
+
+def test_a_device_that_is_not_there_and_a_model_that_is_not_one_are_refused_by_name(tmp_path):
+    from click.testing import CliRunner
+
+    from bench.kernel_variants import main
+
+    if not opencl.opencl_available():
+        pytest.skip("no OpenCL device that compiles kernels")
+    (tmp_path / "rig").mkdir()
+    (tmp_path / "model.npz").write_bytes(b"")
+    (tmp_path / "rig" / "take_truth.npz").write_bytes(b"")
+    result = CliRunner().invoke(main, ["--work", str(tmp_path), "--device", "no-such-device-xyz"])
+    assert result.exit_code == 2 and "matches no OpenCL device" in result.output
+    result = CliRunner().invoke(main, ["--work", str(tmp_path)])
+    assert result.exit_code == 2 and "model.npz" in result.output and "it is empty" in result.output
