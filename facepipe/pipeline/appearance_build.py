@@ -363,7 +363,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             tile=home, shading_orders=np.asarray(orders, dtype=np.int64), template_patches=template_patches,
                             peak_interpolation=cfg.peak_interpolation, min_event=cfg.min_event,
                             light_model=cfg.light_model if light is not None else "sh9",
-                            light_point_albedo=None if light is None else light["point_albedo"])
+                            light_point_albedo=None if light is None else light["point_albedo"],
+                            # the cards' texels become albedo with the skin's (to_albedo), shaded alike
+                            cards_shaded=light is not None and cards is not None)
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     numbers = sorted(frames)

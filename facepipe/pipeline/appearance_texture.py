@@ -55,7 +55,8 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     layer's texels that its own frame does not show hold the neutral albedo; texels the neutral
     frame does not show are filled (:func:`facepipe.core.layered_texture.fill_unseen`) from those it
     sees better than ``min_point_facing``. A card's texels (an eye behind its opening) are divided
-    by the shading of the card's plane, seen or not: its plane is not the eyeball's surface, but
+    by the shading of the card's plane, seen or not (the model is made with ``cards_shaded``
+    where it has cards and a light, so :func:`texel_shading` shades them): its plane is not the eyeball's surface, but
     it faces where the eyeball's visible front does, so a frame's light brightens or darkens the
     eye as it does the skin around it (the classification divides a card's samples by the same
     shading); unseen texels keep their fill, scaled alike. ``tiles``: the
@@ -65,7 +66,6 @@ def to_albedo(model: AppearanceModel, cfg, frames: dict, cam_pos: dict, neutral_
     used = sorted({cfg.neutral_frame} | {f for region in cfg.regions for f in region.frames})
     # a frame at a time: the frames' positions together would be the examples' count times the mesh
     lights = {f: frame_light(frames[f][0], cam_pos[f], model) for f in used}
-    model.cards_shaded = True
     skin, card = skin_texels(model, texel_face), card_texels(model, texel_face)
     neutral_cam, neutral_light = cam_pos[cfg.neutral_frame], lights[cfg.neutral_frame]
     albedo = _neutral_albedo(model, model.neutral, neutral_seen, texels, neutral_cam, neutral_light, cfg)
@@ -101,8 +101,7 @@ def _texel_facing(model: AppearanceModel, camera_positions: np.ndarray, texel_fa
 
 def skin_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
     """(S, S) the texels on the rest mesh's triangles (not on a card, not outside the UV layout)."""
-    on_card = card_triangles(model.faces, model.n_vertices)
-    return (texel_face >= 0) & ~on_card[np.maximum(texel_face, 0)]
+    return (texel_face >= 0) & ~card_texels(model, texel_face)
 
 
 def card_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
@@ -150,8 +149,7 @@ def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_b
     kept = getattr(model, "_texel_interpolations", None)
     if kept is None:
         kept = model._texel_interpolations = {}
-    slot = (id(key), bool(model.cards_shaded))  # the build turns the cards' shading on
-    cached = kept.get(slot) if key is not None else None
+    cached = kept.get(id(key)) if key is not None else None
     if cached is not None and cached[0] is key:
         return cached[1], cached[2]
     import scipy.sparse as sp
@@ -164,7 +162,7 @@ def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_b
     if key is not None:
         if len(kept) >= 16:  # a texel map per UDIM tile: a head has a few
             kept.clear()
-        kept[slot] = (key, on, matrix)
+        kept[id(key)] = (key, on, matrix)
     return on, matrix
 
 
