@@ -882,6 +882,7 @@ def test_example_frame_without_geometry_exits_2(kit, tmp_path, capsys):
     ("texture_size = 512", "texture_size = 512\nmin_seen = 0.0", "min_seen"),
     ("texture_size = 512", "texture_size = 512\nmin_point_facing = 1.5", "min_point_facing"),
     ("texture_size = 512", "texture_size = 512\nmin_relative_facing = 1.0", "min_relative_facing"),
+    ("texture_size = 512", "texture_size = 512\nframe_facing_share = 1.5", "frame_facing_share"),
     # every point of a template must be seen well in every example: some are not (folds, slants)
     ("texture_size = 512", "texture_size = 512\nmin_seen = 1.0\nmin_relative_facing = 0.95", "seen well"),
 ])
@@ -1011,6 +1012,60 @@ def test_a_broken_cards_shaded_flag_is_refused(kit, tmp_path, capsys):
         _assert_model_refused(kit, tmp_path, capsys, data, cards_shaded=broken)
 
 
+def test_a_frame_leaves_out_the_points_it_sees_at_under_half_the_examples_facing(kit, tmp_path, capsys):
+    """In a frame, a template point is left out as edge-on where the frame sees it at under
+    frame_facing_share of the least cosine the region's examples saw it at; with the share 0 (and
+    in models written before it) where it sees it under min_point_facing. An example frame sees
+    every point at least as well as the least of its examples: it loses none to the test."""
+    import dataclasses
+
+    from facepipe.io.appearance_file import load_appearance
+    from facepipe.io.config import load_config
+    from facepipe.io.footage import to_gray
+    from facepipe.pipeline.appearance import _read_geometry, sample_patches
+    from facepipe.pipeline.appearance_points import template_point_facing
+
+    model = load_appearance(kit / "app.npz")
+    s = model.template_size
+    positions, numbers = _read_geometry(kit / "appearance" / "take_turned.npz", model.n_vertices)
+    footage = open_footage(kit / "appearance" / "take_turned" / "frame_%04d.png")
+    grays = np.stack([to_gray(image) for _, image, _ in read_frames(footage, numbers)])
+    # the take, and the take turned 35° further about the face's centre, where points fall
+    # between the two limits (the test is not the old one renamed)
+    centre = positions.mean(axis=(0, 1))
+    a = np.deg2rad(35.0)
+    yaw = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    examples = model.template_facing.reshape(model.template_facing.shape[:2] + (s, s))
+    differ = False
+    for world in (positions, (positions - centre) @ yaw.T + centre):
+        cams = model.to_camera(world)
+        facing = template_point_facing(cams, model)
+        untested = sample_patches(grays, cams, dataclasses.replace(model, min_point_facing=0.0))[2]
+        seen = sample_patches(grays, cams, model)[2]
+        np.testing.assert_array_equal(seen, untested & (facing > 0.5 * examples))
+        fixed = sample_patches(grays, cams, dataclasses.replace(model, frame_facing_share=0.0))[2]
+        np.testing.assert_array_equal(fixed, untested & (facing > model.min_point_facing))
+        differ |= bool((seen != fixed).any())
+    assert differ
+    # the examples of a region: none of their points is left out as edge-on
+    cfg = load_config(kit / "appearance" / "appearance.toml").appearance
+    ex_positions, ex_numbers = _read_geometry(cfg.geometry, model.n_vertices)
+    ex_grays = np.stack([to_gray(image) for _, image, _ in read_frames(open_footage(cfg.footage), ex_numbers)])
+    ex_cams = model.to_camera(ex_positions)
+    ex_untested = sample_patches(ex_grays, ex_cams, dataclasses.replace(model, min_point_facing=0.0))[2]
+    ex_seen = sample_patches(ex_grays, ex_cams, model)[2]
+    for r, region in enumerate(cfg.regions):
+        rows = np.isin(ex_numbers, region.frames)
+        np.testing.assert_array_equal(ex_seen[rows, r], ex_untested[rows, r])
+    # saved with the model; a model without it reads the old test; a share out of [0, 1] is refused
+    data = dict(np.load(kit / "app.npz"))
+    assert float(data["frame_facing_share"]) == pytest.approx(0.5)
+    del data["frame_facing_share"]
+    np.savez(tmp_path / "older.npz", **data)
+    assert load_appearance(tmp_path / "older.npz").frame_facing_share == 0.0
+    _assert_model_refused(kit, tmp_path, capsys, data, frame_facing_share=np.array(1.5))
+
+
 def test_light_model_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     """The model keeps the light it was built under (an ambient term and a point light by default,
     the nine terms when the config asks); both follow the take; models before the choice read the
@@ -1062,6 +1117,7 @@ def test_model_keeps_its_visibility_settings(kit):
 
     model = load_appearance(kit / "app.npz")
     assert model.occlusion and model.min_seen == 0.5 and model.min_point_facing == pytest.approx(0.35)
+    assert model.frame_facing_share == pytest.approx(0.5)
     s = model.template_size
     assert model.template_facing.shape == (len(model.names), 5, s * s)
     assert (model.template_facing <= 1.0).all() and (model.template_facing > 0).mean() > 0.9

@@ -32,9 +32,12 @@ class AppearanceModel:
     template_face (R, 5, N), template_bary (R, 5, N, 3) : the template points and their offsets;
     templates : per region (n, C) coefficients; indices : per region kept coefficients;
     weights : (C,) per-coefficient weights; template_size, min_facing, decay, min_event : settings;
-    min_point_facing : template points the camera sees more edge-on than this cosine (in the
-    frame, or in any of the region's examples: ``template_facing`` (R, 5, N), their least cosine
-    there) are left out of the match (0: none); template_mask (R, N) : each region's stable
+    min_point_facing : template points any of the region's examples sees more edge-on than this
+    cosine are left out of the match (``template_facing`` (R, 5, N), their least cosine there;
+    0: no edge-on test, in the examples or the frames); frame_facing_share : a frame leaves out
+    the points it sees at under this share of ``template_facing``
+    (:func:`facepipe.pipeline.appearance_points.frame_facing_limits`; 0, models before it: those
+    it sees more edge-on than ``min_point_facing``); template_mask (R, N) : each region's stable
     template points, those every example shows well (in view, not hidden, not edge-on): its
     templates are normalised over them, its kept coefficients chosen on them, and it is matched
     on them (None in models before it: all points); min_seen : the share of a template's
@@ -144,6 +147,7 @@ class AppearanceModel:
     rest_noise: float = 0.0
     template_patches: list | None = None  # (models written before them: None)
     cards_shaded: bool = False  # (models written before it: the cards' texels as the footage showed them)
+    frame_facing_share: float = 0.0  # (models written before it: 0, min_point_facing in the frames too)
 
     @property
     def extra_tiles(self) -> list:
@@ -232,6 +236,8 @@ def save_appearance(path, model) -> None:
     if model.card_rest is not None:
         arrays.update(card_rest=model.card_rest, card_stable=model.card_stable, card_stable_rest=model.card_stable_rest,
                       cards_shaded=np.array(bool(model.cards_shaded)))
+    if model.frame_facing_share > 0:
+        arrays["frame_facing_share"] = np.array(float(model.frame_facing_share))
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     if model.neutral_albedo is not None:
@@ -299,7 +305,8 @@ def load_appearance(path):
                                d.get("rest_off_path"), float(d["rest_tolerance"]) if "rest_tolerance" in d else 0.0,
                                float(d["rest_noise"]) if "rest_noise" in d else 0.0,
                                [d[f"template_patches_{r}"] for r in range(n)] if "template_patches_0" in d else None,
-                               _flag(d, "cards_shaded"))
+                               _flag(d, "cards_shaded"),
+                               float(d["frame_facing_share"]) if "frame_facing_share" in d else 0.0)
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
@@ -334,6 +341,8 @@ def load_appearance(path):
             if patches.shape != (len(model.templates[r]), points) or not np.isfinite(patches).all():
                 raise ValueError(f"template_patches_{r} (region {name}): not finite rows of {points} texels, one "
                                  f"per template ({len(model.templates[r])})")
+        if not 0.0 <= model.frame_facing_share <= 1.0:
+            raise ValueError(f"frame_facing_share {model.frame_facing_share} is not a share in [0, 1]")
         if model.cards_shaded and (model.card_rest is None or model.neutral_albedo is None):
             raise ValueError("cards_shaded is set, but the model has no cards or holds no albedo")
         tiles = len(model.extra_tiles)

@@ -123,7 +123,11 @@ class AppearanceConfig:
     light_model: str = "point"
     occlusion: bool = True  # template points the face hides (ray cast) left out of the match
     min_seen: float = 0.5  # a region with less of its template seen is hidden (holds, decaying)
-    min_point_facing: float = 0.35  # template points seen more edge-on (cosine), in the frame or an example, left out
+    min_point_facing: float = 0.35  # template points an example sees more edge-on (cosine) left out (0: no edge-on test)
+    # a frame leaves out the template points it sees at under this share of the least cosine the
+    # region's examples saw them at (their grid cells get under that share of the templates'
+    # pixels); 0: those it sees more edge-on than min_point_facing, as the examples
+    frame_facing_share: float = 0.5
     min_relative_facing: float = 0.8  # template points an example sees under this share of the template's median facing (a fold turning away) left out
     unseen_margin: float = 1.0  # pixels: template points this near (along x and y) one an example does not show well left out too (their samples read it)
     rest_calibration: bool = True  # Q measured from the highest value each region reads at rest in the other regions' examples
@@ -184,7 +188,7 @@ _TYPES: dict[str, dict[str, object]] = {
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float, "min_event": float,
-                   "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float,
+                   "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float, "frame_facing_share": float,
                    "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
                    "rest_explain": float, "rest_path_tolerance": float, "card_depth": "auto or a number",
                    "regions": dict},
@@ -384,6 +388,10 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
     if not 0.0 <= out.min_point_facing < 1.0:
         raise InputError(f"[appearance] min_point_facing = {out.min_point_facing} is not in [0, 1)", path=path,
                          hint="a cosine: 0 keeps every point the camera sees, 0.35 drops those seen within ~70° of edge-on")
+    if not 0.0 <= out.frame_facing_share <= 1.0:
+        raise InputError(f"[appearance] frame_facing_share = {out.frame_facing_share} is not in [0, 1]", path=path,
+                         hint="a share of the cosine the examples saw each template point at: 0.5 drops the points a "
+                              "frame sees at under half of it; 0 uses min_point_facing in the frames too")
     if not 0.0 <= out.min_relative_facing < 1.0:
         raise InputError(f"[appearance] min_relative_facing = {out.min_relative_facing} is not in [0, 1)", path=path,
                          hint="a share of the template's median facing: 0 keeps every point, 0.8 drops folds turning away")

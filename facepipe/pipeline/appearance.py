@@ -33,8 +33,8 @@ from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, open_footage, read_frames_of, to_gray
 from facepipe.parallel import map_blocks, serial_blas, thread_count
 from facepipe.pipeline.appearance_light import frame_shading
-from facepipe.pipeline.appearance_points import (sample_template_frames, seen_fraction, template_point_facing,
-                                                 template_positions)
+from facepipe.pipeline.appearance_points import (frame_facing_limits, sample_template_frames, seen_fraction,
+                                                 template_point_facing, template_positions)
 
 __all__ = ["classify_frames", "classify_image", "classify_decoded", "classify_chunk", "region_bank",
            "Classification", "FrameReadings", "take_geometry", "read_take_geometry", "TakeGeometry", "WELL_SEEN"]
@@ -355,7 +355,7 @@ def sample_patches(grays, camera_positions, model: AppearanceModel, images=None)
         shading, normals, light, residual = frame_shading(grays, camera_positions, model, images)
         patches = patches / shading
     if model.min_point_facing > 0:
-        seen = seen & (template_point_facing(camera_positions, model, normals, points) > model.min_point_facing)
+        seen = seen & (template_point_facing(camera_positions, model, normals, points) > frame_facing_limits(model))
         if model.template_mask is None and model.template_facing is not None:
             # models before the stable points: a point the examples saw edge-on has no template worth matching
             s = model.template_size

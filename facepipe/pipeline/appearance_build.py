@@ -365,7 +365,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             light_model=cfg.light_model if light is not None else "sh9",
                             light_point_albedo=None if light is None else light["point_albedo"],
                             # the cards' texels become albedo with the skin's (to_albedo), shaded alike
-                            cards_shaded=light is not None and cards is not None)
+                            cards_shaded=light is not None and cards is not None,
+                            frame_facing_share=cfg.frame_facing_share)
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     numbers = sorted(frames)

@@ -22,7 +22,8 @@ from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.io.appearance_file import AppearanceModel
 
 __all__ = ["texel_map", "locate_uv", "unwrap", "template_points", "template_positions",
-           "sample_template_frames", "seen_fraction", "well_seen_points", "point_facing", "point_normals"]
+           "sample_template_frames", "seen_fraction", "well_seen_points", "point_facing", "point_normals",
+           "frame_facing_limits"]
 
 
 def texel_map(corner_uv: np.ndarray, size: int, tile: int = 1001) -> tuple[np.ndarray, np.ndarray]:
@@ -336,3 +337,21 @@ def template_point_facing(camera_positions: np.ndarray, model: AppearanceModel, 
     cos = (normals * -X).sum(axis=-1) / np.maximum(np.linalg.norm(X, axis=-1), 1e-30)
     s = model.template_size
     return cos.reshape(cos.shape[:3] + (s, s))
+
+
+def frame_facing_limits(model: AppearanceModel):
+    """The cosine under which a frame's template point is left out as seen too edge-on: (R, 5,
+    size, size) ``frame_facing_share`` × the least cosine the region's examples saw it at
+    (``template_facing``), at least 0 (a point facing away is never read); or, in models with
+    the share 0 or without the examples' cosines, the one ``min_point_facing`` for every point.
+
+    Why relative: a point's grid cell gets pixels in proportion to the cosine it is seen at, so a
+    frame that sees it at under half the examples' cosine samples it with under half the pixels
+    its templates had (blur, not texture) — however the examples framed it. A fixed cosine hides
+    a fold that lies on the side of the face (its examples see it at 50–65°) as soon as the head
+    turns a little away, while the templates were sampled just as obliquely."""
+    if model.frame_facing_share <= 0 or model.template_facing is None:
+        return model.min_point_facing
+    s = model.template_size
+    facing = np.asarray(model.template_facing, dtype=np.float64)
+    return np.maximum(model.frame_facing_share * facing, 0.0).reshape(facing.shape[:2] + (s, s))
