@@ -286,7 +286,7 @@ def main() -> None:
     config = load_config(out / "appearance.toml")
     model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
     q_bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
-    bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS) if model.light_face is not None else 0)
+    bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS, model.stream_terms + 3) if model.light_face is not None else 0)
     result = {"take": args.take, "identity": args.identity or "neutral", "render_seconds": render_s, "regions": model.names, "shading": model.shading,
               "albedo_layers": model.albedo,
               "rest_floor": None if model.rest_floor is None else dict(zip(model.names, model.rest_floor.tolist())),

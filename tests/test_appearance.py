@@ -468,9 +468,10 @@ def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
     summary = json.loads((dest / "textures.json").read_text())
     q = np.loadtxt(dest / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
     assert summary["frames"] == len(q) and summary["bit_rate_kbit_s"] <= 12.0 and summary["shading"] == "albedo"
-    # 8 regions × 16 bits (Q in 1e-4 steps over 4 layers needs 40001 values) and the light's 9
-    # coefficients and 3 colour gains × 16 bits (1e-4 steps over a span of 4) at 30 Hz
-    assert summary["bits_per_frame"] == 8 * 16 + 12 * 16 and abs(summary["bit_rate_kbit_s"] - 9.6) < 0.01
+    # 8 regions × 16 bits (Q in 1e-4 steps over 4 layers needs 40001 values) and the light's 7
+    # values (the point light: an ambient term, a key and a fill) and 3 colour gains × 16 bits
+    # (1e-4 steps over a span of 4) at 30 Hz
+    assert summary["bits_per_frame"] == 8 * 16 + 10 * 16 and abs(summary["bit_rate_kbit_s"] - 8.64) < 0.01
     model = load_appearance(kit / "app.npz")
     assert model.albedo
     t = int(np.argmax(q.sum(axis=1)))
@@ -507,13 +508,12 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
     under the frame's light (light.csv's row). And that shading is the footage's: on the turned
     take (the head turned up to 15° under another light) the skin outside every region, where the
     layers change nothing, is far closer to the frame's own texels than the neutral texture as
-    the footage showed it. The renderer lights the face with ambient plus a Lambertian point
-    light, warm, not the nine-term light and colour gains the classification fits: an independent
-    check."""
+    the footage showed it. The renderer lights the face with its own ambient and Lambertian point
+    light, warm; the classification fits its light and colour gains from the frame alone: an
+    independent check."""
     import cv2
 
     from facepipe.io.appearance_file import load_appearance, read_light, read_stream
-    from facepipe.core.lighting import sh_basis
     from facepipe.pipeline.appearance_points import point_normals, texel_map, unwrap
     from facepipe.pipeline.appearance_texture import skin_texels, texel_shading
 
@@ -541,13 +541,16 @@ def test_exported_textures_are_the_albedo_shaded_by_each_frames_geometry_and_lig
         got, flat = read(shaded), read(albedo)
         camera_positions = model.to_camera(world[t])
         shading = texel_shading(model, camera_positions, light[t], texel_face, texel_bary)
-        # a second construction: the texels' normals gathered from their corners, the nine-term basis
+        # a second construction: the texels' normals gathered from their corners, the point light
+        # (ambient + the key's and the fill's clamped cosines) the stream carries
         on = skin_texels(model, texel_face)
         normals = point_normals(camera_positions[None], model.faces, texel_face[on], texel_bary[on],
                                 model.normal_sign)[0]
-        low, high = shading[on][:, 0].min() / light[t][9], shading[on][:, 0].max() / light[t][9]
-        direct = np.clip(np.maximum(sh_basis(normals) @ light[t][:9], 1e-9), low, high)
-        np.testing.assert_allclose(shading[on][:, 0], direct * light[t][9], rtol=1e-9)
+        assert light.shape[1] == 10  # an ambient term, a key, a fill; the colour
+        ambient, key, fill, red = light[t][0], light[t][1:4], light[t][4:7], light[t][7]
+        low, high = shading[on][:, 0].min() / red, shading[on][:, 0].max() / red
+        direct = np.clip(ambient + np.maximum(normals @ key, 0) + np.maximum(normals @ fill, 0), low, high)
+        np.testing.assert_allclose(shading[on][:, 0], direct * red, rtol=1e-9)
         # on the layout (beyond it each texture repeats its own nearest island texel: edge padding)
         unclipped = (flat > 1e-3) & (flat < 1 - 1e-3) & (got < 1 - 1e-3) & (texel_face >= 0)[..., None]
         np.testing.assert_allclose(got[unclipped], (flat * shading)[unclipped], atol=2e-4)
@@ -1084,7 +1087,24 @@ def test_light_model_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
     assert np.median([spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])]) > 0.9
     assert json.loads((tmp_path / "cls" / "appearance.json").read_text())["light_model"] == "sh9"
+    # the stream carries the light the model fits: the nine terms here, the point light by default
+    from facepipe.io.appearance_file import LIGHT_COLUMNS, POINT_LIGHT_COLUMNS, read_light
+
+    assert load_appearance(tmp_path / "sh9.npz").stream_light == "sh9"
+    assert (tmp_path / "cls" / "light.csv").read_text().splitlines()[0] == "frame,time," + ",".join(LIGHT_COLUMNS)
+    assert read_light(tmp_path / "cls", np.loadtxt(tmp_path / "cls" / "appearance.csv", delimiter=",",
+                                                   skiprows=1)[:, 0].astype(int)).shape[1] == 12
+    assert load_appearance(kit / "app.npz").stream_light == "point"
+    point_cls = _classified(kit)
+    assert (point_cls / "light.csv").read_text().splitlines()[0] == "frame,time," + ",".join(POINT_LIGHT_COLUMNS)
+    point = dict(np.load(kit / "app.npz"))
+    del point["stream_light"]  # models before it: the nine terms in the stream
+    np.savez(tmp_path / "older.npz", **point)
+    assert load_appearance(tmp_path / "older.npz").stream_light == "sh9"
+    _assert_model_refused(kit, tmp_path, capsys, point, stream_light=np.array("sh2"))
     data = dict(np.load(tmp_path / "sh9.npz"))
+    # a point light in the stream of a model that fits the nine terms
+    _assert_model_refused(kit, tmp_path, capsys, data, stream_light=np.array("point"))
     del data["light_model"]
     np.savez(tmp_path / "old.npz", **data)
     assert load_appearance(tmp_path / "old.npz").light_model == "sh9"
@@ -1270,9 +1290,10 @@ def test_classify_reports_its_speed_and_the_streams_bit_rate(kit, tmp_path, caps
     said = capsys.readouterr().out
     info = json.loads((out / "appearance.json").read_text())
     q_bits = int(stream_bits(load_appearance(kit / "app.npz").layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
-    bits = q_bits + light_bits(10.0 ** -STREAM_DECIMALS)  # Q per region and the frame's light
-    assert info["q_bits_per_frame"] == q_bits and info["light_bits_per_frame"] == 12 * 16
-    assert read_light(out, read_stream(out)[1]).shape == (info["frames"], 12)
+    # Q per region and the frame's light: the point light's seven values and three colour gains
+    bits = q_bits + light_bits(10.0 ** -STREAM_DECIMALS, 10)
+    assert info["q_bits_per_frame"] == q_bits and info["light_bits_per_frame"] == 10 * 16
+    assert read_light(out, read_stream(out)[1]).shape == (info["frames"], 10)
     assert info["stream_bits_per_frame"] == bits and info["stream_kbit_s"] == pytest.approx(bits * 24 / 1000)
     assert info["fps"] == 24 and info["seconds"] > 0
     assert info["frames_per_second"] == pytest.approx(info["frames"] / info["seconds"])
@@ -1351,11 +1372,11 @@ def test_frames_classified_on_threads_equal_one_chunk_after_another(kit):
         set_thread_count(None)
     np.testing.assert_array_equal(readings.q, np.concatenate([c[0] for c in one]))
     np.testing.assert_array_equal(readings.visible, np.concatenate([c[1] for c in one]))
-    assert readings.light.shape == (len(grays), 9) and readings.in_view.shape == readings.q.shape
+    assert readings.light.shape == (len(grays), 7) and readings.in_view.shape == readings.q.shape
     assert readings.light_residual.shape == (len(grays),) and np.isfinite(readings.light_residual).all()
     empty = classify_decoded(grays[:0], cams[:0], model)
     assert empty.q.shape == (0, len(model.names)) and empty.visible.shape == (0, len(model.names))
-    assert empty.light.shape == (0, 9) and empty.in_view.shape == (0, len(model.names))
+    assert empty.light.shape == (0, 7) and empty.in_view.shape == (0, len(model.names))
     assert empty.light_residual.shape == (0,)
 
 

@@ -129,12 +129,13 @@ def classify_command(model_path, footage, geometry_path, output, fps, rep):
                                  footage_numbers=at)
     seconds = time.perf_counter() - start
     q_bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
-    bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS) if result.light is not None else 0)
+    bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS, result.light.shape[1]) if result.light is not None else 0)
     figures = {"seconds": seconds, "frames_per_second": len(numbers) / max(seconds, 1e-9), "fps": fps,
                "stream_bits_per_frame": bits, "q_bits_per_frame": q_bits, "light_bits_per_frame": bits - q_bits,
                "stream_kbit_s": bits * fps / 1000.0,
-               # the light divided out of the patches (the stream's light.csv is the nine terms either way)
-               "light_model": model.light_model if model.light_face is not None else None}
+               # the light divided out of the patches, and the one light.csv carries
+               "light_model": model.light_model if model.light_face is not None else None,
+               "stream_light": model.stream_light if model.light_face is not None else None}
     for n, problem in result.problems:
         rep.say(f"frame {n}: {problem}; skipped (held, decaying to neutral)")
     never = [name for r, name in enumerate(model.names) if not result.visible[:, r].any()]

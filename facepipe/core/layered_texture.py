@@ -72,8 +72,8 @@ LIGHT_SPAN = 4.0
 
 
 def light_bits(step: float, terms: int = 12) -> int:
-    """Bits per frame of a light (nine coefficients and three colour gains) sent in steps of
-    ``step`` over :data:`LIGHT_SPAN`."""
+    """Bits per frame of a light of ``terms`` values (nine coefficients and three colour gains; a
+    point light's seven and three: 10) sent in steps of ``step`` over :data:`LIGHT_SPAN`."""
     return terms * int(np.ceil(np.log2(LIGHT_SPAN / step + 1.0)))
 
 

@@ -108,7 +108,7 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
             Path(tmp).write_text(format_light(numbers, times, light))
     step = 10.0 ** -STREAM_DECIMALS
     region_bits = stream_bits(counts, step)
-    frame_light_bits = light_bits(step) if light is not None else 0
+    frame_light_bits = light_bits(step, light.shape[1]) if light is not None else 0
     bits = int(region_bits.sum()) + frame_light_bits
     written = 0
     size = model.neutral.shape[0]

@@ -17,7 +17,8 @@ from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
 __all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream", "format_stream",
-           "format_light", "read_light", "LIGHT_COLUMNS", "STREAM_DECIMALS"]
+           "format_light", "read_light", "LIGHT_COLUMNS", "POINT_LIGHT_COLUMNS", "STREAM_LIGHTS", "light_columns",
+           "STREAM_DECIMALS"]
 
 #: Q is written to this many decimals: the stream's quantisation step, and its bit rate's.
 STREAM_DECIMALS = 4
@@ -73,8 +74,12 @@ class AppearanceModel:
     is the layered albedo times the shading of the frame's own geometry under its light
     (:func:`facepipe.pipeline.appearance_texture.frame_texture`); None (models before it, or built
     without a light fit): the volumes hold the footage's values, shading included;
-    light_colour : (K, 3) the light points' RGB albedo (their colour under the grey light), over
-    which a frame's light colour is measured (None: a white light);
+    light_colour : (K, 3) the light points' RGB albedo (their colour under the grey light the
+    stream carries), over which a frame's light colour is measured (None: a white light);
+    stream_light : the grey light the stream (light.csv) and the textures carry, ``"sh9"`` (nine
+    spherical-harmonic terms) or ``"point"`` (an ambient term and two distant lights: the light
+    classification fits with ``light_model = "point"``, whose terminators the nine terms round
+    off into bands);
     tiles : (T,) the UDIM tiles other than ``tile`` that the rest mesh's UV layout uses (no region
     lies on them), with tile_neutral (T, S, S, 3) the neutral frame's texture there and
     tile_albedo (T, S, S, 3) its albedo (None with ``neutral_albedo`` None); None: one tile;
@@ -88,7 +93,7 @@ class AppearanceModel:
     light_model : the light the templates' and each frame's shading are modelled by
     (:data:`facepipe.core.lighting.LIGHT_MODELS`; models before it: ``sh9``), and with
     ``point`` light_point_albedo (K,) : the light points' albedo under it. ``light_albedo`` is
-    theirs under the nine-term light, which the stream and the textures carry whichever it is;
+    theirs under the nine-term light, which the stream carries where ``stream_light`` says so;
     light_residual : the median over the example frames of what each one's light leaves
     unexplained of its light points' brightness
     (:func:`facepipe.pipeline.appearance_light.frame_light_residuals`): what a frame whose
@@ -148,6 +153,7 @@ class AppearanceModel:
     template_patches: list | None = None  # (models written before them: None)
     cards_shaded: bool = False  # (models written before it: the cards' texels as the footage showed them)
     frame_facing_share: float = 0.0  # (models written before it: 0, min_point_facing in the frames too)
+    stream_light: str = "sh9"  # the light the stream and textures carry (models written before it: the nine terms)
 
     @property
     def extra_tiles(self) -> list:
@@ -191,6 +197,11 @@ class AppearanceModel:
     def to_camera(self, world: np.ndarray) -> np.ndarray:
         """Camera-space positions of the rest mesh's vertices (..., V, 3) and the cards'."""
         return self.with_cards(world) @ self.rotation.T + self.translation
+
+    @property
+    def stream_terms(self) -> int:
+        """The grey light's values in the stream: 9 (the nine terms) or 7 (a point light)."""
+        return 7 if self.stream_light == "point" else 9
 
     @property
     def layer_counts(self) -> list:
@@ -238,6 +249,8 @@ def save_appearance(path, model) -> None:
                       cards_shaded=np.array(bool(model.cards_shaded)))
     if model.frame_facing_share > 0:
         arrays["frame_facing_share"] = np.array(float(model.frame_facing_share))
+    if model.stream_light != "sh9":
+        arrays["stream_light"] = np.array(model.stream_light)
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     if model.neutral_albedo is not None:
@@ -306,7 +319,8 @@ def load_appearance(path):
                                float(d["rest_noise"]) if "rest_noise" in d else 0.0,
                                [d[f"template_patches_{r}"] for r in range(n)] if "template_patches_0" in d else None,
                                _flag(d, "cards_shaded"),
-                               float(d["frame_facing_share"]) if "frame_facing_share" in d else 0.0)
+                               float(d["frame_facing_share"]) if "frame_facing_share" in d else 0.0,
+                               str(d["stream_light"]) if "stream_light" in d else "sh9")
         from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
@@ -341,6 +355,9 @@ def load_appearance(path):
             if patches.shape != (len(model.templates[r]), points) or not np.isfinite(patches).all():
                 raise ValueError(f"template_patches_{r} (region {name}): not finite rows of {points} texels, one "
                                  f"per template ({len(model.templates[r])})")
+        if model.stream_light not in STREAM_LIGHTS or (model.stream_light == "point" and model.light_model != "point"):
+            raise ValueError(f"stream_light {model.stream_light!r} is not one of {', '.join(STREAM_LIGHTS)} "
+                             "(\"point\" with light_model \"point\" only)")
         if not 0.0 <= model.frame_facing_share <= 1.0:
             raise ValueError(f"frame_facing_share {model.frame_facing_share} is not a share in [0, 1]")
         if model.cards_shaded and (model.card_rest is None or model.neutral_albedo is None):
@@ -358,8 +375,8 @@ def load_appearance(path):
 
 def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None,
                  figures: dict | None = None) -> Path:
-    """``appearance.csv`` (frame, time, Q per region), ``light.csv`` (frame, time, the light's
-    nine coefficients and colour; where the model fits one) and ``appearance.json`` (the model, the footage
+    """``appearance.csv`` (frame, time, Q per region), ``light.csv`` (frame, time, the light the
+    model's stream carries and its colour; where the model fits one) and ``appearance.json`` (the model, the footage
     and geometry classified, missing frames, and ``figures``: the run's speed and the stream's bit
     rate)."""
     folder = Path(folder)
@@ -396,26 +413,44 @@ def format_stream(names, numbers, times, q) -> str:
 #: light.csv's columns after frame and time: the grey light's nine spherical-harmonic coefficients
 #: and the light's colour (a gain per channel).
 LIGHT_COLUMNS = [f"sh{k}" for k in range(9)] + ["red", "green", "blue"]
+#: light.csv's columns for a point light (``stream_light = "point"``): the ambient term, the key
+#: and the fill light (each its direction times its strength), and the colour.
+POINT_LIGHT_COLUMNS = ["ambient", "key_x", "key_y", "key_z", "fill_x", "fill_y", "fill_z", "red", "green", "blue"]
+#: The lights a stream may carry → its light.csv columns.
+STREAM_LIGHTS = {"sh9": LIGHT_COLUMNS, "point": POINT_LIGHT_COLUMNS}
+
+
+def light_columns(light) -> list:
+    """light.csv's columns for lights (T, 12) (nine terms and a colour) or (T, 10) (a point light
+    and a colour)."""
+    width = np.shape(light)[-1]
+    for columns in STREAM_LIGHTS.values():
+        if len(columns) == width:
+            return columns
+    raise ValueError(f"a light of {width} values is neither the nine terms' nor the point light's, with a colour")
 
 
 def format_light(numbers, times, light) -> str:
-    """light.csv's text: ``frame,time,sh0…sh8,red,green,blue``, to :data:`STREAM_DECIMALS` decimals."""
-    lines = ["frame,time," + ",".join(LIGHT_COLUMNS)]
+    """light.csv's text: ``frame,time,`` then :data:`LIGHT_COLUMNS` or :data:`POINT_LIGHT_COLUMNS`
+    (by the lights' width), to :data:`STREAM_DECIMALS` decimals."""
+    lines = ["frame,time," + ",".join(light_columns(light))]
     lines += [f"{int(n)},{t:.6f}," + ",".join(f"{x:.{STREAM_DECIMALS}f}" for x in row)
               for n, t, row in zip(numbers, times, light)]
     return "\n".join(lines) + "\n"
 
 
 def read_light(folder, numbers: np.ndarray) -> np.ndarray | None:
-    """(T, 12) the light of each of the stream's frames ``numbers`` from a classified folder's
-    light.csv (:data:`LIGHT_COLUMNS`); None where the folder has none (a model without a light fit,
-    or classified before facepipe wrote it)."""
+    """(T, 12) or (T, 10) the light of each of the stream's frames ``numbers`` from a classified
+    folder's light.csv (:data:`LIGHT_COLUMNS`, or :data:`POINT_LIGHT_COLUMNS` by its header); None
+    where the folder has none (a model without a light fit, or classified before facepipe wrote it)."""
     csv = Path(folder) / "light.csv"
     if not csv.is_file():
         return None
-    data = _numbers_table(csv, ["frame", "time"] + LIGHT_COLUMNS)
+    header = csv.read_text(encoding="utf-8", errors="replace").split("\n", 1)[0].strip().split(",")[2:]
+    columns = next((c for c in STREAM_LIGHTS.values() if header == c), LIGHT_COLUMNS)
+    data = _numbers_table(csv, ["frame", "time"] + columns)
     if not np.array_equal(data[:, 0].astype(np.int64), np.asarray(numbers)) or not np.isfinite(data[:, 2:]).all():
-        raise InputError(f"light.csv does not hold {len(LIGHT_COLUMNS)} finite values ({', '.join(LIGHT_COLUMNS)}) "
+        raise InputError(f"light.csv does not hold {len(columns)} finite values ({', '.join(columns)}) "
                          "for each of appearance.csv's frames",
                          path=csv, hint="classify the footage again: facepipe appearance classify ... -o FOLDER")
     return data[:, 2:]

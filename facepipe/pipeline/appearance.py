@@ -9,8 +9,9 @@ region whose template faces away from the camera, falls outside the image or who
 missing keeps its last value read with most of its template in view (:data:`WELL_SEEN`),
 decaying to neutral; a reading that leaves rest for less than ``min_event`` seconds (one or two
 frames at 30 Hz) and stays under a layer is image noise, and set back to rest. Each frame's
-light (nine coefficients, :func:`facepipe.pipeline.appearance_light.frame_lights`) is part of the
-result: the texture's shading comes from it.
+light (the model's ``stream_light``: the point light's seven values or the nine terms, and the
+colour; :func:`facepipe.pipeline.appearance_light.frame_shading`) is part of the result: the
+texture's shading comes from it.
 
 The model is built by :mod:`facepipe.pipeline.appearance_build`; a frame's texture is
 :mod:`facepipe.pipeline.appearance_texture`.
@@ -135,8 +136,9 @@ def check_frame_size(image: np.ndarray, camera: Camera, number: int, source) -> 
 class Classification:
     """Q (T, R) after hold and decay and with brief departures from rest dropped
     (:func:`facepipe.core.appearance.drop_short_events`), raw (T, R) before (NaN where hidden), visible (T, R), frame
-    numbers (T,), times (T,), problems: (frame, text) of frames that were skipped; light (T, 12):
-    each frame's grey light (:func:`frame_lights`) and its colour (:func:`frame_colours`) (a
+    numbers (T,), times (T,), problems: (frame, text) of frames that were skipped; light (T, 12) or
+    (T, 10): each frame's grey light as the stream carries it (the model's ``stream_light``) and
+    its colour (:func:`frame_colours`) (a
     skipped frame holds the last one fitted, the first ones the first), None for a model without
     light points."""
 
@@ -169,7 +171,7 @@ def classify_frames(model: AppearanceModel, footage_source, positions: np.ndarra
     raw = np.full((T, Rn), np.nan)
     visible = np.zeros((T, Rn), dtype=bool)
     in_view = np.full((T, Rn), np.nan)
-    light = None if model.light_face is None else np.full((T, 12), np.nan)
+    light = None if model.light_face is None else np.full((T, model.stream_terms + 3), np.nan)
     light_residual = None if model.light_face is None else np.full(T, np.nan)
     problems = []
     bank = region_bank(model)
@@ -266,8 +268,8 @@ def _held(rows: np.ndarray, default: np.ndarray) -> np.ndarray:
 @dataclass
 class FrameReadings:
     """What :func:`classify_decoded` reads of frames: Q (F, R), NaN where a region is hidden;
-    each region's visibility (F, R); each frame's nine-term light (F, 9), or (F, 12) with its
-    colour where the frames' RGB images were given (None for a model without light points); the
+    each region's visibility (F, R); each frame's light as the stream carries it (F, 9) or (F, 7),
+    with its colour (F, 12) or (F, 10) where the frames' RGB images were given (None for a model without light points); the
     share of each region's stable template points in view (F, R; :func:`_classify_chunk`); what
     each frame's light leaves unexplained (F,) (:func:`~facepipe.pipeline.appearance_light.frame_light_residuals`;
     None without light points); and how far each reading lies off its region's layer path for its
@@ -291,7 +293,7 @@ def classify_decoded(grays: np.ndarray, camera_positions: np.ndarray, model: App
     bank = region_bank(model) if bank is None else bank
     if len(grays) == 0:
         n = len(model.names)
-        light = None if model.light_face is None else np.zeros((0, 9 if images is None else 12))
+        light = None if model.light_face is None else np.zeros((0, model.stream_terms + (0 if images is None else 3)))
         return FrameReadings(np.zeros((0, n)), np.zeros((0, n), dtype=bool), light, np.zeros((0, n)),
                              None if light is None else np.zeros(0), np.zeros((0, n)))
     with serial_blas():  # process-wide: entered once here, not by each thread

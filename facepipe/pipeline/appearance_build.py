@@ -366,7 +366,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             light_point_albedo=None if light is None else light["point_albedo"],
                             # the cards' texels become albedo with the skin's (to_albedo), shaded alike
                             cards_shaded=light is not None and cards is not None,
-                            frame_facing_share=cfg.frame_facing_share)
+                            frame_facing_share=cfg.frame_facing_share,
+                            # the stream and the textures carry the light the classification fits
+                            stream_light="point" if light is not None and cfg.light_model == "point" else "sh9")
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     numbers = sorted(frames)
@@ -546,9 +548,10 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
     with their albedo under it (grey, and colour: RGB over the grey shading).
 
     ``light`` is the light the templates are divided by, under ``light_model``
-    (:data:`facepipe.core.lighting.LIGHT_MODELS`). ``albedo`` and ``colour`` are derived under
-    the nine-term light, which the stream and the textures carry; with the point light also
-    ``point_albedo``, under it: each light is fitted over the albedo its own model gives."""
+    (:data:`facepipe.core.lighting.LIGHT_MODELS`). ``albedo`` is derived under the nine-term
+    light; with the point light also ``point_albedo``, under it: each light is fitted over the
+    albedo its own model gives. ``colour``, under the light the stream and the textures carry:
+    the point light where it is the model's, else the nine terms."""
     rows, cols = np.nonzero(seen & (texel_face >= 0))
     if len(rows) < 50:
         return None
@@ -570,7 +573,10 @@ def _example_light(neutral, seen, neutral_cam, faces, texel_face, texel_bary, no
            "colour": (neutral[rows, cols] / shading[:, None])[keep], "point_albedo": None}
     if light_model == "point":
         out["light"] = scaled(lighting.fit_point_light(lum, np.ones(len(lum)), normals, start=light))
-        out["point_albedo"] = (lum / lighting.light_shading(normals, out["light"]))[keep]
+        point_shading = lighting.light_shading(normals, out["light"])
+        out["point_albedo"] = (lum / point_shading)[keep]
+        # the stream carries the point light: the colour is measured under it
+        out["colour"] = (neutral[rows, cols] / point_shading[:, None])[keep]
     return out
 
 

@@ -57,7 +57,7 @@ def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: Appea
                   points=None) -> np.ndarray:
     """(F, 3) each frame's light colour: per channel the median, over the light points the frame
     shows, of their value in the RGB frame (F, H, W, 3) over their colour albedo times their
-    shading under the frame's grey light (F, 9). About 1 for the light the examples were shot
+    shading under the frame's grey light (F, 9) or (F, 7), the stream's (``stream_light``). About 1 for the light the examples were shot
     under; a warmer light reads red over blue. White (1, 1, 1) where the model keeps no colour
     albedo or too few points are seen. ``points``: as for :func:`frame_lights`."""
     out = np.ones((len(images), 3))
@@ -74,19 +74,21 @@ def frame_colours(images: np.ndarray, camera_positions: np.ndarray, model: Appea
 
 
 def frame_light(image: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
-    """(12,) one RGB frame's (H, W, 3) light with its geometry (V, 3, camera space): the grey
-    light's nine coefficients (:func:`frame_lights`) and its colour (:func:`frame_colours`)."""
+    """(12,) or (10,) one RGB frame's (H, W, 3) light with its geometry (V, 3, camera space): the
+    grey light the stream carries (the nine terms, :func:`frame_lights`, or the point light, by the
+    model's ``stream_light``) and its colour (:func:`frame_colours`)."""
     points = _light_points(camera_positions[None], model)
-    grey = frame_lights(to_gray(image)[None], camera_positions[None], model, points)
+    gray = to_gray(image)[None]
+    grey = _fitted_lights(gray, camera_positions[None], model, points, _light_point_values(gray, points))[0]
     return np.concatenate([grey, frame_colours(image[None, ..., :3], camera_positions[None], model, grey, points)],
                           axis=1)[0]
 
 
 def _fitted_lights(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, points, values):
-    """The frames' nine-term lights (F, 9) (the stream's), their lights under the model's own light
-    model (the templates' shading: a point light's terminator is a kink nine terms round off) and
-    what those leave unexplained of the light points' brightness (F,)
-    (:func:`facepipe.core.lighting.light_residual`)."""
+    """The frames' lights as the stream carries them (F, 9) or (F, 7) (the model's
+    ``stream_light``), their lights under the model's own light model (the templates' shading: a
+    point light's terminator is a kink nine terms round off) and what those leave unexplained of
+    the light points' brightness (F,) (:func:`facepipe.core.lighting.light_residual`)."""
     light = frame_lights(grays, camera_positions, model, points, values)
     if model.light_model == "point":
         own = lighting.fit_point_light(values, model.light_point_albedo, points[0], start=light)
@@ -94,7 +96,7 @@ def _fitted_lights(grays: np.ndarray, camera_positions: np.ndarray, model: Appea
     else:
         own = light
         residual = lighting.light_residual(values, model.light_albedo, points[0], own)
-    return light, own, residual
+    return (own if model.stream_light == "point" else light), own, residual
 
 
 def frame_light_residuals(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel) -> np.ndarray:
@@ -108,8 +110,8 @@ def frame_light_residuals(grays: np.ndarray, camera_positions: np.ndarray, model
 def frame_shading(grays: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel, images=None):
     """The shading (F, R, 5, size, size) at the template points of frames under each frame's light
     (fitted as the model's ``light_model`` says), the template points' unit normals (F, R, 5, N, 3),
-    the nine-term lights (:func:`frame_lights`), which the stream carries: (F, 9),
-    or with the frames' RGB ``images`` (F, H, W, 3) (F, 12), their colour after them
+    the lights the stream carries (the model's ``stream_light``): (F, 9) or (F, 7), or with the
+    frames' RGB ``images`` (F, H, W, 3) (F, 12) or (F, 10), their colour after them
     (:func:`frame_colours`, from the same light points), and what the lights leave unexplained
     (F,) (:func:`frame_light_residuals`)."""
     stencil = stencil_normals(camera_positions, model)

@@ -120,9 +120,10 @@ def shaded_texels(model: AppearanceModel, texel_face: np.ndarray) -> np.ndarray:
 def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, texel_face: np.ndarray,
                   texel_bary: np.ndarray, rows=slice(None), cols=slice(None)) -> np.ndarray:
     """(h, w, 3) the shading of the texels [rows, cols] on one frame's surface (V, 3), camera
-    space, under its light (12,): the grey light's (:func:`facepipe.core.lighting.light_shading`
-    of its first nine values) times its colour (the last three; white for a light of nine); 1
-    where the light shades nothing (:func:`shaded_texels`).
+    space, under its light as the stream carries it (12,) or (10,): the grey light's
+    (:func:`facepipe.core.lighting.light_shading` of the nine terms or the point light) times its
+    colour (the last three; white for a grey light alone, (9,) or (7,)); 1 where the light shades
+    nothing (:func:`shaded_texels`).
 
     Kept within the shading of the light points the frame's light was fitted on (those facing the
     camera): a normal the fit never saw (the face's rim, turned away) would get the nine terms'
@@ -132,13 +133,22 @@ def texel_shading(model: AppearanceModel, camera_positions: np.ndarray, light: n
                                              texel_face if whole else None)
     out = np.ones(on.shape + (3,))
     if on.any():
-        grey, colour = light[:9], (light[9:12] if len(light) >= 12 else np.ones(3))
+        grey, colour = _grey_and_colour(light)
         vn = model.normal_sign * vertex_normals(camera_positions[None], model.faces)
         normals = interpolation @ vn[0]
         normals /= np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-30)
         shading = np.clip(lighting.light_shading(normals, grey), *_fitted_shading_range(model, camera_positions, grey, vn))
         out[on] = shading[:, None] * colour
     return out
+
+
+def _grey_and_colour(light: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's light as the stream carries it, (12,) the nine terms and a colour or (10,) a point
+    light and a colour, or its grey part alone, (9,) or (7,) (white): the grey light and the colour."""
+    light = np.asarray(light, dtype=np.float64)
+    if len(light) in (10, 12):
+        return light[:-3], light[-3:]
+    return light, np.ones(3)
 
 
 def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, key=None):
@@ -168,7 +178,7 @@ def _texel_interpolation(model: AppearanceModel, texel_face: np.ndarray, texel_b
 
 def _fitted_shading_range(model: AppearanceModel, camera_positions: np.ndarray, light: np.ndarray, vn: np.ndarray):
     """(low, high) the shading of the model's light points that face the camera in this frame
-    (V, 3; ``vn`` (1, V, 3) its vertex normals) under its grey light (9,): the normals
+    (V, 3; ``vn`` (1, V, 3) its vertex normals) under its grey light (9,) or (7,): the normals
     :func:`frame_lights` fitted it on ((0, inf) where none)."""
     X = surface_points(camera_positions, model.faces, model.light_face, model.light_bary)
     normals = point_normals(camera_positions[None], model.faces, model.light_face, model.light_bary, 1.0, vn)[0]
@@ -184,7 +194,7 @@ def frame_texture(model: AppearanceModel, q: np.ndarray, camera_positions: np.nd
     """A frame's texture (S, S, 3) on UDIM ``tile``: on the regions' tile (``model.tile``, the
     default) the layered texture at Q (R,), on the model's other tiles (``model.tiles``, where no
     region lies) their neutral texture. For a model that holds albedo, that albedo times the
-    shading of the frame's surface (V, 3, camera space) under its light (12,) on the skin (as the
+    shading of the frame's surface (V, 3, camera space) under its light (12,) or (10,) on the skin (as the
     camera saw it); the albedo alone where either is not given. ``texels``: the tile's
     :func:`texel_map` where already made. The texels beyond the UV islands are edge-padded
     (:func:`_padded`)."""
@@ -230,7 +240,7 @@ def _padded(model: AppearanceModel, texture: np.ndarray, texel_face: np.ndarray,
 
 def texture_differences(model: AppearanceModel, texel_face: np.ndarray, texel_bary: np.ndarray, image: np.ndarray,
                         camera_positions: np.ndarray, q: np.ndarray, light: np.ndarray | None = None) -> np.ndarray:
-    """How far the frame's texture at Q (:func:`frame_texture`, shaded under ``light`` (9,) where
+    """How far the frame's texture at Q (:func:`frame_texture`, shaded under ``light`` (12,) or (10,) where
     the model holds albedo) and the neutral texture are from a frame's own texels.
 
     The frame (RGB image, its geometry in camera space) is unwrapped into the texture through the
