@@ -99,3 +99,52 @@ def test_seen_fraction_counts_each_regions_stable_points():
         for r in range(R):
             assert got[f, r] == pytest.approx(seen[f, r][:, stable[r]].sum() / (5 * stable[r].sum()))
     np.testing.assert_allclose(seen_fraction(seen, SimpleNamespace(template_mask=None)), seen.mean(axis=(2, 3)))
+
+
+def _ray_cast_image(camera: Camera, tilt: float, flap: tuple) -> np.ndarray:
+    """(H, W, 3) what each pixel centre's ray meets, as one colour per surface, by intersecting
+    the rays with the two planes: the flap (z = 4, x, y in ``flap`` = (x0, x1, y0, y1)) green, the
+    sheet (z = 6 + tilt·x over [-1, 1]²) blue, nothing red."""
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    d = np.stack([u, v, np.ones_like(u)], axis=-1).astype(float) @ np.linalg.inv(camera.matrix).T  # z = 1
+    image = np.zeros(d.shape)
+    image[...] = (1.0, 0.0, 0.0)
+    t = 6.0 / (1.0 - tilt * d[..., 0])
+    on_sheet = (np.abs(t * d[..., 0]) <= 1.0) & (np.abs(t * d[..., 1]) <= 1.0) & (t > 0)
+    image[on_sheet] = (0.0, 0.0, 1.0)
+    x0, x1, y0, y1 = flap
+    on_flap = (4 * d[..., 0] >= x0) & (4 * d[..., 0] <= x1) & (4 * d[..., 1] >= y0) & (4 * d[..., 1] <= y1)
+    image[on_flap] = (0.0, 1.0, 0.0)
+    return image
+
+
+@pytest.mark.parametrize("tilt", [0.0, 1.0])
+def test_unwrap_keeps_only_texels_whose_pixels_show_their_own_surface(tilt):
+    """A sheet partly hidden by a flap in front of it, over a background: a texel is seen only where
+    each pixel its bilinear sample reads shows the sheet, so no seen texel takes the flap's or the
+    background's colour (before, the texels behind the flap and along every edge did); and every
+    texel a few pixels from another surface's pixels is seen, at a grazing tilt too."""
+    from facepipe.pipeline.appearance_points import texel_map, unwrap
+
+    x, y, uv, faces = _sheet(33)
+    k = len(x)
+    flap = (-0.2, 0.3, -0.5, -0.1)
+    corners = np.array([[flap[0], flap[2], 4.0], [flap[1], flap[2], 4.0], [flap[0], flap[3], 4.0], [flap[1], flap[3], 4.0]])
+    vertices = np.concatenate([np.stack([x, y, 6.0 + tilt * x], axis=1), corners])
+    mesh_faces = np.concatenate([faces, [[k, k + 1, k + 3], [k, k + 3, k + 2]]])
+    corner_uv = np.concatenate([uv[faces], np.zeros((2, 3, 2))])  # the flap has no texels
+    camera = Camera(np.array([[120.0, 0, 49.5], [0, 120.0, 49.5], [0, 0, 1]]), np.zeros(5), 100, 100)
+    image = _ray_cast_image(camera, tilt, flap)
+    texel_face, texel_bary = texel_map(corner_uv, 128)
+    sign = -1.0 if np.cross(*(vertices[faces[0, 1:]] - vertices[faces[0, 0]]))[2] > 0 else 1.0
+    colours, seen = unwrap(image, vertices, mesh_faces, texel_face, texel_bary, camera, min_facing=0.2, normal_sign=sign)
+    assert seen.any()
+    np.testing.assert_allclose(colours[seen], np.broadcast_to([0.0, 0.0, 1.0], colours[seen].shape), atol=1e-12)
+    # every texel at least three pixels (along x or y) from a pixel that does not show the sheet is seen
+    X = np.einsum("ijk,ijkc->ijc", texel_bary, vertices[mesh_faces[np.maximum(texel_face, 0)]])
+    px = cv2.projectPoints(X.reshape(-1, 3), np.zeros(3), np.zeros(3), camera.matrix, camera.distortion)[0][:, 0]
+    other = np.argwhere(image[..., 2] < 1.0)[:, ::-1].astype(float)  # (x, y) of the pixels not showing it
+    gap = np.abs(px[:, None, :] - other[None]).max(axis=-1).min(axis=1).reshape(seen.shape)
+    clear = (texel_face >= 0) & (gap >= 3.0)
+    assert clear.sum() > 0.3 * (texel_face >= 0).sum()
+    assert seen[clear].all()

@@ -18,6 +18,7 @@ from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
 from facepipe.core.occlusion import occluded_points
 from facepipe.core.raster import triangle_pixels, udim_corner
+from facepipe.core.render import PinholeCamera, rasterize
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.io.appearance_file import AppearanceModel
 
@@ -99,10 +100,22 @@ def triangle_normals(camera_positions: np.ndarray, faces: np.ndarray, face: np.n
     return np.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :])
 
 
+#: how far from a texel's point the surface a pixel shows may lie for the pixel to show that texel,
+#: in pixels' footprints at the point's depth over the cosine the camera sees it at: a bilinear
+#: sample reads pixels up to one pixel away along x and y (√2 along the diagonal), and a surface
+#: seen at cosine c moves 1/c as far along itself per pixel
+FOOTPRINT_REACH = 2.0
+
+
 def unwrap(image: np.ndarray, camera_positions: np.ndarray, faces: np.ndarray, texel_face: np.ndarray,
            texel_bary: np.ndarray, camera: Camera, rows=slice(None), cols=slice(None), min_facing: float = 0.2,
            normal_sign: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's colours in texture space over texels [rows, cols]: (h, w, 3) and where seen (h, w)."""
+    """A frame's colours in texture space over texels [rows, cols]: (h, w, 3) and where seen (h, w).
+
+    A texel is seen where it faces the camera (cosine above ``min_facing``), projects into the
+    image, and each of the four pixels its bilinear sample reads shows its own surface
+    (:func:`pixels_show_points`): not a lip, lid or nose in front of it, nor the background or
+    the mouth's inside beside its edge, whose colours would otherwise be taken for its own."""
     tf = texel_face[rows, cols]
     tb = texel_bary[rows, cols]
     covered = tf >= 0
@@ -112,10 +125,52 @@ def unwrap(image: np.ndarray, camera_positions: np.ndarray, faces: np.ndarray, t
         return out, seen
     X = surface_points(camera_positions, faces, tf[covered], tb[covered])
     cos = normal_sign * ap.facing(triangle_normals(camera_positions, faces, tf[covered]), X)
-    values, inside = ap.bilinear_sample(image, project_distorted(camera, X))
+    pixels = project_distorted(camera, X)
+    values, inside = ap.bilinear_sample(image, pixels)
     out[covered] = values
-    seen[covered] = inside & (cos > min_facing)
+    candidate = inside & (cos > min_facing)
+    if candidate.any():
+        candidate[candidate] = pixels_show_points(X[candidate], cos[candidate], pixels[candidate], camera_positions,
+                                                  faces, camera, image.shape[:2], min_facing)
+    seen[covered] = candidate
     return out, seen
+
+
+def pixels_show_points(points: np.ndarray, cos: np.ndarray, pixels: np.ndarray, camera_positions: np.ndarray,
+                       faces: np.ndarray, camera: Camera, image_shape: tuple, min_facing: float) -> np.ndarray:
+    """(N,) whether each of the four pixels a bilinear sample at ``pixels`` (N, 2) (inside the image)
+    reads shows the surface near the camera-space point (N, 3) it samples: the nearest surface of the
+    posed mesh (V, 3) there, a z-buffer over the window of the image the points cover, lies within
+    :data:`FOOTPRINT_REACH` footprints of the point (its cosine ``cos`` (N,) toward the camera,
+    at least ``min_facing``)."""
+    H, W = image_shape
+    x0 = np.clip(np.floor(pixels[:, 0]).astype(np.int64), 0, max(W - 2, 0))
+    y0 = np.clip(np.floor(pixels[:, 1]).astype(np.int64), 0, max(H - 2, 0))
+    left, top = int(x0.min()), int(y0.min())
+    right, bottom = min(int(x0.max()) + 1, W - 1), min(int(y0.max()) + 1, H - 1)
+    shown = visible_surface(camera_positions, faces, camera, (left, top, right - left + 1, bottom - top + 1))
+    reach = FOOTPRINT_REACH * points[:, 2] / float(camera.matrix[0, 0]) / np.maximum(cos, min_facing)
+    good = np.ones(len(points), dtype=bool)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            near = shown[np.minimum(y0 + dy, H - 1) - top, np.minimum(x0 + dx, W - 1) - left]
+            with np.errstate(invalid="ignore"):  # the background's points are infinitely far
+                good &= np.linalg.norm(near - points, axis=1) <= reach
+    return good
+
+
+def visible_surface(camera_positions: np.ndarray, faces: np.ndarray, camera: Camera, window: tuple) -> np.ndarray:
+    """(h, w, 3) the camera-space point of the posed mesh (V, 3) nearest the camera at each pixel
+    centre of the image's window (x0, y0, w, h) (infinite where no triangle covers it)."""
+    x0, y0, w, h = window
+    pixels, depth = PinholeCamera(camera.matrix, camera.distortion, camera.width, camera.height).project(camera_positions)
+    ok = np.isfinite(depth)
+    faces = faces[ok[faces].all(axis=1)]  # a triangle reaching behind the camera is in no pixel
+    face, bary = rasterize(np.where(ok[:, None], pixels - np.array([x0, y0]), 0.0), np.where(ok, depth, 0.0), faces,
+                           w, h)
+    shown = np.einsum("hwk,hwkc->hwc", bary, camera_positions[faces[np.maximum(face, 0)]])
+    shown[face < 0] = np.inf
+    return shown
 
 
 def template_points(rect, size: int) -> np.ndarray:
