@@ -1408,6 +1408,10 @@ def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so
     (broken / "light.csv").write_text("\n".join(lines[:-1]) + "\n")  # a frame short
     assert _run("export", broken, "--format", "textures", "-o", tmp_path / "c") == 2
     assert "light.csv" in capsys.readouterr().err and not (tmp_path / "c").exists()
+    (broken / "light.csv").write_text("frame,time,ambient,key\n" + "\n".join(lines[1:]) + "\n")  # a header it does not know
+    assert _run("export", broken, "--format", "textures", "-o", tmp_path / "c") == 2
+    err = capsys.readouterr().err
+    assert "light.csv" in err and "line 1 (frame, time, ambient, key)" in err and not (tmp_path / "c").exists()
     shutil.copy(cls / "light.csv", broken / "light.csv")
     with open(broken / "appearance.csv", "a") as fh:
         fh.write("999,33.3,not a number\n")

@@ -446,9 +446,14 @@ def read_light(folder, numbers: np.ndarray) -> np.ndarray | None:
     csv = Path(folder) / "light.csv"
     if not csv.is_file():
         return None
-    header = csv.read_text(encoding="utf-8", errors="replace").split("\n", 1)[0].strip().split(",")[2:]
-    columns = next((c for c in STREAM_LIGHTS.values() if header == c), LIGHT_COLUMNS)
-    data = _numbers_table(csv, ["frame", "time"] + columns)
+    lines = csv.read_text(encoding="utf-8", errors="replace").splitlines()
+    header = lines[0].strip().split(",") if lines else []
+    columns = next((c for c in STREAM_LIGHTS.values() if header == ["frame", "time"] + c), None)
+    if columns is None:
+        raise InputError(f"line 1 ({', '.join(header) or 'empty'}) is not a light's header: frame, time, then "
+                         + " or ".join(f"{', '.join(c)} ({kind})" for kind, c in STREAM_LIGHTS.items()),
+                         path=csv, hint="classify the footage again: facepipe appearance classify ... -o FOLDER")
+    data = _numbers_table(csv, ["frame", "time"] + columns, lines)
     if not np.array_equal(data[:, 0].astype(np.int64), np.asarray(numbers)) or not np.isfinite(data[:, 2:]).all():
         raise InputError(f"light.csv does not hold {len(columns)} finite values ({', '.join(columns)}) "
                          "for each of appearance.csv's frames",
@@ -473,11 +478,13 @@ def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     return info, data[:, 0].astype(np.int64), data[:, 1], data[:, 2:]
 
 
-def _numbers_table(csv: Path, columns: list) -> np.ndarray:
+def _numbers_table(csv: Path, columns: list, lines: list | None = None) -> np.ndarray:
     """(rows, len(columns)) the numbers of a stream file written by this module (a header line,
-    then one row of numbers a frame); the first line that is not a row of them is named."""
+    then one row of numbers a frame; ``lines``: its lines where already read); the first line that
+    is not a row of them is named."""
     rows = []
-    for line_no, line in enumerate(csv.read_text(encoding="utf-8", errors="replace").splitlines()[1:], start=2):
+    lines = csv.read_text(encoding="utf-8", errors="replace").splitlines() if lines is None else lines
+    for line_no, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
         try:
