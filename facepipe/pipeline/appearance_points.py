@@ -7,7 +7,9 @@ animated surface (:func:`template_positions`), shifted diagonally by half a grid
 offset samples. A frame is sampled at them (:func:`sample_template_frames`) or unwrapped into
 texture space (:func:`unwrap`) through its geometry and the camera; whether the camera sees a
 point — in the image, not hidden by the face (ray cast), facing it well enough and away from
-what it does not see — is :func:`sample_template_frames`' and :func:`well_seen_points`' answer.
+what it does not see — is :func:`sample_template_frames`' and :func:`well_seen_points`' answer,
+and whether it sees a texel, one that faces it and whose pixels show its own surface (z-buffer),
+:func:`unwrap`'s.
 """
 
 from __future__ import annotations
@@ -168,6 +170,8 @@ def visible_surface(camera_positions: np.ndarray, faces: np.ndarray, camera: Cam
     faces = faces[ok[faces].all(axis=1)]  # a triangle reaching behind the camera is in no pixel
     face, bary = rasterize(np.where(ok[:, None], pixels - np.array([x0, y0]), 0.0), np.where(ok, depth, 0.0), faces,
                            w, h)
+    # the image's barycentric coordinates, not the surface's: off by a triangle's depth range over
+    # its depth, far under a footprint for a face mesh's triangles
     shown = np.einsum("hwk,hwkc->hwc", bary, camera_positions[faces[np.maximum(face, 0)]])
     shown[face < 0] = np.inf
     return shown
