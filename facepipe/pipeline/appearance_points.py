@@ -20,7 +20,7 @@ from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera, project_distorted, project_distorted_fast
 from facepipe.core.occlusion import occluded_points
 from facepipe.core.raster import triangle_pixels, udim_corner
-from facepipe.core.render import PinholeCamera, rasterize
+from facepipe.core.render import rasterize
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
 from facepipe.io.appearance_file import AppearanceModel
 
@@ -165,11 +165,11 @@ def visible_surface(camera_positions: np.ndarray, faces: np.ndarray, camera: Cam
     """(h, w, 3) the camera-space point of the posed mesh (V, 3) nearest the camera at each pixel
     centre of the image's window (x0, y0, w, h) (infinite where no triangle covers it)."""
     x0, y0, w, h = window
-    pixels, depth = PinholeCamera(camera.matrix, camera.distortion, camera.width, camera.height).project(camera_positions)
-    ok = np.isfinite(depth)
+    pixels = project_distorted(camera, camera_positions)  # as unwrap projects the texels
+    ok = np.isfinite(pixels).all(axis=1) & (camera_positions[:, 2] > 0)
     faces = faces[ok[faces].all(axis=1)]  # a triangle reaching behind the camera is in no pixel
-    face, bary = rasterize(np.where(ok[:, None], pixels - np.array([x0, y0]), 0.0), np.where(ok, depth, 0.0), faces,
-                           w, h)
+    inverse_depth = np.where(ok, 1.0 / np.where(ok, camera_positions[:, 2], 1.0), 0.0)  # affine over a triangle's image
+    face, bary = rasterize(np.where(ok[:, None], pixels - np.array([x0, y0]), 0.0), inverse_depth, faces, w, h)
     # the image's barycentric coordinates, not the surface's: off by a triangle's depth range over
     # its depth, far under a footprint for a face mesh's triangles
     shown = np.einsum("hwk,hwkc->hwc", bary, camera_positions[faces[np.maximum(face, 0)]])
