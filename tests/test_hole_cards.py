@@ -421,7 +421,7 @@ def test_rendered_eyeballs_move_with_the_head_and_turn_with_the_gaze():
 def test_free_uv_squares_on_another_udim_tile():
     """A card's square is found where the layout leaves room on the regions' tile: the layout moved
     one tile right (1002) gives the same squares moved with it."""
-    from facepipe.pipeline.appearance_build import free_uv_squares
+    from facepipe.pipeline.appearance_cards import free_uv_squares
 
     _, faces, uv = _grid_with_hole()
     corner_uv = 0.5 * uv[faces]  # the layout in the tile's lower-left quarter: room for squares elsewhere

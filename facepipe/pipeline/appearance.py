@@ -38,7 +38,8 @@ from facepipe.pipeline.appearance_points import (frame_facing_limits, sample_tem
                                                  template_point_facing, template_positions)
 
 __all__ = ["classify_frames", "classify_image", "classify_decoded", "classify_chunk", "region_bank",
-           "Classification", "FrameReadings", "take_geometry", "read_take_geometry", "TakeGeometry", "WELL_SEEN"]
+           "Classification", "FrameReadings", "take_geometry", "read_take_geometry", "TakeGeometry", "WELL_SEEN",
+           "examples_at_rest"]
 
 
 
@@ -364,6 +365,12 @@ def sample_patches(grays, camera_positions, model: AppearanceModel, images=None)
             seen &= (model.template_facing > model.min_point_facing).reshape(model.template_facing.shape[:2] + (s, s))
         visible &= seen_fraction(seen, model) >= model.min_seen
     return patches, visible, seen, in_view, light, residual
+
+
+def examples_at_rest(cfg, numbers: list) -> np.ndarray:
+    """(F, R) whether each region is at rest in each example frame (``numbers``): every frame but
+    its own layers above the neutral one."""
+    return np.array([[n not in set(region.frames[1:]) for region in cfg.regions] for n in numbers])
 
 
 def rest_floors(model: AppearanceModel, off_path: np.ndarray) -> np.ndarray | None:

@@ -22,9 +22,10 @@ from facepipe.core.occlusion import occluded_points
 from facepipe.core.raster import triangle_pixels, udim_corner
 from facepipe.core.render import rasterize
 from facepipe.core.tangent_frames import vertex_face_matrix, vertex_normals
+from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 
-__all__ = ["texel_map", "locate_uv", "unwrap", "template_points", "template_positions",
+__all__ = ["texel_map", "locate_uv", "unwrap", "template_points", "region_template", "template_positions",
            "sample_template_frames", "seen_fraction", "well_seen_points", "point_facing", "point_normals",
            "frame_facing_limits"]
 
@@ -185,6 +186,22 @@ def template_points(rect, size: int) -> np.ndarray:
     jj, ii = np.meshgrid(np.arange(size), np.arange(size))
     base = np.stack([u0 + (jj + 0.5) * du, v1 - (ii + 0.5) * dv], axis=-1).reshape(-1, 2)
     return np.stack([base + o * np.array([du, -dv]) for o in ap.DIAGONAL_OFFSETS])
+
+
+def region_template(region, rect, corner_uv, size: int, config_path) -> tuple[np.ndarray, np.ndarray]:
+    """A region's template grid (:func:`template_points` over ``rect``, ``size`` to a side) located in
+    the UV layout's triangles (``corner_uv``): face (5, size²) and barycentric coordinates (5, size², 3),
+    in place and at each diagonal offset; exit 2 (naming the region and ``config_path``) where a
+    point lies outside every triangle."""
+    pts = template_points(rect, size)
+    face, bary = locate_uv(pts.reshape(-1, 2), corner_uv)
+    if (face < 0).any():
+        k = int(np.argmax(face < 0))
+        u, v = pts.reshape(-1, 2)[k]
+        raise InputError(f"region {region.name}: template = {region.template} reaches outside the UV layout (at "
+                         f"u {u:.4f}, v {v:.4f}, with the half-step offsets)", path=config_path,
+                         hint="put the template rectangle well inside the region's UV triangles")
+    return face.reshape(5, -1), bary.reshape(5, -1, 3)
 
 
 def sample_templates(gray: np.ndarray, camera_positions: np.ndarray, model: AppearanceModel
