@@ -1430,3 +1430,47 @@ def test_textures_without_the_frames_light_or_geometry_are_the_albedo_and_say_so
     assert _run("export", cls, "--format", "textures", "-m", tmp_path / "footage.npz", "--layer", "albedo",
                 "-o", tmp_path / "f") == 2
     assert "holds the footage's values" in capsys.readouterr().err and not (tmp_path / "f").exists()
+
+
+@pytest.mark.parametrize("damage,message", [
+    ("model_cut", "cut short or damaged"),       # an interrupted copy of the model
+    ("geometry_cut", "cut short or damaged"),    # ... of the take's geometry
+    ("geometry_nan", "frame 3: vertex 10 is not finite"),
+])
+def test_damaged_model_or_geometry_exits_2_by_name(kit, tmp_path, capsys, damage, message):
+    """A model or geometry file cut short, or geometry with a NaN vertex, is refused with the
+    file, frame and vertex named: no traceback, no stream written."""
+    model, geometry = kit / "app.npz", kit / "appearance" / "take.npz"
+    if damage == "model_cut":
+        model = tmp_path / "cut.npz"
+        model.write_bytes((kit / "app.npz").read_bytes()[:5000])
+    elif damage == "geometry_cut":
+        geometry = tmp_path / "cut.npz"
+        geometry.write_bytes((kit / "appearance" / "take.npz").read_bytes()[:5000])
+    else:
+        data = dict(np.load(geometry))
+        data["positions"] = data["positions"].copy()
+        data["positions"][3, 10, 1] = np.nan
+        geometry = tmp_path / "nan.npz"
+        np.savez(geometry, **data)
+    out = tmp_path / "cls"
+    assert _run("appearance", "classify", model, kit / "appearance" / "take" / "frame_%04d.png",
+                "--geometry", geometry, "-o", out, "-q") == 2
+    err = capsys.readouterr().err
+    assert message in err and ("cut.npz" in err or "nan.npz" in err) and "Traceback" not in err
+    assert not (out / "appearance.csv").exists()
+
+
+def test_unreadable_video_says_ffmpegs_reason_without_its_banner(tmp_path):
+    """A file that is no video: the error gives ffmpeg's own reason in a line, not its build
+    banner, and a hint that fits (the reader is installed here)."""
+    from facepipe.errors import InputError
+    from facepipe.io.footage import open_footage
+
+    video = tmp_path / "take.mp4"
+    video.write_bytes(b"not a video at all\n" * 100)
+    with pytest.raises(InputError) as info:
+        open_footage(video)
+    text = str(info.value)
+    assert "cannot open the video" in text and "configuration:" not in text and "ffmpeg version" not in text
+    assert len(text.splitlines()) <= 3 and "check that the file plays" in (info.value.hint or "")

@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +17,7 @@ from facepipe.core.camera import Camera
 from facepipe.core.hole_cards import card_triangles, with_card_vertices
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
+from facepipe.io.npz_file import open_npz
 
 __all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream", "format_stream",
            "format_light", "read_light", "LIGHT_COLUMNS", "POINT_LIGHT_COLUMNS", "STREAM_LIGHTS", "light_columns",
@@ -290,8 +293,10 @@ def load_appearance(path):
     path = Path(path)
     if not path.is_file():
         raise InputError("appearance model not found", path=path, hint="build one: facepipe appearance build CONFIG")
+    hint = "build one with: facepipe appearance build CONFIG -o APPEARANCE.npz"
     try:
-        d = dict(np.load(path))
+        with open_npz(path, "an appearance model written by 'facepipe appearance build'", hint) as archive:
+            d = {key: archive[key] for key in archive.files}
         n = len(d["names"])
         size = d["camera_size"]
         camera = Camera(d["camera_matrix"], d["camera_distortion"], int(size[0]), int(size[1]), str(path))
@@ -368,9 +373,8 @@ def load_appearance(path):
                           and (model.tile_albedo is None or len(model.tile_albedo) == tiles)):
             raise ValueError(f"its {tiles} other UV tiles' textures are missing or incomplete")
         return model
-    except (OSError, ValueError, KeyError) as exc:
-        raise InputError(f"not an appearance model ({exc})", path=path,
-                         hint="build one with: facepipe appearance build CONFIG -o APPEARANCE.npz") from None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # a damaged member too
+        raise InputError(f"not an appearance model ({exc})", path=path, hint=hint) from None
 
 
 def write_stream(folder, model_path, classification, layer_counts, footage=None, geometry=None,

@@ -15,6 +15,7 @@ frame that cannot be read is reported by :func:`read_frames` and skipped, never 
 
 from __future__ import annotations
 
+import importlib.util
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -111,17 +112,33 @@ def _numbered(text: str, found: list) -> Footage:
     return Footage(text, "images", numbers, [p for _, p in found])
 
 
+def _video_reason(exc: Exception) -> str:
+    """What went wrong with a video, in a line: ffmpeg's own last error lines, without the build
+    banner imageio passes along with them."""
+    text = str(exc)
+    head, _, stderr = text.partition("=== stderr ===")
+    errors = [line.strip() for line in stderr.splitlines()
+              if line.strip() and not line.startswith((" ", "\t")) and not line.startswith("ffmpeg version")]
+    return "; ".join(errors[-2:]) if errors else " ".join(head.split())
+
+
+def _video_hint() -> str:
+    if importlib.util.find_spec("imageio_ffmpeg") is None:
+        return "install imageio-ffmpeg (pip install imageio-ffmpeg), which reads videos"
+    return "check that the file plays (a damaged or cut-short video, or not a video), or give its frames as images"
+
+
 def _video(text: str, path: Path) -> Footage:
     try:
         props = iio.improps(path)
         count = int(props.n_images) if props.n_images and np.isfinite(props.n_images) else 0
     except Exception as exc:  # imageio raises many kinds for unreadable videos
-        raise InputError(f"cannot open the video ({exc})", path=path, hint="is imageio-ffmpeg installed?") from None
+        raise InputError(f"cannot open the video ({_video_reason(exc)})", path=path, hint=_video_hint()) from None
     if count <= 0:  # some containers do not say: count by reading
         try:
             count = sum(1 for _ in iio.imiter(path))
         except Exception as exc:
-            raise InputError(f"cannot read the video ({exc})", path=path) from None
+            raise InputError(f"cannot read the video ({_video_reason(exc)})", path=path, hint=_video_hint()) from None
     try:
         fps = float(iio.immeta(path).get("fps") or 0.0)
     except Exception:  # noqa: BLE001 - a container without the rate: frames by number only

@@ -20,6 +20,7 @@ from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
 
 _NPY_MAGIC = b"\x93NUMPY"
+_ZIP_MAGIC = b"PK\x03\x04"
 
 
 def describe_start(path: Path) -> str:
@@ -30,6 +31,8 @@ def describe_start(path: Path) -> str:
         return "it is empty"
     if head.startswith(_NPY_MAGIC):
         return "it is a single .npy array, not an .npz archive"
+    if head.startswith(_ZIP_MAGIC):
+        return "it starts as one but is cut short or damaged (an interrupted copy or write?)"
     try:
         first = head.decode("utf-8").splitlines()[0].strip()
     except (UnicodeDecodeError, IndexError):

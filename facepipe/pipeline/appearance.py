@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import queue
 import threading
+import zipfile
+import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -32,6 +34,7 @@ from facepipe.core.mesh import VertexSelection
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, open_footage, read_frames_of, to_gray
+from facepipe.io.npz_file import open_npz
 from facepipe.parallel import map_blocks, serial_blas, thread_count
 from facepipe.pipeline.appearance_light import frame_shading
 from facepipe.pipeline.appearance_points import (frame_facing_limits, sample_template_frames, seen_fraction,
@@ -39,7 +42,7 @@ from facepipe.pipeline.appearance_points import (frame_facing_limits, sample_tem
 
 __all__ = ["classify_frames", "classify_image", "classify_decoded", "classify_chunk", "region_bank",
            "Classification", "FrameReadings", "take_geometry", "read_take_geometry", "TakeGeometry", "WELL_SEEN",
-           "examples_at_rest"]
+           "examples_at_rest", "check_finite_positions"]
 
 
 
@@ -82,22 +85,39 @@ def read_take_geometry(path, n_vertices: int) -> TakeGeometry:
         video = replay.video if in_camera else None
         camera = None if video is None else video.camera
     elif path.is_file():
+        hint = "positions (T, V, 3) and frame (T,), or a replay folder"
         try:
-            with np.load(path) as data:
+            with open_npz(path, "a take's geometry", hint) as data:
                 positions = np.asarray(data["positions"])
                 numbers = np.asarray(data["frame"]) if "frame" in data else np.arange(len(positions))
                 times = np.asarray(data["time"], dtype=np.float64) if "time" in data else None
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputError(f"not a geometry .npz with 'positions' ({exc})", path=path,
-                             hint="positions (T, V, 3) and frame (T,), or a replay folder") from None
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # a damaged member
+            raise InputError(f"not a geometry .npz with 'positions' ({exc})", path=path, hint=hint) from None
     else:
         raise InputError("geometry not found", path=path, hint="an .npz with positions and frame, or a replay folder")
     if positions.ndim != 3 or positions.shape[1:] != (n_vertices, 3):
         raise InputError(f"positions have shape {positions.shape}, the rest mesh has {n_vertices} vertices",
                          path=path, hint="give the geometry of this rig's mesh")
+    if path.is_file():  # a replay folder's positions are facepipe's own, and may be larger than memory
+        check_finite_positions(positions, numbers, path)
     if times is not None and times.shape != (len(positions),):
         times = None  # not one a frame: the frames' numbers alone say which footage is theirs
     return TakeGeometry(positions, np.asarray(numbers, dtype=np.int64), times, in_camera, camera)
+
+
+def check_finite_positions(positions: np.ndarray, numbers: np.ndarray, path) -> None:
+    """Exit 2 (naming ``path``, the first frame and vertex, and how many frames) where a frame of
+    positions (T, V, 3) with frame numbers (T,) holds a non-finite coordinate: a NaN vertex would
+    project nowhere and blank the regions and light that use it without a word."""
+    bad = ~np.isfinite(positions).all(axis=2)  # (T, V)
+    if bad.any():
+        row, vertex = (int(i) for i in np.argwhere(bad)[0])
+        frames = int(bad.any(axis=1).sum())
+        raise InputError(f"frame {int(numbers[row])}: vertex {vertex} is not finite "
+                         f"({', '.join(f'{x:g}' for x in positions[row, vertex])})"
+                         + (f"; {frames} frames hold such vertices" if frames > 1 else ""), path=path,
+                         hint="fill the geometry's gaps (replay the take, whose gaps facepipe fills) or leave "
+                              "those frames out of the .npz")
 
 
 def _read_geometry(path, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
