@@ -1474,3 +1474,37 @@ def test_unreadable_video_says_ffmpegs_reason_without_its_banner(tmp_path):
     text = str(info.value)
     assert "cannot open the video" in text and "configuration:" not in text and "ffmpeg version" not in text
     assert len(text.splitlines()) <= 3 and "check that the file plays" in (info.value.hint or "")
+
+
+def test_stream_columns_are_read_by_their_names(kit, tmp_path, capsys):
+    """appearance.csv edited in another tool: its region columns in another order read the same
+    Q per region; a renamed or repeated column exits 2 naming it (before, the header was not read
+    and a column's values went to whichever region stood there)."""
+    import shutil
+
+    from facepipe.io.appearance_file import read_stream
+
+    _q_and_truth(kit, "take")
+    written = kit / "cls_take"
+    rows = [line.split(",") for line in (written / "appearance.csv").read_text().splitlines()]
+    width = len(rows[0])
+    order = [0, 1] + list(range(width - 1, 1, -1))  # frame, time, then the regions reversed
+
+    def edited(name, transform):
+        folder = tmp_path / name
+        shutil.copytree(written, folder)
+        (folder / "appearance.csv").write_text("\n".join(",".join(transform(r)) for r in rows) + "\n")
+        return folder
+
+    _, numbers, times, q = read_stream(written)
+    _, numbers2, times2, q2 = read_stream(edited("reordered", lambda r: [r[i] for i in order]))
+    assert np.array_equal(numbers, numbers2) and np.array_equal(times, times2) and np.array_equal(q, q2)
+    assert np.ptp(q, axis=0).max() > 0  # some region moves: a swap of columns would show
+    renamed = edited("renamed", lambda r: [r[0], r[1], "brow" if r is rows[0] else r[2]] + r[3:])
+    repeated = edited("repeated", lambda r: r[:3] + ([r[2]] if r is rows[0] else [r[3]]) + r[4:])
+    for folder, words in ((renamed, ["missing: " + rows[0][2], "not in the classification: brow"]),
+                          (repeated, ["repeated: " + rows[0][2], "missing: " + rows[0][3]])):
+        assert _run("export", folder, "--format", "textures", "-o", tmp_path / f"tex_{folder.name}",
+                    "-m", kit / "app.npz", "-q") == 2
+        err = capsys.readouterr().err
+        assert "line 1" in err and all(w in err for w in words), err

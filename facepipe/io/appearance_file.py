@@ -478,8 +478,30 @@ def read_stream(folder) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
     except (json.JSONDecodeError, KeyError, TypeError) as exc:
         raise InputError(f"appearance.json is not a classification's summary ({exc})", path=meta,
                          hint="classify the footage again: facepipe appearance classify ... -o FOLDER") from None
-    data = _numbers_table(csv, ["frame", "time"] + [str(n) for n in info["regions"]])
+    lines = csv.read_text(encoding="utf-8", errors="replace").splitlines()
+    columns = ["frame", "time"] + [str(n) for n in info["regions"]]
+    order = _columns_by_name(csv, lines[0] if lines else "", columns)
+    data = _numbers_table(csv, columns, lines)[:, order]
     return info, data[:, 0].astype(np.int64), data[:, 1], data[:, 2:]
+
+
+def _columns_by_name(csv: Path, header: str, columns: list) -> np.ndarray:
+    """Where each of ``columns`` is in a stream file's header line (a file edited in another tool
+    may have them in another order); exit 2 naming those missing, unknown or repeated."""
+    names = [cell.strip() for cell in header.split(",")]
+    if names == columns:
+        return np.arange(len(columns))
+    missing = [c for c in columns if c not in names]
+    unknown = [n for n in names if n not in columns]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if missing or unknown or repeated:
+        said = "; ".join(f"{what}: {', '.join(which)}" for what, which in
+                         (("missing", missing), ("not in the classification", unknown), ("repeated", repeated)) if which)
+        raise InputError(f"line 1: its columns are not frame, time and the classification's regions "
+                         f"(appearance.json: {', '.join(columns[2:])}) — {said}", path=csv,
+                         hint="keep the header appearance classify wrote (columns may be in any order), or "
+                              "classify the footage again")
+    return np.array([names.index(c) for c in columns])
 
 
 def _numbers_table(csv: Path, columns: list, lines: list | None = None) -> np.ndarray:
