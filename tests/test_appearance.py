@@ -1508,3 +1508,18 @@ def test_stream_columns_are_read_by_their_names(kit, tmp_path, capsys):
                     "-m", kit / "app.npz", "-q") == 2
         err = capsys.readouterr().err
         assert "line 1" in err and all(w in err for w in words), err
+
+
+@pytest.mark.parametrize("old,new,message", [
+    ("frames = [0, 1, 2, 3, 4]", "frames = [0, 1, 1, 3, 4]", "lists frame 1 more than once"),
+    ("rest_frames = [", "rest_frames = [1, ", "rest_frames lists frame 1, a layer of region"),
+    ("[0.0, -1.0, 0.0]", "[0.0, -2.0, 0.0]", "is not a rotation"),   # scaled
+    ("[0.0, -1.0, 0.0]", "[0.0, 1.0, 0.0]", "determinant -1"),       # mirrored
+])
+def test_contradictory_examples_or_camera_pose_exit_2(kit, tmp_path, capsys, old, new, message):
+    """A layer given twice, a rest frame that is a region's layer, or a camera_rotation that is
+    no rotation: exit 2 by name (before, the first two built silently — a layer repeated, a region
+    counted at rest in its own example — and the last said a template left the image)."""
+    cfg = _edited_config(kit, tmp_path, old, new)
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
+    assert message in capsys.readouterr().err

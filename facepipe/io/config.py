@@ -361,6 +361,11 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         if len(frames) < 3:
             raise InputError(f"[{where}] frames = {frames}: a region needs at least three layers", path=path,
                              hint="give 3 or more example frames, neutral first (5 or 6 for smooth motion)")
+        twice = sorted({f for f in frames if frames.count(f) > 1})
+        if twice:
+            raise InputError(f"[{where}] frames = {frames} lists frame {twice[0]} more than once: each layer is an "
+                             "example frame of its own", path=path,
+                             hint="give distinct example frames, neutral first, ordered to the extreme")
         surface = v.get("shading_surface")
         if surface is not None:
             _check_surface(surface, path, where)
@@ -399,6 +404,21 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         raise InputError(f"[appearance] unseen_margin = {out.unseen_margin} is not in [0, 8) pixels", path=path,
                          hint="0 keeps every point seen well; 1 drops those whose bilinear samples reach one that is not")
     out.rest_frames = [checked_value(x, int, path, "appearance", "rest_frames") for x in out.rest_frames]
+    for region in regions:
+        layers = set(region.frames[1:]) & set(out.rest_frames)
+        if layers:
+            raise InputError(f"[appearance] rest_frames lists frame {min(layers)}, a layer of region {region.name} "
+                             f"(frames = {region.frames}): a rest frame shows every region at rest", path=path,
+                             hint=f"take frame {min(layers)} out of rest_frames, or out of that region's layers")
+    gram = [[sum(a * b for a, b in zip(r1, r2)) for r2 in rot] for r1 in rot]  # R Rᵀ
+    det = (rot[0][0] * (rot[1][1] * rot[2][2] - rot[1][2] * rot[2][1])
+           - rot[0][1] * (rot[1][0] * rot[2][2] - rot[1][2] * rot[2][0])
+           + rot[0][2] * (rot[1][0] * rot[2][1] - rot[1][1] * rot[2][0]))
+    if not (all(abs(gram[i][j] - (i == j)) <= 1e-3 for i in range(3) for j in range(3)) and det > 0):
+        raise InputError(f"[appearance] camera_rotation = {_toml(rot)} is not a rotation (its rows are not "
+                         f"orthonormal, or it mirrors: determinant {det:.4g})", path=path,
+                         hint="the world → camera rotation, e.g. from cv2.Rodrigues of solvePnP's rvec; "
+                              "[[1, 0, 0], [0, -1, 0], [0, 0, -1]] looks at a face whose +y is up from +z")
     if not 0.0 <= out.rest_explain <= 1.0:
         raise InputError(f"[appearance] rest_explain = {out.rest_explain} is not in [0, 1] layers", path=path,
                          hint="0 explains no at-rest example away; 0.2 those that read above a fifth of a layer")
