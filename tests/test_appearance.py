@@ -1508,6 +1508,7 @@ def test_stream_columns_are_read_by_their_names(kit, tmp_path, capsys):
                     "-m", kit / "app.npz", "-q") == 2
         err = capsys.readouterr().err
         assert "line 1" in err and all(w in err for w in words), err
+        assert not (tmp_path / f"tex_{folder.name}").exists() or not any((tmp_path / f"tex_{folder.name}").iterdir())
 
 
 @pytest.mark.parametrize("old,new,message", [
@@ -1523,3 +1524,4 @@ def test_contradictory_examples_or_camera_pose_exit_2(kit, tmp_path, capsys, old
     cfg = _edited_config(kit, tmp_path, old, new)
     assert _run("appearance", "build", cfg, "-o", tmp_path / "x.npz", "-q") == 2
     assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.npz").exists()

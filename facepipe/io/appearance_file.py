@@ -6,8 +6,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +15,7 @@ from facepipe.core.camera import Camera
 from facepipe.core.hole_cards import card_triangles, with_card_vertices
 from facepipe.errors import InputError
 from facepipe.io.atomic import atomic_path
-from facepipe.io.npz_file import open_npz
+from facepipe.io.npz_file import NPZ_READ_ERRORS, open_npz
 
 __all__ = ["AppearanceModel", "save_appearance", "load_appearance", "write_stream", "read_stream", "format_stream",
            "format_light", "read_light", "LIGHT_COLUMNS", "POINT_LIGHT_COLUMNS", "STREAM_LIGHTS", "light_columns",
@@ -373,7 +371,7 @@ def load_appearance(path):
                           and (model.tile_albedo is None or len(model.tile_albedo) == tiles)):
             raise ValueError(f"its {tiles} other UV tiles' textures are missing or incomplete")
         return model
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # a damaged member too
+    except NPZ_READ_ERRORS as exc:
         raise InputError(f"not an appearance model ({exc})", path=path, hint=hint) from None
 
 

@@ -11,6 +11,7 @@ file is checked for the zip signature first, and nothing is ever unpickled.
 from __future__ import annotations
 
 import zipfile
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -21,6 +22,10 @@ from facepipe.io.atomic import atomic_path
 
 _NPY_MAGIC = b"\x93NUMPY"
 _ZIP_MAGIC = b"PK\x03\x04"
+
+#: What reading an opened archive's members raises where one is damaged (a bad CRC, a member cut
+#: short) or is not what was expected (a missing key, the wrong dtype): catch these around the reads.
+NPZ_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
 
 
 def describe_start(path: Path) -> str:

@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import queue
 import threading
-import zipfile
-import zlib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -34,7 +32,7 @@ from facepipe.core.mesh import VertexSelection
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
 from facepipe.io.footage import Footage, open_footage, read_frames_of, to_gray
-from facepipe.io.npz_file import open_npz
+from facepipe.io.npz_file import NPZ_READ_ERRORS, open_npz
 from facepipe.parallel import map_blocks, serial_blas, thread_count
 from facepipe.pipeline.appearance_light import frame_shading
 from facepipe.pipeline.appearance_points import (frame_facing_limits, sample_template_frames, seen_fraction,
@@ -91,7 +89,7 @@ def read_take_geometry(path, n_vertices: int) -> TakeGeometry:
                 positions = np.asarray(data["positions"])
                 numbers = np.asarray(data["frame"]) if "frame" in data else np.arange(len(positions))
                 times = np.asarray(data["time"], dtype=np.float64) if "time" in data else None
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # a damaged member
+        except NPZ_READ_ERRORS as exc:
             raise InputError(f"not a geometry .npz with 'positions' ({exc})", path=path, hint=hint) from None
     else:
         raise InputError("geometry not found", path=path, hint="an .npz with positions and frame, or a replay folder")
