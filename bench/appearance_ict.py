@@ -114,9 +114,10 @@ SHADING_TILT = 0.15
 def shading_tilt_response(model) -> dict:
     """Per region the largest Q its own neutral template reads when multiplied by a linear shading
     ramp of ±:data:`SHADING_TILT` from the middle to the edge, along x or y: what a side light's
-    change of gradient over the region reads as, with the rest floor left out (0 is ideal; the
-    division by the plane through a patch's intensities takes out a ramp exactly only where the
-    texture under it is uniform: a dark iris whose one side is lit more looks moved)."""
+    change of gradient over the region reads as, with the rest floor left out (0 is ideal; with
+    ``shading_reference = "patch"`` the plane through a patch's intensities takes out a ramp
+    exactly only where the texture under it is uniform: a dark iris whose one side is lit more
+    looks moved; fitted against the neutral layer, exactly for any texture)."""
     bank = region_bank(model)
     s = model.template_size
     ramp = (np.arange(s) - 0.5 * (s - 1)) / (0.5 * (s - 1))
@@ -316,6 +317,7 @@ def main() -> None:
               "rest_floor": None if model.rest_floor is None else dict(zip(model.names, model.rest_floor.tolist())),
               "shading_surface": dict(zip(model.names, [SHADING_ORDERS.get(int(o), str(o)) for o in model.shading_orders]))
               if model.shading_orders is not None else None,
+              "shading_reference": model.shading_reference,
               "stream_bits_per_frame": bits, "q_bits_per_frame": q_bits, "light_bits_per_frame": bits - q_bits,
               "stream_kbit_s_at_30hz": bits * 30 / 1000.0,
               "shading_tilt_q": shading_tilt_response(model) if model.template_patches is not None else None}

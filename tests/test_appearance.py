@@ -101,6 +101,7 @@ def _edited_config(kit, tmp_path, old, new):
     ("texture_size = 512", 'texture_size = 512\nshading_surface = "cubic"', "not one of auto, plane, quadratic"),
     ("frames = [0, 1, 2, 3, 4]", 'frames = [0, 1, 2, 3, 4]\nshading_surface = "flat"', "shading_surface"),
     ("texture_size = 512", 'texture_size = 512\npeak_interpolation = "cubic"', "not one of segment, parabola"),
+    ("texture_size = 512", 'texture_size = 512\nshading_reference = "mean"', "not one of neutral, patch"),
     ("texture_size = 512", 'texture_size = 512\nlight_model = "sh4"', "not one of point, sh9"),
     ("texture_size = 512", "texture_size = 512\nunseen_margin = -1.0", "unseen_margin = -1.0 is not in [0, 8)"),
     ("camera_rotation = [", "camera_rotation = 2 #", "camera_rotation must be 3 × 3 numbers"),  # (was a TypeError)
@@ -970,6 +971,30 @@ def test_peak_interpolation_saved_and_fixed_by_the_config(kit, tmp_path, capsys)
     np.savez(tmp_path / "old.npz", **data)
     assert load_appearance(tmp_path / "old.npz").peak_interpolation == "parabola"
     _assert_model_refused(kit, tmp_path, capsys, data, peak_interpolation=np.array("cubic"))
+
+
+def test_shading_reference_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
+    """The model keeps what its shading surfaces are fitted against (the patch alone by default,
+    each region's neutral layer where the config asks); both read the sample's take; models
+    before the choice read as the patch, which they were built with; another value is refused."""
+    from facepipe.io.appearance_file import load_appearance
+
+    assert load_appearance(kit / "app.npz").shading_reference == "patch"
+    cfg = _edited_config(kit, tmp_path, "texture_size = 512", 'texture_size = 512\nshading_reference = "neutral"')
+    assert _run("appearance", "build", cfg, "-o", tmp_path / "neutral.npz") == 0
+    assert "fitted against each region's neutral layer" in capsys.readouterr().out
+    assert load_appearance(tmp_path / "neutral.npz").shading_reference == "neutral"
+    truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
+    for name, model in (("patch", kit / "app.npz"), ("neutral", tmp_path / "neutral.npz")):
+        assert _run("appearance", "classify", model, kit / "appearance" / "take" / "frame_%04d.png",
+                    "--geometry", kit / "appearance" / "take.npz", "-o", tmp_path / name, "-q") == 0
+        q = np.loadtxt(tmp_path / name / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
+        assert min(spearmanr(q[:, r], truth[:, r]).statistic for r in range(q.shape[1])) > 0.8, name
+    data = dict(np.load(tmp_path / "neutral.npz"))
+    del data["shading_reference"]
+    np.savez(tmp_path / "old.npz", **data)
+    assert load_appearance(tmp_path / "old.npz").shading_reference == "patch"
+    _assert_model_refused(kit, tmp_path, capsys, data, shading_reference=np.array("mean"))
 
 
 def test_rest_readings_and_directions_in_a_model_file_are_checked(kit, tmp_path, capsys):

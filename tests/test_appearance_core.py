@@ -8,8 +8,8 @@ from scipy.stats import spearmanr
 from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, PEAK_INTERPOLATIONS, RegionBank, above_rest,
                                       bilinear_sample, classify, classify_regions, coefficient_weights,
                                       drop_short_events, facing, haar_coefficients, haar_matrix, hold_and_decay,
-                                      match_distances, normalise_patches, peak_index, rest_floor, segment_index,
-                                      select_coefficients)
+                                      match_distances, neutral_reference, normalise_patches, peak_index,
+                                      rest_direction, rest_floor, segment_index, select_coefficients)
 from facepipe.core.layered_texture import compose_texture, layer_lookup, region_alpha
 
 
@@ -939,3 +939,60 @@ def test_conditional_floor_counts_only_at_rest_readings_as_far_off_the_path():
                                [[0.1, 0.0, 0.2], [0.4, 0.0, 1.0], [0.1, 0.0, 1.0], [0.4, 0.0, 1.0]])
     # a frame reading below its own floor reads 0; above it, measured from it
     np.testing.assert_allclose(above_rest(np.array([[0.3, 2.0, 0.5]]), got[1:2], [5, 5, 5]), [[0.0, 2.0, 0.0]])
+
+
+def _iris_layers(n: int = 5) -> np.ndarray:
+    """(n, 16, 16) a dark disc on a bright ground moving right a pixel per layer: a gaze."""
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    return np.stack([1.0 - 0.8 * (np.hypot(xx - k, yy) < 4.0) for k in range(n)])
+
+
+def test_shading_relative_to_the_neutral_takes_a_smooth_light_out_exactly():
+    # a patch that is the neutral layer under a smooth shading (a plane for order 1, a quadratic
+    # for order 2) reads the neutral exactly when its surface is fitted against the neutral, over
+    # a partial mask too; through the patch alone the dark disc tilts the plane and it does not
+    layers = _iris_layers()
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    mask = np.ones((16, 16), dtype=bool)
+    mask[:3] = False
+    reference = neutral_reference(layers, mask)
+    np.testing.assert_allclose(reference[mask].mean(), 1.0, rtol=1e-12)
+    shadings = {1: 0.6 * (1.0 + 0.02 * xx - 0.015 * yy), 2: 0.6 * (1.0 + 0.02 * xx + 0.001 * xx * yy - 0.0008 * yy * yy)}
+    for order, shade in shadings.items():
+        got = normalise_patches(layers[0] * shade, order, mask, reference)
+        np.testing.assert_allclose(got[mask], reference[mask], rtol=1e-10)
+        assert (got[~mask] == 0).all()
+        alone = normalise_patches(layers[0] * shade, order, mask) - normalise_patches(layers[0], order, mask)
+        assert np.abs(alone[mask]).max() > 1e-2
+    # the reference's own layers: normalised against it, the neutral is the reference
+    np.testing.assert_allclose(normalise_patches(layers, 1, mask, reference)[0][mask], reference[mask], rtol=1e-12)
+    # without a surface (the mean alone) there is nothing to fit against
+    np.testing.assert_allclose(normalise_patches(layers, 0, None, reference), normalise_patches(layers, 0), rtol=1e-12)
+
+
+def test_region_bank_relative_to_the_neutral_reads_a_lit_neutral_as_rest():
+    # templates normalised against the neutral layer: the neutral under a side light's ramp reads
+    # Q 0 exactly, wholly or partly seen, with or without the layers' samples, and its direction
+    # to explain away is nothing; each layer still reads its own index. Through each patch alone
+    # the same ramp leaves the neutral template's match
+    layers = _iris_layers()
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    ramp = 1.0 + 0.02 * xx - 0.01 * yy
+    w = coefficient_weights(16)
+    reference = neutral_reference(layers)
+    templates = haar_coefficients(normalise_patches(layers, 1, None, reference))
+    indices = [select_coefficients(templates, 50)]
+    lit = np.broadcast_to(layers[0] * ramp, (1, 1, 5, 16, 16))
+    seen = np.ones((1, 1, 5, 16, 16), dtype=bool)
+    seen[..., :6, :] = False
+    for patches in (None, [layers.reshape(5, -1)]):
+        bank = RegionBank([templates], indices, w, patches=patches, relative=True)
+        for part in (None, seen):
+            q, residual = classify_regions(lit, bank, seen=part, min_seen=0.3)
+            assert q[0, 0] == pytest.approx(0.0, abs=1e-9) and residual[0, 0] < 1e-12
+        q, _ = classify_regions(layers[:, None, None], bank)
+        np.testing.assert_allclose(q[:, 0], np.arange(5), atol=1e-9)
+        np.testing.assert_allclose(rest_direction(bank, layers[0] * ramp, 0), 0.0, atol=1e-12)
+    own = haar_coefficients(normalise_patches(layers, 1))
+    _, residual = classify_regions(lit, RegionBank([own], [select_coefficients(own, 50)], w))
+    assert residual[0, 0] > 1e-4

@@ -60,7 +60,9 @@ def build_command(config_path, output, rep, write_json) -> dict:
             rep.say("each reading is measured from the at-rest readings that lie as far off the region's layers "
                     f"for their Q (within × {info['rest_path_tolerance']:g}), not from the highest")
     if info.get("shading"):
-        rep.say("shading surfaces (share of the layers' contrast a quadratic keeps): " + ", ".join(
+        fitted = {"neutral": "fitted against each region's neutral layer, ", "patch": "fitted through each patch, "}
+        rep.say(f"shading surfaces ({fitted.get(info.get('shading_reference'), '')}"
+                "share of the layers' contrast a quadratic keeps): " + ", ".join(
             f"{n} {v['surface']}" + ("" if v["contrast_kept"] is None else f" ({v['contrast_kept']:.2f})")
             for n, v in info["shading"].items()))
     if info.get("light"):

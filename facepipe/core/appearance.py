@@ -45,7 +45,10 @@ Patches are divided by their shading before the transform, the plane through the
 intensities (a change of exposure, of the light's strength and, to first order, of its
 direction leaves them unchanged), or per region the quadratic, which takes out a light's
 curvature over the patch too where it keeps most of the region's own change
-(:func:`shading_order`): what is classified is the texture's structure.
+(:func:`shading_order`): what is classified is the texture's structure. The surface is fitted
+either through the patch's own intensities or as the shading that maps the region's neutral
+layer onto the patch (:data:`SHADING_REFERENCES`): the second takes a smooth light over the
+neutral texture out exactly, where the first reads a dark iris lit more on one side as moved.
 
 Pure functions over arrays.
 """
@@ -63,7 +66,7 @@ __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normali
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
            "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "drop_short_events", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "DIAGONAL_OFFSETS", "SHADING_ORDERS",
-           "QUADRATIC_LEAST_KEPT", "layer_contrast", "shading_order", "rest_direction", "kept_step_shares",
+           "QUADRATIC_LEAST_KEPT", "SHADING_REFERENCES", "neutral_reference", "layer_contrast", "shading_order", "rest_direction", "kept_step_shares",
            "off_path_ratio", "conditional_floor", "OFF_PATH_LEAST_Q", "MOST_REST_FLOOR"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
@@ -112,7 +115,8 @@ def haar_coefficients(patches: np.ndarray) -> np.ndarray:
     return patches.reshape(patches.shape[:-2] + (size * size,)) @ H.T
 
 
-def normalise_patches(patches: np.ndarray, shading: int = 1, mask: np.ndarray | None = None) -> np.ndarray:
+def normalise_patches(patches: np.ndarray, shading: int = 1, mask: np.ndarray | None = None,
+                      reference: np.ndarray | None = None) -> np.ndarray:
     """Patches divided by their shading: the least-squares surface through their intensities of
     order ``shading`` (:data:`SHADING_ORDERS`: 1 the plane a + b·x + c·y, 2 the quadratic that
     adds x², x·y, y²; ``True`` is 1), or with 0 (``False``) their mean alone.
@@ -127,13 +131,21 @@ def normalise_patches(patches: np.ndarray, shading: int = 1, mask: np.ndarray | 
     own change that is that smooth (an iris moving, a lid closing: see :func:`shading_order`). A
     patch whose surface nears zero somewhere (a patch mostly in shadow) is divided by at least a
     tenth of its mean.
+
+    ``reference`` (broadcastable to the patches; :func:`neutral_reference`): the surface S is
+    instead the one that maps it onto each patch (patch ≈ S · reference, least squares over the
+    mask), so a patch that is the reference under any shading of that order reads the reference
+    exactly. Through the patch alone the plane takes out such a shading exactly only where the
+    texture under it is even: an iris lit more on one side would look moved.
     """
     patches = np.asarray(patches, dtype=np.float64)
     order = int(shading)
-    if mask is None and order > 1:
+    if reference is not None and not order:
+        reference = None  # the mean alone needs none
+    if mask is None and (order > 1 or reference is not None):
         mask = np.ones(patches.shape[-2:], dtype=bool)
     if mask is not None:
-        return _normalise_masked(patches, np.asarray(mask, dtype=bool), order)
+        return _normalise_masked(patches, np.asarray(mask, dtype=bool), order, reference)
     mean = patches.mean(axis=(-2, -1), keepdims=True)
     if not order:
         return patches / np.maximum(np.abs(mean), 1e-6)
@@ -148,20 +160,25 @@ def normalise_patches(patches: np.ndarray, shading: int = 1, mask: np.ndarray | 
     return patches / np.maximum(plane, floor)
 
 
-def _normalise_masked(patches: np.ndarray, mask: np.ndarray, shading: int) -> np.ndarray:
+def _normalise_masked(patches: np.ndarray, mask: np.ndarray, shading: int, reference: np.ndarray | None = None) -> np.ndarray:
     """:func:`normalise_patches` with the mean and the surface fitted over the texels of ``mask``
     (..., h, w) alone (the seen part of a partly hidden patch); texels off the mask are 0. The
     mask may have fewer leading axes' lengths than the patches (broadcast: one mask, many patches)."""
     h, w = patches.shape[-2:]
     flat = patches.reshape(patches.shape[:-2] + (h * w,))
     m = np.asarray(mask, dtype=bool).reshape(mask.shape[:-2] + (h * w,))
-    plane, mean = _masked_plane(flat, m, shading)
+    ref = None if reference is None else np.asarray(reference, dtype=np.float64).reshape(np.shape(reference)[:-2] + (h * w,))
+    plane, mean = _masked_plane(flat, m, shading, ref)
     floor = np.maximum(0.1 * np.abs(mean), 1e-6)
     return np.where(m, flat / np.maximum(plane, floor), 0.0).reshape(patches.shape)
 
 
 #: The shading surfaces a patch can be divided by: order → name (0: the patch's mean alone).
 SHADING_ORDERS = {0: "mean", 1: "plane", 2: "quadratic"}
+
+#: What a patch's shading surface is fitted against: its region's neutral template (the shading
+#: that maps it onto the patch: :func:`normalise_patches`' ``reference``), or the patch alone.
+SHADING_REFERENCES = ("neutral", "patch")
 
 
 @functools.lru_cache(maxsize=8)
@@ -178,9 +195,14 @@ def _plane_basis(h: int, w: int, order: int = 1) -> tuple[np.ndarray, np.ndarray
     return basis, (basis[:, None, :] * basis[None, :, :]).reshape(k * k, h * w)
 
 
-def _masked_plane(values: np.ndarray, mask: np.ndarray, shading: int) -> tuple[np.ndarray, np.ndarray]:
+def _masked_plane(values: np.ndarray, mask: np.ndarray, shading: int,
+                  reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The least-squares surface of order ``shading`` (..., N) (the mean alone for 0) through
-    values (..., N) of a square patch over the texels of mask (broadcastable to them), and the mean (..., 1)."""
+    values (..., N) of a square patch over the texels of mask (broadcastable to them), and the mean (..., 1).
+
+    With a ``reference`` (..., N) (broadcastable): the surface S that maps it onto the values
+    (values ≈ S · reference, least squares), and for the mean the values' mean over the
+    reference's: the shading of a patch relative to a known texture instead of its own."""
     m = mask.astype(np.float64)
     count = np.maximum(m.sum(axis=-1, keepdims=True), 1.0)
     mean = (values * m).sum(axis=-1, keepdims=True) / count
@@ -189,8 +211,15 @@ def _masked_plane(values: np.ndarray, mask: np.ndarray, shading: int) -> tuple[n
     side = int(round(np.sqrt(values.shape[-1])))
     basis, products = _plane_basis(side, side, int(shading))
     k = len(basis)
-    normal = (m @ products.T).reshape(m.shape[:-1] + (k, k))       # one per mask, shared by its patches
-    rhs = (values * m) @ basis.T                                     # (..., k)
+    if reference is not None:
+        r = np.asarray(reference, dtype=np.float64)
+        mean = mean / np.maximum(np.abs((r * m).sum(axis=-1, keepdims=True) / count), 1e-6)
+        m_ref = m * r                                                 # the reference's weight in the fit
+        normal = ((m_ref * r) @ products.T).reshape((m_ref * r).shape[:-1] + (k, k))
+        rhs = (values * m_ref) @ basis.T
+    else:
+        normal = (m @ products.T).reshape(m.shape[:-1] + (k, k))       # one per mask, shared by its patches
+        rhs = (values * m) @ basis.T                                     # (..., k)
     # a seen part too thin to fix the surface (a line, a few texels) is divided by its mean alone
     diagonal = np.sqrt(np.maximum(np.diagonal(normal, axis1=-2, axis2=-1), 1e-300))
     well_posed = np.linalg.det(normal / (diagonal[..., :, None] * diagonal[..., None, :])) > 1e-8
@@ -230,6 +259,15 @@ def shading_order(patches: np.ndarray, mask: np.ndarray | None, weights: np.ndar
     plane = layer_contrast(patches, 1, mask, weights, keep)
     kept = layer_contrast(patches, 2, mask, weights, keep) / plane if plane > 0 else 0.0
     return (2 if kept >= least_kept else 1), kept
+
+
+def neutral_reference(patches: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """A region's neutral layer (the first of ``patches`` (n, size, size)) over its mean on
+    ``mask``: the texture whose shading the region's patches are measured relative to
+    (:func:`normalise_patches`' ``reference``)."""
+    neutral = np.asarray(patches[0], dtype=np.float64)
+    values = neutral if mask is None else neutral[np.asarray(mask, dtype=bool)]
+    return neutral / max(abs(float(values.mean())), 1e-6)
 
 
 def select_coefficients(template_coefficients: np.ndarray, keep: int = 50) -> np.ndarray:
@@ -454,11 +492,16 @@ class RegionBank:
     the sample is; without them, from the normalised templates (their surface over the stable
     texels put back, the seen texels' divided out), which is close only while most of a patch is
     seen (a lid over half the eyeball read 0.5 layer of gaze that way, 0.07 exactly).
+
+    relative : each region's patches are shaded relative to its neutral template (the first,
+    as stored: :func:`normalise_patches`' ``reference``; its templates were normalised so) instead
+    of by a surface through each patch alone; with ``shading`` off, by their mean as before.
     """
 
     MASK_CACHE = 1024  # (region, mask) pairs whose normalised templates are kept: 12 kB each at 6 layers of 16²
 
-    def __init__(self, templates, indices, weights, masks=None, orders=None, nuisance=None, patches=None):
+    def __init__(self, templates, indices, weights, masks=None, orders=None, nuisance=None, patches=None,
+                 relative: bool = False):
         self._mask_cache: dict = {}
         R = len(templates)
         C = len(weights)
@@ -482,6 +525,8 @@ class RegionBank:
         self.gaps = np.where(self.absent[:, 1:], np.inf, np.einsum("rkc,rc->rk", step * step, self.weights))
         H, _ = haar_matrix(int(round(np.sqrt(C))))
         self.pixels = self.templates @ H                         # (R, n, size²) the normalised templates themselves
+        # shading relative to the neutral template (None: to each patch's own surface)
+        self.reference = self.pixels[:, 0].copy() if relative else None   # (R, size²)
         self.raw = None                                          # (R, n, size²) their samples before normalising
         if patches is not None:
             if len(patches) != R or any(np.shape(p) != (len(t), C) for p, t in zip(patches, templates)):
@@ -517,6 +562,10 @@ class RegionBank:
             if span is not None:
                 self.gaps[r] = np.where(np.isfinite(self.gaps[r]),
                                         np.maximum(self.gaps[r] - _span_norms(step[r], span), 0.0), self.gaps[r])
+
+    def reference_of(self, region, shading: bool = True):
+        """The neutral templates (..., size²) a sample of ``region`` is shaded relative to, or None."""
+        return None if self.reference is None or not shading else self.reference[region]
 
     def order_groups(self, shading: bool = True):
         """(order, region indices) for each shading surface the regions use (0, the mean, for all
@@ -602,9 +651,13 @@ class RegionBank:
             order = np.array([k[1] for k in new])
             for o in np.unique(order):
                 rows = order == o
-                plane_seen[rows], mean[rows] = _masked_plane(templates[rows], m[rows], int(o))
+                ref = self.reference_of(region[first][rows], bool(o))
+                plane_seen[rows], mean[rows] = _masked_plane(templates[rows], m[rows], int(o),
+                                                             None if ref is None else ref[:, None, :])
             floor = np.maximum(0.1 * np.abs(mean), 1e-6)
-            stored = 1.0 if self.raw is not None else self.plane_all[bool(shading)][region[first]]
+            # (a surface fitted against the reference maps the stored neutral onto itself: nothing to put back)
+            exact = self.raw is not None or self.reference_of(0, shading) is not None
+            stored = 1.0 if exact else self.plane_all[bool(shading)][region[first]]
             normalised = np.where(m, templates * stored / np.maximum(plane_seen, floor), 0.0)
             found = dict(zip(new, normalised))
         out = np.stack([found[k] if k in found else kept[k] for k in keys])
@@ -659,7 +712,8 @@ def rest_direction(bank: RegionBank, patch: np.ndarray, region: int, shading: bo
     patch = np.asarray(patch, dtype=np.float64)
     order = int(bank.orders[region]) if shading else 0  # as _normalise_regions normalises the region
     stable = bank.masks[region].reshape(patch.shape) if bank.masked else None
-    normalised = normalise_patches(patch, order, stable).reshape(-1)
+    ref = bank.reference_of(region, bool(order))
+    normalised = normalise_patches(patch, order, stable, None if ref is None else ref.reshape(patch.shape)).reshape(-1)
     return np.where(bank.masks[region], normalised - bank.pixels[region, 0], 0.0)
 
 
@@ -727,11 +781,14 @@ def _normalise_regions(patches: np.ndarray, bank: RegionBank, shading: bool) -> 
     size = patches.shape[-1]
     stable = bank.masks.reshape(-1, 1, size, size)  # (R, 1, size, size): every sample alike
     groups = bank.order_groups(shading)
+    ref = bank.reference_of(slice(None), shading)
+    ref = None if ref is None else ref.reshape(-1, 1, size, size)
     if len(groups) == 1:
-        return normalise_patches(patches, groups[0][0], stable if bank.masked else None)
+        return normalise_patches(patches, groups[0][0], stable if bank.masked else None, ref if groups[0][0] else None)
     out = np.empty(np.shape(patches))
     for order, rows in groups:
-        out[..., rows, :, :, :] = normalise_patches(patches[..., rows, :, :, :], order, stable[rows])
+        out[..., rows, :, :, :] = normalise_patches(patches[..., rows, :, :, :], order, stable[rows],
+                                                    None if ref is None or not order else ref[rows])
     return out
 
 
@@ -754,7 +811,9 @@ def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.nda
         orders = bank.orders[region] if shading else np.zeros_like(region)
         for o in np.unique(orders):
             rows = orders == o
-            part[rows] = normalise_patches(picked[rows], int(o), picked_seen[rows])
+            ref = bank.reference_of(region[rows], bool(o))
+            part[rows] = normalise_patches(picked[rows], int(o), picked_seen[rows],
+                                           None if ref is None else ref.reshape(-1, size, size))
         if gaps is None:
             d[idx] = bank.masked_distances(part, seen[idx], region, shading)
         else:

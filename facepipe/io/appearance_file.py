@@ -89,6 +89,9 @@ class AppearanceModel:
     shading_orders : (R,) with ``shading``, the surface each region's patches are divided by (1 the
     plane, 2 the quadratic: :func:`facepipe.core.appearance.shading_order`); None: the plane
     (models before it);
+    shading_reference : what each region's shading surface is fitted against
+    (:data:`facepipe.core.appearance.SHADING_REFERENCES`): ``neutral``, its neutral template
+    (``template_patches``' first row, over its mean); ``patch`` (models before it), the patch alone;
     peak_interpolation : how Q is read from a patch's match distances
     (:data:`facepipe.core.appearance.PEAK_INTERPOLATIONS`; models before it: ``parabola``);
     light_model : the light the templates' and each frame's shading are modelled by
@@ -155,6 +158,7 @@ class AppearanceModel:
     cards_shaded: bool = False  # (models written before it: the cards' texels as the footage showed them)
     frame_facing_share: float = 0.0  # (models written before it: 0, min_point_facing in the frames too)
     stream_light: str = "sh9"  # the light the stream and textures carry (models written before it: the nine terms)
+    shading_reference: str = "patch"  # what the shading surface is fitted against (models written before it: the patch)
 
     @property
     def extra_tiles(self) -> list:
@@ -252,6 +256,8 @@ def save_appearance(path, model) -> None:
         arrays["frame_facing_share"] = np.array(float(model.frame_facing_share))
     if model.stream_light != "sh9":
         arrays["stream_light"] = np.array(model.stream_light)
+    if model.shading_reference != "patch":
+        arrays["shading_reference"] = np.array(model.shading_reference)
     if model.light_face is not None:
         arrays.update(light_face=model.light_face, light_bary=model.light_bary, light_albedo=model.light_albedo)
     if model.neutral_albedo is not None:
@@ -323,8 +329,9 @@ def load_appearance(path):
                                [d[f"template_patches_{r}"] for r in range(n)] if "template_patches_0" in d else None,
                                _flag(d, "cards_shaded"),
                                float(d["frame_facing_share"]) if "frame_facing_share" in d else 0.0,
-                               str(d["stream_light"]) if "stream_light" in d else "sh9")
-        from facepipe.core.appearance import PEAK_INTERPOLATIONS  # lazy: PyWavelets only where read
+                               str(d["stream_light"]) if "stream_light" in d else "sh9",
+                               str(d["shading_reference"]) if "shading_reference" in d else "patch")
+        from facepipe.core.appearance import PEAK_INTERPOLATIONS, SHADING_REFERENCES  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 
         if model.light_residual is not None and not (np.isfinite(model.light_residual) and model.light_residual >= 0):
@@ -334,6 +341,8 @@ def load_appearance(path):
         if model.peak_interpolation not in PEAK_INTERPOLATIONS:
             raise ValueError(f"peak_interpolation {model.peak_interpolation!r} is not one of "
                              f"{', '.join(PEAK_INTERPOLATIONS)}")
+        if model.shading_reference not in SHADING_REFERENCES:
+            raise ValueError(f"shading_reference {model.shading_reference!r} is not one of {', '.join(SHADING_REFERENCES)}")
         if model.light_model not in LIGHT_MODELS:
             raise ValueError(f"light_model {model.light_model!r} is not one of {', '.join(LIGHT_MODELS)}")
         if model.light_model == "point" and (model.light_albedo is None or model.light_point_albedo is None

@@ -113,6 +113,10 @@ class AppearanceConfig:
     # that surface: "plane", "quadratic" (takes out more of a side light's or turned head's shading
     # over a curved patch), or "auto": per region the quadratic where it keeps 3/4 of its layers' contrast
     shading_surface: str = "auto"
+    # what that surface is fitted against: "patch", the surface through the patch's own
+    # intensities; "neutral", the shading that maps the region's neutral layer onto the patch (a
+    # smooth light over the neutral texture is taken out exactly, however dark or uneven the texture)
+    shading_reference: str = "patch"
     # how Q is read from the match distances: "segment", the nearest point of the path through the
     # layers (a layer reads its own index, a blend of two its weight), or "parabola" (the paper's
     # vertex through three distances, exact only for layers evenly spaced in appearance)
@@ -188,7 +192,7 @@ _TYPES: dict[str, dict[str, object]] = {
     "appearance": {"camera": str, "footage": str, "geometry": str, "camera_rotation": list,
                    "camera_translation": list, "neutral_frame": int, "texture_size": int, "template_size": int,
                    "keep": int, "scale_weights": list, "ramp": float, "min_facing": float, "decay": float, "min_event": float,
-                   "shading": bool, "shading_surface": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float, "frame_facing_share": float,
+                   "shading": bool, "shading_surface": str, "shading_reference": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float, "frame_facing_share": float,
                    "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
                    "rest_explain": float, "rest_path_tolerance": float, "card_depth": "auto or a number",
                    "regions": dict},
@@ -200,6 +204,8 @@ _REGION_OPTIONAL = {"card", "shading_surface"}
 SHADING_SURFACES = ("auto", "plane", "quadratic")
 #: The values of ``peak_interpolation`` (facepipe.core.appearance.PEAK_INTERPOLATIONS).
 PEAK_INTERPOLATIONS = ("segment", "parabola")
+#: The values of ``shading_reference`` (facepipe.core.appearance.SHADING_REFERENCES).
+SHADING_REFERENCES = ("neutral", "patch")
 #: The values of ``light_model`` (facepipe.core.lighting.LIGHT_MODELS).
 LIGHT_MODELS = ("point", "sh9")
 _KNOWN = {section: set(keys) for section, keys in _TYPES.items()}
@@ -429,6 +435,11 @@ def _appearance(raw: dict, path: Path) -> AppearanceConfig:
         raise InputError(f"[appearance] card_depth = {out.card_depth} is not in [0, 1] (× the opening's width)",
                          path=path, hint='"auto" (the default) fits it; 0.1 sets the cards a tenth of the width back')
     _check_surface(out.shading_surface, path, "appearance")
+    if out.shading_reference not in SHADING_REFERENCES:
+        raise InputError(f"[appearance] shading_reference = {_toml(out.shading_reference)} is not one of "
+                         f"{', '.join(SHADING_REFERENCES)}", path=path,
+                         hint='"neutral" fits each patch\'s shading against its region\'s neutral layer, '
+                              '"patch" through the patch alone')
     if out.peak_interpolation not in PEAK_INTERPOLATIONS:
         raise InputError(f"[appearance] peak_interpolation = {_toml(out.peak_interpolation)} is not one of "
                          f"{', '.join(PEAK_INTERPOLATIONS)}", path=path,

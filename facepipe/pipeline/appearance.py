@@ -48,7 +48,8 @@ __all__ = ["classify_frames", "classify_image", "classify_decoded", "classify_ch
 def region_bank(model: AppearanceModel) -> ap.RegionBank:
     """The model's templates for :func:`facepipe.core.appearance.classify_regions`."""
     return ap.RegionBank(model.templates, model.indices, model.weights, model.template_mask, model.shading_orders,
-                         model.rest_nuisance, model.template_patches)
+                         model.rest_nuisance, model.template_patches,
+                         relative=model.shading_reference == "neutral")
 
 
 @dataclass

@@ -217,7 +217,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         order, kept = _shading_surface(cfg, region, stack, mask, weights)
         if cfg.shading:  # (else the patches are divided by their mean alone)
             surfaces[region.name] = {"surface": ap.SHADING_ORDERS[order], "contrast_kept": kept}
-        coeffs = ap.haar_coefficients(ap.normalise_patches(stack, order if cfg.shading else 0, mask))
+        relative = cfg.shading and cfg.shading_reference == "neutral"
+        reference = ap.neutral_reference(stack, mask) if relative else None
+        coeffs = ap.haar_coefficients(ap.normalise_patches(stack, order if cfg.shading else 0, mask, reference))
         orders.append(order)
         names.append(region.name)
         volumes.append(vol.astype(np.float32))
@@ -250,7 +252,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                             cards_shaded=light is not None and cards is not None,
                             frame_facing_share=cfg.frame_facing_share,
                             # the stream and the textures carry the light the classification fits
-                            stream_light="point" if light is not None and cfg.light_model == "point" else "sh9")
+                            stream_light="point" if light is not None and cfg.light_model == "point" else "sh9",
+                            shading_reference=cfg.shading_reference)
     if light is not None:
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     numbers = sorted(frames)
@@ -267,7 +270,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
             "albedo": model.albedo, "rest": rest,
             "rest_path_tolerance": model.rest_tolerance if model.rest_readings is not None else 0.0,
-            "shading": surfaces, "peak_interpolation": model.peak_interpolation, "notes": notes}
+            "shading": surfaces, "shading_reference": model.shading_reference if cfg.shading else None,
+            "peak_interpolation": model.peak_interpolation, "notes": notes}
     if light is not None:
         info["light"] = {"model": model.light_model, "examples": light["light"].tolist(),
                          "residual": model.light_residual}
