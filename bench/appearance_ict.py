@@ -33,7 +33,7 @@ from scipy.stats import pearsonr, spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's facepipe, however it is run
 
 from facepipe.appearance_sample import write_appearance_kit
-from facepipe.core.appearance import SHADING_ORDERS, classify_regions
+from facepipe.core.appearance import SHADING_ORDERS, SHADING_TILT
 from facepipe.core.layered_texture import light_bits, stream_bits
 from facepipe.core.hole_cards import boundary_loops
 from facepipe.io.appearance_file import STREAM_DECIMALS
@@ -104,31 +104,6 @@ def q_errors(q: np.ndarray, act: np.ndarray, names: list, layer_counts) -> dict:
     err = np.where(np.isfinite(q), q - truth, np.nan)
     per = np.sqrt(np.nanmean(err ** 2, axis=0))
     return {"q_rms_error_layers": dict(zip(names, per.tolist())), "q_rms_error_layers_mean": float(per.mean())}
-
-
-#: The tilt of :func:`shading_tilt_response`: the shading across a template rises or falls by this
-#: share from its middle to its edge (a side light over a small patch of a curved surface).
-SHADING_TILT = 0.15
-
-
-def shading_tilt_response(model) -> dict:
-    """Per region the largest Q its own neutral template reads when multiplied by a linear shading
-    ramp of ±:data:`SHADING_TILT` from the middle to the edge, along x or y: what a side light's
-    change of gradient over the region reads as, with the rest floor left out (0 is ideal; with
-    ``shading_reference = "patch"`` the plane through a patch's intensities takes out a ramp
-    exactly only where the texture under it is uniform: a dark iris whose one side is lit more
-    looks moved; fitted against the neutral layer, exactly for any texture)."""
-    bank = region_bank(model)
-    s = model.template_size
-    ramp = (np.arange(s) - 0.5 * (s - 1)) / (0.5 * (s - 1))
-    neutral = np.stack([np.asarray(p[0], dtype=np.float64).reshape(s, s) for p in model.template_patches])
-    worst = np.zeros(len(model.names))
-    for tilt in (-SHADING_TILT, SHADING_TILT):
-        for field in (ramp[None, :], ramp[:, None]):
-            patches = np.broadcast_to((neutral * (1.0 + tilt * field))[:, None], (len(neutral), 5, s, s))[None]
-            q, _ = classify_regions(patches, bank, model.shading, None, model.min_seen, model.peak_interpolation)
-            worst = np.maximum(worst, np.nan_to_num(q[0]))
-    return dict(zip(model.names, worst.tolist()))
 
 
 def correlations(q: np.ndarray, act: np.ndarray, names: list) -> dict:
@@ -309,7 +284,7 @@ def main() -> None:
                              two_sided_light=args.two_sided_light)
         render_s = time.perf_counter() - t0
     config = load_config(out / "appearance.toml")
-    model, _ = build_appearance(config, mesh, read_camera(config.appearance.camera))
+    model, info = build_appearance(config, mesh, read_camera(config.appearance.camera))
     q_bits = int(stream_bits(model.layer_counts, 10.0 ** -STREAM_DECIMALS).sum())
     bits = q_bits + (light_bits(10.0 ** -STREAM_DECIMALS, model.stream_terms + 3) if model.light_face is not None else 0)
     result = {"take": args.take, "identity": args.identity or "neutral", "render_seconds": render_s, "regions": model.names, "shading": model.shading,
@@ -320,7 +295,8 @@ def main() -> None:
               "shading_reference": model.shading_reference,
               "stream_bits_per_frame": bits, "q_bits_per_frame": q_bits, "light_bits_per_frame": bits - q_bits,
               "stream_kbit_s_at_30hz": bits * 30 / 1000.0,
-              "shading_tilt_q": shading_tilt_response(model) if model.template_patches is not None else None}
+              # the neutral templates under a ±15 % shading ramp (0 is ideal: the build's own figure)
+              "shading_tilt_q": info.get("shading_tilt_q")}
     if result["shading_tilt_q"]:
         print(f"a ±{SHADING_TILT:.0%} shading tilt over a neutral template reads Q",
               " ".join(f"{n} {v:.2f}" for n, v in result["shading_tilt_q"].items()))

@@ -984,6 +984,9 @@ def test_shading_reference_saved_and_fixed_by_the_config(kit, tmp_path, capsys):
     assert _run("appearance", "build", cfg, "-o", tmp_path / "neutral.npz") == 0
     assert "fitted against each region's neutral layer" in capsys.readouterr().out
     assert load_appearance(tmp_path / "neutral.npz").shading_reference == "neutral"
+    # the build's report: a shading ramp over each neutral template reads nothing relative to it
+    tilt = json.loads((tmp_path / "neutral.json").read_text())["shading_tilt_q"]
+    assert set(tilt) == set(load_appearance(kit / "app.npz").names) and max(tilt.values()) < 1e-6
     truth = np.loadtxt(kit / "appearance" / "take_truth.csv", delimiter=",", skiprows=1)[:, 1:]
     for name, model in (("patch", kit / "app.npz"), ("neutral", tmp_path / "neutral.npz")):
         assert _run("appearance", "classify", model, kit / "appearance" / "take" / "frame_%04d.png",

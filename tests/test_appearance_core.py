@@ -9,7 +9,8 @@ from facepipe.core.appearance import (DEFAULT_SCALE_WEIGHTS, PEAK_INTERPOLATIONS
                                       bilinear_sample, classify, classify_regions, coefficient_weights,
                                       drop_short_events, facing, haar_coefficients, haar_matrix, hold_and_decay,
                                       match_distances, neutral_reference, normalise_patches, peak_index,
-                                      rest_direction, rest_floor, segment_index, select_coefficients)
+                                      rest_direction, rest_floor, segment_index, select_coefficients,
+                                      shading_tilt_readings)
 from facepipe.core.layered_texture import compose_texture, layer_lookup, region_alpha
 
 
@@ -996,3 +997,26 @@ def test_region_bank_relative_to_the_neutral_reads_a_lit_neutral_as_rest():
     own = haar_coefficients(normalise_patches(layers, 1))
     _, residual = classify_regions(lit, RegionBank([own], [select_coefficients(own, 50)], w))
     assert residual[0, 0] > 1e-4
+
+
+def test_shading_tilt_readings_are_zero_where_the_surface_takes_a_ramp_out():
+    # a ramp over an even neutral (its layers add a wrinkle's stripes) is taken out by the plane
+    # through the patch; over the iris only by the surface fitted against the neutral layer
+    rng = np.random.default_rng(23)
+    w = coefficient_weights(16)
+    _, _, stripes = _blend_templates(rng, 5)
+    even = np.stack(stripes) - stripes[0] + 1.0                 # the neutral exactly 1
+    iris = _iris_layers()
+    banks = []
+    for layers, relative in ((even, False), (iris, True), (iris, False)):
+        reference = neutral_reference(layers) if relative else None
+        t = haar_coefficients(normalise_patches(layers, 1, None, reference))
+        banks.append((RegionBank([t], [select_coefficients(t, 50)], w, relative=relative), layers[:1]))
+    for bank, neutral in banks[:2]:
+        np.testing.assert_allclose(shading_tilt_readings(bank, neutral), 0.0, atol=1e-9)
+    # the readings are those of the four ramps classified one by one
+    bank, neutral = banks[2]
+    yy, xx = np.mgrid[0:16, 0:16] - 7.5
+    by_hand = max(classify_regions(np.broadcast_to(neutral[0] * (1 + t * f / 7.5), (1, 1, 5, 16, 16)), bank)[0][0, 0]
+                  for t in (-0.15, 0.15) for f in (xx, yy))
+    np.testing.assert_allclose(shading_tilt_readings(bank, neutral), [by_hand], atol=1e-12)

@@ -66,7 +66,7 @@ __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normali
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
            "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "drop_short_events", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "DIAGONAL_OFFSETS", "SHADING_ORDERS",
-           "QUADRATIC_LEAST_KEPT", "SHADING_REFERENCES", "neutral_reference", "layer_contrast", "shading_order", "rest_direction", "kept_step_shares",
+           "QUADRATIC_LEAST_KEPT", "SHADING_REFERENCES", "neutral_reference", "SHADING_TILT", "shading_tilt_readings", "layer_contrast", "shading_order", "rest_direction", "kept_step_shares",
            "off_path_ratio", "conditional_floor", "OFF_PATH_LEAST_Q", "MOST_REST_FLOOR"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
@@ -765,6 +765,28 @@ def classify_regions(patches: np.ndarray, bank: RegionBank, shading: bool = True
     q = np.full(usable.shape, np.nan)
     q[usable] = peak_index(chosen[usable])
     return q, np.take_along_axis(best, sample[..., None], -1)[..., 0]
+
+
+#: The shading ramp of :func:`shading_tilt_readings`: ± this share from a template's middle to its
+#: edge (a side light's change of gradient over a small patch of a curved surface).
+SHADING_TILT = 0.15
+
+
+def shading_tilt_readings(bank: RegionBank, neutral: np.ndarray, shading: bool = True, tilt: float = SHADING_TILT,
+                          interpolation: str = "segment") -> np.ndarray:
+    """(R,) the largest Q each region's neutral template samples (R, size, size) read (before any
+    rest floor) multiplied by a linear shading ramp of ± ``tilt`` from the middle to the edge, along
+    x or y, each way: 0 where the shading surface takes such a light out. Divided by the surface
+    through the patch alone, it is exactly 0 only over an even texture (a dark iris whose one side
+    is lit more looks moved); fitted against the neutral layer (``relative`` banks), over any."""
+    neutral = np.asarray(neutral, dtype=np.float64)
+    R, s = len(neutral), neutral.shape[-1]
+    ramp = (np.arange(s) - 0.5 * (s - 1)) / (0.5 * (s - 1))
+    fields = [ramp[None, :], ramp[:, None]]
+    lit = np.stack([neutral * (1.0 + sign * tilt * field) for sign in (-1.0, 1.0) for field in fields])  # (4, R, s, s)
+    samples = np.broadcast_to(lit[:, :, None], (len(lit), R, len(DIAGONAL_OFFSETS), s, s))
+    q, _ = classify_regions(samples, bank, shading, None, interpolation=interpolation)
+    return np.nan_to_num(q).max(axis=0)
 
 
 def _nearest_sample(q: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -267,8 +267,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     if light is not None:
         model.light_residual = _example_light_residual(
             frame_light_residuals(grays, cams, model) if readings is None else readings.light_residual, numbers, notes)
+    tilt = _shading_tilt(model, notes) if cfg.shading else None
     info = {"regions": names, "layers": model.layer_counts, "texture_size": S, "tiles": model.all_tiles,
-            "albedo": model.albedo, "rest": rest,
+            "albedo": model.albedo, "rest": rest, "shading_tilt_q": tilt,
             "rest_path_tolerance": model.rest_tolerance if model.rest_readings is not None else 0.0,
             "shading": surfaces, "shading_reference": model.shading_reference if cfg.shading else None,
             "peak_interpolation": model.peak_interpolation, "notes": notes}
@@ -479,6 +480,27 @@ def _region_volume(region, config, faces, triangles, frames, cam_pos, texel_face
         seen_in.append(seen)
     alpha = layered_texture.region_alpha(mask[rows, cols], cfg.ramp)
     return np.stack(layers), alpha, (rows.start, cols.start), np.stack(seen_in)
+
+
+#: A region whose neutral template reads at least this Q under the ramp of
+#: :func:`facepipe.core.appearance.shading_tilt_readings` is named in the build's notes: a side light's gradient over it reads as its own motion.
+TILT_NOTED = 0.1
+
+
+def _shading_tilt(model, notes: list) -> dict:
+    """Per region the Q its neutral template reads under a shading ramp
+    (:func:`facepipe.core.appearance.shading_tilt_readings`); regions reading :data:`TILT_NOTED`
+    or more are noted, with the setting that takes such a ramp out."""
+    s = model.template_size
+    neutral = np.stack([np.asarray(p[0], dtype=np.float64).reshape(s, s) for p in model.template_patches])
+    tilt = ap.shading_tilt_readings(region_bank(model), neutral, model.shading, interpolation=model.peak_interpolation)
+    for name, q in zip(model.names, tilt):
+        if q >= TILT_NOTED:
+            notes.append(f"region {name}: its neutral template under a ±{ap.SHADING_TILT:.0%} shading ramp reads Q "
+                         f"{q:.2f} (its texture is uneven, so a side light's gradient over it looks like its own "
+                         f"motion); shading_reference = \"neutral\" takes such a ramp out exactly (try both on your "
+                         f"footage: what else it reads at rest may change too)")
+    return dict(zip(model.names, np.round(tilt, 4).tolist()))
 
 
 def _shading_surface(cfg, region, patches: np.ndarray, mask: np.ndarray, weights: np.ndarray
