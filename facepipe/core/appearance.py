@@ -66,7 +66,8 @@ __all__ = ["DEFAULT_SCALE_WEIGHTS", "haar_matrix", "haar_coefficients", "normali
            "RegionBank", "classify_regions", "coefficient_weights", "match_distances", "peak_index", "segment_index",
            "PEAK_INTERPOLATIONS", "classify", "hold_and_decay", "drop_short_events", "bilinear_sample",
            "facing", "rest_floor", "above_rest", "DIAGONAL_OFFSETS", "SHADING_ORDERS",
-           "QUADRATIC_LEAST_KEPT", "SHADING_REFERENCES", "neutral_reference", "SHADING_TILT", "shading_tilt_readings", "layer_contrast", "shading_order", "rest_direction", "kept_step_shares",
+           "QUADRATIC_LEAST_KEPT", "SHADING_REFERENCES", "neutral_reference", "SHADING_TILT", "shading_tilt_readings",
+           "layer_contrast", "shading_order", "rest_direction", "kept_step_shares",
            "off_path_ratio", "conditional_floor", "OFF_PATH_LEAST_Q", "MOST_REST_FLOOR"]
 
 #: The paper's weights per scale, coarse to fine: patch mean, then the detail levels of a 16 × 16 patch.
@@ -656,7 +657,7 @@ class RegionBank:
                                                              None if ref is None else ref[:, None, :])
             floor = np.maximum(0.1 * np.abs(mean), 1e-6)
             # (a surface fitted against the reference maps the stored neutral onto itself: nothing to put back)
-            exact = self.raw is not None or self.reference_of(0, shading) is not None
+            exact = self.raw is not None or (self.reference is not None and shading)
             stored = 1.0 if exact else self.plane_all[bool(shading)][region[first]]
             normalised = np.where(m, templates * stored / np.maximum(plane_seen, floor), 0.0)
             found = dict(zip(new, normalised))
