@@ -156,6 +156,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                            normal_sign, cfg.light_model) if cfg.light_fit else None
     weights = ap.coefficient_weights(cfg.template_size, cfg.scale_weights)
     names, volumes, alphas, boxes, tfaces, tbarys, templates, indices = [], [], [], [], [], [], [], []
+    relative = cfg.shading and cfg.shading_reference == "neutral"  # the layers' shading fitted against the neutral's
     template_patches = []  # the layers' samples before normalising: a partly seen sample's templates are normalised from them
     facing_examples, masks, layer_seen, orders, surfaces = [], [], [], [], {}
     if not in_udim.all():
@@ -217,7 +218,6 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         order, kept = _shading_surface(cfg, region, stack, mask, weights)
         if cfg.shading:  # (else the patches are divided by their mean alone)
             surfaces[region.name] = {"surface": ap.SHADING_ORDERS[order], "contrast_kept": kept}
-        relative = cfg.shading and cfg.shading_reference == "neutral"
         reference = ap.neutral_reference(stack, mask) if relative else None
         coeffs = ap.haar_coefficients(ap.normalise_patches(stack, order if cfg.shading else 0, mask, reference))
         orders.append(order)
