@@ -320,6 +320,32 @@ def test_light_fit_recovers_a_lambertian_light_despite_outliers():
     assert (light_shading(normals, -light) > 0).all()  # the floor keeps it positive
 
 
+def test_usable_median_is_nanmedian_row_by_row():
+    """The light fits' robust scale: each row's median over its usable entries is NumPy's
+    nanmedian of the row with the others NaN, exactly (odd and even counts, rows sharing a count
+    and not, a row with one entry, a row with none: NaN, and every entry usable)."""
+    import warnings
+
+    from facepipe.core.lighting import usable_median
+
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=(9, 40))
+    usable = rng.random((9, 40)) < 0.6
+    usable[1] = usable[0]          # rows of one frame share their usable points
+    usable[2, :] = False           # none
+    usable[3, :] = False
+    usable[3, 7] = True            # one
+    usable[4, :] = True            # all of one row
+    usable[5, :] = usable[5, :] & (np.arange(40) < 12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # nanmedian of the empty row
+        expected = np.nanmedian(np.where(usable, values, np.nan), axis=-1)
+    got = usable_median(values, usable)
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    assert np.array_equal(got[~np.isnan(got)], expected[~np.isnan(expected)])
+    assert np.array_equal(usable_median(values, np.ones_like(usable)), np.median(values, axis=-1))
+
+
 def test_light_residual_is_the_median_relative_misfit_of_each_frame():
     """An independent construction: intensities made exactly by a light read 0; scaled by 1 ± e
     at every point they read e (the median of |e|); points without a value are left out; a frame

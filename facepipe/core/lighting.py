@@ -82,15 +82,17 @@ LIGHT_MODELS = ("point", "sh9")
 
 def usable_median(values: np.ndarray, usable: np.ndarray) -> np.ndarray:
     """The median (B,) of each row of ``values`` (B, K) over its ``usable`` entries (NaN for a row
-    with none): with every entry usable the plain median, else one sort of all rows at once —
-    the same number as nanmedian without its row-by-row loop."""
+    with none): with every entry usable the plain median, else the same number as nanmedian
+    without its row-by-row loop. The unusable entries are set to infinity, so a row's middle
+    order statistics are its usable entries'; one partial sort of all rows puts every row's
+    middle positions in place (a full sort of the rows took half the time again)."""
     if usable.all():
         return np.median(values, axis=-1)
-    ordered = np.sort(np.where(usable, values, np.inf), axis=-1)
     count = usable.sum(axis=-1)
-    low = np.take_along_axis(ordered, np.maximum(count - 1, 0)[:, None] // 2, axis=-1)[:, 0]
-    high = np.take_along_axis(ordered, (count // 2)[:, None], axis=-1)[:, 0]
-    return np.where(count > 0, 0.5 * (low + high), np.nan)
+    low, high = np.maximum(count - 1, 0)[:, None] // 2, (count // 2)[:, None]
+    ordered = np.partition(np.where(usable, values, np.inf), np.unique(np.r_[low[:, 0], high[:, 0]]), axis=-1)
+    middle = np.take_along_axis(ordered, low, axis=-1)[:, 0] + np.take_along_axis(ordered, high, axis=-1)[:, 0]
+    return np.where(count > 0, 0.5 * middle, np.nan)
 
 
 def light_residual(values: np.ndarray, albedo: np.ndarray, normals: np.ndarray, light: np.ndarray) -> np.ndarray:
