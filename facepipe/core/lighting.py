@@ -85,7 +85,7 @@ def usable_median(values: np.ndarray, usable: np.ndarray) -> np.ndarray:
     with none): with every entry usable the plain median, else the same number as nanmedian
     without its row-by-row loop. The unusable entries are set to infinity, so a row's middle
     order statistics are its usable entries'; one partial sort of all rows puts every row's
-    middle positions in place (a full sort of the rows took half the time again)."""
+    middle positions in place (a full sort of the rows takes about twice as long)."""
     if usable.all():
         return np.median(values, axis=-1)
     count = usable.sum(axis=-1)
