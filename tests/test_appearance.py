@@ -469,6 +469,8 @@ def test_texture_export_is_the_layered_lookup_at_q(kit, tmp_path, capsys):
     summary = json.loads((dest / "textures.json").read_text())
     q = np.loadtxt(dest / "appearance.csv", delimiter=",", skiprows=1)[:, 2:]
     assert summary["frames"] == len(q) and summary["bit_rate_kbit_s"] <= 12.0 and summary["shading"] == "albedo"
+    frames = np.loadtxt(dest / "appearance.csv", delimiter=",", skiprows=1)[:, 0]
+    assert (summary["first_file"], summary["first_frame"]) == (1, int(frames[0]))  # frame_0001 is the first row
     # 8 regions × 16 bits (Q in 1e-4 steps over 4 layers needs 40001 values) and the light's 7
     # values (the point light: an ambient term, a key and a fill) and 3 colour gains × 16 bits
     # (1e-4 steps over a span of 4) at 30 Hz

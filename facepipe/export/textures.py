@@ -133,6 +133,8 @@ def export_textures(replay, dest: Path, options: ExportOptions) -> tuple[list[Pa
     digits = len(by_tile[tiles[0]][0].name.split(".")[0]) - len("frame_")
     details = {"frames": len(numbers), "written": written, "tiles": tiles,
                "files": "frame_" + "#" * digits + (".<UDIM>" if udim else "") + suffix,
+               # file number start + i holds appearance.csv's row i: the take's frame numbers[i]
+               "first_file": int(options.start), "first_frame": int(numbers[0]),
                "regions": list(model.names),
                "layers": counts.tolist(), "texture_size": int(size),
                "pixels": "png16" if suffix == ".png" else ("exr half" if options.half else "exr float"),
