@@ -808,6 +808,13 @@ def test_config_offers_the_interpolations_classification_knows():
     assert offered == PEAK_INTERPOLATIONS
 
 
+def test_config_offers_the_shading_references_classification_knows():
+    from facepipe.core.appearance import SHADING_REFERENCES
+    from facepipe.io.config import SHADING_REFERENCES as offered
+
+    assert offered == SHADING_REFERENCES
+
+
 def test_config_offers_the_light_models_classification_knows():
     from facepipe.core.lighting import LIGHT_MODELS
     from facepipe.io.config import LIGHT_MODELS as offered

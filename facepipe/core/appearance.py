@@ -564,10 +564,14 @@ class RegionBank:
                 self.gaps[r] = np.where(np.isfinite(self.gaps[r]),
                                         np.maximum(self.gaps[r] - _span_norms(step[r], span), 0.0), self.gaps[r])
 
-    def reference_of(self, region):
-        """The neutral templates (..., size²) a sample of ``region`` is shaded relative to, or None
-        (the mean alone, without ``shading``, ignores them: :func:`normalise_patches`)."""
-        return None if self.reference is None else self.reference[region]
+    def reference_of(self, region, shape: tuple = (-1,)):
+        """The neutral templates a sample of ``region`` is shaded relative to, each (size²,) or
+        reshaped to ``shape``, or None (the mean alone, without ``shading``, ignores them:
+        :func:`normalise_patches`)."""
+        if self.reference is None:
+            return None
+        ref = self.reference[region]
+        return ref.reshape(ref.shape[:-1] + tuple(shape))
 
     def order_groups(self, shading: bool = True):
         """(order, region indices) for each shading surface the regions use (0, the mean, for all
@@ -653,9 +657,8 @@ class RegionBank:
             order = np.array([k[1] for k in new])
             for o in np.unique(order):
                 rows = order == o
-                ref = self.reference_of(region[first][rows])
                 plane_seen[rows], mean[rows] = _masked_plane(templates[rows], m[rows], int(o),
-                                                             None if ref is None else ref[:, None, :])
+                                                             self.reference_of(region[first][rows], (1, -1)))
             floor = np.maximum(0.1 * np.abs(mean), 1e-6)
             # (a surface fitted against the reference maps the stored neutral onto itself: nothing to put back)
             exact = self.raw is not None or (self.reference is not None and shading)
@@ -714,8 +717,7 @@ def rest_direction(bank: RegionBank, patch: np.ndarray, region: int, shading: bo
     patch = np.asarray(patch, dtype=np.float64)
     order = int(bank.orders[region]) if shading else 0  # as _normalise_regions normalises the region
     stable = bank.masks[region].reshape(patch.shape) if bank.masked else None
-    ref = bank.reference_of(region)
-    normalised = normalise_patches(patch, order, stable, None if ref is None else ref.reshape(patch.shape)).reshape(-1)
+    normalised = normalise_patches(patch, order, stable, bank.reference_of(region, patch.shape)).reshape(-1)
     return np.where(bank.masks[region], normalised - bank.pixels[region, 0], 0.0)
 
 
@@ -805,14 +807,13 @@ def _normalise_regions(patches: np.ndarray, bank: RegionBank, shading: bool) -> 
     size = patches.shape[-1]
     stable = bank.masks.reshape(-1, 1, size, size)  # (R, 1, size, size): every sample alike
     groups = bank.order_groups(shading)
-    ref = bank.reference_of(slice(None))
-    ref = None if ref is None else ref.reshape(-1, 1, size, size)
     if len(groups) == 1:
-        return normalise_patches(patches, groups[0][0], stable if bank.masked else None, ref)
+        return normalise_patches(patches, groups[0][0], stable if bank.masked else None,
+                                 bank.reference_of(slice(None), (1, size, size)))
     out = np.empty(np.shape(patches))
     for order, rows in groups:
         out[..., rows, :, :, :] = normalise_patches(patches[..., rows, :, :, :], order, stable[rows],
-                                                    None if ref is None else ref[rows])
+                                                    bank.reference_of(rows, (1, size, size)))
     return out
 
 
@@ -835,9 +836,8 @@ def _distances_of_seen(patches, seen, bank: RegionBank, shading: bool, d: np.nda
         orders = bank.orders[region] if shading else np.zeros_like(region)
         for o in np.unique(orders):
             rows = orders == o
-            ref = bank.reference_of(region[rows])
             part[rows] = normalise_patches(picked[rows], int(o), picked_seen[rows],
-                                           None if ref is None else ref.reshape(-1, size, size))
+                                           bank.reference_of(region[rows], (size, size)))
         if gaps is None:
             d[idx] = bank.masked_distances(part, seen[idx], region, shading)
         else:
