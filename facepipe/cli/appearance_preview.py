@@ -92,16 +92,16 @@ def render_appearance_preview(folder, path: str | os.PathLike, *, model_path=Non
         if n not in row_of:
             raise InputError(f"frame {n} has no geometry", path=info["geometry"])
         world = positions[row_of[n]]
-        where, lit = model.to_camera(world), None if light is None else light[i]
+        drawn = model.with_cards(world)  # the cards extended once: drawn in world space, textured in camera space
+        where, lit = drawn @ model.rotation.T + model.translation, None if light is None else light[i]
         texture = np.ascontiguousarray(np.concatenate(
             [frame_texture(model, q[i], where, lit, texels.get(t), t) for t in tiles], axis=1), dtype=np.float32)
         image, problem = images.get(n, (None, "not read"))
-        drawn = model.with_cards(world)
         # over black, with the share of each pixel the face covers: the face's colour
         # premultiplied by its coverage, so its silhouette blends into the frame
         face, coverage = render_frame(drawn, faces, corner_uv, texture, scene, background=0.0, with_coverage=True)
         rendered = over_footage(face, coverage[..., None], image)
-        x0, x1, y0, y1 = _window(model, world)
+        x0, x1, y0, y1 = _window(model, where)
         for c, (picture, title) in enumerate(((image, f"frame {n}: input"),
                                               (rendered, "layered texture at Q, over the input frame"))):
             ax = fig.add_subplot(grid[k, c])
@@ -148,9 +148,10 @@ def over_footage(rendered: np.ndarray, coverage: np.ndarray, image: np.ndarray |
     return rendered + (1.0 - np.clip(coverage, 0.0, 1.0)) * under
 
 
-def _window(model, world: np.ndarray, margin: float = 0.08) -> tuple[int, int, int, int]:
-    """The face's square window of the image (x0, x1, y0, y1), from its projected vertices."""
-    px = project_distorted_fast(model.camera, model.to_camera(world))
+def _window(model, camera_positions: np.ndarray, margin: float = 0.08) -> tuple[int, int, int, int]:
+    """The face's square window of the image (x0, x1, y0, y1), from its vertices (V, 3) in camera
+    space projected."""
+    px = project_distorted_fast(model.camera, camera_positions)
     px = px[np.isfinite(px).all(axis=1)]
     lo, hi = px.min(axis=0), px.max(axis=0)
     side = (1 + 2 * margin) * float(max(hi - lo))
