@@ -1045,6 +1045,22 @@ def test_a_broken_cards_shaded_flag_is_refused(kit, tmp_path, capsys):
         _assert_model_refused(kit, tmp_path, capsys, data, cards_shaded=broken)
 
 
+def test_a_broken_card_motion_check_is_refused(kit, tmp_path, capsys):
+    """A model file whose stored motion check (an eye card's) has a shift that is not > 0, rows
+    that are not unit directions, or a reference patch of another size is refused by name: exit 2,
+    no stream written."""
+    data = dict(np.load(kit / "app.npz"))
+    size = int(data["settings"][0])
+    check = {"card_motion_reference_0": np.zeros((size, size)),
+             "card_motion_reference_seen_0": np.ones((size, size), bool), "card_motion_least_0": np.array(0.5), "card_motion_layers_0": np.array([[1.0, 0.0]]),
+             "card_motion_rest_0": np.zeros((0, 2))}
+    for key, broken in (("card_motion_least_0", np.array(-1.0)), ("card_motion_layers_0", np.array([[2.0, 0.0]])),
+                        ("card_motion_rest_0", np.array([1.0, 0.0])),
+                        ("card_motion_reference_0", np.zeros((size - 1, size - 1)))):
+        _assert_model_refused(kit, tmp_path, capsys, {**data, **{k: v for k, v in check.items() if k != key}},
+                              **{key: broken})
+
+
 def test_a_frame_leaves_out_the_points_it_sees_at_under_half_the_examples_facing(kit, tmp_path, capsys):
     """In a frame, a template point is left out as edge-on where the frame sees it at under
     frame_facing_share of the least cosine the region's examples saw it at; with the share 0 (and

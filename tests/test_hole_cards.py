@@ -168,14 +168,16 @@ def _head_turn(yaw: float, pitch: float, about: np.ndarray):
 
 
 def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160, rest_turns=(), eye_front=None, extra_config=(),
-             take_light=False):
+             take_light=False, rest_looks=(), pitches_take=None):
     """Footage of a grid with a hole, an eyeball behind it turning by the given yaws (degrees):
     the examples (neutral first) and a take, with their geometry and an appearance config with
     one card region. ``rest_turns``: more example frames, the eye at rest and the head turned by
     each (yaw, pitch) in degrees (the config's rest_frames; the others' head is still);
     ``eye_front``: the eyeball's front this far behind the rim's centre, × the opening's width
     (else :func:`eyes_behind`'s); ``take_light``: the take lit as the sample's turned take is (a
-    warm light from the other side, more ambient)."""
+    warm light from the other side, more ambient); ``rest_looks``: more rest frames, the head
+    still and the eye pitched by each (degrees: a look up or down, across the layers' gaze);
+    ``pitches_take``: the take's eye pitch per frame (none: 0)."""
     from facepipe.appearance_sample import (_save_geometry, eye_poses, eyes_behind, make_scene, other_light,
                                             scene_json, skin_texture, write_appearance_footage)
     from facepipe.io.mesh_write import save_obj
@@ -198,16 +200,18 @@ def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160, rest_turns=(), eye_fr
         width = eye.radius / 0.55
         eye.centre = P[hole].mean(axis=0) - (eye_front * width + eye.radius) * eye.axes[:, 2]
     no_fields = np.zeros((1, 256, 256), dtype=np.float32)
-    for name, yaws, turns in (("examples", list(yaws_examples) + [0.0] * len(rest_turns),
-                               [(0.0, 0.0)] * len(yaws_examples) + list(rest_turns)),
-                              ("take", yaws_take, [(0.0, 0.0)] * len(yaws_take))):
+    rest = len(rest_turns) + len(rest_looks)
+    pitches_take = np.zeros(len(yaws_take)) if pitches_take is None else pitches_take
+    for name, yaws, pitches, turns in (
+            ("examples", list(yaws_examples) + [0.0] * rest, [0.0] * (len(yaws_examples) + len(rest_turns))
+             + list(rest_looks), [(0.0, 0.0)] * len(yaws_examples) + list(rest_turns) + [(0.0, 0.0)] * len(rest_looks)),
+            ("take", yaws_take, pitches_take, [(0.0, 0.0)] * len(yaws_take))):
         yaws = np.asarray(yaws, dtype=np.float64)
         head = [_head_turn(*turn, P.mean(axis=0)) for turn in turns]
         Rs, ts = np.array([R for R, _ in head]), np.array([t for _, t in head])
         world = P @ Rs.transpose(0, 2, 1) + ts[:, None]
-        gaze = np.zeros((1, 1, 2))
-        gaze[0, 0] = (1.0, 0.0)
-        poses = eye_poses(eyes, yaws[:, None], gaze, Rs, ts)
+        gaze = np.array([[[1.0, 0.0]], [[0.0, 1.0]]])  # weights (yaw, pitch) in degrees
+        poses = eye_poses(eyes, np.stack([yaws, np.asarray(pitches, dtype=np.float64)], axis=1), gaze, Rs, ts)
         lit = other_light(scene) if take_light and name == "take" else scene
         write_appearance_footage(tmp_path / name, world, np.zeros((len(yaws), 1)), faces, corner_uv, skin, no_fields,
                                  lit, eyes=poses, seed=3 if name == "take" else 1)
@@ -217,7 +221,8 @@ def _eye_kit(tmp_path, yaws_examples, yaws_take, size=160, rest_turns=(), eye_fr
         "[rig]", 'mesh = "patch.obj"', 'markers = "markers.csv"', "", "[appearance]", 'camera = "camera.json"',
         f"camera_rotation = {scene.rotation.tolist()}", f"camera_translation = {scene.translation.tolist()}",
         'footage = "examples/frame_%04d.png"', 'geometry = "examples.npz"', "neutral_frame = 0",
-        f"rest_frames = {list(range(len(frames), len(frames) + len(rest_turns)))}", "texture_size = 256", "", "[appearance.regions.eyeball]", 'vertices = "rim.txt"',
+        f"rest_frames = {list(range(len(frames), len(frames) + rest))}", "texture_size = 256", "",
+        "[appearance.regions.eyeball]", 'vertices = "rim.txt"',
         "template = [0.2, 0.2, 0.8, 0.8]", f"frames = {frames}", "card = true", ""]))
     if extra_config:  # more [appearance] keys, before the region's table
         text = (tmp_path / "appearance.toml").read_text()
@@ -325,6 +330,41 @@ def test_a_frames_light_shades_the_card_as_it_shades_the_skin(tmp_path):
 
 #: Rest frames of a capture session's range of motion: the head turned (yaw, pitch), the eye ahead.
 HEAD_TURNS = [(8.0, 0.0), (-8.0, 0.0), (0.0, 8.0), (0.0, -8.0)]
+
+
+@pytest.mark.slow
+def test_a_look_across_the_layers_gaze_reads_rest(tmp_path):
+    """The eye's layers turn it sideways; the take also looks up and down (the head still), as two
+    at-rest example frames do. The motion check reads those looks as rest (the Haar match alone
+    reads some of them as gaze), and the sideways gazes as before."""
+    import dataclasses
+
+    from facepipe.io.appearance_file import load_appearance, save_appearance
+    from facepipe.pipeline.appearance import _read_geometry, classify_frames
+
+    rng = np.random.default_rng(7)
+    yaw = np.concatenate([[0.0, 24.0], rng.uniform(0.0, 24.0, 14), np.zeros(10)])
+    pitch = np.concatenate([np.zeros(16), np.linspace(-20.0, -4.0, 5), np.linspace(4.0, 20.0, 5)])
+    kit = _eye_kit(tmp_path, [0.0, 6.0, 12.0, 18.0, 24.0], yaw, rest_looks=[-20.0, 20.0], pitches_take=pitch)
+    model, info = _built(kit)
+    check = info["cards"]["eyeball"]["motion_check"]
+    assert check["across_frames"] == [5, 6]
+    assert check["least_texels"] == pytest.approx(0.5 * check["layer_shifts_texels"][0], abs=0.01)
+    save_appearance(kit / "app.npz", model)
+    loaded = load_appearance(kit / "app.npz").card_motion[0]
+    for field in ("reference", "reference_seen", "layers", "rest"):
+        np.testing.assert_array_equal(getattr(loaded, field), getattr(model.card_motion[0], field))
+    positions, numbers = _read_geometry(kit / "take.npz", model.n_vertices)
+    looks = pitch != 0
+
+    def read(m):
+        return classify_frames(m, kit / "take" / "frame_%04d.png", positions, numbers, numbers / 30.0).q[:, 0]
+
+    q = read(model)
+    assert (q[looks] == 0).all()
+    assert spearmanr(q, yaw).statistic > 0.95
+    assert np.abs(q[~looks] - yaw[~looks] / 6.0).max() < 0.75
+    assert read(dataclasses.replace(model, card_motion=None))[looks].max() > 0.05  # what the check takes away
 
 
 @pytest.mark.parametrize("front", [0.0, 0.25])

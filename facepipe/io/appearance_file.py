@@ -65,6 +65,9 @@ class AppearanceModel:
     card_rest (N, 3), card_stable (K,), card_stable_rest (K, 3) : cards across holes
     (:mod:`facepipe.core.hole_cards`): vertex V + i of ``faces`` is ``card_rest[i]`` moved by the
     rigid motion of the rest mesh's vertices ``card_stable`` from ``card_stable_rest`` (None: no cards);
+    card_motion : per region None or its motion check (:class:`facepipe.core.card_motion.CardMotion`:
+    a card region's reading counts only where its patch moved along its layers' path; None for
+    every region in models before it);
     cards_shaded : whether the cards' texels, with ``neutral_albedo``, hold albedo too (divided by
     the shading of the card's plane) and a frame's light shades them as the skin (False in models
     before it: they keep the footage's values);
@@ -159,6 +162,7 @@ class AppearanceModel:
     frame_facing_share: float = 0.0  # (models written before it: 0, min_point_facing in the frames too)
     stream_light: str = "sh9"  # the light the stream and textures carry (models written before it: the nine terms)
     shading_reference: str = "patch"  # what the shading surface is fitted against (models written before it: the patch)
+    card_motion: list | None = None  # (models written before it: no card's motion checked)
 
     @property
     def extra_tiles(self) -> list:
@@ -247,6 +251,13 @@ def save_appearance(path, model) -> None:
     for r, directions in enumerate(model.rest_nuisance or []):
         if directions is not None and len(directions):
             arrays[f"rest_nuisance_{r}"] = np.asarray(directions)
+    for r, motion in enumerate(model.card_motion or []):
+        if motion is not None:
+            arrays.update({f"card_motion_reference_{r}": np.asarray(motion.reference, dtype=np.float64),
+                           f"card_motion_reference_seen_{r}": np.asarray(motion.reference_seen, dtype=bool),
+                           f"card_motion_least_{r}": np.array(float(motion.least)),
+                           f"card_motion_layers_{r}": np.asarray(motion.layers, dtype=np.float64).reshape(-1, 2),
+                           f"card_motion_rest_{r}": np.asarray(motion.rest, dtype=np.float64).reshape(-1, 2)})
     if model.shading_orders is not None:
         arrays["shading_orders"] = np.asarray(model.shading_orders, dtype=np.int64)
     if model.card_rest is not None:
@@ -292,6 +303,31 @@ def _flag(d: dict, name: str) -> bool:
     return bool(value.item())
 
 
+def _card_motion(d: dict, r: int, name: str):
+    """Region r's stored motion check (:class:`~facepipe.core.card_motion.CardMotion`), or None."""
+    if f"card_motion_least_{r}" not in d:
+        return None
+    from facepipe.core.card_motion import CardMotion
+
+    least = np.asarray(d[f"card_motion_least_{r}"], dtype=np.float64)
+    layers = np.asarray(d.get(f"card_motion_layers_{r}", np.zeros((0,))), dtype=np.float64)
+    rest = np.asarray(d.get(f"card_motion_rest_{r}", np.zeros((0,))), dtype=np.float64)
+    if not (least.shape == () and np.isfinite(least) and least > 0):
+        raise ValueError(f"card_motion_least_{r} (region {name}): {least.tolist()!r} is not a shift > 0")
+    for key, rows in (("layers", layers), ("rest", rest)):
+        if rows.ndim != 2 or rows.shape[1] != 2 or not np.allclose(np.linalg.norm(rows, axis=1), 1.0, atol=1e-6):
+            raise ValueError(f"card_motion_{key}_{r} (region {name}): not rows of unit directions (x, y)")
+    if not len(layers):
+        raise ValueError(f"card_motion_layers_{r} (region {name}): no direction of its layers")
+    reference = np.asarray(d.get(f"card_motion_reference_{r}", np.zeros(0)), dtype=np.float64)
+    seen = np.asarray(d.get(f"card_motion_reference_seen_{r}", np.zeros(0)))
+    size = int(d["settings"][0])
+    if reference.shape != (size, size) or seen.shape != (size, size) or not np.isfinite(reference).all():
+        raise ValueError(f"card_motion_reference_{r} (region {name}): not a finite {size} × {size} patch with the "
+                         "texels it sees")
+    return CardMotion(reference, seen.astype(bool), float(least), layers, rest)
+
+
 def load_appearance(path):
     """Read a model written by :func:`save_appearance`."""
     path = Path(path)
@@ -330,7 +366,8 @@ def load_appearance(path):
                                _flag(d, "cards_shaded"),
                                float(d["frame_facing_share"]) if "frame_facing_share" in d else 0.0,
                                str(d["stream_light"]) if "stream_light" in d else "sh9",
-                               str(d["shading_reference"]) if "shading_reference" in d else "patch")
+                               str(d["shading_reference"]) if "shading_reference" in d else "patch",
+                               [_card_motion(d, r, str(d["names"][r])) for r in range(n)])
         from facepipe.core.appearance import PEAK_INTERPOLATIONS, SHADING_REFERENCES  # lazy: PyWavelets only where read
         from facepipe.core.lighting import LIGHT_MODELS
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from facepipe.core import appearance as ap
 from facepipe.core.camera import Camera
+from facepipe.core.card_motion import moves_along
 from facepipe.core.mesh import VertexSelection
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
@@ -355,12 +356,28 @@ def read_patches(patches, visible, seen, model: AppearanceModel, bank):
     where a region is hidden or reads nothing), the visibility (F, R) with the regions that read
     nothing hidden, and how far each reading lies off its layer path (F, R)."""
     q, distance = ap.classify_regions(patches, bank, model.shading, seen, model.min_seen, model.peak_interpolation)
+    q = checked_card_motion(q, patches, seen, model)
     visible = visible & np.isfinite(q)
     off_path = np.where(visible, ap.off_path_ratio(q, distance, bank.gaps[:, 0]), np.nan)
     floor = rest_floors(model, off_path)
     if floor is not None:
         q = ap.above_rest(q, floor, model.layer_counts)
     return np.where(visible, q, np.nan), visible, off_path
+
+
+def checked_card_motion(q: np.ndarray, patches, seen, model: AppearanceModel) -> np.ndarray:
+    """Q (F, R) with each card region that has a motion check (``model.card_motion``) read as at
+    rest (0) in the frames whose patch (in place, of ``patches`` (F, R, S, size, size) seeing
+    ``seen``) did not move along its layers' path (:mod:`facepipe.core.card_motion`: a look
+    across the path, a lid narrowing the opening)."""
+    if not model.card_motion:
+        return q
+    q = np.array(q, dtype=np.float64)
+    for r, motion in enumerate(model.card_motion):
+        if motion is not None:
+            own = moves_along(motion.shifts(patches[:, r, 0], seen[:, r, 0]), motion)
+            q[:, r] = np.where(own | np.isnan(q[:, r]), q[:, r], 0.0)
+    return q
 
 
 def sample_patches(grays, camera_positions, model: AppearanceModel, images=None):

@@ -25,6 +25,7 @@ import numpy as np
 
 from facepipe.core import appearance as ap, layered_texture, lighting
 from facepipe.core.camera import Camera, project_distorted
+from facepipe.core.card_motion import LEAST_FIRST_SHIFT, card_motion, masked_shifts
 from facepipe.core.raster import udim_tile_numbers
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
@@ -258,6 +259,9 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
         to_albedo(model, cfg, frames, cam_pos, seen, layer_seen, (texel_face, texel_bary), tiles)
     numbers = sorted(frames)
     grays, cams = np.stack([to_gray(frames[n][0]) for n in numbers]), np.stack([cam_pos[n] for n in numbers])
+    motions = {}
+    if cards is not None:  # before the examples are read: the check holds in their readings, and so in the floors
+        motions = card_motions(model, cfg, numbers, grays, cams, notes)
     # the example frames classified once: their readings set the rest floors, their lights the residual
     readings = classify_decoded(grays, cams, model, region_bank(model)) if cfg.rest_calibration else None
     explained = {}
@@ -282,10 +286,49 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                                 "carried_by_vertices": int(len(cards.stable)),
                                 "depth": float(cards.depths[c]),
                                 "depth_fitted": bool(depth_fits.get(name, {}).get("fitted", False)),
+                                "motion_check": motions.get(name),
                                 **({"depth_parallax_px": round(depth_fits[name]["parallax"], 2),
                                     "depth_frames": depth_fits[name]["frames"]} if name in depth_fits else {})}
                          for name, c in card_of.items()}
     return model, info
+
+
+def card_motions(model: AppearanceModel, cfg, numbers: list, grays: np.ndarray, cams: np.ndarray, notes: list) -> dict:
+    """Set each card region's motion check (``model.card_motion``,
+    :func:`facepipe.core.card_motion.card_motion`) from the example frames (their ``numbers``,
+    luminance and geometry in camera space): its layers' shifts against its neutral template, and
+    those of the frames where it is at rest and seen. Returns per card region what the build
+    reports: the layers' shifts, the least shift read as motion, the at-rest frames that move
+    the card across its path (or why it has no check)."""
+    model.card_motion = [None] * len(model.names)
+    cards = [r for r, region in enumerate(cfg.regions) if region.card]
+    patches, visible, seen, *_ = sample_patches(grays, cams, model)
+    at_rest = examples_at_rest(cfg, numbers) & visible
+    row = {n: i for i, n in enumerate(numbers)}
+    report = {}
+    for r in cards:
+        name, frames = model.names[r], cfg.regions[r].frames
+        neutral = row[frames[0]]  # against what the neutral frame shows of the card, where it shows it
+        reference, reference_seen = patches[neutral, r, 0], seen[neutral, r, 0]
+        shifts = masked_shifts(reference, reference_seen, patches[:, r, 0], seen[:, r, 0], cfg.template_size // 2)
+        layers = shifts[[row[f] for f in frames]]
+        motion = card_motion(reference, reference_seen, layers, shifts[at_rest[:, r]])
+        lengths = np.linalg.norm(layers[1:], axis=1)
+        entry = {"layer_shifts_texels": [None if not np.isfinite(x) else round(float(x), 2) for x in lengths]}
+        if motion is None:
+            notes.append(f"region {name}: its first layer moves its card's content {lengths[0]:.2f} texels (under "
+                         f"{LEAST_FIRST_SHIFT:g}): read by its match alone, without the motion check")
+        else:
+            across = [int(n) for n, s in zip(np.asarray(numbers)[at_rest[:, r]], shifts[at_rest[:, r]])
+                      if np.linalg.norm(s) > motion.least]
+            entry.update(least_texels=round(motion.least, 2), across_frames=across)
+            notes.append(f"region {name}: read only where its card's content moves along its layers' path (more "
+                         f"than {motion.least:.2f} texels, half its first layer's shift)"
+                         + (f"; at-rest example frame{'s' if len(across) > 1 else ''} {', '.join(map(str, across))} "
+                            "move it otherwise" if across else ""))
+        model.card_motion[r] = motion
+        report[name] = entry
+    return report
 
 
 #: A rest floor is kept to at most this many layers; above half a layer the build says so.
