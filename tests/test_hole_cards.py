@@ -365,6 +365,11 @@ def test_a_look_across_the_layers_gaze_reads_rest(tmp_path):
     assert spearmanr(q, yaw).statistic > 0.95
     assert np.abs(q[~looks] - yaw[~looks] / 6.0).max() < 0.75
     assert read(dataclasses.replace(model, card_motion=None))[looks].max() > 0.05  # what the check takes away
+    # the config turns it off: the Haar match alone
+    text = (kit / "appearance.toml").read_text()
+    (kit / "appearance.toml").write_text(text.replace('texture_size = 256', 'texture_size = 256\ncard_motion_check = false'))
+    unchecked, info = _built(kit)
+    assert unchecked.card_motion is None and "motion_check" not in info["cards"]["eyeball"]
 
 
 @pytest.mark.parametrize("front", [0.0, 0.25])
@@ -413,17 +418,20 @@ def test_card_depth_kept_where_the_head_never_turns_or_set(tmp_path):
     assert info["cards"]["eyeball"]["depth"] == 0.3 and not info["cards"]["eyeball"]["depth_fitted"]
 
 
-@pytest.mark.parametrize("value, said", [('"deep"', '"auto" or a number'), ("1.5", "not in [0, 1]"),
-                                         ("-0.1", "not in [0, 1]")])
-def test_card_depth_setting_is_checked(tmp_path, capsys, value, said):
+@pytest.mark.parametrize("key, value, said", [("card_depth", '"deep"', '"auto" or a number'),
+                                              ("card_depth", "1.5", "not in [0, 1]"),
+                                              ("card_depth", "-0.1", "not in [0, 1]"),
+                                              ("card_motion_check", '"yes"', "true or false")])
+def test_card_settings_are_checked(tmp_path, capsys, key, value, said):
     from facepipe.cli.commands import main
 
-    kit = _eye_kit(tmp_path, [0.0, 10.0, 20.0], [5.0], size=64, extra_config=[f"card_depth = {value}"])
+    kit = _eye_kit(tmp_path, [0.0, 10.0, 20.0], [5.0], size=64, extra_config=[f"{key} = {value}"])
     with pytest.raises(SystemExit) as exc:
         main(["appearance", "build", str(kit / "appearance.toml"), "-o", str(kit / "app.npz"), "-q"])
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert "card_depth" in err and said in err and "appearance.toml" in err
+    assert key in err and said in err and "appearance.toml" in err
+    assert not (kit / "app.npz").exists()
 
 
 def test_a_card_region_must_rim_a_hole(tmp_path, capsys):

@@ -147,6 +147,9 @@ class AppearanceConfig:
     # how far a card is set back into its opening, × the opening's width: "auto" fits it from the
     # example frames where its eye is at rest and the head turned (else 0.1), or a number
     card_depth: object = "auto"
+    # an eye card's reading counts only where its content moved along its layers' path (a look
+    # across it, a lid narrowing the opening read as rest); false: the Haar match alone
+    card_motion_check: bool = True
     regions: list = field(default_factory=list)
 
 
@@ -195,7 +198,7 @@ _TYPES: dict[str, dict[str, object]] = {
                    "shading": bool, "shading_surface": str, "shading_reference": str, "peak_interpolation": str, "light_fit": bool, "light_model": str, "occlusion": bool, "min_seen": float, "min_point_facing": float, "frame_facing_share": float,
                    "min_relative_facing": float, "unseen_margin": float, "rest_calibration": bool, "rest_frames": list,
                    "rest_explain": float, "rest_path_tolerance": float, "card_depth": "auto or a number",
-                   "regions": dict},
+                   "card_motion_check": bool, "regions": dict},
     "video": {"landmarks": str},
 }
 _REGION_TYPES = {"vertices": str, "template": list, "frames": list, "card": bool, "shading_surface": str}

@@ -260,7 +260,8 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
     numbers = sorted(frames)
     grays, cams = np.stack([to_gray(frames[n][0]) for n in numbers]), np.stack([cam_pos[n] for n in numbers])
     motions = {}
-    if cards is not None:  # before the examples are read: the check holds in their readings, and so in the floors
+    if cards is not None and cfg.card_motion_check:
+        # before the examples are read: the check holds in their readings, and so in the floors
         motions = card_motions(model, cfg, numbers, grays, cams, notes)
     # the example frames classified once: their readings set the rest floors, their lights the residual
     readings = classify_decoded(grays, cams, model, region_bank(model)) if cfg.rest_calibration else None
@@ -286,7 +287,7 @@ def build_appearance(config, mesh, camera: Camera, progress=None) -> tuple[Appea
                                 "carried_by_vertices": int(len(cards.stable)),
                                 "depth": float(cards.depths[c]),
                                 "depth_fitted": bool(depth_fits.get(name, {}).get("fitted", False)),
-                                "motion_check": motions.get(name),
+                                **({"motion_check": motions[name]} if name in motions else {}),
                                 **({"depth_parallax_px": round(depth_fits[name]["parallax"], 2),
                                     "depth_frames": depth_fits[name]["frames"]} if name in depth_fits else {})}
                          for name, c in card_of.items()}
