@@ -198,7 +198,8 @@ def first_regions(model, n: int):
     """The model with its first n regions only (every per-region array cut to them)."""
     per_region = {k: getattr(model, k)[:n] for k in ("names", "template_face", "template_bary", "templates",
                                                       "indices", "volumes", "alphas", "boxes")}
-    for k in ("template_facing", "template_mask", "rest_floor", "shading_orders", "rest_nuisance", "template_patches"):
+    for k in ("template_facing", "template_mask", "rest_floor", "shading_orders", "rest_nuisance", "template_patches",
+              "card_motion"):
         if getattr(model, k) is not None:
             per_region[k] = getattr(model, k)[:n]
     for k in ("rest_readings", "rest_off_path"):
