@@ -25,7 +25,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 __all__ = ["CardMotion", "ALONG_COSINE", "LEAST_OF_FIRST_LAYER", "LEAST_OVERLAP", "LEAST_FIRST_SHIFT", "masked_shifts",
-           "card_motion", "moves_along"]
+           "card_shifts", "card_motion", "moves_along"]
 
 #: A frame's shift must exceed this share of the first layer's (its direction is noise below it).
 LEAST_OF_FIRST_LAYER = 0.5
@@ -55,9 +55,14 @@ class CardMotion:
     rest: np.ndarray
 
     def shifts(self, patches: np.ndarray, seen: np.ndarray) -> np.ndarray:
-        """(..., 2) :func:`masked_shifts` of patches (..., s, s) seeing ``seen`` against the
-        reference, within half the patch's side."""
-        return masked_shifts(self.reference, self.reference_seen, patches, seen, self.reference.shape[0] // 2)
+        """(..., 2) :func:`card_shifts` of patches (..., s, s) seeing ``seen`` against the reference."""
+        return card_shifts(self.reference, self.reference_seen, patches, seen)
+
+
+def card_shifts(reference: np.ndarray, reference_seen: np.ndarray, patches: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """(..., 2) :func:`masked_shifts` of a card's patches against its neutral ``reference``,
+    searched within half the patch's side (a full gaze moves the iris about a third of it)."""
+    return masked_shifts(reference, reference_seen, patches, seen, np.shape(reference)[0] // 2)
 
 
 def masked_shifts(reference: np.ndarray, reference_seen: np.ndarray, patches: np.ndarray, seen: np.ndarray,

@@ -25,7 +25,7 @@ import numpy as np
 
 from facepipe.core import appearance as ap, layered_texture, lighting
 from facepipe.core.camera import Camera, project_distorted
-from facepipe.core.card_motion import LEAST_FIRST_SHIFT, card_motion, masked_shifts
+from facepipe.core.card_motion import LEAST_FIRST_SHIFT, card_motion, card_shifts
 from facepipe.core.raster import udim_tile_numbers
 from facepipe.errors import InputError
 from facepipe.io.appearance_file import AppearanceModel
@@ -311,14 +311,15 @@ def card_motions(model: AppearanceModel, cfg, numbers: list, grays: np.ndarray, 
         name, frames = model.names[r], cfg.regions[r].frames
         neutral = row[frames[0]]  # against what the neutral frame shows of the card, where it shows it
         reference, reference_seen = patches[neutral, r, 0], seen[neutral, r, 0]
-        shifts = masked_shifts(reference, reference_seen, patches[:, r, 0], seen[:, r, 0], cfg.template_size // 2)
+        shifts = card_shifts(reference, reference_seen, patches[:, r, 0], seen[:, r, 0])
         layers = shifts[[row[f] for f in frames]]
         motion = card_motion(reference, reference_seen, layers, shifts[at_rest[:, r]])
         lengths = np.linalg.norm(layers[1:], axis=1)
         entry = {"layer_shifts_texels": [None if not np.isfinite(x) else round(float(x), 2) for x in lengths]}
         if motion is None:
-            notes.append(f"region {name}: its first layer moves its card's content {lengths[0]:.2f} texels (under "
-                         f"{LEAST_FIRST_SHIFT:g}): read by its match alone, without the motion check")
+            moved = (f"moves its card's content {lengths[0]:.2f} texels (under {LEAST_FIRST_SHIFT:g})"
+                     if np.isfinite(lengths[0]) else "shows too little of its card to measure how far it moves")
+            notes.append(f"region {name}: its first layer {moved}: read by its match alone, without the motion check")
         else:
             across = [int(n) for n, s in zip(np.asarray(numbers)[at_rest[:, r]], shifts[at_rest[:, r]])
                       if np.linalg.norm(s) > motion.least]
@@ -326,7 +327,7 @@ def card_motions(model: AppearanceModel, cfg, numbers: list, grays: np.ndarray, 
             notes.append(f"region {name}: read only where its card's content moves along its layers' path (more "
                          f"than {motion.least:.2f} texels, half its first layer's shift)"
                          + (f"; at-rest example frame{'s' if len(across) > 1 else ''} {', '.join(map(str, across))} "
-                            "move it otherwise" if across else ""))
+                            f"move{'' if len(across) > 1 else 's'} it otherwise" if across else ""))
         model.card_motion[r] = motion
         report[name] = entry
     return report
